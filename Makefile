@@ -1,0 +1,82 @@
+# RMMDet: every target installs what it needs on first use (a fresh machine needs only `make up` / `make test`).
+SHELL := /bin/bash
+.DEFAULT_GOAL := help
+
+PYTHON ?= python3.11
+VENV := .venv
+BIN := $(VENV)/bin
+INSTALLED := $(VENV)/.installed
+PROTO_SRC := $(wildcard proto/rmmdet/v1/*.proto)
+PROTO_STAMP := proto/gen/.stamp
+SUPERVISOR_CONF := deploy/local/supervisord.conf
+RUN_DIR := .run
+PYTEST_ARGS ?=
+
+.PHONY: help install proto up down status logs test test-unit test-integration test-fault bench lint typecheck fmt clean
+
+help: ## list targets
+	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-18s %s\n", $$1, $$2}'
+
+$(INSTALLED): pyproject.toml
+	@command -v $(PYTHON) >/dev/null || { echo "error: $(PYTHON) not found (PyBullet 3.2.7 needs CPython 3.11)"; exit 1; }
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check --upgrade pip
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e '.[dev]'
+	@touch $@
+
+install: $(INSTALLED) $(PROTO_STAMP) ## create .venv and install the project (+ dev tools), generate protobuf code
+
+$(PROTO_STAMP): $(INSTALLED) $(PROTO_SRC) proto/generate.py
+	$(BIN)/python proto/generate.py
+
+proto: $(INSTALLED) ## (re)generate the protobuf Python code into proto/gen
+	$(BIN)/python proto/generate.py
+
+up: install ## start router and every service under supervisord (idempotent)
+	@mkdir -p $(RUN_DIR)/logs
+	@if $(BIN)/supervisorctl -c $(SUPERVISOR_CONF) pid >/dev/null 2>&1; then \
+	  echo "already up"; \
+	else \
+	  $(BIN)/supervisord -c $(SUPERVISOR_CONF) && echo "supervisord started"; \
+	fi
+	@$(BIN)/python -m services.cli.main wait-ready --timeout 30
+	@$(BIN)/supervisorctl -c $(SUPERVISOR_CONF) status || true
+	@echo "try: $(BIN)/rmmdet topics   |   $(BIN)/rmmdet health   |   make down"
+
+down: ## stop every service and supervisord; leaves no process behind
+	@if [ -x $(BIN)/python ]; then $(BIN)/python deploy/local/down.py --conf $(SUPERVISOR_CONF); else echo "not installed: nothing to stop"; fi
+
+status: ## supervisor view of the services
+	@$(BIN)/supervisorctl -c $(SUPERVISOR_CONF) status || true
+
+logs: ## tail all service logs
+	@tail -n 50 -F $(RUN_DIR)/logs/*.log
+
+test: install ## unit + integration + fault tests (excludes slow experiments)
+	$(BIN)/python -m pytest -m "not slow" $(PYTEST_ARGS)
+
+test-unit: install
+	$(BIN)/python -m pytest -m "not slow and not integration and not fault" $(PYTEST_ARGS)
+
+test-integration: install
+	$(BIN)/python -m pytest -m "integration and not slow" $(PYTEST_ARGS)
+
+test-fault: install
+	$(BIN)/python -m pytest -m "fault and not slow" $(PYTEST_ARGS)
+
+bench: install ## benchmarks; results land in tests/bench/results/*.json
+	$(BIN)/python -m tests.bench.bus_bench
+
+lint: install ## ruff
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+
+fmt: install
+	$(BIN)/ruff format .
+	$(BIN)/ruff check --fix .
+
+typecheck: install ## mypy on the shared library
+	$(BIN)/mypy
+
+clean: down
+	rm -rf proto/gen $(RUN_DIR) .pytest_cache .ruff_cache .mypy_cache

@@ -1,0 +1,85 @@
+"""`make down`: stop supervisord and every service it runs, and prove nothing is left behind.
+
+Asks supervisord to shut down (it stops each program's whole process group with SIGINT, then
+SIGKILL after stopwaitsecs), waits for it to exit, then looks for any process still running from
+this checkout's virtualenv and kills it, so a crashed supervisord cannot leave orphans.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import psutil
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+RUN_DIR = REPO_ROOT / ".run"
+VENV_PYTHON_PREFIX = str(REPO_ROOT / ".venv" / "bin")
+
+
+def supervisord_pid() -> int | None:
+    pidfile = RUN_DIR / "supervisord.pid"
+    try:
+        pid = int(pidfile.read_text().strip())
+    except (FileNotFoundError, ValueError):
+        return None
+    return pid if psutil.pid_exists(pid) else None
+
+
+def leftovers() -> list[psutil.Process]:
+    """Processes started from this checkout's .venv (services, supervisord), except ourselves."""
+    me = psutil.Process()
+    found = []
+    for proc in psutil.process_iter(["pid", "cmdline"]):
+        cmd = proc.info["cmdline"] or []
+        if proc.pid in (me.pid, me.ppid()):
+            continue
+        if any(part.startswith(VENV_PYTHON_PREFIX) for part in cmd[:2]) and (
+            "services." in " ".join(cmd) or "supervisord" in " ".join(cmd)
+        ):
+            found.append(proc)
+    return found
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--conf", default=str(REPO_ROOT / "deploy/local/supervisord.conf"))
+    parser.add_argument("--timeout-s", type=float, default=30.0)
+    args = parser.parse_args()
+
+    pid = supervisord_pid()
+    if pid is None:
+        print("supervisord not running")
+    else:
+        ctl = Path(sys.executable).parent / "supervisorctl"
+        subprocess.run([str(ctl), "-c", args.conf, "shutdown"], check=False)
+        deadline = time.monotonic() + args.timeout_s
+        while psutil.pid_exists(pid) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        if psutil.pid_exists(pid):
+            print(f"supervisord {pid} still alive after {args.timeout_s} s: killing it")
+            psutil.Process(pid).kill()
+
+    stray = leftovers()
+    for proc in stray:
+        print(f"killing leftover process {proc.pid}: {' '.join(proc.cmdline())}")
+        try:
+            proc.kill()
+        except psutil.NoSuchProcess:
+            pass
+    psutil.wait_procs(stray, timeout=5)
+    remaining = leftovers()
+    for sock in ("supervisor.sock", "supervisord.pid"):
+        (RUN_DIR / sock).unlink(missing_ok=True)
+    if remaining:
+        print(f"error: {len(remaining)} processes survived", file=sys.stderr)
+        return 1
+    print("down: no RMMDet process left")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""The `rmmdet` command-line tool."""

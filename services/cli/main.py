@@ -1,0 +1,245 @@
+"""`rmmdet`: command-line tool for a running RMMDet system.
+
+    rmmdet topics [--duration 3]     live key expressions with rate, bandwidth, gaps and decode errors
+    rmmdet health [--service mec]    every service's health report (exit 1 unless all NOMINAL)
+    rmmdet wait-ready                wait until the router answers (used by `make up`)
+
+Connects like any service (deploy/zenoh/client.json5, or the standard Zenoh flags).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated
+
+import typer
+import zenoh
+from rich.console import Console
+from rich.table import Table
+from rmmdet.v1.health_pb2 import HealthLevel, ServiceHealth
+
+from shared.bus.codec import Counters, MessageDecoder, schema_of
+from shared.bus.liveliness import alive_tokens
+from shared.bus.session import SessionUnavailable, open_session
+from shared.bus.streams import get_stream
+from shared.bus.zenoh_config import CONFIG_ENV, DEFAULT_CLIENT_CONFIG, zenoh_config
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
+console = Console()
+
+DATA_KEYS = "rmmdet/@v1/**"
+HEALTH_KEYS = "rmmdet/@v1/*/@health/**"
+ALIVE_KEYS = "rmmdet/@v1/*/@alive/**"
+
+
+@dataclass
+class ZenohOptions:
+    config: Path
+    connect: list[str]
+    cfg: list[str]
+
+    def build(self) -> zenoh.Config:
+        return zenoh_config(self.config, connect=self.connect, cfg=self.cfg)
+
+
+@app.callback()
+def common(
+    ctx: typer.Context,
+    config: Annotated[
+        Path, typer.Option("--config", "-c", envvar=CONFIG_ENV, help="Zenoh json5 config")
+    ] = DEFAULT_CLIENT_CONFIG,
+    connect: Annotated[list[str] | None, typer.Option("--connect", "-e", help="router endpoint")] = None,
+    cfg: Annotated[list[str] | None, typer.Option("--cfg", help="json5 override KEY:VALUE")] = None,
+) -> None:
+    logging.basicConfig(level=logging.ERROR)  # the tool reports through its own output
+    ctx.obj = ZenohOptions(config, connect or [], cfg or [])
+
+
+def connect(ctx: typer.Context, timeout_s: float = 3.0) -> zenoh.Session:
+    """Open a session to the router or exit 2 with a clear message."""
+    try:
+        return open_session(ctx.obj.build(), timeout_s=timeout_s)
+    except SessionUnavailable as err:
+        console.print(f"[red]router not reachable ({err}); is `make up` running?[/]")
+        raise typer.Exit(2) from None
+
+
+# --- topics ----------------------------------------------------------------------------------------
+
+
+@dataclass
+class TopicStats:
+    schema: str = "?"
+    messages: int = 0
+    bytes: int = 0
+    decode_errors: int = 0
+    gaps: int = 0
+    last_seq: dict[str, int] = field(default_factory=dict)
+
+
+class TopicCounter:
+    """Counts every sample under rmmdet/@v1/** per key (used by `rmmdet topics`)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.stats: dict[str, TopicStats] = defaultdict(TopicStats)
+        self._decoder = MessageDecoder(None, Counters())
+
+    def on_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        payload = sample.payload.to_bytes()
+        attachment = sample.attachment.to_bytes() if sample.attachment is not None else None
+        encoding = str(sample.encoding)
+        decoded = self._decoder.decode(payload, encoding, attachment)
+        with self._lock:
+            s = self.stats[key]
+            s.schema = schema_of(encoding) or encoding
+            s.messages += 1
+            s.bytes += len(payload)
+            if decoded is None:
+                s.decode_errors += 1
+                return
+            h = decoded.header
+            last = s.last_seq.get(h.source_id)
+            if last is not None and h.seq > last + 1:
+                s.gaps += h.seq - last - 1
+            s.last_seq[h.source_id] = h.seq
+
+    def snapshot(self) -> dict[str, TopicStats]:
+        with self._lock:
+            return dict(self.stats)
+
+
+@app.command()
+def topics(
+    ctx: typer.Context,
+    duration: Annotated[float, typer.Option(help="seconds to listen")] = 3.0,
+    key: Annotated[str, typer.Option(help="key expression to watch")] = DATA_KEYS,
+) -> None:
+    """Live key expressions with message rate, bandwidth, sequence gaps and decode errors."""
+    counter = TopicCounter()
+    with connect(ctx) as session:
+        sub = session.declare_subscriber(key, counter.on_sample)
+        time.sleep(duration)
+        sub.undeclare()
+    stats = counter.snapshot()
+    table = Table(title=f"{key} over {duration:.1f} s")
+    for col in ("key expression", "message", "rate Hz", "kB/s", "avg kB", "gaps", "decode errors"):
+        table.add_column(col, justify="left" if col in ("key expression", "message") else "right")
+    for k in sorted(stats):
+        s = stats[k]
+        table.add_row(
+            k,
+            s.schema,
+            f"{s.messages / duration:.1f}",
+            f"{s.bytes / duration / 1e3:.1f}",
+            f"{s.bytes / max(s.messages, 1) / 1e3:.1f}",
+            str(s.gaps),
+            str(s.decode_errors),
+        )
+    console.print(table)
+    if not stats:
+        console.print("no data on the bus (is `make up` running?)")
+
+
+# --- health ----------------------------------------------------------------------------------------
+
+
+def query_health(session: zenoh.Session, timeout_s: float = 2.0) -> tuple[list[ServiceHealth], list[str]]:
+    """Health reports of every service, and reply errors (undecodable replies)."""
+    decoder = MessageDecoder(ServiceHealth, Counters())
+    reports: list[ServiceHealth] = []
+    errors: list[str] = []
+    for reply in session.get(HEALTH_KEYS, timeout=timeout_s):
+        if reply.ok is None:
+            errors.append(f"error reply: {reply.err.payload.to_bytes()[:200]!r}")
+            continue
+        decoded = decoder.decode(reply.ok.payload.to_bytes(), str(reply.ok.encoding))
+        if decoded is None:
+            errors.append(f"{reply.ok.key_expr}: undecodable health reply")
+        else:
+            reports.append(decoded.message)
+    return reports, errors
+
+
+_LEVEL_STYLE = {"NOMINAL": "green", "DEGRADED": "yellow", "CRITICAL": "red", "UNKNOWN": "magenta"}
+
+
+@app.command()
+def health(
+    ctx: typer.Context,
+    service: Annotated[str | None, typer.Option(help="only this service")] = None,
+    timeout: Annotated[float, typer.Option(help="query timeout, seconds")] = 2.0,
+) -> None:
+    """Query every service's @health queryable; exit 1 unless all are NOMINAL."""
+    with connect(ctx) as session:
+        reports, errors = query_health(session, timeout)
+        alive = alive_tokens(session, ALIVE_KEYS, timeout)
+    if service:
+        reports = [r for r in reports if r.service == service]
+    table = Table(title="service health")
+    for col in ("service", "instance", "level", "uptime s", "inputs", "rejected", "message"):
+        table.add_column(col)
+    ok = bool(reports) and not errors
+    answered: set[str] = set()
+    for r in sorted(reports, key=lambda r: (r.service, r.instance)):
+        level = HealthLevel.Name(r.level).removeprefix("HEALTH_LEVEL_")
+        ok &= r.level == HealthLevel.HEALTH_LEVEL_NOMINAL
+        answered.add(r.header.source_id)
+        rejected = sum(c.value for c in r.counters if c.name.startswith("rejected/"))
+        inputs = ", ".join(f"{i.key_expr.split('/')[-1]}@{i.rate_hz:.1f}Hz" for i in r.inputs) or "-"
+        table.add_row(
+            r.service,
+            r.instance,
+            f"[{_LEVEL_STYLE[level]}]{level}[/]",
+            f"{r.uptime_s:.0f}",
+            inputs,
+            str(rejected),
+            r.message,
+        )
+    console.print(table)
+    # Presence without a health reply: connected but not answering (hung main loop, overload).
+    silent = []
+    for key in alive:
+        parts = key.split("/")  # rmmdet/@v1/<scope>/@alive/<service>/<instance>
+        if len(parts) == 6 and f"{parts[2]}/{parts[4]}/{parts[5]}" not in answered:
+            if service is None or parts[4] == service:
+                silent.append(key)
+    for key in silent:
+        console.print(f"[red]alive but no health reply:[/] {key}")
+    for err in errors:
+        console.print(f"[red]{err}[/]")
+    if not reports:
+        console.print("no service answered (is `make up` running?)")
+    raise typer.Exit(0 if ok and not silent else 1)
+
+
+@app.command("wait-ready")
+def wait_ready(
+    ctx: typer.Context,
+    timeout: Annotated[float, typer.Option(help="seconds to wait")] = 30.0,
+) -> None:
+    """Wait until the router's presence token is visible (exit 1 on timeout)."""
+    router_key = get_stream("alive").pattern(scope="site", service="router")
+    deadline = time.monotonic() + timeout
+    with connect(ctx, timeout_s=timeout) as session:
+        while time.monotonic() < deadline:
+            if alive_tokens(session, router_key, timeout_s=1.0):
+                console.print("router is up")
+                return
+            time.sleep(0.25)
+    console.print(f"[red]router not reachable after {timeout:.0f} s[/]")
+    raise typer.Exit(1)
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1 @@
+"""Local Zenoh router: a router-mode session every other service connects to as a client."""

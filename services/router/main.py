@@ -1,0 +1,60 @@
+"""Router service: serves deploy/zenoh/router.json5 from a zenoh-python router-mode session.
+
+It also declares the usual presence token and `@health` queryable (scope `site`) and logs the number
+of open transports at intervals. In production, zenohd with the same config replaces it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+import zenoh
+
+from shared.bus.health import NOMINAL
+from shared.bus.node import Node
+from shared.bus.zenoh_config import DEFAULT_ROUTER_CONFIG
+from shared.service import run_service
+from shared.shutdown import GracefulShutdown
+
+log = logging.getLogger("services.router")
+
+SCOPE = "site"
+
+
+def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
+    with Node(conf, service="router", instance=args.instance, scope=SCOPE, stop=shutdown.event) as node:
+        listen = conf.get_json("listen/endpoints")
+
+        def status() -> tuple[int, str]:
+            return NOMINAL, f"{len(node.session.info.transports())} transports; listening on {listen}"
+
+        node.health.set_status(status)
+        log.info("router listening on %s", listen)
+        last = -1
+        while not shutdown.wait(args.report_interval_s):
+            count = len(node.session.info.transports())
+            if count != last:
+                log.info("%d open transports", count)
+                last = count
+    return 0
+
+
+def add_args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--report-interval-s", type=float, default=10.0, help="transport-count log interval")
+
+
+def cli(argv: list[str] | None = None) -> int:
+    return run_service(
+        "router",
+        main,
+        description=__doc__ or "",
+        add_args=add_args,
+        default_zenoh_config=DEFAULT_ROUTER_CONFIG,
+        argv=argv,
+    )
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

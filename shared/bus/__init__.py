@@ -1,0 +1,4 @@
+"""Bus helpers: the key space, codecs with validation, sessions, queues, presence and health.
+
+Algorithms never import this package; services wire it to them.
+"""

@@ -1,0 +1,257 @@
+"""Protobuf encode/decode for the bus, with validation and per-reason rejection counters.
+
+Every sample's Zenoh encoding is `application/protobuf;<full message name>`. The rmmdet.v1.Header
+lives in the message body (`header` field) for rmmdet.v1 messages and in the Zenoh attachment for
+Foxglove schemas (which have no place for it), so every decoded message yields a Header either way.
+
+Decoding never raises out of a subscriber: a bad payload is counted under exactly one reason
+(`RejectReason`) and skipped.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from enum import StrEnum
+
+import zenoh
+from google.protobuf.descriptor import FieldDescriptor
+from google.protobuf.message import DecodeError, Message
+from rmmdet.v1.common_pb2 import Header
+
+PROTOBUF_MIME = "application/protobuf"
+
+#: Default payload limit; frames are ~0.1-1 MB, everything else is far smaller.
+DEFAULT_MAX_PAYLOAD_BYTES = 8 * 1024 * 1024
+#: The attachment only ever holds a Header.
+MAX_ATTACHMENT_BYTES = 4096
+
+
+class RejectReason(StrEnum):
+    OVERSIZE = "oversize"  # payload or attachment larger than the limit
+    ENCODING = "encoding"  # not application/protobuf, or a schema other than the expected one
+    DECODE = "decode"  # protobuf parse failed
+    NON_FINITE = "non_finite"  # NaN or Inf in a float field
+    RANGE = "range"  # a value outside its physical range (negative size, probability > 1, ...)
+    HEADER = "header"  # header missing or malformed
+    STALE = "stale"  # older than the consumer's freshness limit
+
+
+class Rejected(Exception):
+    def __init__(self, reason: RejectReason, detail: str) -> None:
+        super().__init__(f"{reason}: {detail}")
+        self.reason = reason
+        self.detail = detail
+
+
+class Counters:
+    """Thread-safe named counters (`rejected/decode`, `dropped/queue_full`, ...)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._values: dict[str, int] = {}
+
+    def inc(self, name: str, n: int = 1) -> None:
+        with self._lock:
+            self._values[name] = self._values.get(name, 0) + n
+
+    def get(self, name: str) -> int:
+        with self._lock:
+            return self._values.get(name, 0)
+
+    def snapshot(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self._values)
+
+    def total(self, prefix: str) -> int:
+        with self._lock:
+            return sum(v for k, v in self._values.items() if k.startswith(prefix))
+
+
+# --- encoding ------------------------------------------------------------------------------------
+
+
+def encoding_for(msg_or_type: Message | type[Message]) -> zenoh.Encoding:
+    return zenoh.Encoding.APPLICATION_PROTOBUF.with_schema(msg_or_type.DESCRIPTOR.full_name)
+
+
+def schema_of(encoding: str | zenoh.Encoding | None) -> str | None:
+    """`rmmdet.v1.X` from `application/protobuf;rmmdet.v1.X`; None if not protobuf."""
+    if encoding is None:
+        return None
+    mime, _, schema = str(encoding).partition(";")
+    if mime != PROTOBUF_MIME:
+        return None
+    return schema or None
+
+
+@dataclass(frozen=True)
+class Encoded:
+    payload: bytes
+    encoding: zenoh.Encoding
+    attachment: bytes | None
+
+
+def has_body_header(msg_or_type: Message | type[Message]) -> bool:
+    field = msg_or_type.DESCRIPTOR.fields_by_name.get("header")
+    return field is not None and field.message_type is Header.DESCRIPTOR
+
+
+def encode(msg: Message, header: Header | None = None) -> Encoded:
+    """Serialise `msg`. For messages without a body header, `header` goes into the attachment."""
+    if has_body_header(msg):
+        if header is not None:
+            msg.header.CopyFrom(header)  # type: ignore[attr-defined]
+        attachment = None
+    else:
+        attachment = header.SerializeToString() if header is not None else None
+    return Encoded(msg.SerializeToString(), encoding_for(msg), attachment)
+
+
+# --- validation ----------------------------------------------------------------------------------
+
+_FLOAT_TYPES = (FieldDescriptor.TYPE_DOUBLE, FieldDescriptor.TYPE_FLOAT)
+
+
+def find_non_finite(msg: Message, path: str = "") -> str | None:
+    """Path of the first NaN/Inf float field in `msg` (recursively), or None."""
+    for field, value in msg.ListFields():
+        name = f"{path}.{field.name}" if path else field.name
+        is_repeated = field.is_repeated
+        if field.type in _FLOAT_TYPES:
+            values = value if is_repeated else (value,)
+            for i, v in enumerate(values):
+                if not math.isfinite(v):
+                    return f"{name}[{i}]" if is_repeated else name
+        elif field.type == FieldDescriptor.TYPE_MESSAGE:
+            if field.message_type.GetOptions().map_entry:
+                continue
+            children: Iterable[Message] = value if is_repeated else (value,)
+            for i, child in enumerate(children):
+                found = find_non_finite(child, f"{name}[{i}]" if is_repeated else name)
+                if found:
+                    return found
+    return None
+
+
+Validator = Callable[[Message], str | None]
+_VALIDATORS: dict[str, list[Validator]] = {}
+
+
+def register_validator(full_name: str) -> Callable[[Validator], Validator]:
+    """Register a range check for a message type; it returns an error string or None."""
+
+    def wrap(fn: Validator) -> Validator:
+        _VALIDATORS.setdefault(full_name, []).append(fn)
+        return fn
+
+    return wrap
+
+
+def validate(msg: Message) -> None:
+    """Raise Rejected if `msg` holds NaN/Inf or out-of-range values."""
+    bad = find_non_finite(msg)
+    if bad:
+        raise Rejected(RejectReason.NON_FINITE, f"non-finite value in {bad}")
+    for check in _VALIDATORS.get(msg.DESCRIPTOR.full_name, ()):
+        problem = check(msg)
+        if problem:
+            raise Rejected(RejectReason.RANGE, problem)
+
+
+# --- decoding ------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Decoded:
+    message: Message
+    header: Header
+
+
+class MessageDecoder:
+    """Decoder for one expected message type (or any known type when `expected` is None).
+
+    `decode` returns None for a rejected payload after counting it as `rejected/<reason>`;
+    `decode_or_raise` raises `Rejected` instead (for RPC handlers that reply with an error).
+    """
+
+    def __init__(
+        self,
+        expected: type[Message] | None,
+        counters: Counters | None = None,
+        max_payload_bytes: int = DEFAULT_MAX_PAYLOAD_BYTES,
+        max_age_s: float | None = None,
+        clock_s: Callable[[], float] = time.time,
+    ) -> None:
+        self.expected = expected
+        self.counters = counters if counters is not None else Counters()
+        self.max_payload_bytes = max_payload_bytes
+        self.max_age_s = max_age_s
+        self._clock_s = clock_s
+
+    def decode(self, payload: bytes, encoding: str | None, attachment: bytes | None = None) -> Decoded | None:
+        try:
+            decoded = self.decode_or_raise(payload, encoding, attachment)
+        except Rejected as err:
+            self.counters.inc(f"rejected/{err.reason}")
+            return None
+        self.counters.inc("accepted")
+        return decoded
+
+    def decode_or_raise(self, payload: bytes, encoding: str | None, attachment: bytes | None = None) -> Decoded:
+        if len(payload) > self.max_payload_bytes:
+            raise Rejected(RejectReason.OVERSIZE, f"{len(payload)} B > {self.max_payload_bytes} B")
+        if attachment is not None and len(attachment) > MAX_ATTACHMENT_BYTES:
+            raise Rejected(RejectReason.OVERSIZE, f"attachment {len(attachment)} B > {MAX_ATTACHMENT_BYTES} B")
+        msg_type = self._resolve_type(encoding)
+        msg = msg_type()
+        try:
+            msg.ParseFromString(payload)
+        except (DecodeError, RuntimeError, ValueError) as err:
+            raise Rejected(RejectReason.DECODE, f"{msg_type.DESCRIPTOR.full_name}: {err}") from None
+        header = self._header(msg, attachment)
+        validate(header)
+        validate(msg)
+        if self.max_age_s is not None and header.HasField("stamp"):
+            age_s = self._clock_s() - header.stamp.ToNanoseconds() * 1e-9
+            if age_s > self.max_age_s:
+                raise Rejected(RejectReason.STALE, f"age {age_s:.3f} s > {self.max_age_s} s")
+        return Decoded(msg, header)
+
+    def _resolve_type(self, encoding: str | None) -> type[Message]:
+        from shared.bus.streams import message_type  # local: streams imports zenoh config lazily
+
+        schema = schema_of(encoding)
+        if schema is None:
+            raise Rejected(RejectReason.ENCODING, f"not protobuf: {encoding!r}")
+        if self.expected is not None:
+            if schema != self.expected.DESCRIPTOR.full_name:
+                raise Rejected(RejectReason.ENCODING, f"schema {schema} != {self.expected.DESCRIPTOR.full_name}")
+            return self.expected
+        try:
+            return message_type(schema)
+        except KeyError:
+            raise Rejected(RejectReason.ENCODING, f"unknown schema {schema}") from None
+
+    @staticmethod
+    def _header(msg: Message, attachment: bytes | None) -> Header:
+        if has_body_header(msg):
+            if not msg.HasField("header"):
+                raise Rejected(RejectReason.HEADER, "message has no header")
+            return msg.header  # type: ignore[attr-defined,no-any-return]
+        if not attachment:
+            raise Rejected(RejectReason.HEADER, "no header attachment")
+        header = Header()
+        try:
+            header.ParseFromString(attachment)
+        except DecodeError as err:
+            raise Rejected(RejectReason.HEADER, f"bad header attachment: {err}") from None
+        return header
+
+
+# Range checks for the message types whose values have physical limits. Import-time registration
+# keeps the rules next to the codec that enforces them.
+from shared.bus import validators as _validators  # noqa: E402,F401

@@ -1,0 +1,332 @@
+"""`Node`: one service process on the bus.
+
+A Node owns the Zenoh session and everything declared on it, and always closes it (an unclosed
+session with callbacks hangs the interpreter at exit). It also declares the process's liveliness
+token and `@health` queryable, stamps outgoing headers (source id, sequence number, stamps) and
+decodes incoming samples with validation into bounded, counted queues.
+
+    with Node(conf, service="mec", instance="agent1", scope="agent1") as node:
+        objects = node.publisher("objects", agent="agent1")
+        cams = node.subscribe_stream("camera_image", agent="agent1", sensor="cam_11", expected_rate_hz=15)
+        while not shutdown.requested:
+            received = cams.recv(timeout=0.1)
+            ...
+
+Zenoh callbacks here only decode and enqueue; all work happens in the caller's threads.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Any
+
+import zenoh
+from google.protobuf.message import Message
+from rmmdet.v1.common_pb2 import Header, ProcessingStamp
+
+from shared.bus.codec import (
+    DEFAULT_MAX_PAYLOAD_BYTES,
+    Counters,
+    Decoded,
+    MessageDecoder,
+    encode,
+    encoding_for,
+    has_body_header,
+)
+from shared.bus.health import HealthTracker, InputMonitor, RateThresholds
+from shared.bus.queues import BoundedQueue, OverflowPolicy
+from shared.bus.session import open_session
+from shared.bus.streams import Stream, get_stream, validate_id
+
+log = logging.getLogger(__name__)
+
+VERSION = "0.1.0"
+
+
+@dataclass(frozen=True)
+class Received:
+    key: str
+    message: Any  # a protobuf Message of the decoded type
+    header: Header
+    size_bytes: int
+    received_wall_ns: int
+
+
+class Subscription:
+    """A subscriber whose callback decodes, validates and enqueues; consumers call `recv`."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key_expr: str,
+        decoder: MessageDecoder,
+        queue: BoundedQueue[Received],
+        monitor: InputMonitor,
+        counters: Counters,
+    ) -> None:
+        self.key_expr = key_expr
+        self.decoder = decoder
+        self.queue = queue
+        self.monitor = monitor
+        self._counters = counters
+        self._subscriber = session.declare_subscriber(key_expr, self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        # Runs on a Zenoh thread: never raise, never block.
+        try:
+            payload = sample.payload.to_bytes()
+            attachment = sample.attachment.to_bytes() if sample.attachment is not None else None
+            decoded = self.decoder.decode(payload, str(sample.encoding), attachment)
+            if decoded is None:
+                return
+            self.monitor.record(decoded.header, len(payload))
+            item = Received(str(sample.key_expr), decoded.message, decoded.header, len(payload), time.time_ns())
+            if not self.queue.put(item):
+                self._counters.inc("dropped/queue_full")
+        except Exception:  # a bug here must not kill Zenoh's dispatch thread
+            self._counters.inc("rejected/internal")
+            log.exception("subscriber callback failed on %s", self.key_expr)
+
+    def recv(self, timeout: float | None = None) -> Received | None:
+        return self.queue.get(timeout)
+
+    def drain(self) -> list[Received]:
+        return self.queue.drain()
+
+    def __iter__(self) -> Iterator[Received]:
+        while not self.queue.closed:
+            item = self.queue.get(timeout=0.1)
+            if item is not None:
+                yield item
+
+    def undeclare(self) -> None:
+        self.queue.close()
+        self._subscriber.undeclare()
+
+
+class Publisher:
+    """Publisher for one stream key: stamps the header and applies the stream's QoS."""
+
+    def __init__(self, session: zenoh.Session, stream: Stream, key: str, source_id: str, stage: str) -> None:
+        self.stream = stream
+        self.key = key
+        self.source_id = source_id
+        self._stage = stage
+        self._message_type = stream.message_type
+        self._body_header = has_body_header(self._message_type)
+        self._publisher = session.declare_publisher(
+            key, encoding=encoding_for(self._message_type), **stream.qos.publisher_kwargs()
+        )
+        self._lock = threading.Lock()
+        self.seq = 0
+
+    def next_header(
+        self,
+        *,
+        stamp_ns: int | None = None,
+        derived_from: Header | None = None,
+        tick: int = 0,
+        frame_id: str = "",
+    ) -> Header:
+        """Header for the next message. The data stamp is inherited from `derived_from` (never
+        re-stamped downstream), else `stamp_ns`, else now (data with no sensor time)."""
+        with self._lock:
+            self.seq += 1
+            seq = self.seq
+        header = Header(source_id=self.source_id, seq=seq, frame_id=frame_id, tick=tick)
+        if derived_from is not None:
+            header.stamp.CopyFrom(derived_from.stamp)
+            header.tick = derived_from.tick
+            header.processing.extend(derived_from.processing)
+            if not frame_id:
+                header.frame_id = derived_from.frame_id
+        elif stamp_ns is not None:
+            header.stamp.FromNanoseconds(stamp_ns)
+        else:
+            header.stamp.FromNanoseconds(time.time_ns())
+        return header
+
+    def put(
+        self,
+        msg: Message,
+        header: Header | None = None,
+        *,
+        stages: Sequence[ProcessingStamp] = (),
+        **header_kwargs: Any,
+    ) -> Header:
+        """Publish `msg`. Without `header`, one is made by `next_header(**header_kwargs)`;
+        `stages` and a publish stamp are appended to its processing list. Returns the header sent."""
+        if not isinstance(msg, self._message_type):
+            raise TypeError(f"{self.key} carries {self._message_type.DESCRIPTOR.full_name}, got {type(msg).__name__}")
+        if header is None:
+            header = self.next_header(**header_kwargs)
+        header.processing.extend(stages)
+        now_ns = time.time_ns()
+        stamp = header.processing.add(stage=f"{self._stage}/publish")
+        stamp.start.FromNanoseconds(now_ns)
+        stamp.end.FromNanoseconds(now_ns)
+        encoded = encode(msg, header)
+        self._publisher.put(encoded.payload, attachment=encoded.attachment)
+        return header
+
+    def undeclare(self) -> None:
+        self._publisher.undeclare()
+
+
+QueryHandler = Callable[[zenoh.Query], None]
+
+
+class Node:
+    """Session + liveliness token + health queryable + typed publishers/subscriptions."""
+
+    def __init__(
+        self,
+        conf: zenoh.Config,
+        *,
+        service: str,
+        instance: str,
+        scope: str,
+        thresholds: RateThresholds = RateThresholds(),
+        open_timeout_s: float | None = None,
+        stop: threading.Event | None = None,
+    ) -> None:
+        """`open_timeout_s`/`stop` bound the wait for the router at `open()` (default: wait until
+        it is reachable or `stop` is set)."""
+        self.service = validate_id(service, "service")
+        self.instance = validate_id(instance, "instance")
+        self.scope = validate_id(scope, "scope")
+        self.source_id = f"{scope}/{service}/{instance}"
+        self.thresholds = thresholds
+        self.counters = Counters()
+        self.health = HealthTracker(service, instance, self.counters, VERSION)
+        self._conf = conf
+        self._open_timeout_s = open_timeout_s
+        self._stop = stop
+        self._session: zenoh.Session | None = None
+        self._declared: list[Any] = []
+        self._lock = threading.Lock()
+        self.alive_key = get_stream("alive").key(scope=scope, service=service, instance=instance)
+        self.health_key = get_stream("health").key(scope=scope, service=service, instance=instance)
+
+    # --- lifecycle -------------------------------------------------------------------------------
+
+    def __enter__(self) -> Node:
+        self.open()
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def open(self) -> None:
+        self._session = open_session(self._conf, timeout_s=self._open_timeout_s, stop=self._stop)
+        try:
+            self._declared.append(self._session.liveliness().declare_token(self.alive_key))
+            self._declared.append(self._session.declare_queryable(self.health_key, self._on_health_query))
+        except Exception:
+            self.close()
+            raise
+        log.info("node %s up (zid %s)", self.source_id, self._session.info.zid())
+
+    def close(self) -> None:
+        with self._lock:
+            declared, self._declared = self._declared, []
+            session, self._session = self._session, None
+        for entity in reversed(declared):
+            try:
+                entity.undeclare()
+            except Exception as err:  # keep closing the rest
+                log.warning("undeclare failed: %s", err)
+        if session is not None:
+            session.close()
+            log.info("node %s closed", self.source_id)
+
+    @property
+    def session(self) -> zenoh.Session:
+        if self._session is None:
+            raise RuntimeError("node is not open")
+        return self._session
+
+    # --- publish ---------------------------------------------------------------------------------
+
+    def publisher(self, stream_name: str, *, source_id: str | None = None, **ids: str) -> Publisher:
+        stream = get_stream(stream_name)
+        if stream.kind != "pubsub":
+            raise ValueError(f"stream {stream_name} is a {stream.kind}, not pub/sub")
+        pub = Publisher(self.session, stream, stream.key(**ids), source_id or self.source_id, self.source_id)
+        self._declared.append(pub)
+        return pub
+
+    # --- subscribe -------------------------------------------------------------------------------
+
+    def subscribe(
+        self,
+        key_expr: str,
+        expected_type: type[Message] | None = None,
+        *,
+        maxsize: int = 4,
+        policy: OverflowPolicy = OverflowPolicy.DROP_OLDEST,
+        expected_rate_hz: float = 0.0,
+        max_age_s: float | None = None,
+        max_payload_bytes: int = DEFAULT_MAX_PAYLOAD_BYTES,
+    ) -> Subscription:
+        """Subscribe to `key_expr`; `expected_type=None` accepts any known schema (tools)."""
+        decoder = MessageDecoder(expected_type, self.counters, max_payload_bytes, max_age_s)
+        monitor = InputMonitor(key_expr, expected_rate_hz, self.thresholds)
+        self.health.add_input(monitor)
+        sub = Subscription(self.session, key_expr, decoder, BoundedQueue(maxsize, policy), monitor, self.counters)
+        self._declared.append(sub)
+        return sub
+
+    def subscribe_stream(
+        self,
+        stream_name: str,
+        *,
+        maxsize: int | None = None,
+        expected_rate_hz: float = 0.0,
+        max_age_s: float | None = None,
+        **ids: str,
+    ) -> Subscription:
+        """Subscribe to a stream; ids left out become `*`. Latest-wins streams keep a short
+        drop-oldest queue, must-deliver streams a long one."""
+        stream = get_stream(stream_name)
+        if maxsize is None:
+            maxsize = 4 if stream.stream_class == "latest-wins" else 1024
+        return self.subscribe(
+            stream.pattern(**ids),
+            stream.message_type,
+            maxsize=maxsize,
+            expected_rate_hz=expected_rate_hz,
+            max_age_s=max_age_s,
+        )
+
+    # --- queryables ------------------------------------------------------------------------------
+
+    def queryable(self, key_expr: str, handler: QueryHandler) -> zenoh.Queryable:
+        """Declare a queryable; `handler` runs on a Zenoh thread and must reply promptly."""
+
+        def safe(query: zenoh.Query) -> None:
+            try:
+                handler(query)
+            except Exception:
+                self.counters.inc("rejected/internal")
+                log.exception("query handler failed on %s", key_expr)
+
+        q = self.session.declare_queryable(key_expr, safe)
+        self._declared.append(q)
+        return q
+
+    def _on_health_query(self, query: zenoh.Query) -> None:
+        try:
+            report = self.health.report()
+            report.header.source_id = self.source_id
+            encoded = encode(report)
+            query.reply(self.health_key, encoded.payload, encoding=encoded.encoding)
+        except Exception:
+            log.exception("health query failed")

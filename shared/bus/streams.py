@@ -1,0 +1,214 @@
+"""The key space loaded from proto/streams.yaml: key builders, message types and QoS per stream.
+
+    >>> get_stream("objects").key(agent="agent1")
+    'rmmdet/@v1/agent1/objects'
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import importlib
+import re
+import string
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+import zenoh
+from google.protobuf.message import Message
+
+STREAMS_YAML = Path(__file__).resolve().parents[2] / "proto" / "streams.yaml"
+
+#: One key chunk of an id (agent, sensor, vehicle, service, instance). No Zenoh-reserved characters.
+ID_PATTERN = re.compile(r"^[a-z0-9][a-z0-9_\-]{0,63}$")
+
+StreamClass = Literal["latest-wins", "must-deliver", "health"]
+StreamKind = Literal["pubsub", "queryable", "liveliness"]
+HeaderPlacement = Literal["body", "attachment"]
+
+
+@dataclass(frozen=True)
+class QosProfile:
+    name: str
+    priority: str  # zenoh.Priority member name, e.g. "DATA_HIGH"
+    congestion_control: str  # zenoh.CongestionControl member name: "DROP" or "BLOCK"
+    express: bool
+
+    def publisher_kwargs(self) -> dict[str, Any]:
+        return {
+            "priority": getattr(zenoh.Priority, self.priority),
+            "congestion_control": getattr(zenoh.CongestionControl, self.congestion_control),
+            "express": self.express,
+        }
+
+
+@dataclass(frozen=True)
+class Stream:
+    """One row of the key-space table."""
+
+    name: str
+    key_template: str
+    type_name: str | None
+    stream_class: StreamClass
+    qos: QosProfile
+    kind: StreamKind = "pubsub"
+    header: HeaderPlacement = "body"
+    reply_type_name: str | None = None
+    doc: str = ""
+
+    @property
+    def fields(self) -> tuple[str, ...]:
+        return tuple(f for _, f, _, _ in string.Formatter().parse(self.key_template) if f)
+
+    def key(self, **ids: str) -> str:
+        """Concrete key with every placeholder filled by a validated id."""
+        missing = set(self.fields) - ids.keys()
+        extra = ids.keys() - set(self.fields)
+        if missing or extra:
+            raise ValueError(f"stream {self.name}: missing ids {sorted(missing)}, unexpected {sorted(extra)}")
+        for field, value in ids.items():
+            validate_id(value, field)
+        return self.key_template.format(**ids)
+
+    def pattern(self, **ids: str) -> str:
+        """Key expression with unspecified placeholders as `*` (e.g. all cameras of one agent)."""
+        for field, value in ids.items():
+            if field not in self.fields:
+                raise ValueError(f"stream {self.name} has no id {field!r}")
+            validate_id(value, field)
+        return self.key_template.format(**{f: ids.get(f, "*") for f in self.fields})
+
+    def matches(self, key: str) -> bool:
+        return zenoh.KeyExpr(self.pattern()).intersects(zenoh.KeyExpr(key))
+
+    @property
+    def message_type(self) -> type[Message]:
+        if self.type_name is None:
+            raise ValueError(f"stream {self.name} carries no message")
+        return message_type(self.type_name)
+
+    @property
+    def reply_type(self) -> type[Message]:
+        if self.reply_type_name is None:
+            raise ValueError(f"stream {self.name} has no reply type")
+        return message_type(self.reply_type_name)
+
+
+def validate_id(value: str, what: str = "id") -> str:
+    if not isinstance(value, str) or not ID_PATTERN.match(value):
+        raise ValueError(f"invalid {what} {value!r}: must match {ID_PATTERN.pattern}")
+    return value
+
+
+_RMMDET_MODULES = ("common", "geometry", "sensors", "perception", "traffic", "planning", "health", "sim")
+
+
+@functools.cache
+def message_type(full_name: str) -> type[Message]:
+    """Generated class for a full protobuf name (`rmmdet.v1.X` or `foxglove.X`)."""
+    package, _, name = full_name.rpartition(".")
+    if package == "rmmdet.v1":
+        for module in _RMMDET_MODULES:
+            cls = getattr(importlib.import_module(f"rmmdet.v1.{module}_pb2"), name, None)
+            if cls is not None:
+                return cls
+    elif package == "foxglove":
+        try:
+            module = importlib.import_module(f"foxglove_schemas_protobuf.{name}_pb2")
+        except ImportError:
+            module = None
+        if module is not None and hasattr(module, name):
+            return getattr(module, name)
+    raise KeyError(f"unknown message type {full_name!r}")
+
+
+def all_rmmdet_message_types() -> list[type[Message]]:
+    """Every message class of the rmmdet.v1 package (for round-trip tests and tools)."""
+    out: list[type[Message]] = []
+    for module_name in _RMMDET_MODULES:
+        module = importlib.import_module(f"rmmdet.v1.{module_name}_pb2")
+        for desc in module.DESCRIPTOR.message_types_by_name.values():
+            out.append(getattr(module, desc.name))
+    return out
+
+
+def load_streams(path: Path = STREAMS_YAML) -> dict[str, Stream]:
+    spec = yaml.safe_load(path.read_text())
+    profiles = {
+        name: QosProfile(name, p["priority"], p["congestion_control"], bool(p["express"]))
+        for name, p in spec["qos_profiles"].items()
+    }
+    for profile in profiles.values():
+        profile.publisher_kwargs()  # unknown enum names fail here, at load time
+    streams: dict[str, Stream] = {}
+    for name, s in spec["streams"].items():
+        if s["class"] not in spec["classes"]:
+            raise ValueError(f"stream {name}: unknown class {s['class']!r}")
+        if not s["key"].startswith(spec["prefix"] + "/"):
+            raise ValueError(f"stream {name}: key {s['key']!r} outside {spec['prefix']}")
+        streams[name] = Stream(
+            name=name,
+            key_template=s["key"],
+            type_name=s.get("type"),
+            stream_class=s["class"],
+            qos=profiles[s["qos"]],
+            kind=s.get("kind", "pubsub"),
+            header=s.get("header", "body"),
+            reply_type_name=s.get("reply_type"),
+            doc=s.get("doc", ""),
+        )
+    return streams
+
+
+@functools.cache
+def streams() -> dict[str, Stream]:
+    return load_streams()
+
+
+def get_stream(name: str) -> Stream:
+    try:
+        return streams()[name]
+    except KeyError:
+        raise KeyError(f"unknown stream {name!r}; known: {sorted(streams())}") from None
+
+
+def stream_for_key(key: str) -> Stream | None:
+    """The stream whose key template matches a concrete key, if any."""
+    for stream in streams().values():
+        if stream.kind == "pubsub" and stream.matches(key):
+            return stream
+    return None
+
+
+def markdown_table() -> str:
+    """The key-space table embedded in proto/README.md."""
+    rows = [
+        "| Key expression | Message | Stream class | QoS (priority, congestion, express) | Kind | Notes |",
+        "|---|---|---|---|---|---|",
+    ]
+    for s in streams().values():
+        msg = s.type_name or "—"
+        if s.reply_type_name:
+            msg += f" → {s.reply_type_name}"
+        if s.header == "attachment":
+            msg += " (header in attachment)"
+        qos = f"{s.qos.name}: {s.qos.priority}, {s.qos.congestion_control}, express={s.qos.express}"
+        rows.append(f"| `{s.key_template}` | `{msg}` | {s.stream_class} | {qos} | {s.kind} | {s.doc} |")
+    return "\n".join(rows) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--markdown", action="store_true", help="print the key-space table")
+    args = parser.parse_args()
+    if args.markdown:
+        print(markdown_table(), end="")
+    else:
+        for s in streams().values():
+            print(f"{s.name:16s} {s.key_template}")
+
+
+if __name__ == "__main__":
+    main()
