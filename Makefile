@@ -52,7 +52,10 @@ status: ## supervisor view of the services
 logs: ## tail all service logs
 	@tail -n 50 -F $(RUN_DIR)/logs/*.log
 
-test: install ## unit + integration + fault tests (excludes slow experiments)
+test: install ## lint, type-check, then unit + integration + fault tests (excludes slow experiments)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+	$(BIN)/mypy
 	$(BIN)/python -m pytest -m "not slow" $(PYTEST_ARGS)
 
 test-unit: install
@@ -64,8 +67,8 @@ test-integration: install
 test-fault: install
 	$(BIN)/python -m pytest -m "fault and not slow" $(PYTEST_ARGS)
 
-bench: install ## benchmarks; results land in tests/bench/results/*.json
-	$(BIN)/python -m tests.bench.bus_bench
+bench: install ## benchmarks (bus latency/throughput); results land in tests/bench/results/*.json
+	$(BIN)/python -m tests.bench.bus_bench $(BENCH_ARGS)
 
 lint: install ## ruff
 	$(BIN)/ruff check .

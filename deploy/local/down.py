@@ -8,6 +8,7 @@ this checkout's virtualenv and kills it, so a crashed supervisord cannot leave o
 from __future__ import annotations
 
 import argparse
+import contextlib
 import subprocess
 import sys
 import time
@@ -66,10 +67,8 @@ def main() -> int:
     stray = leftovers()
     for proc in stray:
         print(f"killing leftover process {proc.pid}: {' '.join(proc.cmdline())}")
-        try:
+        with contextlib.suppress(psutil.NoSuchProcess):
             proc.kill()
-        except psutil.NoSuchProcess:
-            pass
     psutil.wait_procs(stray, timeout=5)
     remaining = leftovers()
     for sock in ("supervisor.sock", "supervisord.pid"):

@@ -9,7 +9,9 @@ Connects like any service (deploy/zenoh/client.json5, or the standard Zenoh flag
 
 from __future__ import annotations
 
+import json
 import logging
+import sys
 import threading
 import time
 from collections import defaultdict
@@ -30,7 +32,8 @@ from shared.bus.streams import get_stream
 from shared.bus.zenoh_config import CONFIG_ENV, DEFAULT_CLIENT_CONFIG, zenoh_config
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
-console = Console()
+# Wide when piped (logs, tests): rich would otherwise truncate key expressions at 80 columns.
+console = Console(width=None if sys.stdout.isatty() else 200)
 
 DATA_KEYS = "rmmdet/@v1/**"
 HEALTH_KEYS = "rmmdet/@v1/*/@health/**"
@@ -120,6 +123,9 @@ def topics(
     ctx: typer.Context,
     duration: Annotated[float, typer.Option(help="seconds to listen")] = 3.0,
     key: Annotated[str, typer.Option(help="key expression to watch")] = DATA_KEYS,
+    as_json: Annotated[
+        bool, typer.Option("--json", help="one JSON object per key instead of a table")
+    ] = False,
 ) -> None:
     """Live key expressions with message rate, bandwidth, sequence gaps and decode errors."""
     counter = TopicCounter()
@@ -128,6 +134,23 @@ def topics(
         time.sleep(duration)
         sub.undeclare()
     stats = counter.snapshot()
+    if as_json:
+        for k in sorted(stats):
+            s = stats[k]
+            print(
+                json.dumps(
+                    {
+                        "key": k,
+                        "schema": s.schema,
+                        "rate_hz": s.messages / duration,
+                        "bandwidth_bps": s.bytes / duration,
+                        "messages": s.messages,
+                        "gaps": s.gaps,
+                        "decode_errors": s.decode_errors,
+                    }
+                )
+            )
+        return
     table = Table(title=f"{key} over {duration:.1f} s")
     for col in ("key expression", "message", "rate Hz", "kB/s", "avg kB", "gaps", "decode errors"):
         table.add_column(col, justify="left" if col in ("key expression", "message") else "right")
@@ -155,7 +178,14 @@ def query_health(session: zenoh.Session, timeout_s: float = 2.0) -> tuple[list[S
     decoder = MessageDecoder(ServiceHealth, Counters())
     reports: list[ServiceHealth] = []
     errors: list[str] = []
-    for reply in session.get(HEALTH_KEYS, timeout=timeout_s):
+    # Every queryable must answer: ALL targets, no consolidation of replies.
+    replies = session.get(
+        HEALTH_KEYS,
+        target=zenoh.QueryTarget.ALL,
+        consolidation=zenoh.ConsolidationMode.NONE,
+        timeout=timeout_s,
+    )
+    for reply in replies:
         if reply.ok is None:
             errors.append(f"error reply: {reply.err.payload.to_bytes()[:200]!r}")
             continue
@@ -207,9 +237,9 @@ def health(
     silent = []
     for key in alive:
         parts = key.split("/")  # rmmdet/@v1/<scope>/@alive/<service>/<instance>
-        if len(parts) == 6 and f"{parts[2]}/{parts[4]}/{parts[5]}" not in answered:
-            if service is None or parts[4] == service:
-                silent.append(key)
+        unanswered = len(parts) == 6 and f"{parts[2]}/{parts[4]}/{parts[5]}" not in answered
+        if unanswered and (service is None or parts[4] == service):
+            silent.append(key)
     for key in silent:
         console.print(f"[red]alive but no health reply:[/] {key}")
     for err in errors:

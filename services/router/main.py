@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+import time
 
 import zenoh
 
@@ -21,23 +22,27 @@ from shared.shutdown import GracefulShutdown
 log = logging.getLogger("services.router")
 
 SCOPE = "site"
+TRANSPORT_POLL_S = 0.5
 
 
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
     with Node(conf, service="router", instance=args.instance, scope=SCOPE, stop=shutdown.event) as node:
         listen = conf.get_json("listen/endpoints")
+        transports = 0  # refreshed by the main loop: health callbacks must not call Zenoh APIs
 
         def status() -> tuple[int, str]:
-            return NOMINAL, f"{len(node.session.info.transports())} transports; listening on {listen}"
+            return NOMINAL, f"{transports} transports; listening on {listen}"
 
         node.health.set_status(status)
         log.info("router listening on %s", listen)
-        last = -1
-        while not shutdown.wait(args.report_interval_s):
-            count = len(node.session.info.transports())
-            if count != last:
-                log.info("%d open transports", count)
-                last = count
+        last_report_s = 0.0
+        last_count = -1
+        while not shutdown.wait(TRANSPORT_POLL_S):
+            transports = len(node.session.info.transports())
+            now_s = time.monotonic()
+            if transports != last_count and now_s - last_report_s >= args.report_interval_s:
+                log.info("%d open transports", transports)
+                last_count, last_report_s = transports, now_s
     return 0
 
 

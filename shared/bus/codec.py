@@ -10,15 +10,16 @@ Decoding never raises out of a subscriber: a bad payload is counted under exactl
 
 from __future__ import annotations
 
+import functools
 import math
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import StrEnum
 
 import zenoh
-from google.protobuf.descriptor import FieldDescriptor
+from google.protobuf.descriptor import Descriptor, FieldDescriptor
 from google.protobuf.message import DecodeError, Message
 from rmmdet.v1.common_pb2 import Header
 
@@ -116,24 +117,54 @@ def encode(msg: Message, header: Header | None = None) -> Encoded:
 _FLOAT_TYPES = (FieldDescriptor.TYPE_DOUBLE, FieldDescriptor.TYPE_FLOAT)
 
 
+@functools.cache
+def _float_plan(descriptor: Descriptor) -> tuple[tuple[FieldDescriptor, bool], ...]:
+    """Fields of a message type that are floats or (transitively) contain floats, with a flag
+    telling which are floats. Strings, ints, Timestamps etc. are never visited."""
+    plan: list[tuple[FieldDescriptor, bool]] = []
+    for field in descriptor.fields:
+        if field.type in _FLOAT_TYPES:
+            plan.append((field, True))
+        elif (
+            field.type == FieldDescriptor.TYPE_MESSAGE
+            and field.message_type is not None
+            and not field.message_type.GetOptions().map_entry
+            and (field.message_type is descriptor or _float_plan(field.message_type))
+        ):
+            plan.append((field, False))
+    return tuple(plan)
+
+
+def _all_finite(values: Sequence[float]) -> bool:
+    # One C-level pass: the exact sum is finite iff every term is (a sum of finite doubles only
+    # overflows for magnitudes near 1e308, which no field may hold anyway).
+    try:
+        return math.isfinite(math.fsum(values))
+    except OverflowError:
+        return False
+
+
 def find_non_finite(msg: Message, path: str = "") -> str | None:
     """Path of the first NaN/Inf float field in `msg` (recursively), or None."""
-    for field, value in msg.ListFields():
-        name = f"{path}.{field.name}" if path else field.name
-        is_repeated = field.is_repeated
-        if field.type in _FLOAT_TYPES:
-            values = value if is_repeated else (value,)
-            for i, v in enumerate(values):
-                if not math.isfinite(v):
-                    return f"{name}[{i}]" if is_repeated else name
-        elif field.type == FieldDescriptor.TYPE_MESSAGE:
-            if field.message_type.GetOptions().map_entry:
-                continue
-            children: Iterable[Message] = value if is_repeated else (value,)
-            for i, child in enumerate(children):
-                found = find_non_finite(child, f"{name}[{i}]" if is_repeated else name)
+    for field, is_float in _float_plan(msg.DESCRIPTOR):
+        value = getattr(msg, field.name)
+        if is_float:
+            name = f"{path}.{field.name}" if path else field.name
+            if not field.is_repeated:
+                if not math.isfinite(value):
+                    return name
+            elif value and not _all_finite(value):
+                return f"{name}[{next(i for i, v in enumerate(value) if not math.isfinite(v))}]"
+            continue
+        if field.is_repeated:
+            for i, child in enumerate(value):
+                found = find_non_finite(child, f"{path}.{field.name}[{i}]" if path else f"{field.name}[{i}]")
                 if found:
                     return found
+        elif msg.HasField(field.name):
+            found = find_non_finite(value, f"{path}.{field.name}" if path else field.name)
+            if found:
+                return found
     return None
 
 
@@ -151,15 +182,25 @@ def register_validator(full_name: str) -> Callable[[Validator], Validator]:
     return wrap
 
 
+def range_problem(msg: Message) -> str | None:
+    """First registered range-check failure of `msg` (and of its body header), or None."""
+    for check in _VALIDATORS.get(msg.DESCRIPTOR.full_name, ()):
+        problem = check(msg)
+        if problem:
+            return problem
+    if has_body_header(msg) and msg.HasField("header"):
+        return range_problem(msg.header)  # type: ignore[attr-defined]
+    return None
+
+
 def validate(msg: Message) -> None:
     """Raise Rejected if `msg` holds NaN/Inf or out-of-range values."""
     bad = find_non_finite(msg)
     if bad:
         raise Rejected(RejectReason.NON_FINITE, f"non-finite value in {bad}")
-    for check in _VALIDATORS.get(msg.DESCRIPTOR.full_name, ()):
-        problem = check(msg)
-        if problem:
-            raise Rejected(RejectReason.RANGE, problem)
+    problem = range_problem(msg)
+    if problem:
+        raise Rejected(RejectReason.RANGE, problem)
 
 
 # --- decoding ------------------------------------------------------------------------------------
@@ -201,11 +242,15 @@ class MessageDecoder:
         self.counters.inc("accepted")
         return decoded
 
-    def decode_or_raise(self, payload: bytes, encoding: str | None, attachment: bytes | None = None) -> Decoded:
+    def decode_or_raise(
+        self, payload: bytes, encoding: str | None, attachment: bytes | None = None
+    ) -> Decoded:
         if len(payload) > self.max_payload_bytes:
             raise Rejected(RejectReason.OVERSIZE, f"{len(payload)} B > {self.max_payload_bytes} B")
         if attachment is not None and len(attachment) > MAX_ATTACHMENT_BYTES:
-            raise Rejected(RejectReason.OVERSIZE, f"attachment {len(attachment)} B > {MAX_ATTACHMENT_BYTES} B")
+            raise Rejected(
+                RejectReason.OVERSIZE, f"attachment {len(attachment)} B > {MAX_ATTACHMENT_BYTES} B"
+            )
         msg_type = self._resolve_type(encoding)
         msg = msg_type()
         try:
@@ -213,7 +258,8 @@ class MessageDecoder:
         except (DecodeError, RuntimeError, ValueError) as err:
             raise Rejected(RejectReason.DECODE, f"{msg_type.DESCRIPTOR.full_name}: {err}") from None
         header = self._header(msg, attachment)
-        validate(header)
+        if msg is not header and not has_body_header(msg):
+            validate(header)  # a body header is validated with the message
         validate(msg)
         if self.max_age_s is not None and header.HasField("stamp"):
             age_s = self._clock_s() - header.stamp.ToNanoseconds() * 1e-9
@@ -229,7 +275,9 @@ class MessageDecoder:
             raise Rejected(RejectReason.ENCODING, f"not protobuf: {encoding!r}")
         if self.expected is not None:
             if schema != self.expected.DESCRIPTOR.full_name:
-                raise Rejected(RejectReason.ENCODING, f"schema {schema} != {self.expected.DESCRIPTOR.full_name}")
+                raise Rejected(
+                    RejectReason.ENCODING, f"schema {schema} != {self.expected.DESCRIPTOR.full_name}"
+                )
             return self.expected
         try:
             return message_type(schema)
@@ -241,7 +289,7 @@ class MessageDecoder:
         if has_body_header(msg):
             if not msg.HasField("header"):
                 raise Rejected(RejectReason.HEADER, "message has no header")
-            return msg.header  # type: ignore[attr-defined,no-any-return]
+            return msg.header  # type: ignore[attr-defined]
         if not attachment:
             raise Rejected(RejectReason.HEADER, "no header attachment")
         header = Header()

@@ -39,6 +39,9 @@ class RateThresholds:
     window_s: float = 2.0  # rate measured over this window
 
 
+DEFAULT_THRESHOLDS = RateThresholds()
+
+
 class InputMonitor:
     """Rate, age, sequence gaps and level of one subscribed input."""
 
@@ -46,7 +49,7 @@ class InputMonitor:
         self,
         key_expr: str,
         expected_rate_hz: float = 0.0,
-        thresholds: RateThresholds = RateThresholds(),
+        thresholds: RateThresholds = DEFAULT_THRESHOLDS,
         clock_s: Callable[[], float] = time.monotonic,
     ) -> None:
         self.key_expr = key_expr
@@ -139,7 +142,10 @@ class HealthTracker:
             self._inputs.append(monitor)
 
     def set_status(self, fn: StatusFn) -> None:
-        """Service-specific level and message (e.g. a MEC's FULL/DEGRADED fusion state)."""
+        """Service-specific level and message (e.g. a MEC's FULL/DEGRADED fusion state).
+
+        `fn` runs inside the health queryable's Zenoh callback: it must only read cached state,
+        never call Zenoh APIs (that can deadlock the session) or block."""
         self._status_fn = fn
 
     def report(self) -> ServiceHealth:

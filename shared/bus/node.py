@@ -32,13 +32,12 @@ from rmmdet.v1.common_pb2 import Header, ProcessingStamp
 from shared.bus.codec import (
     DEFAULT_MAX_PAYLOAD_BYTES,
     Counters,
-    Decoded,
     MessageDecoder,
     encode,
     encoding_for,
     has_body_header,
 )
-from shared.bus.health import HealthTracker, InputMonitor, RateThresholds
+from shared.bus.health import DEFAULT_THRESHOLDS, HealthTracker, InputMonitor, RateThresholds
 from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.bus.session import open_session
 from shared.bus.streams import Stream, get_stream, validate_id
@@ -85,7 +84,9 @@ class Subscription:
             if decoded is None:
                 return
             self.monitor.record(decoded.header, len(payload))
-            item = Received(str(sample.key_expr), decoded.message, decoded.header, len(payload), time.time_ns())
+            item = Received(
+                str(sample.key_expr), decoded.message, decoded.header, len(payload), time.time_ns()
+            )
             if not self.queue.put(item):
                 self._counters.inc("dropped/queue_full")
         except Exception:  # a bug here must not kill Zenoh's dispatch thread
@@ -162,7 +163,9 @@ class Publisher:
         """Publish `msg`. Without `header`, one is made by `next_header(**header_kwargs)`;
         `stages` and a publish stamp are appended to its processing list. Returns the header sent."""
         if not isinstance(msg, self._message_type):
-            raise TypeError(f"{self.key} carries {self._message_type.DESCRIPTOR.full_name}, got {type(msg).__name__}")
+            raise TypeError(
+                f"{self.key} carries {self._message_type.DESCRIPTOR.full_name}, got {type(msg).__name__}"
+            )
         if header is None:
             header = self.next_header(**header_kwargs)
         header.processing.extend(stages)
@@ -173,6 +176,19 @@ class Publisher:
         encoded = encode(msg, header)
         self._publisher.put(encoded.payload, attachment=encoded.attachment)
         return header
+
+    def has_subscribers(self) -> bool:
+        status = self._publisher.matching_status  # a MatchingStatus at runtime (the stub says bool)
+        return bool(getattr(status, "matching", status))
+
+    def wait_for_subscribers(self, timeout_s: float, stop: threading.Event | None = None) -> bool:
+        """Wait until some subscriber matches this key (messages put before that are lost)."""
+        deadline = time.monotonic() + timeout_s
+        while not self.has_subscribers():
+            if time.monotonic() >= deadline or (stop is not None and stop.is_set()):
+                return False
+            time.sleep(0.02)
+        return True
 
     def undeclare(self) -> None:
         self._publisher.undeclare()
@@ -191,7 +207,7 @@ class Node:
         service: str,
         instance: str,
         scope: str,
-        thresholds: RateThresholds = RateThresholds(),
+        thresholds: RateThresholds = DEFAULT_THRESHOLDS,
         open_timeout_s: float | None = None,
         stop: threading.Event | None = None,
     ) -> None:
@@ -280,7 +296,9 @@ class Node:
         decoder = MessageDecoder(expected_type, self.counters, max_payload_bytes, max_age_s)
         monitor = InputMonitor(key_expr, expected_rate_hz, self.thresholds)
         self.health.add_input(monitor)
-        sub = Subscription(self.session, key_expr, decoder, BoundedQueue(maxsize, policy), monitor, self.counters)
+        sub = Subscription(
+            self.session, key_expr, decoder, BoundedQueue(maxsize, policy), monitor, self.counters
+        )
         self._declared.append(sub)
         return sub
 

@@ -1,7 +1,7 @@
 """The key space loaded from proto/streams.yaml: key builders, message types and QoS per stream.
 
-    >>> get_stream("objects").key(agent="agent1")
-    'rmmdet/@v1/agent1/objects'
+>>> get_stream("objects").key(agent="agent1")
+'rmmdet/@v1/agent1/objects'
 """
 
 from __future__ import annotations
@@ -116,11 +116,11 @@ def message_type(full_name: str) -> type[Message]:
                 return cls
     elif package == "foxglove":
         try:
-            module = importlib.import_module(f"foxglove_schemas_protobuf.{name}_pb2")
+            foxglove_module = importlib.import_module(f"foxglove_schemas_protobuf.{name}_pb2")
         except ImportError:
-            module = None
-        if module is not None and hasattr(module, name):
-            return getattr(module, name)
+            foxglove_module = None
+        if foxglove_module is not None and hasattr(foxglove_module, name):
+            return getattr(foxglove_module, name)
     raise KeyError(f"unknown message type {full_name!r}")
 
 

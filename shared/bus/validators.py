@@ -48,7 +48,11 @@ def _first(problems: Iterable[str | None]) -> str | None:
 @register_validator("rmmdet.v1.Header")
 def _header(m: Message) -> str | None:
     for stamp in m.processing:  # type: ignore[attr-defined]
-        if stamp.HasField("start") and stamp.HasField("end") and stamp.end.ToNanoseconds() < stamp.start.ToNanoseconds():
+        if (
+            stamp.HasField("start")
+            and stamp.HasField("end")
+            and stamp.end.ToNanoseconds() < stamp.start.ToNanoseconds()
+        ):
             return f"processing stage {stamp.stage!r} ends before it starts"
     return None
 
@@ -93,7 +97,11 @@ def _tracked(m: Message) -> str | None:
             or _covariance(o.position_covariance_m2, 3, f"objects[{i}].position")
             or _covariance(o.velocity_covariance_m2ps2, 3, f"objects[{i}].velocity")
             or (f"objects[{i}]: negative yaw variance" if o.yaw_variance_rad2 < 0 else None)
-            or (f"objects[{i}]: speed beyond {MAX_SPEED_MPS} m/s" if max(abs(v.x), abs(v.y), abs(v.z)) > MAX_SPEED_MPS else None)
+            or (
+                f"objects[{i}]: speed beyond {MAX_SPEED_MPS} m/s"
+                if max(abs(v.x), abs(v.y), abs(v.z)) > MAX_SPEED_MPS
+                else None
+            )
         )
         if problem:
             return problem

@@ -22,8 +22,9 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 ZENOH_CONFIG_DIR = REPO_ROOT / "deploy" / "zenoh"
 DEFAULT_CLIENT_CONFIG = ZENOH_CONFIG_DIR / "client.json5"
 DEFAULT_ROUTER_CONFIG = ZENOH_CONFIG_DIR / "router.json5"
-#: Environment override for the config file used when no `--config` is given.
+#: Environment overrides for the config file used when no `--config` is given (clients / router).
 CONFIG_ENV = "RMMDET_ZENOH_CONFIG"
+ROUTER_CONFIG_ENV = "RMMDET_ZENOH_ROUTER_CONFIG"
 
 log = logging.getLogger(__name__)
 
@@ -34,23 +35,30 @@ ENFORCED = {
 
 
 def add_zenoh_args(parser: argparse.ArgumentParser, default_config: Path = DEFAULT_CLIENT_CONFIG) -> None:
+    env = ROUTER_CONFIG_ENV if default_config == DEFAULT_ROUTER_CONFIG else CONFIG_ENV
     group = parser.add_argument_group("zenoh", "standard Zenoh session flags")
     group.add_argument("--mode", "-m", choices=["peer", "client", "router"], help="session mode")
-    group.add_argument("--connect", "-e", action="append", default=[], metavar="ENDPOINT", help="endpoint to connect to")
-    group.add_argument("--listen", "-l", action="append", default=[], metavar="ENDPOINT", help="endpoint to listen on")
+    group.add_argument(
+        "--connect", "-e", action="append", default=[], metavar="ENDPOINT", help="endpoint to connect to"
+    )
+    group.add_argument(
+        "--listen", "-l", action="append", default=[], metavar="ENDPOINT", help="endpoint to listen on"
+    )
     group.add_argument(
         "--config",
         "-c",
         type=Path,
-        default=Path(os.environ.get(CONFIG_ENV, default_config)),
-        help=f"json5 config file (default: ${CONFIG_ENV} or {default_config.relative_to(REPO_ROOT)})",
+        default=Path(os.environ.get(env, default_config)),
+        help=f"json5 config file (default: ${env} or {default_config.relative_to(REPO_ROOT)})",
     )
     group.add_argument(
         "--no-multicast-scouting",
         action="store_true",
         help="accepted for compatibility; multicast scouting is always disabled",
     )
-    group.add_argument("--cfg", action="append", default=[], metavar="KEY:VALUE", help="json5 config override")
+    group.add_argument(
+        "--cfg", action="append", default=[], metavar="KEY:VALUE", help="json5 config override"
+    )
 
 
 def zenoh_config(

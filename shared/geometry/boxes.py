@@ -181,9 +181,9 @@ def bev_intersection_area_matrix(a: ArrayLike, b: ArrayLike) -> FloatArray:
     overlap = np.all(
         (min_a[:, None, :] < max_b[None, :, :]) & (min_b[None, :, :] < max_a[:, None, :]), axis=2
     )
-    overlap &= (params_a[:, 2] * params_a[:, 3] > 0.0)[:, None] & (params_b[:, 2] * params_b[:, 3] > 0.0)[
-        None, :
-    ]
+    has_area_a = params_a[:, 2] * params_a[:, 3] > 0.0
+    has_area_b = params_b[:, 2] * params_b[:, 3] > 0.0
+    overlap &= has_area_a[:, None] & has_area_b[None, :]
     ia, ib = np.nonzero(overlap)
     if ia.size == 0:
         return inter

@@ -39,7 +39,7 @@ __all__ = [
     "vertical_fov_rad",
 ]
 
-# Below this |cos(angle)| between a ray and a plane it is treated as parallel (no usable intersection).
+# Below this |cos| of the angle between a ray and the plane normal the ray counts as parallel (no hit).
 _PARALLEL_COS = 1e-12
 # Tight stopping rule so undistortPoints inverts projectPoints to ~1e-10 px instead of its loose default.
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)

@@ -1,0 +1,141 @@
+"""`Scene`: the loaded scene file plus everything derived from it (transforms, intrinsics, lookups).
+
+scene = Scene.load(Path("deploy/scenes/sand_table.yaml"))
+T = scene.T_optical_from_world("cam_11")      # paper Eq. 1 extrinsics [R | t]
+K = scene.K("cam_11")                         # from resolution and field of view
+"""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+import numpy as np
+import shapely
+from pydantic import ValidationError
+
+from shared.config import ConfigError, read_yaml
+from shared.geometry.camera import intrinsics_from_fov
+from shared.geometry.transforms import (
+    camera_optical_from_world,
+    camera_world_from_optical,
+    matrix_from_pose,
+    matrix_from_xyz_rpy,
+)
+from shared.scene.model import (
+    AgentSpec,
+    AreaSpec,
+    JunctionSpec,
+    LaneSpec,
+    SceneSpec,
+    SensorKindName,
+    SensorSpec,
+)
+
+FloatArray = np.ndarray
+
+
+class Scene:
+    """Read-only view of one scene with derived geometry; ids are the scene file's ids."""
+
+    def __init__(self, spec: SceneSpec, source: Path | None = None) -> None:
+        self.spec = spec
+        self.source = source
+        self.sensors: dict[str, SensorSpec] = {s.id: s for s in spec.sensors}
+        self.agents: dict[str, AgentSpec] = {a.id: a for a in spec.agents}
+        self.lanes: dict[str, LaneSpec] = {lane.id: lane for lane in spec.lanes}
+        self.junctions: dict[str, JunctionSpec] = {j.id: j for j in spec.junctions}
+        self.areas: dict[str, AreaSpec] = {a.id: a for a in spec.areas}
+        self._area_footprints = [shapely.Polygon(a.polygon_m) for a in spec.areas]
+        for footprint in self._area_footprints:
+            shapely.prepare(footprint)
+
+    @classmethod
+    def load(cls, path: Path) -> Scene:
+        data = read_yaml(path)
+        try:
+            return cls(SceneSpec.model_validate(data), source=path)
+        except ValidationError as err:
+            raise ConfigError(f"{path}: invalid scene: {err}") from None
+
+    @property
+    def scene_id(self) -> str:
+        return self.spec.scene_id
+
+    # --- sensors ---------------------------------------------------------------------------------
+
+    def sensor(self, sensor_id: str) -> SensorSpec:
+        try:
+            return self.sensors[sensor_id]
+        except KeyError:
+            raise KeyError(f"scene {self.scene_id} has no sensor {sensor_id!r}") from None
+
+    def sensors_of(self, agent_id: str | None = None, kind: SensorKindName | None = None) -> list[SensorSpec]:
+        return [
+            s
+            for s in self.spec.sensors
+            if (agent_id is None or s.agent == agent_id) and (kind is None or s.kind == kind)
+        ]
+
+    @functools.cache  # noqa: B019 - scenes live as long as the process; ids are few
+    def T_world_from_sensor(self, sensor_id: str) -> FloatArray:
+        """Pose of the sensor body frame (+x forward, +y left, +z up) in the world, 4x4."""
+        pose = self.sensor(sensor_id).pose
+        if pose.rpy_rad is not None:
+            T = matrix_from_xyz_rpy(pose.position_m, pose.rpy_rad)
+        else:
+            assert pose.quat_xyzw is not None
+            T = matrix_from_pose(pose.position_m, pose.quat_xyzw)
+        T.setflags(write=False)
+        return T
+
+    def T_world_from_optical(self, camera_id: str) -> FloatArray:
+        """Camera optical frame (+x right, +y down, +z forward) in the world, 4x4."""
+        return camera_world_from_optical(self.T_world_from_sensor(self._camera(camera_id).id))
+
+    def T_optical_from_world(self, camera_id: str) -> FloatArray:
+        """Paper Eq. 1 extrinsics: p_optical = T @ p_world."""
+        return camera_optical_from_world(self.T_world_from_sensor(self._camera(camera_id).id))
+
+    @functools.cache  # noqa: B019
+    def K(self, camera_id: str) -> FloatArray:
+        """3x3 intrinsics derived from the camera's resolution and horizontal field of view."""
+        cam = self._camera(camera_id).camera
+        assert cam is not None
+        K = intrinsics_from_fov(cam.width_px, cam.height_px, cam.hfov_rad)
+        K.setflags(write=False)
+        return K
+
+    def distortion(self, camera_id: str) -> FloatArray | None:
+        cam = self._camera(camera_id).camera
+        assert cam is not None
+        return np.asarray(cam.distortion, dtype=float) if cam.distortion else None
+
+    def _camera(self, camera_id: str) -> SensorSpec:
+        sensor = self.sensor(camera_id)
+        if sensor.kind != "camera":
+            raise ValueError(f"{camera_id} is a {sensor.kind}, not a camera")
+        return sensor
+
+    # --- road network ----------------------------------------------------------------------------
+
+    def lane_length_m(self, lane_id: str) -> float:
+        pts = np.asarray(self.lanes[lane_id].points_m, dtype=float)
+        return float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum())
+
+    def lanes_from(self, junction_id: str) -> list[LaneSpec]:
+        return [lane for lane in self.spec.lanes if lane.from_junction == junction_id]
+
+    def junction_by_number(self, number: int) -> JunctionSpec:
+        for j in self.spec.junctions:
+            if j.number == number:
+                return j
+        raise KeyError(f"no junction number {number}")
+
+    def area_of(self, x_m: float, y_m: float, z_m: float = 0.0) -> str | None:
+        """First area whose footprint (and z band) holds the point, in file order."""
+        point = shapely.Point(x_m, y_m)
+        for area, footprint in zip(self.spec.areas, self._area_footprints, strict=True):
+            if area.z_min_m <= z_m <= area.z_max_m and footprint.covers(point):
+                return area.id
+        return None

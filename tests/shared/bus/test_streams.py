@@ -1,0 +1,63 @@
+"""The key space: builders, validation, message types, and proto/README.md kept in sync."""
+
+from __future__ import annotations
+
+import pytest
+import zenoh
+
+from shared.bus.streams import get_stream, markdown_table, message_type, stream_for_key, streams
+from tests.helpers import REPO_ROOT
+
+
+def test_keys_are_built_and_validated() -> None:
+    assert get_stream("objects").key(agent="agent1") == "rmmdet/@v1/agent1/objects"
+    assert (
+        get_stream("camera_image").key(agent="agent1", sensor="cam_11")
+        == "rmmdet/@v1/agent1/sensor/camera/cam_11"
+    )
+    assert get_stream("camera_image").pattern(agent="agent2") == "rmmdet/@v1/agent2/sensor/camera/*"
+    for bad in ("Agent1", "a/b", "a*", "", "@x", "a b", "a$"):
+        with pytest.raises(ValueError, match="invalid"):
+            get_stream("objects").key(agent=bad)
+    with pytest.raises(ValueError, match="missing ids"):
+        get_stream("camera_image").key(agent="agent1")
+    with pytest.raises(ValueError, match="unexpected"):
+        get_stream("objects").key(agent="agent1", sensor="x")
+
+
+def test_every_key_is_a_valid_canonical_key_expression() -> None:
+    for stream in streams().values():
+        ids = {f: "x1" for f in stream.fields}
+        key = stream.key(**ids)
+        assert str(zenoh.KeyExpr(key)) == key
+        assert key.startswith("rmmdet/@v1/")
+
+
+def test_data_wildcard_excludes_control_keys() -> None:
+    """`rmmdet/@v1/**` must not reach @health/@alive/@rpc: verbatim chunks stop wildcards."""
+    data = zenoh.KeyExpr("rmmdet/@v1/**")
+    for name in ("health", "alive", "route_rpc"):
+        s = get_stream(name)
+        assert not data.intersects(zenoh.KeyExpr(s.key(**{f: "x1" for f in s.fields})))
+    assert data.intersects(zenoh.KeyExpr(get_stream("objects").key(agent="agent1")))
+
+
+def test_every_stream_type_resolves() -> None:
+    for stream in streams().values():
+        if stream.type_name:
+            assert stream.message_type.DESCRIPTOR.full_name == stream.type_name
+        if stream.reply_type_name:
+            assert stream.reply_type.DESCRIPTOR.full_name == stream.reply_type_name
+    with pytest.raises(KeyError):
+        message_type("rmmdet.v1.Nope")
+
+
+def test_stream_for_key() -> None:
+    assert stream_for_key("rmmdet/@v1/agent3/sensor/lidar/lidar_41").name == "point_cloud"
+    assert stream_for_key("rmmdet/@v1/cloud/plans/veh_01").name == "route_plan"
+    assert stream_for_key("rmmdet/@v1/unknown/thing") is None
+
+
+def test_proto_readme_table_is_current() -> None:
+    readme = (REPO_ROOT / "proto" / "README.md").read_text()
+    assert markdown_table() in readme, "regenerate: python -m shared.bus.streams --markdown"
