@@ -3,6 +3,8 @@
     rmmdet topics [--duration 3]     live key expressions with rate, bandwidth, gaps and decode errors
     rmmdet health [--service mec]    every service's health report (exit 1 unless all NOMINAL)
     rmmdet wait-ready                wait until the router answers (used by `make up`)
+    rmmdet record [--out F.mcap] [--key K ...] [--duration S]   record bus traffic to MCAP
+    rmmdet replay F.mcap [--speed 1|N|0] [--key K ...] [--loop]  publish a recording again
 
 Connects like any service (deploy/zenoh/client.json5, or the standard Zenoh flags).
 """
@@ -30,6 +32,12 @@ from shared.bus.liveliness import alive_tokens
 from shared.bus.session import SessionUnavailable, open_session
 from shared.bus.streams import get_stream
 from shared.bus.zenoh_config import CONFIG_ENV, DEFAULT_CLIENT_CONFIG, zenoh_config
+from shared.recording.bus import ReplayPublisher, key_filter, overlapping, subscribe_recorder
+from shared.recording.reader import RecordingReader
+from shared.recording.recorder import Recorder
+from shared.recording.schedule import ReplayStats, check_speed, replay
+from shared.recording.writer import RecordingWriter, default_recording_path
+from shared.shutdown import GracefulShutdown
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
 # Wide when piped (logs, tests): rich would otherwise truncate key expressions at 80 columns.
@@ -38,6 +46,11 @@ console = Console(width=None if sys.stdout.isatty() else 200)
 DATA_KEYS = "rmmdet/@v1/**"
 HEALTH_KEYS = "rmmdet/@v1/*/@health/**"
 ALIVE_KEYS = "rmmdet/@v1/*/@alive/**"
+#: record/replay: main-loop period and the pause after the last replayed sample (lets the session
+#: deliver what it has queued before it closes), seconds.
+LOOP_S = 0.1
+REPLAY_LINGER_S = 0.3
+BYTES_PER_MB = 1e6
 
 
 @dataclass
@@ -265,6 +278,130 @@ def wait_ready(
             time.sleep(0.25)
     console.print(f"[red]router not reachable after {timeout:.0f} s[/]")
     raise typer.Exit(1)
+
+
+# --- record / replay -------------------------------------------------------------------------------
+
+
+def check_key_exprs(keys: list[str]) -> list[str]:
+    for k in keys:
+        try:
+            zenoh.KeyExpr(k)
+        except zenoh.ZError as err:
+            raise typer.BadParameter(f"invalid key expression {k!r}: {err}") from None
+    return keys
+
+
+@app.command()
+def record(
+    ctx: typer.Context,
+    out: Annotated[
+        Path | None, typer.Option(help="output .mcap (default .run/recordings/rmmdet-<time>.mcap)")
+    ] = None,
+    key: Annotated[
+        list[str] | None, typer.Option(help=f"key expression to record (repeatable; default {DATA_KEYS})")
+    ] = None,
+    duration: Annotated[float, typer.Option(help="seconds to record (0 = until Ctrl-C)")] = 0.0,
+) -> None:
+    """Record bus traffic to an MCAP file (opens in Foxglove / Lichtblick; replay with `rmmdet replay`)."""
+    keys = check_key_exprs(key or [DATA_KEYS])
+    for a, b in overlapping(keys):
+        console.print(f"[yellow]{a} and {b} overlap: samples matching both are recorded twice[/]")
+    path = out or default_recording_path()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    counters = Counters()
+    with connect(ctx) as session, GracefulShutdown() as shutdown:
+        writer = RecordingWriter(path, metadata={"keys": " ".join(keys), "recorder": "rmmdet record"})
+        recorder = Recorder(writer, counters)
+        subscribers: list[zenoh.Subscriber[None]] = []
+        started_s = time.monotonic()
+        try:
+            recorder.start()
+            subscribers = subscribe_recorder(session, keys, recorder)
+            console.print(f"recording {' '.join(keys)} to {path} (Ctrl-C to stop)")
+            while not shutdown.wait(LOOP_S):
+                if recorder.failed or (duration and time.monotonic() - started_s >= duration):
+                    break
+        finally:
+            for sub in subscribers:
+                sub.undeclare()
+            recorder.close()
+        elapsed_s = time.monotonic() - started_s
+    table = Table(title=f"{path} ({elapsed_s:.1f} s)")
+    for col in ("key expression", "messages", "rate Hz", "MB"):
+        table.add_column(col, justify="left" if col == "key expression" else "right")
+    for k, s in sorted(recorder.per_key().items()):
+        table.add_row(k, str(s.messages), f"{s.messages / elapsed_s:.1f}", f"{s.bytes / BYTES_PER_MB:.2f}")
+    console.print(table)
+    console.print(
+        f"{writer.message_count} messages; rejected {counters.total('rejected/')}, "
+        f"dropped {counters.get('dropped/queue_full')}"
+    )
+    if recorder.failed:
+        console.print(f"[red]recording stopped early: {recorder.error}[/]")
+        raise typer.Exit(1)
+
+
+@app.command("replay")
+def replay_cmd(
+    ctx: typer.Context,
+    file: Annotated[Path, typer.Argument(exists=True, dir_okay=False, help="recording (.mcap)")],
+    speed: Annotated[
+        float, typer.Option(help="1 = real time, N = N times faster, 0 = as fast as possible")
+    ] = 1.0,
+    key: Annotated[
+        list[str] | None, typer.Option(help="replay only keys matching this expression (repeatable)")
+    ] = None,
+    loop: Annotated[bool, typer.Option("--loop", help="start over at the end, until Ctrl-C")] = False,
+    wait_subscribers: Annotated[
+        float, typer.Option(help="seconds to wait for a subscriber before sending")
+    ] = 2.0,
+) -> None:
+    """Publish a recording again, paced by its receive times.
+
+    Keys, payloads, encodings and header attachments go out as recorded (stamps are never re-stamped),
+    each with its stream's QoS."""
+    try:
+        check_speed(speed)
+    except ValueError as err:
+        raise typer.BadParameter(str(err)) from None
+    selected = key_filter(check_key_exprs(key or []))
+    with RecordingReader(file) as reader:
+        keys = [k for k in reader.data_keys() if selected is None or selected(k)]
+    if not keys:
+        console.print(f"[red]nothing to replay in {file}[/]")
+        raise typer.Exit(1)
+    stats = ReplayStats()
+    with connect(ctx) as session, GracefulShutdown() as shutdown:
+        publisher = ReplayPublisher(session)
+        try:
+            for k in keys:
+                publisher.declare(k)
+            if not publisher.wait_for_subscribers(wait_subscribers, shutdown.event):
+                console.print("[yellow]no subscriber yet; replaying anyway[/]")
+            console.print(f"replaying {len(keys)} keys from {file} at speed {speed:g}")
+            while not shutdown.requested:
+                with RecordingReader(file) as reader:
+                    replay(
+                        reader.records(selected),
+                        publisher.send,
+                        speed=speed,
+                        clock=time.monotonic,
+                        stop=shutdown.event,
+                        stats=stats,
+                    )
+                if not loop or stats.stopped or stats.messages == 0:
+                    break
+            shutdown.wait(REPLAY_LINGER_S)
+        finally:
+            publisher.undeclare()
+    achieved = stats.achieved_speed
+    console.print(
+        f"replayed {stats.messages} messages on {len(keys)} keys in {stats.wall_s:.2f} s "
+        f"(recorded span {stats.recorded_s:.2f} s, {stats.passes} pass(es)); achieved speed "
+        + (f"{achieved:.2f}x" if achieved is not None else "n/a")
+        + (" [stopped]" if stats.stopped else "")
+    )
 
 
 def main() -> None:

@@ -22,6 +22,14 @@ _KIND = {
 }
 
 
+def _proto_fields(
+    msg_type: type[LidarSpec] | type[RadarSpec], values: dict[str, object]
+) -> dict[str, object]:
+    """The scene model also holds simulation-only parameters (noise, clutter): keep the contract's."""
+    names = set(msg_type.DESCRIPTOR.fields_by_name)
+    return {k: v for k, v in values.items() if k in names}
+
+
 def sensor_calibration(scene: Scene, sensor_id: str) -> SensorCalibration:
     s = scene.sensor(sensor_id)
     position, quat = pose_from_matrix(scene.T_world_from_sensor(sensor_id))
@@ -47,9 +55,9 @@ def sensor_calibration(scene: Scene, sensor_id: str) -> SensorCalibration:
             )
         )
     elif s.lidar is not None:
-        msg.lidar.CopyFrom(LidarSpec(**s.lidar.model_dump()))
+        msg.lidar.CopyFrom(LidarSpec(**_proto_fields(LidarSpec, s.lidar.model_dump())))
     elif s.radar is not None:
-        msg.radar.CopyFrom(RadarSpec(**s.radar.model_dump()))
+        msg.radar.CopyFrom(RadarSpec(**_proto_fields(RadarSpec, s.radar.model_dump())))
         msg.paired_camera_id = s.paired_camera or ""
     return msg
 

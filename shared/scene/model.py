@@ -49,6 +49,7 @@ class CameraModel(_Strict):
     distortion: list[float] = Field(default_factory=list, description="plumb_bob k1 k2 p1 p2 k3, or empty")
     near_m: float = Field(0.02, gt=0, description="render clip plane")
     far_m: float = Field(30.0, gt=0, description="render clip plane")
+    image_noise_std: float = Field(0.0, ge=0, le=1, description="Gaussian pixel noise, fraction of 255")
 
     @model_validator(mode="after")
     def _check(self) -> CameraModel:
@@ -86,6 +87,15 @@ class RadarModel(_Strict):
     azimuth_noise_std_rad: float = Field(0.0, ge=0)
     range_rate_noise_std_mps: float = Field(0.0, ge=0)
     max_targets: int = Field(64, gt=0)
+    detection_probability: float = Field(1.0, ge=0, le=1, description="per visible vehicle and scan")
+    clutter_per_scan: float = Field(0.0, ge=0, description="mean number of false targets (Poisson)")
+    vehicle_rcs_dbsm: float = Field(-5.0, description="mean radar cross-section of a vehicle")
+    rcs_noise_std_db: float = Field(1.0, ge=0)
+    clutter_rcs_dbsm: float = Field(-20.0, description="mean RCS of clutter targets")
+    occlusion_max_fraction: float = Field(
+        0.6, ge=0, le=1, description="a vehicle is dropped when more of its sampled face is blocked"
+    )
+    occlusion_samples: int = Field(5, gt=0, description="samples per side of the occlusion grid")
 
     @model_validator(mode="after")
     def _check(self) -> RadarModel:
@@ -121,6 +131,7 @@ class JunctionSpec(_Strict):
     id: Id
     number: int = Field(ge=1, description="the paper's flow-count point number")
     position_m: Vec3
+    radius_m: float = Field(0.4, gt=0, description="control zone: lanes end/start on its edge")
 
 
 class LaneSpec(_Strict):
@@ -128,8 +139,15 @@ class LaneSpec(_Strict):
     from_junction: Id
     to_junction: Id
     area: Id
-    points_m: list[Vec3] = Field(min_length=2, description="centreline polyline, driving direction")
+    points_m: list[Vec3] = Field(
+        min_length=2, description="centreline control points, driving direction; corners are rounded"
+    )
     speed_limit_mps: float = Field(gt=0)
+    corner_radius_m: float | None = Field(None, ge=0, description="fillet radius (default: road's)")
+    reverse_lane: Id | None = Field(None, description="the opposite lane of the same road (no U-turns)")
+    circulating: bool = Field(
+        False, description="roundabout ring lane: has priority at its junctions; entries are metered"
+    )
 
 
 class AreaSpec(_Strict):
@@ -146,6 +164,39 @@ class AgentSpec(_Strict):
     areas: list[Id] = Field(description="areas this agent's sensors cover")
 
 
+class RoadSpec(_Strict):
+    lane_width_m: float = Field(0.3, gt=0)
+    corner_radius_m: float = Field(0.4, ge=0, description="default fillet radius of lane corners")
+    sample_step_m: float = Field(0.02, gt=0, description="resampling step of lane centrelines")
+    deck_width_m: float = Field(0.34, gt=0, description="viaduct deck width")
+    deck_thickness_m: float = Field(0.04, gt=0)
+    elevated_min_z_m: float = Field(0.02, ge=0, description="lane points above this are on the deck")
+    pillar_spacing_m: float = Field(1.0, gt=0)
+    pillar_radius_m: float = Field(0.03, gt=0)
+
+
+class VehicleSpec(_Strict):
+    """Body of every vehicle (AWS Deepracer, 1:18)."""
+
+    length_m: float = Field(0.33, gt=0)
+    width_m: float = Field(0.22, gt=0)
+    height_m: float = Field(0.21, gt=0)
+    wheelbase_m: float = Field(0.164, gt=0)
+    max_steer_rad: float = Field(0.785, gt=0, lt=1.57)
+
+
+class StaticObjectSpec(_Strict):
+    """Buildings, poles and other occluders: a box or an upright cylinder standing on the table."""
+
+    id: Id
+    kind: Literal["box", "cylinder"]
+    position_m: Vec3 = Field(description="centre of the base")
+    size_m: Vec3 = Field(description="box: x, y, z extents; cylinder: diameter, diameter, height")
+    yaw_rad: float = 0.0
+    rgba: tuple[float, float, float, float] = (0.7, 0.7, 0.7, 1.0)
+    collision: bool = Field(True, description="seen by lidar / radar rays")
+
+
 class TableSpec(_Strict):
     size_x_m: float = Field(gt=0)
     size_y_m: float = Field(gt=0)
@@ -156,6 +207,9 @@ class SceneSpec(_Strict):
     scene_id: Id
     description: str = ""
     table: TableSpec
+    road: RoadSpec = RoadSpec()
+    vehicle: VehicleSpec = VehicleSpec()
+    static_objects: list[StaticObjectSpec] = Field(default_factory=list)
     junctions: list[JunctionSpec] = Field(default_factory=list)
     lanes: list[LaneSpec] = Field(default_factory=list)
     areas: list[AreaSpec] = Field(default_factory=list)
@@ -170,6 +224,7 @@ class SceneSpec(_Strict):
             ("area", self.areas),
             ("agent", self.agents),
             ("sensor", self.sensors),
+            ("static object", self.static_objects),
         ):
             ids = [i.id for i in items]
             dupes = sorted({i for i in ids if ids.count(i) > 1})
@@ -188,6 +243,13 @@ class SceneSpec(_Strict):
                     raise ValueError(f"lane {lane.id}: unknown junction {end}")
             if lane.area not in areas:
                 raise ValueError(f"lane {lane.id}: unknown area {lane.area}")
+            if lane.reverse_lane is not None:
+                rev = next((other for other in self.lanes if other.id == lane.reverse_lane), None)
+                if rev is None or (rev.from_junction, rev.to_junction) != (
+                    lane.to_junction,
+                    lane.from_junction,
+                ):
+                    raise ValueError(f"lane {lane.id}: reverse_lane {lane.reverse_lane} is not its opposite")
         for agent in self.agents:
             for area in agent.areas:
                 if area not in areas:

@@ -22,6 +22,7 @@ from shared.geometry.transforms import (
     matrix_from_pose,
     matrix_from_xyz_rpy,
 )
+from shared.scene.lanes import centreline
 from shared.scene.model import (
     AgentSpec,
     AreaSpec,
@@ -119,8 +120,17 @@ class Scene:
 
     # --- road network ----------------------------------------------------------------------------
 
+    @functools.cache  # noqa: B019
+    def lane_centreline(self, lane_id: str) -> FloatArray:
+        """Rounded, resampled centreline (N, 3) of a lane in driving direction."""
+        lane = self.lanes[lane_id]
+        radius = lane.corner_radius_m if lane.corner_radius_m is not None else self.spec.road.corner_radius_m
+        pts = centreline(lane.points_m, radius, self.spec.road.sample_step_m)
+        pts.setflags(write=False)
+        return pts
+
     def lane_length_m(self, lane_id: str) -> float:
-        pts = np.asarray(self.lanes[lane_id].points_m, dtype=float)
+        pts = self.lane_centreline(lane_id)
         return float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum())
 
     def lanes_from(self, junction_id: str) -> list[LaneSpec]:

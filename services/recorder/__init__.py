@@ -1,0 +1,1 @@
+"""Recorder: records bus traffic to MCAP files (Foxglove / Lichtblick compatible)."""

@@ -1,0 +1,5 @@
+import sys
+
+from services.recorder.main import cli
+
+sys.exit(cli())

@@ -1,0 +1,80 @@
+"""Simulation parameters: traffic, vehicle control, timing. Typed, with defaults and descriptions.
+
+Loaded from `deploy/sim/sim.yaml` (if given) with environment overrides `RMMDET_SIM_<FIELD>`, nested
+with `__` (e.g. `RMMDET_SIM_TRAFFIC__VEHICLES=20`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from shared.config import RmmdetSettings, settings_config
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_SCENE = REPO_ROOT / "deploy" / "scenes" / "sand_table.yaml"
+DEFAULT_SIM_CONFIG = REPO_ROOT / "deploy" / "sim" / "sim.yaml"
+
+RoutePolicy = Literal["random", "shortest", "plan"]
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class IdmParams(_Model):
+    """Intelligent Driver Model (Treiber et al. 2000) car following, table scale."""
+
+    max_accel_mps2: float = Field(0.6, gt=0, description="a: maximum acceleration")
+    comfort_decel_mps2: float = Field(1.0, gt=0, description="b: comfortable deceleration")
+    max_decel_mps2: float = Field(4.0, gt=0, description="hard braking limit")
+    min_gap_m: float = Field(0.1, ge=0, description="s0: standstill bumper-to-bumper gap")
+    time_headway_s: float = Field(0.5, ge=0, description="T: desired time headway")
+    exponent: float = Field(4.0, gt=0, description="delta: free-road acceleration exponent")
+
+
+class PursuitParams(_Model):
+    """Pure-pursuit lane following on the kinematic bicycle model."""
+
+    lookahead_min_m: float = Field(0.2, gt=0, description="look-ahead distance at standstill")
+    lookahead_gain_s: float = Field(0.4, ge=0, description="look-ahead grows by speed x gain")
+
+
+class TrafficSettings(_Model):
+    vehicles: int = Field(10, ge=0, le=200, description="number of vehicles")
+    max_speed_mps: float = Field(0.5, gt=0, description="vehicle top speed (lane limits also apply)")
+    route_policy: RoutePolicy = Field(
+        "random", description="turns at junctions: random (paper baseline), shortest, or plan (bus)"
+    )
+    connected_fraction: float = Field(
+        1.0, ge=0, le=1, description="share of vehicles that follow plans when route_policy=plan"
+    )
+    junction_request_m: float = Field(
+        0.7, gt=0, description="distance before a lane's end at which a vehicle asks to enter the junction"
+    )
+    horizon_m: float = Field(2.5, gt=0, description="car-following look-ahead along the route")
+    detour_after_s: float = Field(
+        10.0,
+        gt=0,
+        description="a vehicle first in line whose exit lane stays full this long takes another exit "
+        "with room (drivers avoid a blocked road; resolves gridlock in saturated networks)",
+    )
+    idm: IdmParams = IdmParams()
+    pursuit: PursuitParams = PursuitParams()
+
+
+class SimSettings(RmmdetSettings):
+    model_config = settings_config(env_prefix="RMMDET_SIM_")
+
+    scene: Path = Field(DEFAULT_SCENE, description="scene YAML")
+    seed: int = Field(0, ge=0, description="scenario seed: traffic and sensor noise derive from it")
+    tick_hz: float = Field(60.0, gt=0, description="simulation ticks per simulated second")
+    speed: float = Field(
+        1.0, ge=0, description="simulated seconds per wall second; 0 = as fast as possible (lock-step)"
+    )
+    clock_publish_hz: float = Field(10.0, gt=0, description="SimClock publication rate")
+    calibration_publish_hz: float = Field(1.0, gt=0, description="per-agent CalibrationSet republish rate")
+    collision_check_hz: float = Field(10.0, gt=0, description="rate of the vehicle overlap monitor")
+    traffic: TrafficSettings = TrafficSettings()

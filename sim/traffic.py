@@ -1,0 +1,425 @@
+"""Traffic on the sand table: kinematic vehicles with pure-pursuit lane following, IDM car following
+and exclusive junctions; trips between random origin/destination junctions; route choice per policy.
+
+Each vehicle is a kinematic bicycle (wheelbase from the scene) steered by pure pursuit toward a point
+ahead on its path (lane, then junction connector, then next lane) and sped by the Intelligent Driver
+Model against the nearest vehicle or stop line ahead along that path. Junctions are exclusive zones
+(the reference's node queue, rmmdet_reference.md §D.4): a vehicle asks to enter `junction_request_m`
+before its lane ends, is admitted first-come-first-served once the junction is empty and its exit
+lane has room for it, and stops at the stop line until then. Arrivals at each junction are counted
+(the paper's flow points). Deterministic: one seeded generator, vehicles updated in id order.
+Units: metres, seconds, radians.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from shared.geometry.boxes import bev_iou_matrix
+from shared.scene.scene import Scene
+from sim.config import TrafficSettings
+from sim.road_network import Path, RoadNetwork
+
+log = logging.getLogger(__name__)
+
+# Appearance: Deepracer-like body colours (RGBA); dataset generation may randomise further.
+PALETTE_RGBA: tuple[tuple[float, float, float, float], ...] = (
+    (0.85, 0.15, 0.15, 1.0),
+    (0.15, 0.35, 0.85, 1.0),
+    (0.95, 0.75, 0.1, 1.0),
+    (0.1, 0.65, 0.3, 1.0),
+    (0.95, 0.95, 0.95, 1.0),
+    (0.15, 0.15, 0.18, 1.0),
+    (0.9, 0.45, 0.1, 1.0),
+    (0.55, 0.2, 0.7, 1.0),
+    (0.2, 0.75, 0.8, 1.0),
+    (0.75, 0.75, 0.78, 1.0),
+)
+SPAWN_ATTEMPTS = 200
+SPAWN_SPACING_FACTOR = 2.0  # x vehicle length between spawned vehicles
+LEVEL_SEPARATION_M = 0.1  # vehicles further apart in z are on different levels (deck / ground)
+
+
+@dataclass
+class Trip:
+    vehicle_id: str
+    origin_junction: str
+    destination_junction: str
+    start_s: float
+    end_s: float
+
+
+@dataclass
+class Vehicle:
+    id: str
+    index: int
+    rgba: tuple[float, float, float, float]
+    path: Path
+    s: float
+    x: float
+    y: float
+    z: float
+    yaw: float
+    pitch: float = 0.0
+    v: float = 0.0
+    yaw_rate: float = 0.0
+    lane_id: str = ""
+    next_lane: str | None = None
+    requested: bool = False
+    admitted: bool = False
+    releasing: str | None = None  # junction to release once the body has left its connector
+    destination: str = ""
+    origin: str = ""
+    trip_start_s: float = 0.0
+    arriving: bool = False  # the junction ahead is this trip's destination
+    plan: list[str] = field(default_factory=list)  # lanes to take, from a route plan
+    plan_version: int = 0
+    connected: bool = True
+    requested_at_s: float = 0.0
+    detours: int = 0
+
+
+class TrafficSim:
+    """All vehicles of one scenario; `step()` advances one tick."""
+
+    def __init__(
+        self,
+        scene: Scene,
+        network: RoadNetwork,
+        settings: TrafficSettings,
+        seed: int,
+        tick_hz: float,
+    ) -> None:
+        self.scene = scene
+        self.net = network
+        self.cfg = settings
+        self.rng = np.random.default_rng(seed)
+        self.dt = 1.0 / tick_hz
+        self.tick = 0
+        self.time_s = 0.0
+        body = scene.spec.vehicle
+        self.length_m = body.length_m
+        self.width_m = body.width_m
+        self.height_m = body.height_m
+        self.wheelbase_m = body.wheelbase_m
+        self.max_steer_rad = body.max_steer_rad
+        self.junction_ids = [j.id for j in scene.spec.junctions]
+        self.queues: dict[str, list[str]] = {j: [] for j in self.junction_ids}
+        self.occupant: dict[str, str | None] = dict.fromkeys(self.junction_ids)
+        self.arrivals: dict[str, int] = dict.fromkeys(self.junction_ids, 0)
+        self.trips: list[Trip] = []
+        self.detours = 0
+        self.vehicles: list[Vehicle] = []
+        self._by_id: dict[str, Vehicle] = {}
+        self.circulating = {lane.id for lane in scene.spec.lanes if lane.circulating}
+        # Ring metering: entering traffic is held back while the ring is this full, so circulating
+        # vehicles always find room ahead (a full ring would gridlock).
+        slot_m = self.length_m + settings.idm.min_gap_m
+        self.ring_capacity = (
+            sum(max(1, int(network.lanes[lane].length_m // slot_m)) for lane in self.circulating) - 1
+        )
+        self._spawn(settings.vehicles)
+
+    # --- setup -----------------------------------------------------------------------------------
+
+    def _spawn(self, count: int) -> None:
+        lanes = sorted(self.net.lanes)
+        lengths = np.array([self.net.lanes[lane].length_m for lane in lanes])
+        margin = self.cfg.junction_request_m + self.length_m
+        usable = np.maximum(lengths - margin - self.length_m, 0.0)
+        if usable.sum() <= 0:
+            raise ValueError("no lane is long enough to spawn vehicles on")
+        spacing = SPAWN_SPACING_FACTOR * self.length_m
+        for index in range(count):
+            for _ in range(SPAWN_ATTEMPTS):
+                lane_id = lanes[int(self.rng.choice(len(lanes), p=usable / usable.sum()))]
+                path = self.net.lanes[lane_id]
+                s = float(self.rng.uniform(self.length_m, path.length_m - margin))
+                clash = any(
+                    v.path is path and abs(v.s - s) < spacing for v in self.vehicles
+                ) or self._too_close_to_any(path.position(s))
+                if not clash:
+                    break
+            else:
+                raise ValueError(f"could not place vehicle {index}: too many vehicles for the network")
+            pos = path.position(s)
+            vid = f"v{index:02d}"
+            connected = bool(self.rng.uniform() < self.cfg.connected_fraction)
+            vehicle = Vehicle(
+                id=vid,
+                index=index,
+                rgba=PALETTE_RGBA[index % len(PALETTE_RGBA)],
+                path=path,
+                s=s,
+                x=float(pos[0]),
+                y=float(pos[1]),
+                z=float(pos[2]),
+                yaw=path.heading_at(s),
+                lane_id=lane_id,
+                origin=self.net.lane_start_junction(lane_id),
+                connected=connected,
+            )
+            vehicle.destination = self._new_destination(exclude=self.net.lane_end_junction(lane_id))
+            self.vehicles.append(vehicle)
+            self._by_id[vid] = vehicle
+
+    def _too_close_to_any(self, pos: np.ndarray) -> bool:
+        spacing = SPAWN_SPACING_FACTOR * self.length_m
+        return any(
+            math.hypot(v.x - pos[0], v.y - pos[1]) < spacing and abs(v.z - pos[2]) < LEVEL_SEPARATION_M
+            for v in self.vehicles
+        )
+
+    def _new_destination(self, exclude: str) -> str:
+        choices = [j for j in self.junction_ids if j != exclude]
+        return choices[int(self.rng.integers(len(choices)))]
+
+    # --- public API ------------------------------------------------------------------------------
+
+    def vehicle(self, vehicle_id: str) -> Vehicle:
+        return self._by_id[vehicle_id]
+
+    def set_plan(self, vehicle_id: str, lanes: list[str], version: int) -> bool:
+        """Give a vehicle the lanes to take after its current lane. False if not a valid route."""
+        v = self._by_id[vehicle_id]
+        if version <= v.plan_version:
+            return True  # idempotent: older or repeated plans change nothing
+        start = v.lane_id if not v.requested else (v.next_lane or v.lane_id)
+        if not self.net.is_valid_route(start, lanes):
+            return False
+        v.plan = list(lanes)
+        v.plan_version = version
+        return True
+
+    def step(self) -> None:
+        """Advance every vehicle by one tick."""
+        occupancy = self._occupancy()
+        self._request_junctions()
+        self._admit()
+        for v in self.vehicles:
+            self._drive(v, occupancy)
+        self.tick += 1
+        self.time_s = self.tick * self.dt
+
+    def overlapping_pairs(self) -> list[tuple[str, str]]:
+        """Pairs of vehicles whose bodies overlap (same level): must stay empty."""
+        if len(self.vehicles) < 2:
+            return []
+        boxes = np.array(
+            [[v.x, v.y, v.z, self.length_m, self.width_m, self.height_m, v.yaw] for v in self.vehicles]
+        )
+        iou = bev_iou_matrix(boxes, boxes)
+        pairs = []
+        for i, j in zip(*np.nonzero(np.triu(iou, k=1) > 0), strict=True):
+            if abs(boxes[i, 2] - boxes[j, 2]) < LEVEL_SEPARATION_M:
+                pairs.append((self.vehicles[i].id, self.vehicles[j].id))
+        return pairs
+
+    # --- junctions -------------------------------------------------------------------------------
+
+    def _choose_next_lane(self, v: Vehicle) -> str:
+        options = self.net.successors[v.lane_id]
+        if not options:
+            raise RuntimeError(f"lane {v.lane_id} is a dead end")
+        policy = self.cfg.route_policy
+        if policy == "plan" and v.connected and v.plan and v.plan[0] in options:
+            return v.plan.pop(0)
+        if policy == "random":
+            return options[int(self.rng.integers(len(options)))]
+        return self.net.shortest_route(v.lane_id, v.destination)[0]
+
+    def _request_junctions(self) -> None:
+        for v in self.vehicles:
+            if v.path.lane_id is None or v.requested:
+                continue
+            if v.path.length_m - v.s > self.cfg.junction_request_m:
+                continue
+            junction = self.net.lane_end_junction(v.lane_id)
+            if junction == v.destination:
+                v.arriving = True
+                v.destination = self._new_destination(exclude=junction)
+            v.next_lane = self._choose_next_lane(v)
+            v.requested = True
+            v.requested_at_s = self.time_s
+            self.queues[junction].append(v.id)
+
+    def _exit_has_room(self, lane_id: str) -> bool:
+        need = 1.5 * self.length_m + self.cfg.idm.min_gap_m
+        return all(not (o.path.lane_id == lane_id and o.s < need) for o in self.vehicles)
+
+    def _ring_count(self) -> int:
+        return sum(
+            1
+            for o in self.vehicles
+            if o.lane_id in self.circulating
+            or (o.path.to_lane is not None and o.path.to_lane in self.circulating)
+        )
+
+    def _may_enter(self, v: Vehicle, lane_id: str) -> bool:
+        if not self._exit_has_room(lane_id):
+            return False
+        entering_ring = lane_id in self.circulating and v.lane_id not in self.circulating
+        return not (entering_ring and self._ring_count() >= self.ring_capacity)
+
+    def _is_front(self, v: Vehicle) -> bool:
+        """No other vehicle between this one and its lane's stop line."""
+        return all(not (o.path is v.path and o.s > v.s) for o in self.vehicles)
+
+    def _admit(self) -> None:
+        for junction, queue in self.queues.items():
+            if self.occupant[junction] is not None or not queue:
+                continue
+            # Circulating traffic first, then first come first served.
+            ordered = sorted(queue, key=lambda vid: self._by_id[vid].lane_id not in self.circulating)
+            for vid in ordered:
+                v = self._by_id[vid]
+                assert v.next_lane is not None
+                if not self._is_front(v):
+                    continue
+                if not self._may_enter(v, v.next_lane):
+                    if self.time_s - v.requested_at_s < self.cfg.detour_after_s:
+                        continue
+                    detour = [lane for lane in self.net.successors[v.lane_id] if self._may_enter(v, lane)]
+                    if not detour:
+                        continue
+                    v.next_lane = detour[int(self.rng.integers(len(detour)))]
+                    v.plan.clear()  # the plan no longer applies; the coordinator replans
+                    v.detours += 1
+                    self.detours += 1
+                v.admitted = True
+                self.occupant[junction] = vid
+                queue.remove(vid)
+                break
+
+    # --- driving ---------------------------------------------------------------------------------
+
+    def _occupancy(self) -> dict[str, list[tuple[float, Vehicle]]]:
+        occ: dict[str, list[tuple[float, Vehicle]]] = {}
+        for v in self.vehicles:
+            occ.setdefault(v.path.id, []).append((v.s, v))
+        for items in occ.values():
+            items.sort(key=lambda item: item[0])
+        return occ
+
+    def _route_ahead(self, v: Vehicle) -> list[Path]:
+        """Paths the vehicle will drive, starting with its current one, as far as it may go."""
+        paths = [v.path]
+        if v.path.lane_id is not None:
+            if v.admitted and v.next_lane is not None:
+                junction = self.net.lane_end_junction(v.lane_id)
+                paths.append(self.net.connector(junction, v.lane_id, v.next_lane))
+                paths.append(self.net.lanes[v.next_lane])
+        else:
+            assert v.path.to_lane is not None
+            paths.append(self.net.lanes[v.path.to_lane])
+        return paths
+
+    def _leader(
+        self, v: Vehicle, paths: list[Path], occ: dict[str, list[tuple[float, Vehicle]]]
+    ) -> tuple[float, float]:
+        """(bumper gap, leader speed) to the nearest obstacle ahead; stop lines are standing obstacles."""
+        offset = -v.s
+        for k, path in enumerate(paths):
+            for s_other, other in occ.get(path.id, []):
+                if other is v or (k == 0 and s_other <= v.s):
+                    continue
+                return offset + s_other - self.length_m, other.v
+            offset += path.length_m
+            if offset > self.cfg.horizon_m:
+                return math.inf, 0.0
+        if paths[-1].lane_id is not None and paths[-1] is v.path and not v.admitted:
+            return offset - self.length_m / 2, 0.0  # stop line at the lane end
+        return math.inf, 0.0
+
+    def _idm_accel(self, v: Vehicle, v0: float, gap: float, lead_v: float) -> float:
+        p = self.cfg.idm
+        free = 1.0 - (v.v / v0) ** p.exponent
+        if math.isinf(gap):
+            return p.max_accel_mps2 * free
+        if gap <= 1e-3:
+            return -p.max_decel_mps2
+        s_star = p.min_gap_m + max(
+            0.0,
+            v.v * p.time_headway_s
+            + v.v * (v.v - lead_v) / (2 * math.sqrt(p.max_accel_mps2 * p.comfort_decel_mps2)),
+        )
+        return max(p.max_accel_mps2 * (free - (s_star / gap) ** 2), -p.max_decel_mps2)
+
+    def _speed_limit(self, path: Path) -> float:
+        lane_ids = [path.lane_id] if path.lane_id is not None else [path.from_lane, path.to_lane]
+        limits = [self.scene.lanes[lane].speed_limit_mps for lane in lane_ids if lane is not None]
+        return min([self.cfg.max_speed_mps, *limits])
+
+    def _target_point(self, paths: list[Path], s: float, ahead_m: float) -> np.ndarray:
+        remaining = s + ahead_m
+        for path in paths:
+            if remaining <= path.length_m:
+                return path.position(remaining)
+            remaining -= path.length_m
+        last = paths[-1]
+        # Past the end of what is known: extend along the final heading (keeps steering calm).
+        end = last.position(last.length_m)
+        h = float(last.heading[-1])
+        return end + remaining * np.array([math.cos(h), math.sin(h), 0.0])
+
+    def _drive(self, v: Vehicle, occ: dict[str, list[tuple[float, Vehicle]]]) -> None:
+        dt = self.dt
+        paths = self._route_ahead(v)
+        gap, lead_v = self._leader(v, paths, occ)
+        accel = self._idm_accel(v, self._speed_limit(v.path), gap, lead_v)
+        v.v = max(0.0, v.v + accel * dt)
+        if gap <= 0.0:
+            v.v = 0.0
+        # Pure pursuit toward a point ahead on the route.
+        lookahead = self.cfg.pursuit.lookahead_min_m + self.cfg.pursuit.lookahead_gain_s * v.v
+        target = self._target_point(paths, v.s, lookahead)
+        alpha = math.atan2(target[1] - v.y, target[0] - v.x) - v.yaw
+        alpha = math.remainder(alpha, 2 * math.pi)
+        ld = max(math.hypot(target[0] - v.x, target[1] - v.y), 1e-3)
+        steer = math.atan2(2.0 * self.wheelbase_m * math.sin(alpha), ld)
+        steer = min(max(steer, -self.max_steer_rad), self.max_steer_rad)
+        v.yaw_rate = v.v / self.wheelbase_m * math.tan(steer)
+        v.x += v.v * math.cos(v.yaw) * dt
+        v.y += v.v * math.sin(v.yaw) * dt
+        v.yaw = math.remainder(v.yaw + v.yaw_rate * dt, 2 * math.pi)
+        self._advance(v, v.s + v.v * dt)
+        pos = v.path.position(v.s)
+        v.z = float(pos[2])
+        v.pitch = -math.atan(v.path.grade_at(v.s))
+
+    def _advance(self, v: Vehicle, s_guess: float) -> None:
+        s_new = v.path.project(np.array([v.x, v.y]), s_guess)
+        while s_guess >= v.path.length_m - 1e-9 and s_new >= v.path.length_m - 1e-6:
+            overflow = max(s_guess - v.path.length_m, 0.0)
+            if not self._enter_next(v):
+                v.s = v.path.length_m
+                v.v = 0.0
+                return
+            s_guess = overflow
+            s_new = v.path.project(np.array([v.x, v.y]), overflow)
+        v.s = max(s_new, 0.0)
+        if v.releasing is not None and v.path.lane_id is not None and v.s >= self.length_m / 2:
+            self.occupant[v.releasing] = None
+            v.releasing = None
+
+    def _enter_next(self, v: Vehicle) -> bool:
+        if v.path.lane_id is not None:
+            if not v.admitted or v.next_lane is None:
+                return False
+            junction = self.net.lane_end_junction(v.lane_id)
+            v.path = self.net.connector(junction, v.lane_id, v.next_lane)
+            self.arrivals[junction] += 1
+            if v.arriving:
+                self.trips.append(Trip(v.id, v.origin, junction, v.trip_start_s, self.time_s))
+                v.origin, v.trip_start_s, v.arriving = junction, self.time_s, False
+            return True
+        assert v.path.to_lane is not None and v.path.junction_id is not None
+        v.releasing = v.path.junction_id
+        v.lane_id = v.path.to_lane
+        v.path = self.net.lanes[v.lane_id]
+        v.next_lane, v.requested, v.admitted = None, False, False
+        return True
