@@ -1,0 +1,204 @@
+"""Camera model: pinhole images of the sand table, rendered fast by compositing.
+
+The static scene is rendered once per camera (PyBullet TinyRenderer, colour + depth) and kept. Each
+frame, only the vehicles are rendered, and only inside the image rectangles their 3D boxes project
+to: an off-axis frustum per rectangle renders exactly those pixels of the full image. A vehicle pixel
+replaces the background where its depth is smaller, so buildings, poles and the deck occlude vehicles
+and vehicles occlude the scene, pixel-exactly. A 640x480 frame with a few vehicles costs a few ms
+instead of ~115 ms for a full render.
+
+Pixel convention (shared.geometry): continuous coordinates, pixel (i, j) covers [i, i+1) x [j, j+1),
+principal point at (W/2, H/2); the optical frame is +x right, +y down, +z forward.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pybullet as pb
+
+from shared.geometry.boxes import box3d_corners
+from shared.geometry.camera import project_points
+from shared.scene.scene import Scene
+from sim.world import StaticWorld, VehiclePose, VehicleWorld
+
+GL_FROM_OPTICAL = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenGL eye: +y up, looking down -z
+LIGHT_DIRECTION = (0.35, -0.25, 1.0)
+LIGHT_AMBIENT = 0.55
+LIGHT_DIFFUSE = 0.5
+LIGHT_SPECULAR = 0.05
+ROI_MARGIN_PX = 3
+
+
+def gl_view_matrix(T_optical_from_world: np.ndarray) -> list[float]:
+    """PyBullet/OpenGL view matrix (16 floats, column-major) of a camera pose."""
+    return [float(v) for v in (GL_FROM_OPTICAL @ T_optical_from_world).T.reshape(-1)]
+
+
+def gl_projection_matrix(
+    K: np.ndarray, roi_px: tuple[int, int, int, int], near_m: float, far_m: float
+) -> list[float]:
+    """Off-axis OpenGL frustum (column-major) that renders pixels [u0, u1) x [v0, v1) of camera K."""
+    u0, v0, u1, v1 = roi_px
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    left, right = near_m * (u0 - cx) / fx, near_m * (u1 - cx) / fx
+    top, bottom = near_m * (cy - v0) / fy, near_m * (cy - v1) / fy
+    P = np.array(
+        [
+            [2 * near_m / (right - left), 0, (right + left) / (right - left), 0],
+            [0, 2 * near_m / (top - bottom), (top + bottom) / (top - bottom), 0],
+            [0, 0, -(far_m + near_m) / (far_m - near_m), -2 * far_m * near_m / (far_m - near_m)],
+            [0, 0, -1, 0],
+        ]
+    )
+    return [float(v) for v in P.T.reshape(-1)]
+
+
+def linear_depth(buffer: np.ndarray, near_m: float, far_m: float) -> np.ndarray:
+    """OpenGL depth buffer [0, 1] -> distance along the optical axis (m)."""
+    return far_m * near_m / (far_m - (far_m - near_m) * buffer)
+
+
+def render(
+    client: int,
+    T_optical_from_world: np.ndarray,
+    K: np.ndarray,
+    roi_px: tuple[int, int, int, int],
+    near_m: float,
+    far_m: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """RGB (h, w, 3) uint8, linear depth (h, w) and body ids (h, w; -1 = nothing) of one ROI."""
+    u0, v0, u1, v1 = roi_px
+    w, h = u1 - u0, v1 - v0
+    _, _, rgba, depth, seg = pb.getCameraImage(
+        w,
+        h,
+        gl_view_matrix(T_optical_from_world),
+        gl_projection_matrix(K, roi_px, near_m, far_m),
+        lightDirection=list(LIGHT_DIRECTION),
+        lightAmbientCoeff=LIGHT_AMBIENT,
+        lightDiffuseCoeff=LIGHT_DIFFUSE,
+        lightSpecularCoeff=LIGHT_SPECULAR,
+        shadow=0,
+        renderer=pb.ER_TINY_RENDERER,
+        physicsClientId=client,
+    )
+    rgb = np.asarray(rgba, np.uint8).reshape(h, w, 4)[:, :, :3]
+    depth_m = linear_depth(np.asarray(depth, np.float32).reshape(h, w), near_m, far_m)
+    ids = np.asarray(seg, np.int32).reshape(h, w)
+    ids = np.where(ids >= 0, ids & ((1 << 24) - 1), -1)  # strip the link index bits
+    return rgb, depth_m, ids
+
+
+def vehicle_box_corners(pose: VehiclePose, size_m: tuple[float, float, float]) -> np.ndarray:
+    """8 world corners of a (possibly pitched) vehicle box."""
+    from scipy.spatial.transform import Rotation  # local: keep module import light
+
+    corners = box3d_corners(np.array([[0, 0, 0, *size_m, 0.0]]))[0]
+    rot = Rotation.from_euler("ZYX", [pose.yaw_rad, pose.pitch_rad, 0.0])
+    return rot.apply(corners) + np.asarray(pose.center_m)
+
+
+def merge_rects(rects: list[tuple[int, int, int, int]]) -> list[tuple[int, int, int, int]]:
+    """Union overlapping rectangles until none overlap (each vehicle pixel is rendered once)."""
+    out = list(rects)
+    merged = True
+    while merged:
+        merged = False
+        for i in range(len(out)):
+            for j in range(i + 1, len(out)):
+                a, b = out[i], out[j]
+                if a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]:
+                    out[i] = (min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3]))
+                    del out[j]
+                    merged = True
+                    break
+            if merged:
+                break
+    return out
+
+
+@dataclass
+class CameraFrame:
+    rgb: np.ndarray  # (H, W, 3) uint8
+    visible_px: dict[str, int]  # vehicle id -> number of visible pixels
+    visible_boxes: dict[str, tuple[int, int, int, int]]  # vehicle id -> tight box of its visible pixels
+    rois: list[tuple[int, int, int, int]]
+
+
+class CameraRenderer:
+    """One camera: cached static background + per-frame vehicle compositing."""
+
+    def __init__(self, scene: Scene, camera_id: str, static: StaticWorld, vehicles: VehicleWorld) -> None:
+        spec = scene.sensor(camera_id)
+        assert spec.camera is not None
+        self.camera_id = camera_id
+        self.model = spec.camera
+        self.width, self.height = spec.camera.width_px, spec.camera.height_px
+        self.K = np.asarray(scene.K(camera_id))
+        self.T = np.asarray(scene.T_optical_from_world(camera_id))
+        self.vehicles = vehicles
+        full = (0, 0, self.width, self.height)
+        self.background, self.background_depth, _ = render(
+            static.cid, self.T, self.K, full, self.model.near_m, self.model.far_m
+        )
+        self.background.setflags(write=False)
+
+    def vehicle_rects(self, poses: list[VehiclePose]) -> dict[str, tuple[int, int, int, int]]:
+        """Image rectangle of each vehicle's projected box (clipped to the image), if any."""
+        rects = {}
+        for pose in poses:
+            corners = vehicle_box_corners(pose, self.vehicles.size_m)
+            uv, z = project_points(corners, self.T, self.K)
+            if (z <= self.model.near_m).all():
+                continue
+            if (z <= self.model.near_m).any():
+                rects[pose.vehicle_id] = (0, 0, self.width, self.height)  # straddles the camera plane
+                continue
+            u0 = int(np.floor(np.nanmin(uv[:, 0]))) - ROI_MARGIN_PX
+            v0 = int(np.floor(np.nanmin(uv[:, 1]))) - ROI_MARGIN_PX
+            u1 = int(np.ceil(np.nanmax(uv[:, 0]))) + ROI_MARGIN_PX
+            v1 = int(np.ceil(np.nanmax(uv[:, 1]))) + ROI_MARGIN_PX
+            u0, v0, u1, v1 = max(u0, 0), max(v0, 0), min(u1, self.width), min(v1, self.height)
+            if u1 > u0 and v1 > v0:
+                rects[pose.vehicle_id] = (u0, v0, u1, v1)
+        return rects
+
+    def render(self, poses: list[VehiclePose]) -> CameraFrame:
+        """Composite frame for vehicles at `poses` (the vehicle world must already hold them)."""
+        rects = self.vehicle_rects(poses)
+        rois = merge_rects(list(rects.values()))
+        if not rois:
+            return CameraFrame(self.background, {}, {}, [])
+        rgb = self.background.copy()
+        visible_px: dict[str, int] = {}
+        visible_boxes: dict[str, tuple[int, int, int, int]] = {}
+        for roi in rois:
+            u0, v0, u1, v1 = roi
+            vrgb, vdepth, ids = render(
+                self.vehicles.cid, self.T, self.K, roi, self.model.near_m, self.model.far_m
+            )
+            front = (ids >= 0) & (vdepth < self.background_depth[v0:v1, u0:u1])
+            rgb[v0:v1, u0:u1][front] = vrgb[front]
+            for body in np.unique(ids[front]):
+                vid = self.vehicles.body_vehicle.get(int(body))
+                if vid is None:
+                    continue
+                rows, cols = np.nonzero(front & (ids == body))
+                visible_px[vid] = len(rows)
+                visible_boxes[vid] = (
+                    u0 + int(cols.min()),
+                    v0 + int(rows.min()),
+                    u0 + int(cols.max()) + 1,
+                    v0 + int(rows.max()) + 1,
+                )
+        return CameraFrame(rgb, visible_px, visible_boxes, rois)
+
+
+def add_noise(rgb: np.ndarray, std: float, rng: np.random.Generator) -> np.ndarray:
+    """Gaussian pixel noise, `std` as a fraction of the 0-255 range."""
+    if std <= 0:
+        return rgb
+    noisy = rgb.astype(np.float32) + rng.normal(0.0, std * 255.0, rgb.shape).astype(np.float32)
+    return np.clip(noisy, 0, 255).astype(np.uint8)
