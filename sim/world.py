@@ -13,6 +13,7 @@ Units: metres, radians; colours RGBA in [0, 1].
 from __future__ import annotations
 
 import hashlib
+import itertools
 import math
 import tempfile
 from dataclasses import dataclass
@@ -247,7 +248,7 @@ class StaticWorld(_Client):
             first, last = max(idx[0] - 1, 0), min(idx[-1] + 1, len(pts) - 1)
             marks = np.arange(s[first], s[last], DECK_PIECE_M)
             marks = np.append(marks, s[last])
-            for a, b in zip(marks[:-1], marks[1:], strict=True):
+            for a, b in itertools.pairwise(marks):
                 pa = np.array([np.interp(a, s, pts[:, k]) for k in range(3)])
                 pb_ = np.array([np.interp(b, s, pts[:, k]) for k in range(3)])
                 d = pb_ - pa
