@@ -184,11 +184,13 @@ class TrafficSim:
         return self._by_id[vehicle_id]
 
     def set_plan(self, vehicle_id: str, lanes: list[str], version: int) -> bool:
-        """Give a vehicle the lanes to take after its current lane. False if not a valid route."""
+        """Give a vehicle the lanes to take (from its current lane on). False if not a valid route."""
         v = self._by_id[vehicle_id]
         if version <= v.plan_version:
             return True  # idempotent: older or repeated plans change nothing
         start = v.lane_id if not v.requested else (v.next_lane or v.lane_id)
+        if lanes and lanes[0] == start:
+            lanes = lanes[1:]  # plans list the current lane first
         if not self.net.is_valid_route(start, lanes):
             return False
         v.plan = list(lanes)

@@ -1,0 +1,5 @@
+import sys
+
+from services.sensor.main import cli
+
+sys.exit(cli())

@@ -1,0 +1,83 @@
+"""Camera model: composited frames agree with the camera model and with full renders."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from shared.geometry.camera import project_points
+from shared.scene.scene import Scene
+from sim.config import DEFAULT_SCENE
+from sim.sensors.camera import CameraRenderer, render, vehicle_box_corners
+from sim.world import FullWorld, StaticWorld, VehiclePose, VehicleWorld
+
+
+@pytest.fixture(scope="module")
+def scene() -> Scene:
+    return Scene.load(DEFAULT_SCENE)
+
+
+@pytest.fixture(scope="module")
+def worlds(scene: Scene) -> Iterator[tuple[StaticWorld, VehicleWorld, FullWorld]]:
+    static, vehicles, full = StaticWorld(scene), VehicleWorld(scene), FullWorld(scene)
+    yield static, vehicles, full
+    for w in (static, vehicles, full):
+        w.close()
+
+
+def _poses(scene: Scene) -> list[VehiclePose]:
+    h = scene.spec.vehicle.height_m
+    # On lane l3's southbound end (north arm of the intersection), in view of cam_11 and cam_13.
+    return [
+        VehiclePose("v00", (-0.15, 2.6, h / 2), -1.5708, 0.0, (0.9, 0.1, 0.1, 1.0)),
+        VehiclePose("v01", (0.15, 3.2, h / 2), 1.5708, 0.0, (0.1, 0.3, 0.9, 1.0)),
+        # On the south arm, in view of cam_13 (looking south from the north-east corner).
+        VehiclePose("v02", (0.15, 0.4, h / 2), 1.5708, 0.0, (0.1, 0.8, 0.3, 1.0)),
+    ]
+
+
+@pytest.mark.parametrize("camera_id", ["cam_11", "cam_13"])
+def test_vehicle_pixels_lie_inside_the_projection_of_its_box(scene: Scene, worlds, camera_id: str) -> None:
+    static, vehicles, _ = worlds
+    poses = _poses(scene)
+    vehicles.update(poses)
+    cam = CameraRenderer(scene, camera_id, static, vehicles)
+    frame = cam.render(poses)
+    assert frame.visible_px, "the test vehicles should be in view"
+    T, K = np.asarray(scene.T_optical_from_world(camera_id)), np.asarray(scene.K(camera_id))
+    for pose in poses:
+        if pose.vehicle_id not in frame.visible_boxes:
+            continue
+        uv, _ = project_points(vehicle_box_corners(pose, vehicles.size_m), T, K)
+        u0, v0, u1, v1 = frame.visible_boxes[pose.vehicle_id]
+        assert u0 >= np.floor(uv[:, 0].min()) - 1 and u1 <= np.ceil(uv[:, 0].max()) + 1
+        assert v0 >= np.floor(uv[:, 1].min()) - 1 and v1 <= np.ceil(uv[:, 1].max()) + 1
+
+
+def test_composite_equals_a_full_render(scene: Scene, worlds) -> None:
+    static, vehicles, full = worlds
+    poses = _poses(scene)
+    vehicles.update(poses)
+    full.update(poses)
+    camera_id = "cam_11"
+    cam = CameraRenderer(scene, camera_id, static, vehicles)
+    frame = cam.render(poses)
+    model = scene.sensor(camera_id).camera
+    T, K = np.asarray(scene.T_optical_from_world(camera_id)), np.asarray(scene.K(camera_id))
+    reference, _, _ = render(
+        full.cid, T, K, (0, 0, model.width_px, model.height_px), model.near_m, model.far_m
+    )
+    differs = np.any(frame.rgb.astype(int) - reference.astype(int) != 0, axis=2)
+    # Identical except for rasterisation seams along silhouettes.
+    assert differs.mean() < 0.01
+
+
+def test_frame_without_vehicles_in_view_is_the_background(scene: Scene, worlds) -> None:
+    static, vehicles, _ = worlds
+    far = [VehiclePose("v00", (3.35, -4.0, 0.105), 1.57, 0.0, (0.9, 0.1, 0.1, 1.0))]
+    vehicles.update(far)
+    cam = CameraRenderer(scene, "cam_11", static, vehicles)
+    frame = cam.render(far)
+    assert frame.rois == [] and frame.rgb is cam.background

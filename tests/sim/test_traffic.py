@@ -1,0 +1,123 @@
+"""Traffic on the sand table: loops, no collisions, trips and flow counts, determinism, plans."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from shared.scene.scene import Scene
+from sim.config import DEFAULT_SCENE, TrafficSettings
+from sim.ground_truth import ground_truth_message
+from sim.road_network import RoadNetwork
+from sim.traffic import TrafficSim
+
+TICK_HZ = 60.0
+
+
+@pytest.fixture(scope="module")
+def scene() -> Scene:
+    return Scene.load(DEFAULT_SCENE)
+
+
+@pytest.fixture(scope="module")
+def network(scene: Scene) -> RoadNetwork:
+    return RoadNetwork(scene)
+
+
+def test_network_has_the_paper_topology(scene: Scene, network: RoadNetwork) -> None:
+    assert sorted(j.number for j in scene.spec.junctions) == [1, 2, 3, 4, 5, 6, 7]
+    assert len(network.lanes) == 20
+    # every lane can be left and every junction reached from every lane (strongly connected)
+    import networkx as nx
+
+    assert nx.is_strongly_connected(network.graph)
+    for lane in scene.spec.lanes:
+        assert lane.reverse_lane not in network.successors[lane.id]  # no U-turns
+
+
+def test_lane_centrelines_are_smooth_and_continuous(network: RoadNetwork) -> None:
+    for path in [*network.lanes.values(), *network.connectors.values()]:
+        steps = np.linalg.norm(np.diff(path.points, axis=0), axis=1)
+        assert steps.max() < 0.05, path.id
+        turn = np.abs(np.angle(np.exp(1j * np.diff(path.heading[:-1]))))
+        assert turn.max() < 0.35, path.id  # no kinks: at most ~20 deg per 2 cm sample
+
+
+def test_a_vehicle_completes_a_loop_of_the_network(scene: Scene, network: RoadNetwork) -> None:
+    sim = TrafficSim(
+        scene, network, TrafficSettings(vehicles=1, route_policy="random"), seed=3, tick_hz=TICK_HZ
+    )
+    v = sim.vehicles[0]
+    start_lane = v.lane_id
+    visited: list[str] = [start_lane]
+    for _ in range(int(600 * TICK_HZ)):
+        sim.step()
+        if v.lane_id != visited[-1]:
+            visited.append(v.lane_id)
+        if len(visited) > 3 and v.lane_id == start_lane:
+            break
+    assert v.lane_id == start_lane and len(visited) > 3, visited
+    assert sum(sim.arrivals.values()) >= len(visited) - 1
+
+
+def test_no_collisions_over_30_vehicle_minutes(scene: Scene, network: RoadNetwork) -> None:
+    sim = TrafficSim(scene, network, TrafficSettings(vehicles=10), seed=11, tick_hz=TICK_HZ)
+    ticks = int(3 * 60 * TICK_HZ)  # 10 vehicles x 3 min
+    for k in range(ticks):
+        sim.step()
+        if k % 6 == 0:
+            assert sim.overlapping_pairs() == [], f"overlap at t={sim.time_s:.2f} s"
+    speeds = [v.v for v in sim.vehicles]
+    assert sum(sim.arrivals.values()) > 50 and len(sim.trips) > 0
+    assert max(speeds) <= sim.cfg.max_speed_mps + 1e-9
+
+
+@pytest.mark.parametrize("policy", ["random", "shortest"])
+def test_same_seed_same_ground_truth(scene: Scene, network: RoadNetwork, policy: str) -> None:
+    def run(seed: int) -> list[bytes]:
+        sim = TrafficSim(
+            scene, network, TrafficSettings(vehicles=10, route_policy=policy), seed=seed, tick_hz=TICK_HZ
+        )
+        out = []
+        for _ in range(600):
+            sim.step()
+            out.append(ground_truth_message(sim, scene, seed, TICK_HZ).SerializeToString())
+        return out
+
+    assert run(5) == run(5)
+    assert run(5) != run(6)
+
+
+def test_saturated_network_keeps_moving(scene: Scene, network: RoadNetwork) -> None:
+    sim = TrafficSim(
+        scene, network, TrafficSettings(vehicles=50, route_policy="shortest"), seed=2, tick_hz=TICK_HZ
+    )
+    for _ in range(int(120 * TICK_HZ)):
+        sim.step()
+    before = sum(sim.arrivals.values())
+    for _ in range(int(30 * TICK_HZ)):
+        sim.step()
+    assert sum(sim.arrivals.values()) > before  # no gridlock: junctions keep admitting
+
+
+def test_shortest_policy_follows_shortest_routes(scene: Scene, network: RoadNetwork) -> None:
+    route = network.shortest_route("l12", "j1")
+    assert network.is_valid_route("l12", route)
+    assert network.lane_end_junction(route[-1]) == "j1"
+
+
+def test_plans_are_followed_versioned_and_validated(scene: Scene, network: RoadNetwork) -> None:
+    sim = TrafficSim(
+        scene, network, TrafficSettings(vehicles=1, route_policy="plan"), seed=4, tick_hz=TICK_HZ
+    )
+    v = sim.vehicles[0]
+    options = network.successors[v.lane_id]
+    target = options[-1]
+    assert sim.set_plan(v.id, [v.lane_id, target], version=1)
+    assert not sim.set_plan(v.id, [v.lane_id, "l_nonexistent"], version=2)  # invalid route refused
+    assert sim.set_plan(v.id, [v.lane_id, options[0]], version=1)  # stale version: no change
+    assert v.plan == [target]
+    first = v.lane_id
+    while v.lane_id == first:
+        sim.step()
+    assert v.lane_id == target
