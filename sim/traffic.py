@@ -83,6 +83,9 @@ class Vehicle:
     detours: int = 0
 
 
+Occupancy = dict[str, list[tuple[float, Vehicle]]]  # path id -> (progress m, vehicle), rearmost first
+
+
 class TrafficSim:
     """All vehicles of one scenario; `step()` advances one tick."""
 
@@ -201,7 +204,7 @@ class TrafficSim:
         """Advance every vehicle by one tick."""
         occupancy = self._occupancy()
         self._request_junctions()
-        self._admit()
+        self._admit(occupancy)
         for v in self.vehicles:
             self._drive(v, occupancy)
         self.tick += 1
@@ -249,9 +252,10 @@ class TrafficSim:
             v.requested_at_s = self.time_s
             self.queues[junction].append(v.id)
 
-    def _exit_has_room(self, lane_id: str) -> bool:
-        need = 1.5 * self.length_m + self.cfg.idm.min_gap_m
-        return all(not (o.path.lane_id == lane_id and o.s < need) for o in self.vehicles)
+    def _exit_has_room(self, lane_id: str, occ: Occupancy) -> bool:
+        """The rearmost vehicle on the lane (if any) has left room for one more at its start."""
+        on_lane = occ.get(lane_id)
+        return not on_lane or on_lane[0][0] >= 1.5 * self.length_m + self.cfg.idm.min_gap_m
 
     def _ring_count(self) -> int:
         return sum(
@@ -261,17 +265,20 @@ class TrafficSim:
             or (o.path.to_lane is not None and o.path.to_lane in self.circulating)
         )
 
-    def _may_enter(self, v: Vehicle, lane_id: str) -> bool:
-        if not self._exit_has_room(lane_id):
+    def _may_enter(self, v: Vehicle, lane_id: str, occ: Occupancy) -> bool:
+        if not self._exit_has_room(lane_id, occ):
             return False
         entering_ring = lane_id in self.circulating and v.lane_id not in self.circulating
         return not (entering_ring and self._ring_count() >= self.ring_capacity)
 
-    def _is_front(self, v: Vehicle) -> bool:
+    @staticmethod
+    def _is_front(v: Vehicle, occ: Occupancy) -> bool:
         """No other vehicle between this one and its lane's stop line."""
-        return all(not (o.path is v.path and o.s > v.s) for o in self.vehicles)
+        return occ[v.path.id][-1][0] <= v.s
 
-    def _admit(self) -> None:
+    def _admit(self, occ: Occupancy) -> None:
+        """Admit at most one queued vehicle per free junction. Admission moves nobody, so the tick's
+        occupancy snapshot stays exact throughout."""
         for junction, queue in self.queues.items():
             if self.occupant[junction] is not None or not queue:
                 continue
@@ -280,12 +287,14 @@ class TrafficSim:
             for vid in ordered:
                 v = self._by_id[vid]
                 assert v.next_lane is not None
-                if not self._is_front(v):
+                if not self._is_front(v, occ):
                     continue
-                if not self._may_enter(v, v.next_lane):
+                if not self._may_enter(v, v.next_lane, occ):
                     if self.time_s - v.requested_at_s < self.cfg.detour_after_s:
                         continue
-                    detour = [lane for lane in self.net.successors[v.lane_id] if self._may_enter(v, lane)]
+                    detour = [
+                        lane for lane in self.net.successors[v.lane_id] if self._may_enter(v, lane, occ)
+                    ]
                     if not detour:
                         continue
                     v.next_lane = detour[int(self.rng.integers(len(detour)))]
@@ -299,8 +308,9 @@ class TrafficSim:
 
     # --- driving ---------------------------------------------------------------------------------
 
-    def _occupancy(self) -> dict[str, list[tuple[float, Vehicle]]]:
-        occ: dict[str, list[tuple[float, Vehicle]]] = {}
+    def _occupancy(self) -> Occupancy:
+        """Vehicles on each path (lane or connector id), rearmost first."""
+        occ: Occupancy = {}
         for v in self.vehicles:
             occ.setdefault(v.path.id, []).append((v.s, v))
         for items in occ.values():
@@ -320,9 +330,7 @@ class TrafficSim:
             paths.append(self.net.lanes[v.path.to_lane])
         return paths
 
-    def _leader(
-        self, v: Vehicle, paths: list[Path], occ: dict[str, list[tuple[float, Vehicle]]]
-    ) -> tuple[float, float]:
+    def _leader(self, v: Vehicle, paths: list[Path], occ: Occupancy) -> tuple[float, float]:
         """(bumper gap, leader speed) to the nearest obstacle ahead; stop lines are standing obstacles."""
         offset = -v.s
         for k, path in enumerate(paths):
@@ -368,7 +376,7 @@ class TrafficSim:
         h = float(last.heading[-1])
         return end + remaining * np.array([math.cos(h), math.sin(h), 0.0])
 
-    def _drive(self, v: Vehicle, occ: dict[str, list[tuple[float, Vehicle]]]) -> None:
+    def _drive(self, v: Vehicle, occ: Occupancy) -> None:
         dt = self.dt
         paths = self._route_ahead(v)
         gap, lead_v = self._leader(v, paths, occ)

@@ -46,7 +46,7 @@ TYRE_RGBA = (0.08, 0.08, 0.08, 1.0)
 # lidar returns on a vehicle lie on or inside its box.
 CHASSIS_Z_FRACTION = (0.15, 0.55)  # bottom, top of the chassis as fractions of height
 SHELL_FRACTION = (0.7, 0.82, 0.45)  # length, width, height of the top shell
-WHEEL_RADIUS_FRACTION = 0.15  # of height... x height = 0.0315 m for the Deepracer
+WHEEL_RADIUS_FRACTION = 0.15  # of the body height: 0.0315 m for the Deepracer
 
 
 @dataclass(frozen=True)

@@ -19,17 +19,16 @@ import time
 from pathlib import Path
 
 import zenoh
-from rmmdet.v1.common_pb2 import ProcessingStamp
 from rmmdet.v1.sim_pb2 import SimClock
 
 from shared.bus.health import DEGRADED, NOMINAL
-from shared.bus.node import Node
+from shared.bus.node import Node, processing_stamp
 from shared.config import load_settings
 from shared.scene.calibration import calibration_set
 from shared.scene.scene import Scene
 from shared.service import run_service
 from shared.shutdown import GracefulShutdown
-from sim.config import DEFAULT_SIM_CONFIG, REPO_ROOT, SimSettings
+from sim.config import DEFAULT_SIM_CONFIG, REPO_ROOT, SimSettings, TrafficSettings
 from sim.ground_truth import ground_truth_message
 from sim.road_network import RoadNetwork
 from sim.traffic import TrafficSim
@@ -49,8 +48,10 @@ def load(args: argparse.Namespace) -> SimSettings:
     if args.seed is not None:
         overrides["seed"] = args.seed
     settings = load_settings(SimSettings, args.settings, **overrides)
-    if args.vehicles is not None:
-        settings.traffic.vehicles = args.vehicles
+    if args.vehicles is not None:  # validated like the YAML value (bounds included)
+        settings.traffic = TrafficSettings.model_validate(
+            {**settings.traffic.model_dump(), "vehicles": args.vehicles}
+        )
     if not settings.scene.is_absolute():
         settings.scene = REPO_ROOT / settings.scene
     return settings
@@ -104,9 +105,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             traffic.step()
             stamp_ns = start_wall_ns + round(traffic.time_s * NS)
             msg = ground_truth_message(traffic, scene, settings.seed, settings.tick_hz)
-            stage = ProcessingStamp(stage="sim/step")
-            stage.start.FromNanoseconds(t0)
-            stage.end.FromNanoseconds(time.time_ns())
+            stage = processing_stamp("sim/step", t0, time.time_ns())
             header = gt_pub.next_header(stamp_ns=stamp_ns, tick=traffic.tick, frame_id="world")
             msg.header.CopyFrom(header)
             gt_pub.put(msg, header, stages=[stage])

@@ -47,6 +47,14 @@ log = logging.getLogger(__name__)
 VERSION = "0.1.0"
 
 
+def processing_stamp(stage: str, start_ns: int, end_ns: int | None = None) -> ProcessingStamp:
+    """A wall-clock `ProcessingStamp` for `stage` (end defaults to start: an instant)."""
+    stamp = ProcessingStamp(stage=stage)
+    stamp.start.FromNanoseconds(start_ns)
+    stamp.end.FromNanoseconds(start_ns if end_ns is None else end_ns)
+    return stamp
+
+
 @dataclass(frozen=True)
 class Received:
     key: str
@@ -169,10 +177,7 @@ class Publisher:
         if header is None:
             header = self.next_header(**header_kwargs)
         header.processing.extend(stages)
-        now_ns = time.time_ns()
-        stamp = header.processing.add(stage=f"{self._stage}/publish")
-        stamp.start.FromNanoseconds(now_ns)
-        stamp.end.FromNanoseconds(now_ns)
+        header.processing.append(processing_stamp(f"{self._stage}/publish", time.time_ns()))
         encoded = encode(msg, header)
         self._publisher.put(encoded.payload, attachment=encoded.attachment)
         return header

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pybullet as pb
+from scipy.spatial.transform import Rotation
 
 from shared.geometry.boxes import box3d_corners
 from shared.geometry.camera import project_points
@@ -93,8 +94,6 @@ def render(
 
 def vehicle_box_corners(pose: VehiclePose, size_m: tuple[float, float, float]) -> np.ndarray:
     """8 world corners of a (possibly pitched) vehicle box."""
-    from scipy.spatial.transform import Rotation  # local: keep module import light
-
     corners = box3d_corners(np.array([[0, 0, 0, *size_m, 0.0]]))[0]
     rot = Rotation.from_euler("ZYX", [pose.yaw_rad, pose.pitch_rad, 0.0])
     return rot.apply(corners) + np.asarray(pose.center_m)
