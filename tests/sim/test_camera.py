@@ -2,29 +2,20 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import numpy as np
 import pytest
 
 from shared.geometry.camera import project_points
 from shared.scene.scene import Scene
-from sim.config import DEFAULT_SCENE
 from sim.sensors.camera import CameraRenderer, render, vehicle_box_corners
 from sim.world import FullWorld, StaticWorld, VehiclePose, VehicleWorld
 
 
 @pytest.fixture(scope="module")
-def scene() -> Scene:
-    return Scene.load(DEFAULT_SCENE)
-
-
-@pytest.fixture(scope="module")
-def worlds(scene: Scene) -> Iterator[tuple[StaticWorld, VehicleWorld, FullWorld]]:
-    static, vehicles, full = StaticWorld(scene), VehicleWorld(scene), FullWorld(scene)
-    yield static, vehicles, full
-    for w in (static, vehicles, full):
-        w.close()
+def worlds(
+    static: StaticWorld, vehicles: VehicleWorld, full: FullWorld
+) -> tuple[StaticWorld, VehicleWorld, FullWorld]:
+    return static, vehicles, full
 
 
 def _poses(scene: Scene) -> list[VehiclePose]:

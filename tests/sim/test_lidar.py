@@ -4,8 +4,6 @@ the whole world, returns lie on the vehicles, occlusion, determinism, point-clou
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
-from pathlib import Path
 
 import numpy as np
 import pybullet as pb
@@ -29,7 +27,6 @@ from sim.sensors.lidar import (
 from sim.traffic import TrafficSim
 from sim.world import SLAB_DROP_M, FullWorld, StaticWorld, VehiclePose, VehicleWorld
 
-SCENE_PATH = Path(__file__).resolve().parents[2] / "deploy" / "scenes" / "sand_table.yaml"
 LIDAR = "lidar_11"  # at (-0.62, 2.12, 0.15), agent1's intersection
 RANGE_TOL_M = 1e-4  # PyBullet casts of the same segment agree to float precision
 SURFACE_TOL_M = 0.003
@@ -45,32 +42,6 @@ def _zero_noise(scene: Scene, sensor_id: str) -> Scene:
         for s in spec.sensors
     ]
     return Scene(spec.model_copy(update={"sensors": sensors}))
-
-
-@pytest.fixture(scope="module")
-def scene() -> Scene:
-    return Scene.load(SCENE_PATH)
-
-
-@pytest.fixture(scope="module")
-def static(scene: Scene) -> Iterator[StaticWorld]:
-    world = StaticWorld(scene)
-    yield world
-    world.close()
-
-
-@pytest.fixture(scope="module")
-def vehicles(scene: Scene) -> Iterator[VehicleWorld]:
-    world = VehicleWorld(scene)
-    yield world
-    world.close()
-
-
-@pytest.fixture(scope="module")
-def full(scene: Scene) -> Iterator[FullWorld]:
-    world = FullWorld(scene)
-    yield world
-    world.close()
 
 
 @pytest.fixture(scope="module")

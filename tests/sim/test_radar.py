@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -12,7 +11,6 @@ import pytest
 from shared.scene.scene import Scene
 from sim.sensors.radar import RadarSimulator, SimRadarTarget, VehicleState, to_radar_scan
 from sim.world import StaticWorld, VehiclePose, VehicleWorld
-from tests.helpers import REPO_ROOT
 
 RADAR = "radar_3"
 CENTRE_Z_M = 0.105  # box centre of a vehicle on the table
@@ -27,16 +25,8 @@ NOISE_FREE: dict[str, Any] = {
 
 
 @pytest.fixture(scope="module")
-def scene() -> Scene:
-    return Scene.load(REPO_ROOT / "deploy/scenes/sand_table.yaml")
-
-
-@pytest.fixture(scope="module")
-def worlds(scene: Scene) -> Iterator[tuple[StaticWorld, VehicleWorld]]:
-    static, vehicles = StaticWorld(scene), VehicleWorld(scene)
-    yield static, vehicles
-    vehicles.close()
-    static.close()
+def worlds(static: StaticWorld, vehicles: VehicleWorld) -> tuple[StaticWorld, VehicleWorld]:
+    return static, vehicles
 
 
 @pytest.fixture

@@ -6,17 +6,12 @@ import numpy as np
 import pytest
 
 from shared.scene.scene import Scene
-from sim.config import DEFAULT_SCENE, TrafficSettings
+from sim.config import TrafficSettings
 from sim.ground_truth import ground_truth_message
 from sim.road_network import RoadNetwork
 from sim.traffic import TrafficSim
 
 TICK_HZ = 60.0
-
-
-@pytest.fixture(scope="module")
-def scene() -> Scene:
-    return Scene.load(DEFAULT_SCENE)
 
 
 @pytest.fixture(scope="module")
