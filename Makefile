@@ -67,8 +67,9 @@ test-integration: install
 test-fault: install
 	$(BIN)/python -m pytest -m "fault and not slow" $(PYTEST_ARGS)
 
-bench: install ## benchmarks (bus latency/throughput); results land in tests/bench/results/*.json
+bench: install ## benchmarks (bus latency/throughput, sim step/sensor cost/real-time factor) -> tests/bench/results/*.json
 	$(BIN)/python -m tests.bench.bus_bench $(BENCH_ARGS)
+	$(BIN)/python -m tests.bench.sim_bench $(BENCH_ARGS)
 
 lint: install ## ruff
 	$(BIN)/ruff check .

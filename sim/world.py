@@ -324,17 +324,17 @@ class VehicleWorld(_Client):
         colours = [list(rgba), [0.12, 0.12, 0.14, 1.0]]
         wheel_x = length / 2 - wheel_r * 1.4
         wheel_y = width / 2 - wheel_r * 0.6
+        # Wheels are boxes: TinyRenderer draws every triangle of the world per render call, and four
+        # tessellated cylinders per vehicle tripled the per-call cost of the camera ROI renders.
+        wheel_half = [wheel_r, wheel_r * 0.55, wheel_r]
         vis = pb.createVisualShapeArray(
-            shapeTypes=[*shapes, *[pb.GEOM_CYLINDER] * 4],
-            halfExtents=[*halves, *[[0, 0, 0]] * 4],
-            radii=[0, 0, *[wheel_r] * 4],
-            lengths=[0, 0, *[wheel_r * 1.1] * 4],
+            shapeTypes=[*shapes, *[pb.GEOM_BOX] * 4],
+            halfExtents=[*halves, *[wheel_half] * 4],
             rgbaColors=[*colours, *[list(TYRE_RGBA)] * 4],
             visualFramePositions=[
                 *positions,
                 *[[sx * wheel_x, sy * wheel_y, z0 + wheel_r] for sx in (1, -1) for sy in (1, -1)],
             ],
-            visualFrameOrientations=[[0, 0, 0, 1]] * 2 + [quat_from_rpy(math.pi / 2, 0, 0)] * 4,
             physicsClientId=self.cid,
         )
         col = pb.createCollisionShapeArray(

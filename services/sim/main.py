@@ -106,6 +106,12 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             stamp_ns = start_wall_ns + round(traffic.time_s * NS)
             msg = ground_truth_message(traffic, scene, settings.seed, settings.tick_hz)
             stage = processing_stamp("sim/step", t0, time.time_ns())
+            if settings.speed > 0:  # publish a tick at its stamp, not before (latencies stay >= 0)
+                due = start_mono + traffic.time_s / settings.speed
+                wait = due - time.monotonic()
+                state["late_s"] = max(0.0, -wait)
+                if wait > 0 and shutdown.wait(wait):
+                    break
             header = gt_pub.next_header(stamp_ns=stamp_ns, tick=traffic.tick, frame_id="world")
             msg.header.CopyFrom(header)
             gt_pub.put(msg, header, stages=[stage])
@@ -139,12 +145,6 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                     traffic.detours,
                 )
                 last_log = now
-            if settings.speed > 0:
-                due = start_mono + traffic.time_s / settings.speed
-                wait = due - time.monotonic()
-                state["late_s"] = max(0.0, -wait)
-                if wait > 0 and shutdown.wait(wait):
-                    break
     return 0
 
 

@@ -30,6 +30,7 @@ LIGHT_AMBIENT = 0.55
 LIGHT_DIFFUSE = 0.5
 LIGHT_SPECULAR = 0.05
 ROI_MARGIN_PX = 3
+FAR_FRACTION = 0.999  # depth beyond this fraction of the far plane: nothing was drawn there
 
 
 def gl_view_matrix(T_optical_from_world: np.ndarray) -> list[float]:
@@ -68,8 +69,11 @@ def render(
     roi_px: tuple[int, int, int, int],
     near_m: float,
     far_m: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """RGB (h, w, 3) uint8, linear depth (h, w) and body ids (h, w; -1 = nothing) of one ROI."""
+    segmentation: bool = True,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """RGB (h, w, 3) uint8, linear depth (h, w) and body ids (h, w; -1 = nothing) of one ROI.
+
+    `segmentation=False` skips the body-id buffer (returns None for it), which saves render time."""
     u0, v0, u1, v1 = roi_px
     w, h = u1 - u0, v1 - v0
     _, _, rgba, depth, seg = pb.getCameraImage(
@@ -83,10 +87,13 @@ def render(
         lightSpecularCoeff=LIGHT_SPECULAR,
         shadow=0,
         renderer=pb.ER_TINY_RENDERER,
+        flags=0 if segmentation else pb.ER_NO_SEGMENTATION_MASK,
         physicsClientId=client,
     )
-    rgb = np.asarray(rgba, np.uint8).reshape(h, w, 4)[:, :, :3]
+    rgb = np.asarray(rgba, np.uint8).reshape(h, w, 4)[:, :, :3]  # a view: copy it to keep it
     depth_m = linear_depth(np.asarray(depth, np.float32).reshape(h, w), near_m, far_m)
+    if not segmentation:
+        return rgb, depth_m, None
     ids = np.asarray(seg, np.int32).reshape(h, w)
     ids = np.where(ids >= 0, ids & ((1 << 24) - 1), -1)  # strip the link index bits
     return rgb, depth_m, ids
@@ -94,9 +101,17 @@ def render(
 
 def vehicle_box_corners(pose: VehiclePose, size_m: tuple[float, float, float]) -> np.ndarray:
     """8 world corners of a (possibly pitched) vehicle box."""
-    corners = box3d_corners(np.array([[0, 0, 0, *size_m, 0.0]]))[0]
-    rot = Rotation.from_euler("ZYX", [pose.yaw_rad, pose.pitch_rad, 0.0])
-    return rot.apply(corners) + np.asarray(pose.center_m)
+    return vehicles_box_corners([pose], size_m)[0]
+
+
+def vehicles_box_corners(poses: list[VehiclePose], size_m: tuple[float, float, float]) -> np.ndarray:
+    """(V, 8, 3) world corners of every vehicle box (one batch: shared by all cameras of a tick)."""
+    if not poses:
+        return np.zeros((0, 8, 3))
+    local = box3d_corners(np.array([[0, 0, 0, *size_m, 0.0]]))[0]
+    rot = Rotation.from_euler("ZYX", [[p.yaw_rad, p.pitch_rad, 0.0] for p in poses]).as_matrix()
+    centres = np.array([p.center_m for p in poses], float)
+    return np.einsum("vij,kj->vki", rot, local) + centres[:, None, :]
 
 
 def merge_rects(rects: list[tuple[int, int, int, int]]) -> list[tuple[int, int, int, int]]:
@@ -142,31 +157,46 @@ class CameraRenderer:
         self.background, self.background_depth, _ = render(
             static.cid, self.T, self.K, full, self.model.near_m, self.model.far_m
         )
+        self.background = np.ascontiguousarray(self.background)  # fast per-frame copies
         self.background.setflags(write=False)
 
-    def vehicle_rects(self, poses: list[VehiclePose]) -> dict[str, tuple[int, int, int, int]]:
-        """Image rectangle of each vehicle's projected box (clipped to the image), if any."""
+    def vehicle_rects(
+        self, poses: list[VehiclePose], corners_w: np.ndarray | None = None
+    ) -> dict[str, tuple[int, int, int, int]]:
+        """Image rectangle of each vehicle's projected box (clipped to the image), if any.
+
+        `corners_w` (V, 8, 3): the poses' box corners if already computed (vehicles_box_corners)."""
+        if not poses:
+            return {}
+        if corners_w is None:
+            corners_w = vehicles_box_corners(poses, self.vehicles.size_m)
+        uv, z = project_points(corners_w.reshape(-1, 3), self.T, self.K)
+        uv, z = uv.reshape(len(poses), 8, 2), z.reshape(len(poses), 8)
+        in_front = z > self.model.near_m
         rects = {}
-        for pose in poses:
-            corners = vehicle_box_corners(pose, self.vehicles.size_m)
-            uv, z = project_points(corners, self.T, self.K)
-            if (z <= self.model.near_m).all():
+        for i, pose in enumerate(poses):
+            if not in_front[i].any():
                 continue
-            if (z <= self.model.near_m).any():
+            if not in_front[i].all():
                 rects[pose.vehicle_id] = (0, 0, self.width, self.height)  # straddles the camera plane
                 continue
-            u0 = int(np.floor(np.nanmin(uv[:, 0]))) - ROI_MARGIN_PX
-            v0 = int(np.floor(np.nanmin(uv[:, 1]))) - ROI_MARGIN_PX
-            u1 = int(np.ceil(np.nanmax(uv[:, 0]))) + ROI_MARGIN_PX
-            v1 = int(np.ceil(np.nanmax(uv[:, 1]))) + ROI_MARGIN_PX
-            u0, v0, u1, v1 = max(u0, 0), max(v0, 0), min(u1, self.width), min(v1, self.height)
+            lo, hi = uv[i].min(axis=0), uv[i].max(axis=0)
+            u0 = max(int(np.floor(lo[0])) - ROI_MARGIN_PX, 0)
+            v0 = max(int(np.floor(lo[1])) - ROI_MARGIN_PX, 0)
+            u1 = min(int(np.ceil(hi[0])) + ROI_MARGIN_PX, self.width)
+            v1 = min(int(np.ceil(hi[1])) + ROI_MARGIN_PX, self.height)
             if u1 > u0 and v1 > v0:
                 rects[pose.vehicle_id] = (u0, v0, u1, v1)
         return rects
 
-    def render(self, poses: list[VehiclePose]) -> CameraFrame:
-        """Composite frame for vehicles at `poses` (the vehicle world must already hold them)."""
-        rects = self.vehicle_rects(poses)
+    def render(
+        self, poses: list[VehiclePose], corners_w: np.ndarray | None = None, labels: bool = True
+    ) -> CameraFrame:
+        """Composite frame for vehicles at `poses` (the vehicle world must already hold them).
+
+        `labels=False` skips the per-vehicle visible pixel counts and boxes (ground truth for
+        datasets), which the live sensor stream does not need."""
+        rects = self.vehicle_rects(poses, corners_w)
         rois = merge_rects(list(rects.values()))
         if not rois:
             return CameraFrame(self.background, {}, {}, [])
@@ -176,10 +206,15 @@ class CameraRenderer:
         for roi in rois:
             u0, v0, u1, v1 = roi
             vrgb, vdepth, ids = render(
-                self.vehicles.cid, self.T, self.K, roi, self.model.near_m, self.model.far_m
+                self.vehicles.cid, self.T, self.K, roi, self.model.near_m, self.model.far_m, labels
             )
-            front = (ids >= 0) & (vdepth < self.background_depth[v0:v1, u0:u1])
+            # The vehicle world holds nothing but vehicles: a pixel nearer than the far plane is one.
+            front = (vdepth < self.model.far_m * FAR_FRACTION) & (
+                vdepth < self.background_depth[v0:v1, u0:u1]
+            )
             rgb[v0:v1, u0:u1][front] = vrgb[front]
+            if ids is None:
+                continue
             for body in np.unique(ids[front]):
                 vid = self.vehicles.body_vehicle.get(int(body))
                 if vid is None:

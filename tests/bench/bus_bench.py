@@ -48,13 +48,11 @@ from __future__ import annotations
 import argparse
 import contextlib
 import datetime as dt
-import importlib.metadata
 import json
 import logging
 import math
 import multiprocessing as mp
 import os
-import platform
 import signal
 import socket
 import statistics
@@ -90,6 +88,7 @@ from shared.bus.streams import get_stream
 from shared.bus.zenoh_config import CONFIG_ENV, DEFAULT_CLIENT_CONFIG, zenoh_config
 from shared.logging_setup import setup_logging
 from shared.shutdown import GracefulShutdown
+from tests.bench.machine import machine_info
 
 log = logging.getLogger("tests.bench.bus_bench")
 
@@ -688,30 +687,6 @@ def start_worker(
 
 
 # --- driver --------------------------------------------------------------------------------------
-
-
-def machine_info() -> dict[str, Any]:
-    cpu_model = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu_model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    info: dict[str, Any] = {
-        "platform": platform.platform(),
-        "machine": platform.machine(),
-        "cpu_model": cpu_model,
-        "cpu_count": os.cpu_count(),
-        "cpu_affinity_count": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
-        "python": platform.python_version(),
-        "zenoh": importlib.metadata.version("eclipse-zenoh"),
-        "protobuf": importlib.metadata.version("protobuf"),
-    }
-    if hasattr(os, "getloadavg"):
-        info["loadavg_at_start"] = os.getloadavg()
-    return info
 
 
 @contextlib.contextmanager

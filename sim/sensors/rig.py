@@ -1,0 +1,210 @@
+"""Sensor rig: a set of simulated sensors fed one ground-truth tick at a time. No bus inside.
+
+The sensor service wraps one rig per sensor group (one process per group, so a group can be killed
+alone); lock-step runs (datasets, experiments, the sim bench) hold one rig with every sensor of the
+scene in-process. A sensor at rate r fires on the first tick of each 1/r period, so every sensor that
+fires on a tick sees that tick's world and carries its stamp. Noise is drawn from a generator seeded by
+(scenario seed, sensor id, tick): the same seed gives the same data whatever the timing or the split of
+sensors into processes.
+
+Each capture keeps the raw data and its ground-truth labels (camera: per-vehicle visible boxes; lidar:
+the vehicle each point hit; radar: the vehicle or clutter behind each target); `message()` encodes it
+for the bus (camera `foxglove.CompressedImage` JPEG, lidar `foxglove.PointCloud`, radar
+`rmmdet.v1.RadarScan`).
+"""
+
+from __future__ import annotations
+
+import time
+import zlib
+from dataclasses import dataclass, replace
+from typing import Protocol
+
+import cv2
+import numpy as np
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from google.protobuf.message import Message
+from rmmdet.v1.sim_pb2 import GroundTruth
+
+from shared.scene.model import SensorKindName, SensorSpec
+from shared.scene.scene import Scene
+from sim.ground_truth import poses_from_ground_truth
+from sim.sensors.camera import CameraFrame, CameraRenderer, add_noise, vehicles_box_corners
+from sim.sensors.lidar import LidarScan, LidarSimulator, to_point_cloud
+from sim.sensors.radar import RadarSimulator, SimRadarTarget, VehicleState, to_radar_scan
+from sim.world import StaticWorld, VehiclePose, VehicleWorld
+
+JPEG_QUALITY = 85
+
+
+def sensor_rng(seed: int, sensor_id: str, tick: int) -> np.random.Generator:
+    """Noise generator for one sensor frame: depends only on (seed, sensor, tick)."""
+    return np.random.default_rng([seed, zlib.crc32(sensor_id.encode()), tick])
+
+
+def fires(rate_hz: float, tick: int, tick_hz: float) -> bool:
+    """True on the first tick of each 1/rate period (tick 0 included)."""
+    return tick == 0 or int(tick * rate_hz / tick_hz) != int((tick - 1) * rate_hz / tick_hz)
+
+
+def encode_jpeg(rgb: np.ndarray, quality: int = JPEG_QUALITY) -> bytes:
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise RuntimeError("JPEG encoding failed")
+    return bytes(buf)
+
+
+@dataclass(frozen=True)
+class TickWorld:
+    """What the sensors of one tick see: vehicle poses and states, and the tick's identity."""
+
+    seed: int
+    tick: int
+    tick_hz: float
+    stamp_ns: int
+    poses: list[VehiclePose]
+    states: list[VehicleState]  # same order as poses
+    corners_w: np.ndarray  # (V, 8, 3) vehicle box corners, world
+
+    @classmethod
+    def from_ground_truth(cls, gt: GroundTruth, size_m: tuple[float, float, float]) -> TickWorld:
+        poses = poses_from_ground_truth(gt)
+        states = [
+            VehicleState(
+                vehicle_id=v.vehicle_id,
+                center_m=np.array([v.box.center_m.x, v.box.center_m.y, v.box.center_m.z]),
+                yaw_rad=v.box.yaw_rad,
+                pitch_rad=v.pitch_rad,
+                velocity_mps=np.array([v.velocity_mps.x, v.velocity_mps.y, v.velocity_mps.z]),
+            )
+            for v in gt.vehicles
+        ]
+        return cls(
+            seed=gt.seed,
+            tick=gt.header.tick,
+            tick_hz=gt.tick_hz,
+            stamp_ns=gt.header.stamp.ToNanoseconds(),
+            poses=poses,
+            states=states,
+            corners_w=vehicles_box_corners(poses, size_m),
+        )
+
+
+@dataclass(frozen=True)
+class Capture:
+    """One sensor's output for one tick: raw data with labels, and its bus message."""
+
+    spec: SensorSpec
+    tick: int
+    stamp_ns: int
+    data: CameraFrame | LidarScan | list[SimRadarTarget]
+    message: Message
+    start_ns: int = 0  # wall clock around the capture (processing stamps)
+    end_ns: int = 0
+
+
+class Sensor(Protocol):
+    spec: SensorSpec
+
+    def capture(self, world: TickWorld, labels: bool) -> Capture: ...
+
+
+class CameraSensor:
+    def __init__(self, scene: Scene, spec: SensorSpec, static: StaticWorld, vehicles: VehicleWorld) -> None:
+        assert spec.camera is not None
+        self.spec = spec
+        self.renderer = CameraRenderer(scene, spec.id, static, vehicles)
+        self.noise_std = spec.camera.image_noise_std
+        self._empty_jpeg = encode_jpeg(self.renderer.background)
+
+    def capture(self, world: TickWorld, labels: bool) -> Capture:
+        frame = self.renderer.render(world.poses, world.corners_w, labels=labels)
+        if not frame.rois and self.noise_std <= 0:
+            data = self._empty_jpeg  # nothing moving in view: the cached static frame
+        else:
+            rgb = add_noise(frame.rgb, self.noise_std, sensor_rng(world.seed, self.spec.id, world.tick))
+            frame = CameraFrame(rgb, frame.visible_px, frame.visible_boxes, frame.rois)
+            data = encode_jpeg(rgb)
+        msg = CompressedImage(frame_id=self.spec.id, format="jpeg", data=data)
+        msg.timestamp.FromNanoseconds(world.stamp_ns)
+        return Capture(self.spec, world.tick, world.stamp_ns, frame, msg)
+
+
+class LidarSensor:
+    def __init__(self, scene: Scene, spec: SensorSpec, static: StaticWorld, vehicles: VehicleWorld) -> None:
+        self.spec = spec
+        self.simulator = LidarSimulator(scene, spec.id, static, vehicles)
+
+    def capture(self, world: TickWorld, labels: bool) -> Capture:
+        scan = self.simulator.scan(world.poses, sensor_rng(world.seed, self.spec.id, world.tick))
+        msg = to_point_cloud(scan, self.spec.id, world.stamp_ns)
+        return Capture(self.spec, world.tick, world.stamp_ns, scan, msg)
+
+
+class RadarSensor:
+    def __init__(self, scene: Scene, spec: SensorSpec, static: StaticWorld, vehicles: VehicleWorld) -> None:
+        self.spec = spec
+        self.simulator = RadarSimulator(scene, spec.id, static, vehicles)
+
+    def capture(self, world: TickWorld, labels: bool) -> Capture:
+        targets = self.simulator.scan(world.states, sensor_rng(world.seed, self.spec.id, world.tick))
+        return Capture(self.spec, world.tick, world.stamp_ns, targets, to_radar_scan(targets, self.spec.id))
+
+
+SENSOR_CLASSES: dict[SensorKindName, type[CameraSensor] | type[LidarSensor] | type[RadarSensor]] = {
+    "camera": CameraSensor,
+    "lidar": LidarSensor,
+    "radar": RadarSensor,
+}
+
+
+class SensorRig:
+    """The sensors `specs` of `scene` over their own PyBullet worlds (static scene + vehicles).
+
+    Use as a context manager (or call close()) to release the PyBullet clients."""
+
+    def __init__(self, scene: Scene, specs: list[SensorSpec]) -> None:
+        self.scene = scene
+        self.specs = list(specs)
+        self.static = StaticWorld(scene)
+        self.vehicles = VehicleWorld(scene)
+        try:
+            self.sensors: dict[str, Sensor] = {
+                spec.id: SENSOR_CLASSES[spec.kind](scene, spec, self.static, self.vehicles)
+                for spec in self.specs
+            }
+        except BaseException:
+            self.close()
+            raise
+
+    def firing(self, tick: int, tick_hz: float) -> list[SensorSpec]:
+        return [s for s in self.specs if fires(s.rate_hz, tick, tick_hz)]
+
+    def tick_world(self, gt: GroundTruth) -> TickWorld:
+        return TickWorld.from_ground_truth(gt, self.vehicles.size_m)
+
+    def capture(
+        self, gt: GroundTruth, specs: list[SensorSpec] | None = None, labels: bool = False
+    ) -> list[Capture]:
+        """Captures of `specs` (default: the sensors firing on this tick) with the world at `gt`."""
+        world = self.tick_world(gt)
+        due = self.firing(world.tick, world.tick_hz) if specs is None else specs
+        if not due:
+            return []
+        self.vehicles.update(world.poses)
+        captures = []
+        for spec in due:
+            start_ns = time.time_ns()
+            capture = self.sensors[spec.id].capture(world, labels)
+            captures.append(replace(capture, start_ns=start_ns, end_ns=time.time_ns()))
+        return captures
+
+    def close(self) -> None:
+        self.vehicles.close()
+        self.static.close()
+
+    def __enter__(self) -> SensorRig:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()

@@ -1,0 +1,40 @@
+"""Sensor service shell: group parsing and latest-wins tick selection (no bus)."""
+
+from __future__ import annotations
+
+import pytest
+from rmmdet.v1.common_pb2 import Header
+from rmmdet.v1.sim_pb2 import GroundTruth
+
+from services.sensor.main import newest_due, parse_group
+from shared.bus.node import Received
+from shared.scene.scene import Scene
+from sim.config import DEFAULT_SCENE
+
+
+@pytest.fixture(scope="module")
+def scene() -> Scene:
+    return Scene.load(DEFAULT_SCENE)
+
+
+def received(tick: int) -> Received:
+    gt = GroundTruth(tick_hz=60.0)
+    gt.header.tick = tick
+    return Received("rmmdet/@v1/sim/ground_truth", gt, Header(tick=tick), 0, 0)
+
+
+def test_groups_name_an_agent_and_a_sensor_kind(scene: Scene) -> None:
+    assert [s.id for s in parse_group(scene, "agent1-lidars")] == ["lidar_11", "lidar_12"]
+    assert [s.id for s in parse_group(scene, "agent2-radars")] == ["radar_2", "radar_3"]
+    assert len(parse_group(scene, "agent3-cameras")) == 4
+    for bad in ("agent9-cameras", "agent1-sonars", "agent1", "agent3-radars"):
+        with pytest.raises(SystemExit):
+            parse_group(scene, bad)
+
+
+def test_newest_due_tick_wins_and_earlier_due_ticks_count_as_skipped(scene: Scene) -> None:
+    lidars = parse_group(scene, "agent1-lidars")  # 10 Hz at 60 Hz ticks: due on ticks 0, 6, 12, ...
+    due, skipped = newest_due([received(t) for t in (5, 6, 7, 11, 12, 13)], lidars)
+    assert due is not None and due.message.header.tick == 12 and skipped == 1
+    due, skipped = newest_due([received(t) for t in (7, 8, 9)], lidars)
+    assert due is None and skipped == 0
