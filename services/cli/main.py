@@ -5,6 +5,7 @@
     rmmdet wait-ready                wait until the router answers (used by `make up`)
     rmmdet record [--out F.mcap] [--key K ...] [--duration S]   record bus traffic to MCAP
     rmmdet replay F.mcap [--speed 1|N|0] [--key K ...] [--loop]  publish a recording again
+    rmmdet snapshot [--out docs/images] [--at-s 20]   offline: camera PNGs + bird's-eye map of the sim
 
 Connects like any service (deploy/zenoh/client.json5, or the standard Zenoh flags).
 """
@@ -402,6 +403,30 @@ def replay_cmd(
         + (f"{achieved:.2f}x" if achieved is not None else "n/a")
         + (" [stopped]" if stats.stopped else "")
     )
+
+
+@app.command()
+def snapshot(
+    out: Annotated[Path, typer.Option(help="output folder")] = Path("docs/images"),
+    at_s: Annotated[float, typer.Option(help="simulated seconds of traffic before the pictures")] = 20.0,
+    seed: Annotated[int, typer.Option(help="scenario seed")] = 0,
+    vehicles: Annotated[int | None, typer.Option(help="number of vehicles (default: sim settings)")] = None,
+) -> None:
+    """Offline (no bus): run the sim lock-step, then write one PNG per camera and a bird's-eye map
+    (lanes, junction numbers, areas, sensors and their fields of view, vehicles)."""
+    from shared.config import load_settings
+    from shared.scene.scene import Scene
+    from sim.config import DEFAULT_SIM_CONFIG, REPO_ROOT, SimSettings, TrafficSettings
+    from sim.snapshot import snapshot as take_snapshot
+
+    settings = load_settings(SimSettings, DEFAULT_SIM_CONFIG, seed=seed)
+    if vehicles is not None:
+        settings.traffic = TrafficSettings.model_validate(
+            {**settings.traffic.model_dump(), "vehicles": vehicles}
+        )
+    scene_path = settings.scene if settings.scene.is_absolute() else REPO_ROOT / settings.scene
+    written = take_snapshot(Scene.load(scene_path), settings, at_s, out)
+    console.print(f"wrote {len(written)} images to {out}: " + ", ".join(p.name for p in written))
 
 
 def main() -> None:
