@@ -44,7 +44,10 @@ class LockstepSim:
         sensor_ids: list[str] | None = None,
         epoch_ns: int = 0,
         labels: bool = False,
+        rate_hz: dict[str, float] | None = None,
     ) -> None:
+        """`rate_hz` overrides the capture rate per sensor kind, e.g. {"camera": 2.0} for a dataset
+        that does not want 15 near-identical frames a second."""
         self.scene = scene
         self.settings = settings
         self.epoch_ns = epoch_ns
@@ -53,6 +56,10 @@ class LockstepSim:
             scene, RoadNetwork(scene), settings.traffic, settings.seed, settings.tick_hz
         )
         specs = list(scene.spec.sensors) if sensor_ids is None else [scene.sensor(s) for s in sensor_ids]
+        overrides = rate_hz or {}
+        specs = [
+            s.model_copy(update={"rate_hz": overrides[s.kind]}) if s.kind in overrides else s for s in specs
+        ]
         self.rig = SensorRig(scene, specs)
 
     def ground_truth(self) -> GroundTruth:
