@@ -25,6 +25,7 @@ from rmmdet.v1.sim_pb2 import GroundTruth
 
 from shared.bus.health import NOMINAL
 from shared.bus.node import Node, Publisher, Received, processing_stamp
+from shared.bus.streams import SENSOR_STREAM
 from shared.scene.model import SensorSpec
 from shared.scene.scene import Scene
 from shared.service import run_service
@@ -35,13 +36,12 @@ from sim.sensors.rig import SensorRig, fires
 log = logging.getLogger("services.sensor")
 
 GT_QUEUE = 8
-STREAM_OF_KIND = {"camera": "camera_image", "lidar": "point_cloud", "radar": "radar_scan"}
 
 
 def parse_group(scene: Scene, group: str) -> list[SensorSpec]:
     agent, _, kinds = group.rpartition("-")
     kind = kinds.rstrip("s")
-    if agent not in scene.agents or kind not in STREAM_OF_KIND:
+    if agent not in scene.agents or kind not in SENSOR_STREAM:
         raise SystemExit(f"unknown sensor group {group!r}: expected <agent>-<cameras|lidars|radars>")
     sensors = scene.sensors_of(agent, kind)  # type: ignore[arg-type]
     if not sensors:
@@ -75,7 +75,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         log.info("group %s: %d sensors ready in %.2f s", args.group, len(specs), time.perf_counter() - t0)
         pubs: dict[str, Publisher] = {
             spec.id: node.publisher(
-                STREAM_OF_KIND[spec.kind], agent=agent, sensor=spec.id, source_id=f"{agent}/{spec.id}"
+                SENSOR_STREAM[spec.kind], agent=agent, sensor=spec.id, source_id=f"{agent}/{spec.id}"
             )
             for spec in specs
         }

@@ -22,6 +22,8 @@ from google.protobuf.message import Message
 STREAMS_YAML = Path(__file__).resolve().parents[2] / "proto" / "streams.yaml"
 
 #: One key chunk of an id (agent, sensor, vehicle, service, instance). No Zenoh-reserved characters.
+#: Stream of each sensor kind's raw data (keys `.../<agent>/sensor/<kind>/<sensor>`).
+SENSOR_STREAM = {"camera": "camera_image", "lidar": "point_cloud", "radar": "radar_scan"}
 ID_PATTERN = re.compile(r"^[a-z0-9][a-z0-9_\-]{0,63}$")
 
 StreamClass = Literal["latest-wins", "must-deliver", "health"]

@@ -36,6 +36,7 @@ import numpy as np
 import psutil
 
 from shared.bus.node import Node, Received
+from shared.bus.streams import SENSOR_STREAM
 from shared.config import load_settings
 from shared.scene.scene import Scene
 from sim.config import DEFAULT_SIM_CONFIG, SimSettings, TrafficSettings
@@ -48,7 +49,6 @@ from tests.helpers import spawn, start_router, stop
 log = logging.getLogger("sim_bench")
 
 RESULTS = Path(__file__).resolve().parent / "results"
-STREAM_OF_KIND = {"camera": "camera_image", "lidar": "point_cloud", "radar": "radar_scan"}
 NS_PER_MS = 1e6
 DATASET_CAMERA_HZ = 2.0  # camera sampling of a dataset run (consecutive 15 Hz frames are near-copies)
 
@@ -139,9 +139,7 @@ def live(settings: SimSettings, live_s: float, settle_s: float) -> dict[str, Any
         recording = threading.Event()
         done = threading.Event()
         with Node(router.client_config(), service="bench", instance="sim", scope="site") as node:
-            subs = {
-                kind: node.subscribe_stream(name, maxsize=10_000) for kind, name in STREAM_OF_KIND.items()
-            }
+            subs = {kind: node.subscribe_stream(name, maxsize=10_000) for kind, name in SENSOR_STREAM.items()}
             clock = node.subscribe_stream("sim_clock", maxsize=1000)
 
             def consume(sub: Any) -> None:

@@ -15,7 +15,7 @@ from google.protobuf.message import Message
 from rmmdet.v1.sensors_pb2 import RadarScan
 
 from shared.bus.codec import encode
-from shared.bus.streams import get_stream
+from shared.bus.streams import SENSOR_STREAM, get_stream
 from shared.recording import Record, RecordingWriter, decode_record, read_records
 from shared.scene.scene import Scene
 from sim.config import SimSettings
@@ -26,7 +26,6 @@ from sim.sensors.rig import fires, sensor_rng
 
 TICK_HZ = 60.0
 RUN_TICKS = 24  # 0.4 s: every sensor fires several times
-STREAM_OF_KIND = {"camera": "camera_image", "lidar": "point_cloud", "radar": "radar_scan"}
 
 
 def run(scene: Scene, seed: int, ticks: int = RUN_TICKS, labels: bool = False) -> list[Tick]:
@@ -124,7 +123,7 @@ def records(ticks: list[Tick]) -> Iterator[tuple[Record, Message]]:
         key = get_stream("ground_truth").key()
         yield Record(key, str(gt.encoding), gt.payload, None, stamp, stamp), t.ground_truth
         for c in t.captures:
-            key = get_stream(STREAM_OF_KIND[c.spec.kind]).key(agent=c.spec.agent, sensor=c.spec.id)
+            key = get_stream(SENSOR_STREAM[c.spec.kind]).key(agent=c.spec.agent, sensor=c.spec.id)
             enc = encode(c.message)
             yield Record(key, str(enc.encoding), enc.payload, enc.attachment, stamp, stamp), c.message
 
