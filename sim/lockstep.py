@@ -14,17 +14,33 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Any
 
 from rmmdet.v1.sim_pb2 import GroundTruth
 
+from shared.scene.model import SensorSpec
 from shared.scene.scene import Scene
 from sim.config import SimSettings
 from sim.ground_truth import ground_truth_message
 from sim.road_network import RoadNetwork
+from sim.sensors.camera import Lighting
 from sim.sensors.rig import Capture, SensorRig
 from sim.traffic import TrafficSim
 
 NS_PER_S = 1_000_000_000
+
+
+def override(
+    spec: SensorSpec, rate_hz: dict[str, float] | None, model_overrides: dict[str, dict[str, Any]] | None
+) -> SensorSpec:
+    """`spec` with its kind's rate and model fields replaced (validated like the scene file)."""
+    update: dict[str, Any] = {}
+    if rate_hz and spec.kind in rate_hz:
+        update["rate_hz"] = rate_hz[spec.kind]
+    if model_overrides and spec.kind in model_overrides:
+        model = getattr(spec, spec.kind)
+        update[spec.kind] = type(model).model_validate({**model.model_dump(), **model_overrides[spec.kind]})
+    return spec.model_copy(update=update) if update else spec
 
 
 @dataclass(frozen=True)
@@ -45,9 +61,13 @@ class LockstepSim:
         epoch_ns: int = 0,
         labels: bool = False,
         rate_hz: dict[str, float] | None = None,
+        model_overrides: dict[str, dict[str, Any]] | None = None,
+        lighting: Lighting | None = None,
     ) -> None:
         """`rate_hz` overrides the capture rate per sensor kind, e.g. {"camera": 2.0} for a dataset
-        that does not want 15 near-identical frames a second."""
+        that does not want 15 near-identical frames a second; `model_overrides` updates fields of a
+        kind's sensor model, e.g. {"lidar": {"range_noise_std_m": 0.01}}; `lighting` replaces the
+        cameras' default lighting."""
         self.scene = scene
         self.settings = settings
         self.epoch_ns = epoch_ns

@@ -33,6 +33,16 @@ ROI_MARGIN_PX = 3
 FAR_FRACTION = 0.999  # depth beyond this fraction of the far plane: nothing was drawn there
 
 
+@dataclass(frozen=True)
+class Lighting:
+    """TinyRenderer lighting: light direction (world, towards the light) and shading coefficients."""
+
+    direction: tuple[float, float, float] = LIGHT_DIRECTION
+    ambient: float = LIGHT_AMBIENT
+    diffuse: float = LIGHT_DIFFUSE
+    specular: float = LIGHT_SPECULAR
+
+
 def gl_view_matrix(T_optical_from_world: np.ndarray) -> list[float]:
     """PyBullet/OpenGL view matrix (16 floats, column-major) of a camera pose."""
     return [float(v) for v in (GL_FROM_OPTICAL @ T_optical_from_world).T.reshape(-1)]
@@ -70,6 +80,7 @@ def render(
     near_m: float,
     far_m: float,
     segmentation: bool = True,
+    lighting: Lighting = Lighting(),
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """RGB (h, w, 3) uint8, linear depth (h, w) and body ids (h, w; -1 = nothing) of one ROI.
 
@@ -81,10 +92,10 @@ def render(
         h,
         gl_view_matrix(T_optical_from_world),
         gl_projection_matrix(K, roi_px, near_m, far_m),
-        lightDirection=list(LIGHT_DIRECTION),
-        lightAmbientCoeff=LIGHT_AMBIENT,
-        lightDiffuseCoeff=LIGHT_DIFFUSE,
-        lightSpecularCoeff=LIGHT_SPECULAR,
+        lightDirection=list(lighting.direction),
+        lightAmbientCoeff=lighting.ambient,
+        lightDiffuseCoeff=lighting.diffuse,
+        lightSpecularCoeff=lighting.specular,
         shadow=0,
         renderer=pb.ER_TINY_RENDERER,
         flags=0 if segmentation else pb.ER_NO_SEGMENTATION_MASK,
@@ -144,9 +155,17 @@ class CameraFrame:
 class CameraRenderer:
     """One camera: cached static background + per-frame vehicle compositing."""
 
-    def __init__(self, scene: Scene, camera_id: str, static: StaticWorld, vehicles: VehicleWorld) -> None:
+    def __init__(
+        self,
+        scene: Scene,
+        camera_id: str,
+        static: StaticWorld,
+        vehicles: VehicleWorld,
+        lighting: Lighting = Lighting(),
+    ) -> None:
         spec = scene.sensor(camera_id)
         assert spec.camera is not None
+        self.lighting = lighting
         self.camera_id = camera_id
         self.model = spec.camera
         self.width, self.height = spec.camera.width_px, spec.camera.height_px
@@ -155,7 +174,7 @@ class CameraRenderer:
         self.vehicles = vehicles
         full = (0, 0, self.width, self.height)
         self.background, self.background_depth, _ = render(
-            static.cid, self.T, self.K, full, self.model.near_m, self.model.far_m
+            static.cid, self.T, self.K, full, self.model.near_m, self.model.far_m, lighting=lighting
         )
         self.background = np.ascontiguousarray(self.background)  # fast per-frame copies
         self.background.setflags(write=False)
@@ -206,7 +225,14 @@ class CameraRenderer:
         for roi in rois:
             u0, v0, u1, v1 = roi
             vrgb, vdepth, ids = render(
-                self.vehicles.cid, self.T, self.K, roi, self.model.near_m, self.model.far_m, labels
+                self.vehicles.cid,
+                self.T,
+                self.K,
+                roi,
+                self.model.near_m,
+                self.model.far_m,
+                labels,
+                self.lighting,
             )
             # The vehicle world holds nothing but vehicles: a pixel nearer than the far plane is one.
             front = (vdepth < self.model.far_m * FAR_FRACTION) & (

@@ -29,7 +29,7 @@ from rmmdet.v1.sim_pb2 import GroundTruth
 from shared.scene.model import SensorKindName, SensorSpec
 from shared.scene.scene import Scene
 from sim.ground_truth import poses_from_ground_truth
-from sim.sensors.camera import CameraFrame, CameraRenderer, add_noise, vehicles_box_corners
+from sim.sensors.camera import CameraFrame, CameraRenderer, Lighting, add_noise, vehicles_box_corners
 from sim.sensors.lidar import LidarScan, LidarSimulator, to_point_cloud
 from sim.sensors.radar import RadarSimulator, SimRadarTarget, VehicleState, to_radar_scan
 from sim.world import StaticWorld, VehiclePose, VehicleWorld
@@ -110,10 +110,17 @@ class Sensor(Protocol):
 
 
 class CameraSensor:
-    def __init__(self, scene: Scene, spec: SensorSpec, static: StaticWorld, vehicles: VehicleWorld) -> None:
+    def __init__(
+        self,
+        scene: Scene,
+        spec: SensorSpec,
+        static: StaticWorld,
+        vehicles: VehicleWorld,
+        lighting: Lighting = Lighting(),  # noqa: B008 (frozen dataclass)
+    ) -> None:
         assert spec.camera is not None
         self.spec = spec
-        self.renderer = CameraRenderer(scene, spec.id, static, vehicles)
+        self.renderer = CameraRenderer(scene, spec.id, static, vehicles, lighting)
         self.noise_std = spec.camera.image_noise_std
         self._empty_jpeg = encode_jpeg(self.renderer.background)
 
@@ -163,16 +170,18 @@ class SensorRig:
 
     Use as a context manager (or call close()) to release the PyBullet clients."""
 
-    def __init__(self, scene: Scene, specs: list[SensorSpec]) -> None:
+    def __init__(self, scene: Scene, specs: list[SensorSpec], lighting: Lighting | None = None) -> None:
         self.scene = scene
         self.specs = list(specs)
         self.static = StaticWorld(scene)
         self.vehicles = VehicleWorld(scene)
         try:
-            self.sensors: dict[str, Sensor] = {
-                spec.id: SENSOR_CLASSES[spec.kind](scene, spec, self.static, self.vehicles)
-                for spec in self.specs
-            }
+            self.sensors: dict[str, Sensor] = {}
+            for spec in self.specs:
+                if spec.kind == "camera" and lighting is not None:
+                    self.sensors[spec.id] = CameraSensor(scene, spec, self.static, self.vehicles, lighting)
+                else:
+                    self.sensors[spec.id] = SENSOR_CLASSES[spec.kind](scene, spec, self.static, self.vehicles)
         except BaseException:
             self.close()
             raise
