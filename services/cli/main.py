@@ -6,6 +6,7 @@
     rmmdet record [--out F.mcap] [--key K ...] [--duration S]   record bus traffic to MCAP
     rmmdet replay F.mcap [--speed 1|N|0] [--key K ...] [--loop]  publish a recording again
     rmmdet snapshot [--out docs/images] [--at-s 20]   offline: camera PNGs + bird's-eye map of the sim
+    rmmdet dataset generate --out DIR [--config deploy/datasets/default.yaml] [--workers 2]
 
 Connects like any service (deploy/zenoh/client.json5, or the standard Zenoh flags).
 """
@@ -427,6 +428,31 @@ def snapshot(
     scene_path = settings.scene if settings.scene.is_absolute() else REPO_ROOT / settings.scene
     written = take_snapshot(Scene.load(scene_path), settings, at_s, out)
     console.print(f"wrote {len(written)} images to {out}: " + ", ".join(p.name for p in written))
+
+
+dataset_app = typer.Typer(add_completion=False, no_args_is_help=True, help="auto-labelled datasets (offline)")
+app.add_typer(dataset_app, name="dataset")
+
+
+@dataset_app.command("generate")
+def dataset_generate(
+    out: Annotated[Path, typer.Option(help="dataset root folder")],
+    config: Annotated[
+        Path | None, typer.Option(help="dataset settings YAML (deploy/datasets/*.yaml)")
+    ] = None,
+    workers: Annotated[int, typer.Option(help="seeds generated in parallel (processes)")] = 1,
+    progress: Annotated[bool, typer.Option(help="progress bar")] = True,
+) -> None:
+    """Run the sim lock-step over the configured seeds and write camera images (YOLO, VOC) and lidar
+    frames (KITTI, OpenPCDet) with ground-truth labels; resumable (finished seeds are skipped)."""
+    from shared.config import load_settings
+    from sim.dataset.config import DEFAULT_DATASET_CONFIG, DatasetSettings
+    from sim.dataset.generate import generate
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    cfg = load_settings(DatasetSettings, config or DEFAULT_DATASET_CONFIG)
+    summary = generate(cfg, out, workers=workers, progress=progress)
+    console.print_json(json.dumps(summary["splits"]))
 
 
 def main() -> None:

@@ -1,0 +1,1 @@
+"""Auto-labelled datasets from the simulation (`rmmdet dataset generate`)."""
