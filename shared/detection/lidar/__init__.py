@@ -1,0 +1,1 @@
+"""Lidar detectors: a learned PointPillars model (pointpillars/) and classical clustering."""

@@ -1,0 +1,310 @@
+"""Classical lidar detector: ground removal, BEV clustering and vehicle-prior box fitting.
+
+Input: one agent's merged cloud in the agent frame (world axes, z = 0 on the table, metres). Steps:
+
+1. Range crop: BEV distance to the nearest lidar (``sensor_xy_m``) in [min_range, max_range] and z in
+   [z_min, z_max].
+2. Table removal by height (``z <= table_z_m + ground_tolerance_m``; the table is flat and at a
+   known height, see `shared.detection.lidar.ground`).
+3. BEV clustering: single-linkage connected components (scipy KD-tree + sparse connected components)
+   of points within a range-dependent ellipse aligned with the line of sight: across it
+   ``clip(eps_per_m * range, eps_min, eps_max)`` (the azimuth step grows with range), along it
+   ``clip(radial_eps_per_m2 * range^2, across, radial_eps_max)`` (a lidar above the vehicles sees its
+   roof as rings whose BEV spacing grows with range squared). Clustering in BEV joins the rings of one
+   vehicle's side faces, which are up to ~15 cm apart vertically at 2 m.
+4. Elevated surfaces: a cluster larger than a vehicle in BEV is searched for a near-horizontal plane
+   (RANSAC, `ground.fit_horizontal_plane`); the slab around it (viaduct deck: top, sides, underside)
+   is removed, points standing on it get the plane as their support height, and the rest is
+   re-clustered. This repeats up to ``max_surface_peels`` times per cluster (ramps are several planes).
+   Clusters that stay too large (buildings, a deck with nothing left to peel) are dropped.
+5. Filters: point count, BEV extent (vehicle-sized, not a pole), height above the support surface.
+6. Box: L-shape fit with the vehicle size as a prior (`box_fit`): the visible face(s) are extended to the
+   prior size away from the sensor. z = support + height / 2. Score = ``n / (n + score_half_points)``
+   for a cluster of ``n`` points.
+
+Limits: vehicles closer than one clustering radius merge (then fail the size filter); a vehicle on the
+deck seen only from below (the lidar under the deck level) may stay connected to the deck edge; when the
+plane found is the deck's underside, the support height of vehicles on it is low by the deck thickness.
+Yaw is in [-pi/2, pi/2) (front and back are indistinguishable).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from shared.detection.interface import check_points, empty_lidar_detections
+from shared.detection.lidar.box_fit import BoxFitParams, FittedBox, fit_vehicle_box
+from shared.detection.lidar.ground import above_table, fit_horizontal_plane, split_at_slab
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+CAR_CLASS_ID = 0
+# AWS Deepracer (1:18): length, width, height, metres.
+CAR_SIZE_M = (0.33, 0.22, 0.21)
+# Guards the line-of-sight direction of a point at the sensor's own position, metres.
+_MIN_RANGE_M = 1e-6
+
+
+class ClusterLidarConfig(BaseModel):
+    """Settings of `ClusterLidarDetector`: metres, radians, agent frame."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    # range crop
+    sensor_xy_m: tuple[tuple[float, float], ...] = Field(
+        ((0.0, 0.0),),
+        min_length=1,
+        description="xy of the agent's lidars in the agent frame (range, and the hidden side of a single "
+        "face); the default, the agent origin, is exact for a one-lidar agent",
+    )
+    min_range_m: float = Field(0.1, ge=0.0, description="drop points nearer (BEV) to a lidar than this")
+    max_range_m: float = Field(6.0, gt=0.0, description="drop points farther (BEV) from every lidar")
+    z_min_m: float = Field(-0.1, description="drop points below this height")
+    z_max_m: float = Field(1.0, description="drop points above this height")
+    # table
+    table_z_m: float = Field(0.0, description="table surface height in the agent frame")
+    ground_tolerance_m: float = Field(0.02, ge=0.0, description="points up to this above the table are table")
+    # elevated surfaces (viaduct deck)
+    surface_tolerance_m: float = Field(0.015, gt=0.0, description="RANSAC inlier distance to a surface")
+    surface_max_tilt_rad: float = Field(0.3, ge=0.0, lt=math.pi / 2, description="steepest surface (ramps)")
+    slab_thickness_m: float = Field(0.04, ge=0.0, description="deck thickness removed around a surface")
+    surface_min_points: int = Field(15, ge=3, description="fewest inliers of a surface")
+    surface_cell_m: float = Field(0.1, gt=0.0, description="BEV cell of a surface's footprint")
+    ransac_iterations: int = Field(200, ge=1, description="RANSAC hypotheses per surface search")
+    ransac_max_points: int = Field(3000, ge=3, description="points scoring each RANSAC hypothesis (subset)")
+    max_surface_peels: int = Field(4, ge=0, description="surfaces removed from one oversized cluster at most")
+    seed: int = Field(0, description="RANSAC seed: the detector is deterministic")
+    # clustering
+    cluster_eps_min_m: float = Field(0.05, gt=0.0, description="clustering radius near the lidar")
+    cluster_eps_per_m: float = Field(
+        0.03,
+        ge=0.0,
+        description="radius growth per metre of range (~1.2x the 32-line lidar's 0.025 rad step)",
+    )
+    cluster_eps_max_m: float = Field(0.12, gt=0.0, description="largest clustering radius")
+    cluster_radial_eps_per_m2: float = Field(
+        0.06,
+        ge=0.0,
+        description="radius along the line of sight per squared metre of range: rings on a roof lie "
+        "~range^2 * (0.023 rad channel step) / (0.41 m sensor height above the roof) apart",
+    )
+    cluster_radial_eps_max_m: float = Field(
+        0.25, gt=0.0, description="largest radius along the line of sight"
+    )
+    min_points: int = Field(5, ge=1, description="fewest points of a vehicle cluster")
+    # vehicle prior and filters
+    vehicle_size_m: tuple[float, float, float] = Field(CAR_SIZE_M, description="length, width, height prior")
+    min_extent_m: float = Field(0.08, ge=0.0, description="longest BEV side must reach this (rejects poles)")
+    max_length_m: float = Field(0.45, gt=0.0, description="longest BEV side of a vehicle cluster")
+    max_width_m: float = Field(0.32, gt=0.0, description="shorter BEV side of a vehicle cluster")
+    min_height_m: float = Field(0.05, ge=0.0, description="cluster top above its support surface, at least")
+    max_height_m: float = Field(0.30, gt=0.0, description="cluster top above its support surface, at most")
+    # box fit
+    angle_step_rad: float = Field(math.radians(1.0), gt=0.0, description="coarse L-shape angle step")
+    closeness_min_m: float = Field(0.01, gt=0.0, description="d0 of the closeness criterion")
+    flat_face_m: float = Field(0.04, gt=0.0, description="cluster depth below which it is a single face")
+    edge_band_m: float = Field(0.02, gt=0.0, description="band at a rectangle edge for counting its points")
+    edge_support_ratio: float = Field(2.0, ge=1.0, description="point ratio that marks the visible edge")
+    size_tolerance_m: float = Field(0.03, ge=0.0, description="measured sizes within this of the prior")
+    # score
+    score_half_points: float = Field(20.0, gt=0.0, description="points at which the score is 0.5")
+
+    @model_validator(mode="after")
+    def _ranges(self) -> ClusterLidarConfig:
+        if self.min_range_m >= self.max_range_m:
+            raise ValueError("min_range_m must be below max_range_m")
+        if self.z_min_m >= self.z_max_m:
+            raise ValueError("z_min_m must be below z_max_m")
+        if self.cluster_eps_min_m > self.cluster_eps_max_m:
+            raise ValueError("cluster_eps_min_m must not exceed cluster_eps_max_m")
+        if min(self.vehicle_size_m) <= 0.0:
+            raise ValueError("vehicle_size_m must be positive")
+        return self
+
+
+def nearest_sensor(xy: FloatArray, sensors: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Nearest of (S, 2) sensors to each of (N, 2) points: its position (N, 2) and BEV distance (N,), m."""
+    dist = np.linalg.norm(xy[:, None, :] - sensors[None, :, :], axis=2)
+    k = np.argmin(dist, axis=1)
+    return sensors[k], dist[np.arange(xy.shape[0]), k]
+
+
+def bev_clusters(
+    xy: FloatArray, origin_xy: FloatArray, tangential_m: FloatArray, radial_m: FloatArray
+) -> list[IntArray]:
+    """Connected components of points linked within an ellipse aligned with the line of sight.
+
+    Two points ``i, j`` link when ``(dt / et)^2 + (dr / er)^2 <= 1``, where ``dr`` and ``dt`` are the
+    components of ``xy[j] - xy[i]`` along and across the direction from ``origin_xy[i]`` to ``xy[i]``, and
+    ``et``, ``er`` are the larger of the two points' tangential and radial radii.
+
+    Parameters
+    ----------
+    xy : numpy.ndarray, shape (N, 2)
+        Points, metres.
+    origin_xy : numpy.ndarray, shape (N, 2)
+        Lidar that saw each point (the nearest one), metres.
+    tangential_m, radial_m : numpy.ndarray, shape (N,)
+        Linking radii across and along the line of sight, metres (> 0).
+
+    Returns
+    -------
+    list of numpy.ndarray
+        Indices into ``xy`` of each component (singletons included), ascending within a component.
+    """
+    n = xy.shape[0]
+    if n == 0:
+        return []
+    pairs = cKDTree(xy).query_pairs(float(max(tangential_m.max(), radial_m.max())), output_type="ndarray")
+    i, j = pairs[:, 0], pairs[:, 1]
+    sight = xy[i] - origin_xy[i]
+    sight /= np.maximum(np.linalg.norm(sight, axis=1, keepdims=True), _MIN_RANGE_M)
+    delta = xy[j] - xy[i]
+    dr = np.einsum("kd,kd->k", delta, sight)
+    dt = delta[:, 0] * sight[:, 1] - delta[:, 1] * sight[:, 0]
+    et = np.maximum(tangential_m[i], tangential_m[j])
+    er = np.maximum(radial_m[i], radial_m[j])
+    linked = (dt / et) ** 2 + (dr / er) ** 2 <= 1.0
+    graph = coo_matrix((np.ones(int(linked.sum())), (i[linked], j[linked])), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    order = np.argsort(labels, kind="stable")
+    return [c.astype(np.int64) for c in np.split(order, np.flatnonzero(np.diff(labels[order])) + 1)]
+
+
+class ClusterLidarDetector:
+    """Clustering lidar detector (pipeline and limits in the module docstring).
+
+    Parameters
+    ----------
+    config : ClusterLidarConfig, optional
+    """
+
+    name = "cluster"
+
+    def __init__(self, config: ClusterLidarConfig | None = None) -> None:
+        self.config = config or ClusterLidarConfig()
+        cfg = self.config
+        self._sensors = np.asarray(cfg.sensor_xy_m, dtype=np.float64).reshape(-1, 2)
+        self._fit = BoxFitParams(
+            length_m=cfg.vehicle_size_m[0],
+            width_m=cfg.vehicle_size_m[1],
+            angle_step_rad=cfg.angle_step_rad,
+            closeness_min_m=cfg.closeness_min_m,
+            flat_face_m=cfg.flat_face_m,
+            edge_band_m=cfg.edge_band_m,
+            edge_support_ratio=cfg.edge_support_ratio,
+            size_tolerance_m=cfg.size_tolerance_m,
+        )
+
+    def detect(self, points: np.ndarray) -> np.ndarray:
+        """Detect vehicles in one agent cloud.
+
+        Parameters
+        ----------
+        points : numpy.ndarray, shape (N, 4)
+            x, y, z, intensity in the agent frame, float32/float64.
+
+        Returns
+        -------
+        numpy.ndarray, shape (M, 9), float32
+            ``[x, y, z, dx, dy, dz, yaw, score, class_id]`` by descending score.
+
+        Raises
+        ------
+        DetectorInputError
+            Wrong shape / dtype or non-finite values.
+        """
+        check_points(points)
+        cfg = self.config
+        xyz = np.asarray(points[:, :3], dtype=np.float64)
+        xyz = xyz[self._in_range(xyz) & above_table(xyz, cfg.table_z_m, cfg.ground_tolerance_m)]
+        if xyz.shape[0] == 0:
+            return empty_lidar_detections()
+        support = np.full(xyz.shape[0], cfg.table_z_m)
+        rng = np.random.default_rng(cfg.seed)
+        queue = [(c, cfg.max_surface_peels) for c in self._cluster(xyz, np.arange(xyz.shape[0]))]
+        rows: list[list[float]] = []
+        while queue:
+            idx, peels = queue.pop()
+            if idx.size < cfg.min_points:
+                continue
+            sensor, _ = nearest_sensor(xyz[idx, :2].mean(axis=0, keepdims=True), self._sensors)
+            fit = fit_vehicle_box(xyz[idx, :2], sensor[0], self._fit)
+            if fit.extent_length > cfg.max_length_m or fit.extent_width > cfg.max_width_m:
+                if peels > 0:
+                    queue += [(c, peels - 1) for c in self._peel(xyz, idx, support, rng)]
+                continue
+            row = self._box_row(xyz[idx], support[idx], fit)
+            if row is not None:
+                rows.append(row)
+        if not rows:
+            return empty_lidar_detections()
+        out = np.asarray(rows, dtype=np.float32)
+        return out[np.argsort(-out[:, 7], kind="stable")]
+
+    def _in_range(self, xyz: FloatArray) -> NDArray[np.bool_]:
+        cfg = self.config
+        _, r = nearest_sensor(xyz[:, :2], self._sensors)
+        return np.asarray(
+            (r >= cfg.min_range_m)
+            & (r <= cfg.max_range_m)
+            & (xyz[:, 2] >= cfg.z_min_m)
+            & (xyz[:, 2] <= cfg.z_max_m)
+        )
+
+    def _cluster(self, xyz: FloatArray, idx: IntArray) -> list[IntArray]:
+        """Clusters (global indices) of the points ``idx``."""
+        cfg = self.config
+        xy = xyz[idx, :2]
+        origin, r = nearest_sensor(xy, self._sensors)
+        tangential = np.clip(cfg.cluster_eps_per_m * r, cfg.cluster_eps_min_m, cfg.cluster_eps_max_m)
+        radial = np.clip(cfg.cluster_radial_eps_per_m2 * r**2, tangential, cfg.cluster_radial_eps_max_m)
+        return [idx[c] for c in bev_clusters(xy, origin, tangential, radial)]
+
+    def _peel(
+        self, xyz: FloatArray, idx: IntArray, support: FloatArray, rng: np.random.Generator
+    ) -> list[IntArray]:
+        """Remove the best near-horizontal slab from cluster ``idx``, update ``support``, re-cluster."""
+        cfg = self.config
+        pts = xyz[idx]
+        found = fit_horizontal_plane(
+            pts,
+            rng,
+            tolerance_m=cfg.surface_tolerance_m,
+            max_tilt_rad=cfg.surface_max_tilt_rad,
+            min_inliers=cfg.surface_min_points,
+            iterations=cfg.ransac_iterations,
+            max_points=cfg.ransac_max_points,
+        )
+        if found is None:
+            return []
+        plane, inliers = found
+        split = split_at_slab(
+            pts, plane, inliers, cfg.slab_thickness_m + cfg.surface_tolerance_m, cfg.surface_cell_m
+        )
+        on_top = idx[split.above]
+        support[on_top] = np.maximum(support[on_top], plane.height_at(xyz[on_top, :2]))
+        return self._cluster(xyz, idx[~split.slab])
+
+    def _box_row(self, pts: FloatArray, support: FloatArray, fit: FittedBox) -> list[float] | None:
+        """Detection row of a vehicle-sized cluster, or None if it fails the extent / height filters."""
+        cfg = self.config
+        if max(fit.extent_length, fit.extent_width) < cfg.min_extent_m:
+            return None
+        base = float(np.median(support))
+        height = float(pts[:, 2].max()) - base
+        if not cfg.min_height_m <= height <= cfg.max_height_m:
+            return None
+        prior_h = cfg.vehicle_size_m[2]
+        dz = prior_h if height <= prior_h + cfg.size_tolerance_m else height
+        n = pts.shape[0]
+        score = n / (n + cfg.score_half_points)
+        return [fit.x, fit.y, base + dz / 2.0, fit.length, fit.width, dz, fit.yaw, score, float(CAR_CLASS_ID)]

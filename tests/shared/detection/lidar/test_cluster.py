@@ -1,0 +1,168 @@
+"""Tests for the clustering lidar detector on ray-cast synthetic scenes (shared.detection.lidar.cluster)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from shared.detection.interface import DetectorInputError
+from shared.detection.lidar.cluster import (
+    ClusterLidarConfig,
+    ClusterLidarDetector,
+    bev_clusters,
+    nearest_sensor,
+)
+from tests.shared.detection.lidar.raycast import Lidar, scan
+
+L, W, H = 0.33, 0.22, 0.21
+DECK_TOP = 0.40
+DECK_THICKNESS = 0.04
+TABLE_CARS = np.array(
+    [
+        [1.2, 0.4, H / 2, L, W, H, 0.4],
+        [-0.8, 1.3, H / 2, L, W, H, 1.9],
+        [0.3, -1.8, H / 2, L, W, H, -0.3],
+        [-2.5, -1.0, H / 2, L, W, H, 0.0],
+    ]
+)
+DECK_CAR = np.array([[0.5, 2.4, DECK_TOP + H / 2, L, W, H, 0.02]])
+DECK = np.array([[0.0, 2.4, DECK_TOP - DECK_THICKNESS / 2, 4.0, 0.36, DECK_THICKNESS, 0.0]])
+PILLAR_H = DECK_TOP - DECK_THICKNESS
+PILLARS = np.array([[x, 2.4, PILLAR_H / 2, 0.06, 0.06, PILLAR_H, 0.0] for x in (-1.0, 1.0)])
+POLE = np.array([[1.5, -1.0, 0.21, 0.04, 0.04, 0.42, 0.0]])
+BUILDING = np.array([[-2.0, -2.8, 0.3, 1.0, 0.7, 0.6, 0.2]])
+CARS = np.vstack([TABLE_CARS, DECK_CAR])
+STATIC = np.vstack([DECK, PILLARS, POLE, BUILDING])
+
+# Agent3-like: one 32-line lidar hanging 0.62 m above the table. The simulator samples 250 azimuths;
+# the accuracy test uses 720 so it measures the fit rather than the sampling.
+HIGH_DENSE = Lidar(position=(0.0, 0.0, 0.62), samples=720)
+HIGH_SIM = Lidar(position=(0.0, 0.0, 0.62), samples=250)
+
+
+def yaw_error(a: float, b: float) -> float:
+    """Absolute yaw difference modulo pi (front and back are the same box), radians."""
+    return abs((a - b + math.pi / 2) % math.pi - math.pi / 2)
+
+
+def match(dets: np.ndarray, cars: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Nearest detection (BEV) to each car."""
+    assert dets.shape[0] > 0
+    pairs = []
+    for car in cars:
+        k = int(np.argmin(np.hypot(dets[:, 0] - car[0], dets[:, 1] - car[1])))
+        pairs.append((dets[k].astype(np.float64), car))
+    return pairs
+
+
+def scene(lidar: Lidar, seed: int = 0) -> np.ndarray:
+    return scan(lidar, np.vstack([CARS, STATIC]), np.random.default_rng(seed))
+
+
+def test_finds_every_vehicle_within_3cm_and_5deg() -> None:
+    dets = ClusterLidarDetector().detect(scene(HIGH_DENSE))
+    assert dets.shape == (len(CARS), 9) and dets.dtype == np.float32
+    for det, car in match(dets, CARS):
+        assert np.hypot(det[0] - car[0], det[1] - car[1]) < 0.03
+        assert yaw_error(det[6], car[6]) < math.radians(5)
+        assert det[2] == pytest.approx(car[2], abs=0.01)  # table: z = 0; deck car: on the peeled deck
+        np.testing.assert_allclose(det[3:6], [L, W, H], atol=1e-6)
+        assert 0.0 < det[7] < 1.0 and det[8] == 0.0
+    assert np.all(np.diff(dets[:, 7]) <= 0.0)  # by descending score
+
+
+def test_ignores_ground_deck_pillars_pole_and_building() -> None:
+    dets = ClusterLidarDetector().detect(scan(HIGH_DENSE, STATIC, np.random.default_rng(1)))
+    assert dets.shape == (0, 9)
+    only_table = scan(HIGH_DENSE, np.zeros((0, 7)), np.random.default_rng(2))
+    assert ClusterLidarDetector().detect(only_table).shape == (0, 9)
+
+
+def test_simulator_density_still_finds_every_vehicle() -> None:
+    # At the simulator's 32 x 250 rays a car 2.7 m away gets ~3 points per ring and face: looser bounds.
+    dets = ClusterLidarDetector().detect(scene(HIGH_SIM))
+    assert dets.shape[0] == len(CARS)
+    for det, car in match(dets, CARS):
+        assert np.hypot(det[0] - car[0], det[1] - car[1]) < 0.04
+        assert yaw_error(det[6], car[6]) < math.radians(6)
+
+
+def test_two_low_lidars_merged_cloud() -> None:
+    # Agent1-like: two 16-line lidars 0.15 m high on opposite corners; the cloud is their union.
+    sensors = ((-0.62, 0.62), (0.62, -0.62))
+    rng = np.random.default_rng(3)
+    cloud = np.vstack(
+        [
+            scan(
+                Lidar(position=(x, y, 0.15), channels=16, samples=500, elevation_max=0.5353), TABLE_CARS, rng
+            )
+            for x, y in sensors
+        ]
+    )
+    dets = ClusterLidarDetector(ClusterLidarConfig(sensor_xy_m=sensors)).detect(cloud)
+    assert dets.shape[0] == len(TABLE_CARS)
+    for det, car in match(dets, TABLE_CARS):
+        assert np.hypot(det[0] - car[0], det[1] - car[1]) < 0.03
+        assert yaw_error(det[6], car[6]) < math.radians(5)
+
+
+def test_deterministic() -> None:
+    cloud = scene(HIGH_SIM)
+    np.testing.assert_array_equal(ClusterLidarDetector().detect(cloud), ClusterLidarDetector().detect(cloud))
+
+
+def test_range_crop_and_min_points() -> None:
+    cloud = scene(HIGH_DENSE)
+    near = ClusterLidarDetector(ClusterLidarConfig(max_range_m=2.0)).detect(cloud)
+    assert near.shape[0] == 3 and np.all(np.hypot(near[:, 0], near[:, 1]) < 2.0)
+    assert ClusterLidarDetector(ClusterLidarConfig(min_points=100_000)).detect(cloud).shape == (0, 9)
+
+
+def test_empty_and_invalid_input() -> None:
+    det = ClusterLidarDetector()
+    out = det.detect(np.zeros((0, 4), np.float32))
+    assert out.shape == (0, 9) and out.dtype == np.float32
+    cloud = scene(HIGH_SIM)
+    cloud[10, 2] = np.nan
+    with pytest.raises(DetectorInputError, match="not finite"):
+        det.detect(cloud)
+    with pytest.raises(DetectorInputError):
+        det.detect(np.zeros((5, 3), np.float32))
+    with pytest.raises(DetectorInputError):
+        det.detect(np.zeros((5, 4), np.int32))
+    assert det.name == "cluster"
+
+
+def test_config_validation() -> None:
+    with pytest.raises(ValidationError):
+        ClusterLidarConfig(min_range_m=3.0, max_range_m=2.0)
+    with pytest.raises(ValidationError):
+        ClusterLidarConfig(z_min_m=1.0, z_max_m=0.5)
+    with pytest.raises(ValidationError):
+        ClusterLidarConfig(cluster_eps_min_m=0.2, cluster_eps_max_m=0.1)
+    with pytest.raises(ValidationError):
+        ClusterLidarConfig(vehicle_size_m=(0.33, 0.0, 0.21))
+    with pytest.raises(ValidationError):
+        ClusterLidarConfig(sensor_xy_m=())
+    with pytest.raises(ValidationError):
+        ClusterLidarConfig(typo=1)  # type: ignore[call-arg]
+
+
+def test_nearest_sensor() -> None:
+    sensors = np.array([[0.0, 0.0], [2.0, 0.0]])
+    pos, dist = nearest_sensor(np.array([[0.5, 0.0], [1.5, 1.0]]), sensors)
+    np.testing.assert_allclose(pos, [[0.0, 0.0], [2.0, 0.0]])
+    np.testing.assert_allclose(dist, [0.5, math.hypot(0.5, 1.0)])
+
+
+def test_bev_clusters_ellipse_along_line_of_sight() -> None:
+    # Sensor at the origin, points 2 m away along +x. Radial (x) gaps of 0.2 m link (radial radius 0.25);
+    # the same gap across the line of sight (y) does not (tangential radius 0.06).
+    xy = np.array([[2.0, 0.0], [2.2, 0.0], [2.0, 0.2], [5.0, 5.0]])
+    origin = np.zeros((4, 2))
+    clusters = bev_clusters(xy, origin, np.full(4, 0.06), np.full(4, 0.25))
+    assert sorted(c.tolist() for c in clusters) == [[0, 1], [2], [3]]
+    assert bev_clusters(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0)) == []

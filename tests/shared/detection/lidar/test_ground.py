@@ -1,0 +1,92 @@
+"""Tests for table removal and slab (viaduct deck) handling (shared.detection.lidar.ground)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from shared.detection.lidar.ground import (
+    Plane,
+    above_table,
+    fit_horizontal_plane,
+    footprint_mask,
+    split_at_slab,
+)
+
+RANSAC = {"tolerance_m": 0.01, "max_tilt_rad": 0.3, "min_inliers": 20, "iterations": 200, "max_points": 3000}
+
+
+def ramp(rng: np.random.Generator, n: int, grade_rad: float, z0: float) -> np.ndarray:
+    """Points on a plane rising along +x at ``grade_rad``, z = z0 at x = 0, over [0, 2] x [0, 0.36]."""
+    xy = rng.uniform([0.0, 0.0], [2.0, 0.36], (n, 2))
+    return np.column_stack([xy, z0 + xy[:, 0] * math.tan(grade_rad) + rng.normal(0, 0.002, n)])
+
+
+def wall(rng: np.random.Generator, n: int) -> np.ndarray:
+    """A vertical wall x = 3 (building face), more points than the ramp."""
+    return np.column_stack([np.full(n, 3.0), rng.uniform(-1, 1, n), rng.uniform(0, 0.6, n)])
+
+
+def test_above_table() -> None:
+    xyz = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.02], [0.0, 0.0, 0.021], [0.0, 0.0, 0.3]])
+    assert above_table(xyz, 0.0, 0.02).tolist() == [False, False, True, True]
+
+
+def test_plane_distance_and_height() -> None:
+    normal = np.array([-math.sin(0.1), 0.0, math.cos(0.1)])  # rises along +x
+    plane = Plane(normal=normal, offset=-0.4 * normal[2])  # z = 0.4 at x = 0
+    np.testing.assert_allclose(
+        plane.height_at(np.array([[0.0, 5.0], [1.0, 0.0]])), [0.4, 0.4 + math.tan(0.1)]
+    )
+    np.testing.assert_allclose(plane.signed_distance(np.array([[0.0, 0.0, 0.5]])), [0.1 * normal[2]])
+
+
+def test_ransac_finds_ramp_not_wall() -> None:
+    rng = np.random.default_rng(0)
+    grade = math.radians(8)
+    xyz = np.vstack([ramp(rng, 300, grade, 0.1), wall(rng, 600)])
+    found = fit_horizontal_plane(xyz, np.random.default_rng(1), **RANSAC)
+    assert found is not None
+    plane, inliers = found
+    assert math.acos(plane.normal[2]) == pytest.approx(grade, abs=math.radians(0.5))
+    # The wall only has the few points where the ramp's extension would cut it.
+    assert inliers[:300].mean() > 0.95 and inliers[300:].mean() < 0.05
+    assert plane.height_at(np.array([[1.0, 0.1]]))[0] == pytest.approx(0.1 + math.tan(grade), abs=0.005)
+
+
+def test_ransac_rejects_steep_and_small_and_is_reproducible() -> None:
+    rng = np.random.default_rng(2)
+    assert fit_horizontal_plane(wall(rng, 500), np.random.default_rng(0), **RANSAC) is None
+    assert fit_horizontal_plane(ramp(rng, 10, 0.0, 0.4), np.random.default_rng(0), **RANSAC) is None
+    assert (
+        fit_horizontal_plane(ramp(rng, 300, 0.5, 0.0), np.random.default_rng(0), **RANSAC) is None
+    )  # too steep
+    xyz = np.vstack([ramp(rng, 200, 0.0, 0.4), wall(rng, 200)])
+    a = fit_horizontal_plane(xyz, np.random.default_rng(5), **{**RANSAC, "max_points": 100})
+    b = fit_horizontal_plane(xyz, np.random.default_rng(5), **{**RANSAC, "max_points": 100})
+    assert a is not None and b is not None
+    np.testing.assert_array_equal(a[0].normal, b[0].normal)
+    np.testing.assert_array_equal(a[1], b[1])
+
+
+def test_footprint_mask_dilates_by_one_cell() -> None:
+    support = np.array([[0.05, 0.05]])  # cell (0, 0) with 0.1 m cells
+    xy = np.array([[0.15, 0.15], [-0.05, 0.05], [0.25, 0.05], [0.05, -0.15]])
+    assert footprint_mask(xy, support, 0.1).tolist() == [True, True, False, False]
+
+
+def test_split_at_slab() -> None:
+    rng = np.random.default_rng(3)
+    deck_top = ramp(rng, 400, 0.0, 0.4)
+    side = np.column_stack([rng.uniform(0, 2, 50), np.zeros(50), rng.uniform(0.36, 0.4, 50)])
+    car = np.column_stack([rng.uniform(0.5, 0.8, 40), np.full(40, 0.05), rng.uniform(0.46, 0.61, 40)])
+    far_same_height = np.array([[5.0, 5.0, 0.4]])
+    xyz = np.vstack([deck_top, side, car, far_same_height])
+    found = fit_horizontal_plane(xyz, np.random.default_rng(0), **RANSAC)
+    assert found is not None
+    split = split_at_slab(xyz, found[0], found[1], half_thickness_m=0.05, cell_m=0.1)
+    assert split.slab[:450].all()  # top and side face
+    assert not split.slab[450:].any()  # car and the point outside the footprint
+    assert split.above[450:490].all() and not split.above[490]
