@@ -7,6 +7,7 @@
     rmmdet replay F.mcap [--speed 1|N|0] [--key K ...] [--loop]  publish a recording again
     rmmdet snapshot [--out docs/images] [--at-s 20]   offline: camera PNGs + bird's-eye map of the sim
     rmmdet dataset generate --out DIR [--config deploy/datasets/default.yaml] [--workers 2]
+    rmmdet eval detectors [--data DIR] [--split test] [--camera onnx] [--lidar pointpillars] [--out F.json]
 
 Connects like any service (deploy/zenoh/client.json5, or the standard Zenoh flags).
 """
@@ -453,6 +454,84 @@ def dataset_generate(
     cfg = load_settings(DatasetSettings, config or DEFAULT_DATASET_CONFIG)
     summary = generate(cfg, out, workers=workers, progress=progress)
     console.print_json(json.dumps(summary["splits"]))
+
+
+eval_app = typer.Typer(add_completion=False, no_args_is_help=True, help="evaluations (offline)")
+app.add_typer(eval_app, name="eval")
+
+
+@eval_app.command("detectors")
+def eval_detectors(
+    data: Annotated[Path, typer.Option(help="dataset root (rmmdet dataset generate)")] = Path(
+        "data/datasets/default"
+    ),
+    split: Annotated[str, typer.Option(help="split to evaluate")] = "test",
+    camera: Annotated[list[str] | None, typer.Option(help="camera detectors (repeatable)")] = None,
+    lidar: Annotated[list[str] | None, typer.Option(help="lidar detectors (repeatable)")] = None,
+    limit: Annotated[int | None, typer.Option(help="at most this many images / lidar frames")] = None,
+    latency_frames: Annotated[int, typer.Option(help="frames timed per detector and thread count")] = 100,
+    out: Annotated[Path | None, typer.Option(help="write the results as JSON")] = None,
+) -> None:
+    """AP of each detector on a dataset split (camera: COCO AP@0.5, AP@0.5:0.95; lidar: KITTI R40 BEV /
+    3D AP at IoU 0.5 / 0.7 overall and by distance band) and latency per call (p50 / p95, 1 and 2
+    onnxruntime threads, pre/post-processing included)."""
+    from shared.datasets.layout import DatasetLayout
+    from shared.detection import evaluate as ev
+    from shared.detection.registry import camera_detector, lidar_detector
+
+    layout = DatasetLayout(data)
+    results: dict[str, list[dict[str, object]]] = {"camera": [], "lidar": []}
+    camera_samples = list(ev.camera_samples(layout, split, latency_frames))
+    lidar_samples = list(ev.lidar_samples(layout, split, latency_frames))
+    for name in camera if camera is not None else ["onnx", "oracle"]:
+        result = ev.evaluate_camera(camera_detector(name), layout, split, limit)
+        result["latency_ms"] = {
+            f"{t}_threads": ev.camera_latency(camera_detector(name, threads=t), camera_samples)
+            for t in (1, 2)
+        }
+        results["camera"].append(result)
+    for name in lidar if lidar is not None else ["pointpillars", "cluster", "oracle"]:
+        result = ev.evaluate_lidar(lidar_detector(name), layout, split, limit)
+        result["latency_ms"] = {
+            f"{t}_threads": ev.lidar_latency(lidar_detector(name, threads=t), lidar_samples) for t in (1, 2)
+        }
+        results["lidar"].append(result)
+    table = Table(title=f"detectors on {data} / {split}")
+    for col in ("detector", "frames", "metric", "value", "p50 ms 1t / 2t", "p95 ms 1t / 2t"):
+        table.add_column(col)
+    for r in results["camera"] + results["lidar"]:
+        lat = r["latency_ms"]
+        assert isinstance(lat, dict)
+        p50 = f"{lat['1_threads']['p50']:.1f} / {lat['2_threads']['p50']:.1f}"
+        p95 = f"{lat['1_threads']['p95']:.1f} / {lat['2_threads']['p95']:.1f}"
+        frames = r.get("images", r.get("frames"))
+        metrics = (
+            [("AP@0.5", r["ap50"]), ("AP@0.5:0.95", r["ap50_95"])]
+            if "ap50" in r
+            else [("BEV AP@0.7", r["bev_ap70"]), ("BEV AP@0.5", r["bev_ap50"]), ("3D AP@0.7", r["ap3d_70"])]
+        )
+        for i, (metric, value) in enumerate(metrics):
+            table.add_row(
+                str(r["detector"]) if i == 0 else "",
+                str(frames) if i == 0 else "",
+                metric,
+                f"{value:.3f}",
+                p50 if i == 0 else "",
+                p95 if i == 0 else "",
+            )
+    console.print(table)
+    for r in results["lidar"]:
+        bands = [row for row in r["ap"] if row["kind"] == "bev" and row["iou"] == 0.7]  # type: ignore[union-attr, index]
+        console.print(
+            f"{r['detector']} BEV AP@0.7 by distance: "
+            + ", ".join(f"{b['band']} {b['ap']:.3f} ({b['num_gt']} GT)" for b in bands)  # type: ignore[index]
+        )
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(
+            json.dumps({"data": str(data), "split": split, **results}, indent=2, default=float) + "\n"
+        )
+        console.print(f"results: {out}")
 
 
 def main() -> None:

@@ -1,0 +1,51 @@
+"""Detectors by name, so services and tools swap them through configuration.
+
+Camera: `onnx` (the committed model in deploy/models/camera), `oracle` (noisy ground truth).
+Lidar: `pointpillars` (deploy/models/lidar), `cluster` (classical), `oracle` (noisy ground truth).
+Learned models load from `models_dir` (default deploy/models); onnxruntime uses `threads` intra-op
+threads. Imports are lazy: building one detector never loads the others' libraries.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from shared.detection.interface import CameraDetector, LidarDetector
+
+MODELS_DIR = Path(__file__).resolve().parents[2] / "deploy" / "models"
+CAMERA_DETECTORS = ("onnx", "oracle")
+LIDAR_DETECTORS = ("pointpillars", "cluster", "oracle")
+CAMERA_MODEL = Path("camera") / "model.onnx"
+LIDAR_MODEL = Path("lidar") / "pointpillars.onnx"
+
+
+def camera_detector(
+    name: str, threads: int = 2, seed: int = 0, models_dir: Path = MODELS_DIR
+) -> CameraDetector:
+    if name == "onnx":
+        from shared.detection.camera.onnx_detector import OnnxCameraDetector
+
+        return OnnxCameraDetector(models_dir / CAMERA_MODEL, intra_op_threads=threads)
+    if name == "oracle":
+        from shared.detection.oracle import OracleCameraDetector
+
+        return OracleCameraDetector(seed=seed)
+    raise ValueError(f"unknown camera detector {name!r}: expected one of {CAMERA_DETECTORS}")
+
+
+def lidar_detector(
+    name: str, threads: int = 1, seed: int = 0, models_dir: Path = MODELS_DIR
+) -> LidarDetector:
+    if name == "pointpillars":
+        from shared.detection.lidar.pointpillars.onnx_detector import OnnxPointPillars
+
+        return OnnxPointPillars(models_dir / LIDAR_MODEL, threads=threads)
+    if name == "cluster":
+        from shared.detection.lidar.cluster import ClusterLidarDetector
+
+        return ClusterLidarDetector()
+    if name == "oracle":
+        from shared.detection.oracle import OracleLidarDetector
+
+        return OracleLidarDetector(seed=seed)
+    raise ValueError(f"unknown lidar detector {name!r}: expected one of {LIDAR_DETECTORS}")
