@@ -12,7 +12,7 @@ SUPERVISOR_CONF := deploy/local/supervisord.conf
 RUN_DIR := .run
 PYTEST_ARGS ?=
 
-.PHONY: help install proto up down status logs test test-unit test-integration test-fault bench lint typecheck fmt clean
+.PHONY: help install proto up down status logs test test-unit test-integration test-fault bench models eval lint typecheck fmt clean
 
 help: ## list targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-18s %s\n", $$1, $$2}'
@@ -70,6 +70,24 @@ test-fault: install
 bench: install ## benchmarks (bus latency/throughput, sim step/sensor cost/real-time factor) -> tests/bench/results/*.json
 	$(BIN)/python -m tests.bench.bus_bench $(BENCH_ARGS)
 	$(BIN)/python -m tests.bench.sim_bench $(BENCH_ARGS)
+
+DATASET ?= data/datasets/default
+MODEL_RUNS ?= data/models
+MODELS_DIR := deploy/models
+
+models: install ## regenerate the default dataset, train + export both detectors (CPU ~45 min), evaluate; results in deploy/models
+	$(BIN)/python -m sim.dataset.generate --out $(DATASET) --workers 2 --no-progress
+	cp $(DATASET)/manifest.json $(MODELS_DIR)/dataset_manifest.json
+	$(BIN)/python -m shared.detection.camera.train --data $(DATASET) --out $(MODEL_RUNS)/camera
+	mkdir -p $(MODELS_DIR)/camera && cp $(MODEL_RUNS)/camera/model.onnx $(MODEL_RUNS)/camera/config.json $(MODELS_DIR)/camera/
+	-cp $(MODEL_RUNS)/camera/history.json $(MODEL_RUNS)/camera/train.log $(MODELS_DIR)/camera/ 2>/dev/null
+	$(BIN)/python -m shared.detection.lidar.pointpillars.train --data $(DATASET) --out $(MODEL_RUNS)/pointpillars
+	$(BIN)/python -m shared.detection.lidar.pointpillars.export --checkpoint $(MODEL_RUNS)/pointpillars/model.pt --out $(MODELS_DIR)/lidar/pointpillars.onnx
+	-cp $(MODEL_RUNS)/pointpillars/history.json $(MODEL_RUNS)/pointpillars/train.log $(MODELS_DIR)/lidar/ 2>/dev/null
+	$(MAKE) eval
+
+eval: install ## evaluate every detector on the held-out split -> deploy/models/metrics.json (the README's numbers)
+	$(BIN)/rmmdet eval detectors --data $(DATASET) --split test --out $(MODELS_DIR)/metrics.json
 
 lint: install ## ruff
 	$(BIN)/ruff check .
