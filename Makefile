@@ -70,10 +70,14 @@ test-fault: install
 bench: install ## benchmarks (bus latency/throughput, sim step/sensor cost/real-time factor) -> tests/bench/results/*.json
 	$(BIN)/python -m tests.bench.bus_bench $(BENCH_ARGS)
 	$(BIN)/python -m tests.bench.sim_bench $(BENCH_ARGS)
+	$(BIN)/python -m tests.bench.camera_detector_bench --model $(MODELS_DIR)/camera/model.onnx $(BENCH_DATA)
+	$(BIN)/python -m tests.bench.lidar_detector_bench --model $(MODELS_DIR)/lidar/pointpillars.onnx $(BENCH_DATA)
 
 DATASET ?= data/datasets/default
 MODEL_RUNS ?= data/models
 MODELS_DIR := deploy/models
+# Detector benches time real frames of the held-out split when the dataset exists (else simulated ones).
+BENCH_DATA = $(if $(wildcard $(DATASET)/manifest.json),--data $(DATASET) --split test,)
 
 models: install ## regenerate the default dataset, train + export both detectors (CPU ~45 min), evaluate; results in deploy/models
 	$(BIN)/python -m sim.dataset.generate --out $(DATASET) --workers 2 --no-progress
