@@ -82,7 +82,7 @@ BENCH_DATA = $(if $(wildcard $(DATASET)/manifest.json),--data $(DATASET) --split
 models: install ## regenerate the default dataset, train + export both detectors (CPU ~45 min), evaluate; results in deploy/models
 	$(BIN)/python -m sim.dataset.generate --out $(DATASET) --workers 2 --no-progress
 	cp $(DATASET)/manifest.json $(MODELS_DIR)/dataset_manifest.json
-	$(BIN)/python -m shared.detection.camera.train --data $(DATASET) --out $(MODEL_RUNS)/camera
+	$(BIN)/python -m shared.detection.camera.train --data $(DATASET) --out $(MODEL_RUNS)/camera --threads 2
 	mkdir -p $(MODELS_DIR)/camera && cp $(MODEL_RUNS)/camera/model.onnx $(MODEL_RUNS)/camera/config.json $(MODELS_DIR)/camera/
 	-cp $(MODEL_RUNS)/camera/history.json $(MODEL_RUNS)/camera/train.log $(MODELS_DIR)/camera/ 2>/dev/null
 	$(BIN)/python -m shared.detection.lidar.pointpillars.train --data $(DATASET) --out $(MODEL_RUNS)/pointpillars
