@@ -11,7 +11,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from shared.config import RmmdetSettings, settings_config
+from shared.config import RmmdetSettings, load_settings, settings_config
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_SCENE = REPO_ROOT / "deploy" / "scenes" / "sand_table.yaml"
@@ -78,3 +78,19 @@ class SimSettings(RmmdetSettings):
     calibration_publish_hz: float = Field(1.0, gt=0, description="per-agent CalibrationSet republish rate")
     collision_check_hz: float = Field(10.0, gt=0, description="rate of the vehicle overlap monitor")
     traffic: TrafficSettings = TrafficSettings()
+
+
+def load_sim_settings(
+    path: Path = DEFAULT_SIM_CONFIG, vehicles: int | None = None, **overrides: object
+) -> SimSettings:
+    """Sim settings from `path` with top-level `overrides` (e.g. seed=3); `vehicles` replaces only the
+    traffic's vehicle count, validated like the YAML value. A relative scene path is taken from the repo
+    root, so the result does not depend on the working directory."""
+    settings = load_settings(SimSettings, path, **overrides)
+    if vehicles is not None:
+        settings.traffic = TrafficSettings.model_validate(
+            {**settings.traffic.model_dump(), "vehicles": vehicles}
+        )
+    if not settings.scene.is_absolute():
+        settings.scene = REPO_ROOT / settings.scene
+    return settings

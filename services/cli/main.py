@@ -416,18 +416,12 @@ def snapshot(
 ) -> None:
     """Offline (no bus): run the sim lock-step, then write one PNG per camera and a bird's-eye map
     (lanes, junction numbers, areas, sensors and their fields of view, vehicles)."""
-    from shared.config import load_settings
     from shared.scene.scene import Scene
-    from sim.config import DEFAULT_SIM_CONFIG, REPO_ROOT, SimSettings, TrafficSettings
+    from sim.config import load_sim_settings
     from sim.snapshot import snapshot as take_snapshot
 
-    settings = load_settings(SimSettings, DEFAULT_SIM_CONFIG, seed=seed)
-    if vehicles is not None:
-        settings.traffic = TrafficSettings.model_validate(
-            {**settings.traffic.model_dump(), "vehicles": vehicles}
-        )
-    scene_path = settings.scene if settings.scene.is_absolute() else REPO_ROOT / settings.scene
-    written = take_snapshot(Scene.load(scene_path), settings, at_s, out)
+    settings = load_sim_settings(vehicles=vehicles, seed=seed)
+    written = take_snapshot(Scene.load(settings.scene), settings, at_s, out)
     console.print(f"wrote {len(written)} images to {out}: " + ", ".join(p.name for p in written))
 
 

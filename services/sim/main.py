@@ -23,12 +23,11 @@ from rmmdet.v1.sim_pb2 import SimClock
 
 from shared.bus.health import DEGRADED, NOMINAL
 from shared.bus.node import Node, processing_stamp
-from shared.config import load_settings
 from shared.scene.calibration import calibration_set
 from shared.scene.scene import Scene
 from shared.service import run_service
 from shared.shutdown import GracefulShutdown
-from sim.config import DEFAULT_SIM_CONFIG, REPO_ROOT, SimSettings, TrafficSettings
+from sim.config import DEFAULT_SIM_CONFIG, SimSettings, load_sim_settings
 from sim.ground_truth import ground_truth_message
 from sim.road_network import RoadNetwork
 from sim.traffic import TrafficSim
@@ -47,14 +46,7 @@ def load(args: argparse.Namespace) -> SimSettings:
         overrides["speed"] = args.speed
     if args.seed is not None:
         overrides["seed"] = args.seed
-    settings = load_settings(SimSettings, args.settings, **overrides)
-    if args.vehicles is not None:  # validated like the YAML value (bounds included)
-        settings.traffic = TrafficSettings.model_validate(
-            {**settings.traffic.model_dump(), "vehicles": args.vehicles}
-        )
-    if not settings.scene.is_absolute():
-        settings.scene = REPO_ROOT / settings.scene
-    return settings
+    return load_sim_settings(args.settings, args.vehicles, **overrides)
 
 
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:

@@ -49,7 +49,7 @@ from shared.datasets.layout import (
     lidar_stem,
 )
 from shared.scene.scene import Scene
-from sim.config import REPO_ROOT, SimSettings, TrafficSettings
+from sim.config import REPO_ROOT, load_sim_settings
 from sim.dataset.config import DEFAULT_DATASET_CONFIG, DatasetSettings
 from sim.lockstep import LockstepSim
 from sim.sensors.camera import CameraFrame, Lighting
@@ -223,12 +223,9 @@ class SeedWriter:
 
 def generate_seed(cfg: DatasetSettings, layout: DatasetLayout, split: str, seed: int) -> SeedResult:
     """Run one seed and write its frames; returns what was written."""
-    sim_settings = load_settings(SimSettings, _resolve(cfg.sim_settings), seed=seed)
-    scene = Scene.load(_resolve(sim_settings.scene))
     var = seed_variation(cfg, seed)
-    sim_settings.traffic = TrafficSettings.model_validate(
-        {**sim_settings.traffic.model_dump(), "vehicles": var["vehicles"]}
-    )
+    sim_settings = load_sim_settings(_resolve(cfg.sim_settings), var["vehicles"], seed=seed)
+    scene = Scene.load(sim_settings.scene)
     cameras = [s.id for s in scene.sensors_of(kind="camera")] if cfg.camera_sample_hz > 0 else []
     lidars = [s.id for s in scene.sensors_of(kind="lidar")] if cfg.lidar_sample_hz > 0 else []
     rates = {"camera": cfg.camera_sample_hz, "lidar": cfg.lidar_sample_hz}

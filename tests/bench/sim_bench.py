@@ -37,9 +37,8 @@ import psutil
 
 from shared.bus.node import Node, Received
 from shared.bus.streams import SENSOR_STREAM
-from shared.config import load_settings
 from shared.scene.scene import Scene
-from sim.config import DEFAULT_SIM_CONFIG, SimSettings, TrafficSettings
+from sim.config import SimSettings, load_sim_settings
 from sim.lockstep import LockstepSim
 from sim.road_network import RoadNetwork
 from sim.traffic import TrafficSim
@@ -55,13 +54,6 @@ DATASET_CAMERA_HZ = 2.0  # camera sampling of a dataset run (consecutive 15 Hz f
 
 def pct(values: list[float], q: float) -> float:
     return float(np.percentile(values, q)) if values else float("nan")
-
-
-def default_settings() -> SimSettings:
-    settings = load_settings(SimSettings, DEFAULT_SIM_CONFIG)
-    if not settings.scene.is_absolute():
-        settings.scene = DEFAULT_SIM_CONFIG.parents[2] / settings.scene
-    return settings
 
 
 # --- part 1: lock-step ---------------------------------------------------------------------------
@@ -107,7 +99,7 @@ def lockstep(
 
 def traffic_only(settings: SimSettings, vehicles: int, sim_s: float) -> dict[str, Any]:
     scene = Scene.load(settings.scene)
-    traffic_settings = TrafficSettings.model_validate({**settings.traffic.model_dump(), "vehicles": vehicles})
+    traffic_settings = load_sim_settings(vehicles=vehicles).traffic
     traffic = TrafficSim(scene, RoadNetwork(scene), traffic_settings, settings.seed, settings.tick_hz)
     steps_ms = []
     for _ in range(round(sim_s * settings.tick_hz)):
@@ -244,7 +236,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s", stream=sys.stderr)
     if args.quick:
         args.sim_s, args.warmup_s, args.live_s, args.settle_s = 3.0, 0.5, 5.0, 6.0
-    settings = default_settings()
+    settings = load_sim_settings()
     result: dict[str, Any] = {
         "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "machine": machine_info(),
