@@ -26,7 +26,7 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from google.protobuf.message import Message
 from rmmdet.v1.sim_pb2 import GroundTruth
 
-from shared.scene.model import SensorKindName, SensorSpec
+from shared.scene.model import SensorSpec
 from shared.scene.scene import Scene
 from sim.ground_truth import poses_from_ground_truth
 from sim.sensors.camera import CameraFrame, CameraRenderer, Lighting, add_noise, vehicles_box_corners
@@ -158,11 +158,15 @@ class RadarSensor:
         return Capture(self.spec, world.tick, world.stamp_ns, targets, to_radar_scan(targets, self.spec.id))
 
 
-SENSOR_CLASSES: dict[SensorKindName, type[CameraSensor] | type[LidarSensor] | type[RadarSensor]] = {
-    "camera": CameraSensor,
-    "lidar": LidarSensor,
-    "radar": RadarSensor,
-}
+def build_sensor(
+    scene: Scene, spec: SensorSpec, static: StaticWorld, vehicles: VehicleWorld, lighting: Lighting
+) -> Sensor:
+    """The sensor model of `spec`'s kind (`lighting` applies to cameras)."""
+    if spec.kind == "camera":
+        return CameraSensor(scene, spec, static, vehicles, lighting)
+    if spec.kind == "lidar":
+        return LidarSensor(scene, spec, static, vehicles)
+    return RadarSensor(scene, spec, static, vehicles)
 
 
 class SensorRig:
@@ -175,13 +179,11 @@ class SensorRig:
         self.specs = list(specs)
         self.static = StaticWorld(scene)
         self.vehicles = VehicleWorld(scene)
+        light = lighting or Lighting()
         try:
-            self.sensors: dict[str, Sensor] = {}
-            for spec in self.specs:
-                if spec.kind == "camera" and lighting is not None:
-                    self.sensors[spec.id] = CameraSensor(scene, spec, self.static, self.vehicles, lighting)
-                else:
-                    self.sensors[spec.id] = SENSOR_CLASSES[spec.kind](scene, spec, self.static, self.vehicles)
+            self.sensors: dict[str, Sensor] = {
+                spec.id: build_sensor(scene, spec, self.static, self.vehicles, light) for spec in self.specs
+            }
         except BaseException:
             self.close()
             raise
@@ -196,10 +198,10 @@ class SensorRig:
         self, gt: GroundTruth, specs: list[SensorSpec] | None = None, labels: bool = False
     ) -> list[Capture]:
         """Captures of `specs` (default: the sensors firing on this tick) with the world at `gt`."""
-        world = self.tick_world(gt)
-        due = self.firing(world.tick, world.tick_hz) if specs is None else specs
+        due = self.firing(gt.header.tick, gt.tick_hz) if specs is None else specs
         if not due:
-            return []
+            return []  # most ticks: nothing fires, so no world is built
+        world = self.tick_world(gt)
         self.vehicles.update(world.poses)
         captures = []
         for spec in due:
