@@ -18,10 +18,10 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
-import cv2
 import numpy as np
 
 from shared.datasets import openpcdet, yolo
+from shared.datasets.images import read_rgb
 from shared.datasets.layout import DatasetLayout
 from shared.detection.interface import CameraDetector, LidarDetector
 from shared.metrics.detection import evaluate_coco, evaluate_kitti
@@ -45,13 +45,6 @@ class LidarSample:
     points: np.ndarray  # (N, 4)
     boxes: np.ndarray  # (G, 7)
     ignore: np.ndarray  # (I, 7)
-
-
-def read_rgb(path: Any) -> np.ndarray:
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise ValueError(f"cannot read image {path}")
-    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
 def camera_samples(layout: DatasetLayout, split: str, limit: int | None = None) -> Iterator[CameraSample]:

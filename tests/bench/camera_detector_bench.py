@@ -27,8 +27,8 @@ import numpy as np
 
 from shared.datasets.layout import DatasetLayout
 from shared.detection.camera.config import CONFIG_FILE, CameraDetectorConfig
-from shared.detection.camera.data import read_ignore_boxes, read_rgb
 from shared.detection.camera.onnx_detector import OnnxCameraDetector, measure_latency
+from shared.detection.evaluate import camera_samples
 from shared.metrics.detection import APResult, evaluate_coco
 from tests.bench.machine import machine_info
 
@@ -44,20 +44,6 @@ WIDTH_BANDS_PX = ((0, 24), (24, 48), (48, 96), (96, 10_000))
 LATENCY_IMAGES = 8  # distinct images cycled through the latency batches
 
 
-def load_split(
-    root: Path, split: str, limit: int | None
-) -> tuple[list[str], list[np.ndarray], list[np.ndarray]]:
-    """Stems, labelled pixel boxes (n, 4) and ignore boxes (m, 4) of a split (from camera/meta)."""
-    layout = DatasetLayout(root)
-    stems = layout.camera_stems(split)[:limit]
-    boxes, ignore = [], []
-    for stem in stems:
-        meta = json.loads(layout.camera_meta(split, stem).read_text())
-        boxes.append(np.asarray(meta["boxes"], np.float32).reshape(-1, 4))
-        ignore.append(read_ignore_boxes(layout.camera_meta(split, stem)))
-    return stems, boxes, ignore
-
-
 def accuracy(model: Path, root: Path, split: str, limit: int | None) -> dict[str, Any]:
     """AP@0.5 of the detector on a split, overall and per labelled-box width band."""
     cfg = CameraDetectorConfig.load(model.parent / CONFIG_FILE)
@@ -65,11 +51,13 @@ def accuracy(model: Path, root: Path, split: str, limit: int | None) -> dict[str
         update={"post": cfg.post.model_copy(update={"score_threshold": EVAL_SCORE_THRESHOLD})}
     )
     detector = OnnxCameraDetector(model, low)
-    layout = DatasetLayout(root)
-    stems, boxes, ignore = load_split(root, split, limit)
-    dets = [detector.detect([read_rgb(layout.camera_image(split, s))])[0] for s in stems]
+    dets, boxes, ignore = [], [], []
+    for sample in camera_samples(DatasetLayout(root), split, limit):
+        dets.append(detector.detect([sample.image])[0])
+        boxes.append(sample.boxes)
+        ignore.append(sample.ignore)
     overall = evaluate_coco(list(zip(dets, boxes, ignore, strict=True)), IOUS).per_threshold[IOUS[0]]
-    result: dict[str, Any] = {"split": split, "images": len(stems), **summary(overall)}
+    result: dict[str, Any] = {"split": split, "images": len(dets), **summary(overall)}
     bands = {}
     for lo, hi in WIDTH_BANDS_PX:
         inside = [(b[:, 2] - b[:, 0] >= lo) & (b[:, 2] - b[:, 0] < hi) for b in boxes]
@@ -119,9 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.quick:
         args.repeats, args.limit = 20, args.limit or 100
     if args.data is not None:
-        layout = DatasetLayout(args.data)
-        stems = layout.camera_stems(args.split)[:LATENCY_IMAGES]
-        images = [read_rgb(layout.camera_image(args.split, s)) for s in stems]
+        images = [s.image for s in camera_samples(DatasetLayout(args.data), args.split, LATENCY_IMAGES)]
     else:
         rng = np.random.default_rng(0)
         images = [rng.integers(0, 256, (IMAGE_H, IMAGE_W, 3), dtype=np.uint8) for _ in range(max(BATCHES))]

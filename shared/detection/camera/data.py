@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from shared.datasets.images import read_rgb
 from shared.datasets.layout import DatasetLayout
 from shared.datasets.yolo import read_yolo
 from shared.detection.camera.config import AssignConfig, AugmentConfig, CameraDetectorConfig, InputConfig
@@ -67,14 +68,6 @@ def read_ignore_boxes(path: Path) -> np.ndarray:
     if not path.exists():
         return np.zeros((0, 4), np.float32)
     return np.asarray(json.loads(path.read_text()).get("ignore", []), np.float32).reshape(-1, 4)
-
-
-def read_rgb(path: Path) -> np.ndarray:
-    """JPEG/PNG -> (H, W, 3) uint8 RGB."""
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise FileNotFoundError(f"{path}: cannot read image")
-    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
 def _clip_boxes(
