@@ -440,12 +440,16 @@ def dataset_generate(
 ) -> None:
     """Run the sim lock-step over the configured seeds and write camera images (YOLO, VOC) and lidar
     frames (KITTI, OpenPCDet) with ground-truth labels; resumable (finished seeds are skipped)."""
-    from shared.config import load_settings
+    from shared.config import ConfigError, load_settings
     from sim.dataset.config import DEFAULT_DATASET_CONFIG, DatasetSettings
     from sim.dataset.generate import generate
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    cfg = load_settings(DatasetSettings, config or DEFAULT_DATASET_CONFIG)
+    try:
+        cfg = load_settings(DatasetSettings, config or DEFAULT_DATASET_CONFIG)
+    except ConfigError as err:
+        console.print(f"[red]{err}[/]")
+        raise typer.Exit(2) from None
     summary = generate(cfg, out, workers=workers, progress=progress)
     console.print_json(json.dumps(summary["splits"]))
 
@@ -469,11 +473,18 @@ def eval_detectors(
     """AP of each detector on a dataset split (camera: COCO AP@0.5, AP@0.5:0.95; lidar: KITTI R40 BEV /
     3D AP at IoU 0.5 / 0.7 overall and by distance band) and latency per call (p50 / p95, 1 and 2
     onnxruntime threads, pre/post-processing included)."""
-    from shared.datasets.layout import DatasetLayout
+    from shared.datasets.layout import SPLITS, DatasetLayout
     from shared.detection import evaluate as ev
     from shared.detection.registry import camera_detector, lidar_detector
 
     layout = DatasetLayout(data)
+    if not layout.manifest.exists():
+        console.print(
+            f"[red]{data} is not a generated dataset (no manifest.json): run `rmmdet dataset generate`[/]"
+        )
+        raise typer.Exit(2)
+    if split not in SPLITS:
+        raise typer.BadParameter(f"split must be one of {SPLITS}, got {split!r}")
     results: dict[str, list[dict[str, object]]] = {"camera": [], "lidar": []}
     camera_samples = list(ev.camera_samples(layout, split, latency_frames))
     lidar_samples = list(ev.lidar_samples(layout, split, latency_frames))

@@ -26,7 +26,6 @@ from shared.datasets.layout import DatasetLayout
 from shared.detection.interface import CameraDetector, LidarDetector
 from shared.metrics.detection import evaluate_coco, evaluate_kitti
 
-LATENCY_FRAMES = 50
 LATENCY_WARMUP = 5
 NS_PER_MS = 1e6
 

@@ -35,7 +35,7 @@ import numpy as np
 from rmmdet.v1.sim_pb2 import GroundTruth
 from tqdm import tqdm
 
-from shared.config import load_settings
+from shared.config import ConfigError, load_settings
 from shared.datasets import kitti, openpcdet, voc, yolo
 from shared.datasets.layout import (
     CLASS_NAME,
@@ -356,7 +356,10 @@ def main(argv: list[str] | None = None) -> int:
     add_args(parser)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    cfg = load_settings(DatasetSettings, args.config)
+    try:
+        cfg = load_settings(DatasetSettings, args.config)
+    except ConfigError as err:
+        parser.error(str(err))
     summary = generate(cfg, args.out, workers=args.workers, progress=not args.no_progress)
     print(json.dumps(summary["splits"], indent=2))
     return 0
