@@ -22,6 +22,11 @@ $(INSTALLED): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --disable-pip-version-check --upgrade pip
 	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e '.[dev,train]'
+	@# open3d's wheel links libusb-1.0 (a system library pip cannot provide).
+	@ldconfig -p | grep -q 'libusb-1.0.so.0' || { \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    DEBIAN_FRONTEND=noninteractive apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0; \
+	  else echo "error: open3d needs libusb-1.0 (apt-get install libusb-1.0-0)"; exit 1; fi; }
 	@touch $@
 
 install: $(INSTALLED) $(PROTO_STAMP) ## create .venv and install the project (+ dev tools), generate protobuf code

@@ -296,14 +296,17 @@ class Node:
         expected_rate_hz: float = 0.0,
         max_age_s: float | None = None,
         max_payload_bytes: int = DEFAULT_MAX_PAYLOAD_BYTES,
+        queue: BoundedQueue[Received] | None = None,
     ) -> Subscription:
-        """Subscribe to `key_expr`; `expected_type=None` accepts any known schema (tools)."""
+        """Subscribe to `key_expr`; `expected_type=None` accepts any known schema (tools). Several
+        subscriptions may share one `queue` (a service that waits on all its inputs at once); then
+        `maxsize` and `policy` are the queue's own."""
         decoder = MessageDecoder(expected_type, self.counters, max_payload_bytes, max_age_s)
         monitor = InputMonitor(key_expr, expected_rate_hz, self.thresholds)
         self.health.add_input(monitor)
-        sub = Subscription(
-            self.session, key_expr, decoder, BoundedQueue(maxsize, policy), monitor, self.counters
-        )
+        if queue is None:
+            queue = BoundedQueue(maxsize, policy)
+        sub = Subscription(self.session, key_expr, decoder, queue, monitor, self.counters)
         self._declared.append(sub)
         return sub
 
@@ -314,10 +317,11 @@ class Node:
         maxsize: int | None = None,
         expected_rate_hz: float = 0.0,
         max_age_s: float | None = None,
+        queue: BoundedQueue[Received] | None = None,
         **ids: str,
     ) -> Subscription:
         """Subscribe to a stream; ids left out become `*`. Latest-wins streams keep a short
-        drop-oldest queue, must-deliver streams a long one."""
+        drop-oldest queue, must-deliver streams a long one (unless a shared `queue` is given)."""
         stream = get_stream(stream_name)
         if maxsize is None:
             maxsize = 4 if stream.stream_class == "latest-wins" else 1024
@@ -327,6 +331,7 @@ class Node:
             maxsize=maxsize,
             expected_rate_hz=expected_rate_hz,
             max_age_s=max_age_s,
+            queue=queue,
         )
 
     # --- queryables ------------------------------------------------------------------------------

@@ -22,6 +22,7 @@ from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from scipy.spatial.transform import Rotation
 
+from shared.perception.decode import FLOAT32_BYTES, POINT_DTYPE, POINT_FIELDS
 from shared.scene.model import LidarModel
 from shared.scene.scene import Scene
 from sim.world import StaticWorld, VehiclePose, VehicleWorld
@@ -38,11 +39,8 @@ INTENSITY_STRUCTURE = 0.45  # viaduct deck, pillars
 INTENSITY_OBJECT = 0.6  # buildings, poles, other static objects
 STATIC_INTENSITY = {"table": INTENSITY_TABLE, "viaduct": INTENSITY_STRUCTURE, "pillar": INTENSITY_STRUCTURE}
 
-# foxglove.PointCloud layout: x, y, z, intensity as little-endian float32.
-POINT_FIELDS = ("x", "y", "z", "intensity")
-FLOAT32_BYTES = 4
+# foxglove.PointCloud layout: x, y, z, intensity, little-endian float32 (see shared.perception.decode).
 POINT_STRIDE_BYTES = FLOAT32_BYTES * len(POINT_FIELDS)
-POINT_DTYPE = np.dtype("<f4")
 
 
 @dataclass(frozen=True)
@@ -222,19 +220,3 @@ def to_point_cloud(scan: LidarScan, frame_id: str, stamp_ns: int) -> PointCloud:
     data = np.column_stack([scan.points_m, scan.intensity]).astype(POINT_DTYPE)
     msg.data = data.tobytes()
     return msg
-
-
-def from_point_cloud(msg: PointCloud) -> np.ndarray:
-    """(N, 4) float32 x, y, z, intensity of a foxglove.PointCloud with float32 fields by those names."""
-    offsets = {f.name: f.offset for f in msg.fields if f.type == PackedElementField.FLOAT32}
-    missing = [name for name in POINT_FIELDS if name not in offsets]
-    if missing:
-        raise ValueError(f"point cloud lacks float32 fields {missing}")
-    if msg.point_stride <= 0 or len(msg.data) % msg.point_stride:
-        raise ValueError(f"bad point_stride {msg.point_stride} for {len(msg.data)} bytes")
-    rows = np.frombuffer(msg.data, np.uint8).reshape(-1, msg.point_stride)
-    out = np.empty((len(rows), len(POINT_FIELDS)), np.float32)
-    for i, name in enumerate(POINT_FIELDS):
-        o = offsets[name]
-        out[:, i] = rows[:, o : o + FLOAT32_BYTES].copy().view(POINT_DTYPE)[:, 0]
-    return out

@@ -9,6 +9,7 @@ import numpy as np
 import pybullet as pb
 import pytest
 
+from shared.perception.decode import point_cloud_to_array as from_point_cloud
 from shared.scene.scene import Scene
 from sim.config import TrafficSettings
 from sim.road_network import RoadNetwork
@@ -19,7 +20,6 @@ from sim.sensors.lidar import (
     LidarScan,
     LidarSimulator,
     cast_rays,
-    from_point_cloud,
     ray_directions,
     rays_hitting_boxes,
     to_point_cloud,

@@ -16,12 +16,13 @@ from rmmdet.v1.sensors_pb2 import RadarScan
 
 from shared.bus.codec import encode
 from shared.bus.streams import SENSOR_STREAM, get_stream
+from shared.perception.decode import point_cloud_to_array as from_point_cloud
 from shared.recording import Record, RecordingWriter, decode_record, read_records
 from shared.scene.scene import Scene
 from sim.config import SimSettings
 from sim.lockstep import LockstepSim, Tick
 from sim.sensors.camera import CameraFrame
-from sim.sensors.lidar import LidarScan, from_point_cloud
+from sim.sensors.lidar import LidarScan
 from sim.sensors.rig import fires, sensor_rng
 
 TICK_HZ = 60.0

@@ -1,0 +1,1 @@
+"""MEC (edge) service: one agent's detection, fusion and tracking."""

@@ -1,0 +1,5 @@
+import sys
+
+from services.mec.main import cli
+
+sys.exit(cli())

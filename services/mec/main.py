@@ -1,0 +1,187 @@
+"""MEC (edge) service: one agent's detection, fusion and tracking.
+
+    python -m services.mec --instance agent1
+
+Subscribes to every sensor of the agent (`rmmdet/@v1/<agent>/sensor/<kind>/<id>`) into one queue,
+joins the frames of one sim tick (`TickJoiner`: waits at most `sync.max_wait_s`, and only for inputs
+that are alive), decodes them, runs `AgentPipeline` (detectors, radar-camera and lidar-camera fusion,
+tracker) and publishes `rmmdet.v1.TrackedObjects` on `rmmdet/@v1/<agent>/objects` with the tick's
+stamp, the FULL / DEGRADED status, the state of every input and per-stage latencies.
+
+A sensor that stops is MISSING after 3 of its periods; output continues from the other inputs, flagged
+DEGRADED with that input named, and returns to FULL after `health.recover_frames` complete frames.
+Frames older than `health.max_age_s` on arrival are dropped and counted as stale. If processing falls
+behind, only the newest ready frame is processed (latest-wins) and the skipped ones are counted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import zenoh
+
+from shared.bus.health import CRITICAL, DEGRADED, NOMINAL
+from shared.bus.node import Node, Received, processing_stamp
+from shared.bus.queues import BoundedQueue, OverflowPolicy
+from shared.bus.streams import SENSOR_STREAM
+from shared.config import load_settings
+from shared.perception.config import DEFAULT_MEC_CONFIG, MecSettings
+from shared.perception.decode import image_to_array, point_cloud_to_array, radar_to_targets
+from shared.perception.inputs import SensorMonitor, Status, StatusHysteresis
+from shared.perception.output import tracked_objects_message
+from shared.perception.pipeline import AgentInputs, AgentPipeline
+from shared.perception.sync import JoinedFrame, Sample, TickJoiner
+from shared.scene.scene import Scene
+from shared.service import run_service
+from shared.shutdown import GracefulShutdown
+from sim.config import DEFAULT_SCENE
+
+log = logging.getLogger("services.mec")
+
+QUEUE_PER_SENSOR = 4  # latest-wins: a few frames per sensor, oldest dropped
+IDLE_WAIT_S = 0.1
+
+
+def decode_frame(frame: JoinedFrame, kinds: dict[str, str], counters: Counter[str]) -> AgentInputs:
+    """Decode the joined messages; a frame that does not decode is left out and counted."""
+    inputs = AgentInputs(stamp_ns=frame.stamp_ns, tick=frame.tick)
+    for sensor_id, sample in frame.samples.items():
+        kind = kinds[sensor_id]
+        try:
+            if kind == "camera":
+                inputs.images[sensor_id] = image_to_array(sample.data)
+            elif kind == "lidar":
+                inputs.clouds[sensor_id] = point_cloud_to_array(sample.data)
+            else:
+                inputs.radar[sensor_id] = radar_to_targets(sample.data)
+        except ValueError as err:
+            counters[f"rejected/{kind}_decode"] += 1
+            log.debug("%s frame rejected: %s", sensor_id, err)
+    return inputs
+
+
+def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
+    scene = Scene.load(args.scene)
+    agent = args.instance
+    if agent not in scene.agents:
+        raise SystemExit(f"unknown agent {agent!r}: scene has {sorted(scene.agents)}")
+    overrides = {}
+    if args.camera_detector or args.lidar_detector:
+        overrides["detectors"] = {
+            k: v for k, v in (("camera", args.camera_detector), ("lidar", args.lidar_detector)) if v
+        }
+    settings = load_settings(MecSettings, args.config, **overrides)
+    specs = scene.sensors_of(agent)
+    kinds = {s.id: s.kind for s in specs}
+    t0 = time.perf_counter()
+    pipeline = AgentPipeline(scene, agent, settings)
+    log.info("agent %s: %d sensors, pipeline ready in %.2f s", agent, len(specs), time.perf_counter() - t0)
+
+    with Node(conf, service="mec", instance=agent, scope=agent, stop=shutdown.event) as node:
+        objects_pub = node.publisher("objects", agent=agent, source_id=f"{agent}/mec")
+        queue: BoundedQueue[Received] = BoundedQueue(
+            QUEUE_PER_SENSOR * len(specs), OverflowPolicy.DROP_OLDEST
+        )
+        for s in specs:
+            node.subscribe_stream(
+                SENSOR_STREAM[s.kind], agent=agent, sensor=s.id, expected_rate_hz=s.rate_hz, queue=queue
+            )
+        monitor = SensorMonitor(
+            {s.id: s.rate_hz for s in specs},
+            settings.health.missing_after_periods,
+            settings.health.max_age_s,
+            start_s=time.monotonic(),
+        )
+        joiner = TickJoiner(kinds, settings.sync.max_wait_s, settings.sync.max_pending_ticks)
+        status = StatusHysteresis(settings.health.recover_frames)
+        counters: Counter[str] = Counter()
+        last = {"status": Status.FULL, "tick": -1}
+
+        def health() -> tuple[int, str]:
+            now = time.monotonic()
+            bad = [f"{r.sensor_id}: {r.state.value}" for r in monitor.report(now) if r.state.value != "ok"]
+            level = {Status.FULL: NOMINAL, Status.DEGRADED: DEGRADED}.get(status.status, CRITICAL)
+            text = f"{status.status.value}, tick {last['tick']}, {counters['frames/published']} frames"
+            return level, text + (f"; {', '.join(bad)}" if bad else "")
+
+        node.health.set_status(health)
+        last_log = time.monotonic()
+        while not shutdown.requested:
+            deadline = joiner.next_deadline_s()
+            now = time.monotonic()
+            wait = IDLE_WAIT_S if deadline is None else min(IDLE_WAIT_S, max(0.0, deadline - now))
+            received = queue.get(timeout=wait)
+            items = ([received] if received is not None else []) + queue.drain()
+            ready: list[JoinedFrame] = []
+            now = time.monotonic()
+            wall_ns = time.time_ns()
+            for item in items:
+                sensor_id = item.key.rsplit("/", 1)[-1]
+                if sensor_id not in kinds:
+                    counters["rejected/unknown_sensor"] += 1
+                    continue
+                stamp_ns = item.header.stamp.ToNanoseconds()
+                if not monitor.accept(sensor_id, stamp_ns, now, wall_ns):
+                    counters[f"stale/{sensor_id}"] += 1
+                    node.counters.inc("rejected/stale")
+                    continue
+                sample = Sample(sensor_id, stamp_ns, item.message, item.header.tick, now)
+                ready += joiner.add(sample, monitor.alive(now), now)
+            ready += joiner.poll(monitor.alive(now), now)
+            if not ready:
+                continue
+            if len(ready) > 1:
+                counters["frames/skipped"] += len(ready) - 1
+                node.counters.inc("frames/skipped", len(ready) - 1)
+            frame = ready[-1]
+            start_ns = time.time_ns()
+            inputs = decode_frame(frame, kinds, counters)
+            decoded_ns = time.time_ns()
+            result = pipeline.process(inputs)
+            result.latencies_s = {"decode": (decoded_ns - start_ns) / 1e9, **result.latencies_s}
+            now = time.monotonic()
+            fused = {s: s in inputs.images or s in inputs.clouds or s in inputs.radar for s in kinds}
+            state = status.update(fused)
+            if state is not last["status"]:
+                missing = sorted(s for s, ok in fused.items() if not ok)
+                log.warning(
+                    "status %s -> %s (missing: %s)", last["status"].value, state.value, missing or "none"
+                )
+                last["status"] = state
+            msg = tracked_objects_message(result, agent, state, monitor.report(now), kinds)
+            header = objects_pub.next_header(stamp_ns=frame.stamp_ns, tick=frame.tick, frame_id="world")
+            stages = [processing_stamp("mec/process", start_ns, time.time_ns())]
+            objects_pub.put(msg, header, stages=stages)
+            counters["frames/published"] += 1
+            last["tick"] = frame.tick
+            now = time.monotonic()
+            if now - last_log >= settings.report_interval_s:
+                log.info(
+                    "%d frames published, status %s, %d tracks, counters %s",
+                    counters["frames/published"],
+                    state.value,
+                    len(result.tracks),
+                    dict(counters + pipeline.counts),
+                )
+                last_log = now
+    return 0
+
+
+def add_args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="scene YAML")
+    parser.add_argument("--config", type=Path, default=DEFAULT_MEC_CONFIG, help="MEC settings YAML")
+    parser.add_argument("--camera-detector", help="override detectors.camera (onnx | oracle)")
+    parser.add_argument("--lidar-detector", help="override detectors.lidar (pointpillars | cluster | oracle)")
+
+
+def cli(argv: list[str] | None = None) -> int:
+    return run_service("mec", main, description=__doc__ or "", add_args=add_args, argv=argv)
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

@@ -1,0 +1,1 @@
+"""Edge (MEC) perception algorithms: synchronisation, preprocessing, fusion; no bus inside."""

@@ -1,0 +1,113 @@
+"""Camera-only localisation: 2D boxes -> world positions on the road surface.
+
+Used when no range sensor confirms a 2D box (lidar or radar missing, or the unmatched-camera policy
+keeps such boxes). The ray through the box centre is cast onto the surface of the nearest lane at half
+a car's height (the paper projects the image-box centre to 3D at the known target height), the yaw is
+the lane's direction of travel, the size the configured car size. The same car seen by two cameras
+gives two positions: they are merged when closer than `merge_radius_m`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field
+
+from shared.geometry.camera import pixel_rays
+from shared.perception.radar_camera import camera_position_cov
+from shared.perception.views import CameraView, RoadSurface
+
+FloatArray = NDArray[np.float64]
+
+
+class CameraOnlyConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    car_size_m: tuple[float, float, float] = Field(
+        (0.33, 0.22, 0.21), description="length, width, height given to camera-only objects"
+    )
+    merge_radius_m: float = Field(
+        0.2, gt=0, description="positions of one car from several cameras merge within this"
+    )
+    pixel_std_px: float = Field(3.0, gt=0, description="box-centre noise, px")
+    depth_std_fraction: float = Field(
+        0.08, gt=0, description="noise along the viewing ray, fraction of the range"
+    )
+    border_margin_px: float = Field(
+        2.0, ge=0, description="boxes touching the border are skipped (centre is cut)"
+    )
+    keep_unconfirmed: bool = Field(
+        False,
+        description="on cameras a live range sensor covers, publish boxes it did not confirm as camera-only "
+        "objects (paper: discard); cameras no range sensor covers always publish camera-only objects",
+    )
+
+
+@dataclass(frozen=True)
+class CameraObject:
+    """One car located from camera boxes alone (world frame)."""
+
+    box: FloatArray  # (7,) x, y, z, dx, dy, dz, yaw
+    cov_xy_m2: FloatArray  # (2, 2)
+    yaw_known: bool  # lane direction found
+    score: float
+    sensor_ids: tuple[str, ...]
+
+
+def locate(
+    views: Mapping[str, CameraView],
+    boxes_by_camera: Mapping[str, FloatArray],
+    surface: RoadSurface,
+    cfg: CameraOnlyConfig,
+) -> list[CameraObject]:
+    """Camera-only objects from (N, >=5) `[x0, y0, x1, y1, score, ...]` boxes per camera."""
+    found: list[CameraObject] = []
+    length, width, height = cfg.car_size_m
+    for cam, boxes in boxes_by_camera.items():
+        if len(boxes) == 0:
+            continue
+        view = views[cam]
+        keep = ~view.touches_border(boxes[:, :4], cfg.border_margin_px)
+        boxes = boxes[keep]
+        if len(boxes) == 0:
+            continue
+        centres = np.column_stack([(boxes[:, 0] + boxes[:, 2]) / 2, (boxes[:, 1] + boxes[:, 3]) / 2])
+        rays = pixel_rays(centres, view.K) @ view.T_world_from_optical[:3, :3].T
+        points = surface.first_hit(view.center_m, rays, height / 2)
+        ok = np.isfinite(points).all(axis=1)
+        if not ok.any():
+            continue
+        points, scores = points[ok], boxes[ok, 4]
+        fx = float(view.K[0, 0])
+        covs = camera_position_cov(
+            points[:, :2], view.center_m[:2], cfg.pixel_std_px, fx, cfg.depth_std_fraction
+        )
+        yaws = surface.lane_heading(points[:, :2])
+        for p, c, yaw, score in zip(points, covs, yaws, scores, strict=True):
+            known = bool(np.isfinite(yaw))
+            box = np.array([p[0], p[1], p[2], length, width, height, yaw if known else 0.0])
+            found.append(CameraObject(box, c, known, float(score), (cam,)))
+    return merge_nearby(found, cfg.merge_radius_m)
+
+
+def merge_nearby(objects: list[CameraObject], radius_m: float) -> list[CameraObject]:
+    """Greedy merge, best score first: an object within `radius_m` of a kept one is fused into it
+    (information-weighted position, best score, union of cameras)."""
+    kept: list[CameraObject] = []
+    for obj in sorted(objects, key=lambda o: -o.score):
+        for i, k in enumerate(kept):
+            if np.linalg.norm(obj.box[:2] - k.box[:2]) <= radius_m:
+                info_k, info_o = np.linalg.inv(k.cov_xy_m2), np.linalg.inv(obj.cov_xy_m2)
+                cov = np.linalg.inv(info_k + info_o)
+                xy = cov @ (info_k @ k.box[:2] + info_o @ obj.box[:2])
+                box = k.box.copy()
+                box[:2] = xy
+                cams = tuple(sorted(set(k.sensor_ids) | set(obj.sensor_ids)))
+                kept[i] = CameraObject(box, cov, k.yaw_known, k.score, cams)
+                break
+        else:
+            kept.append(obj)
+    return kept

@@ -1,0 +1,71 @@
+"""Configuration of one MEC (edge) agent: detectors, preprocessing, fusion, tracking, sync, health.
+
+Loaded from `deploy/mec/mec.yaml` (env RMMDET_MEC_<FIELD>, nested with `__`); every field is typed,
+has a default and says its unit. The scene file stays the single source of sensor geometry.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from shared.config import RmmdetSettings, settings_config
+from shared.perception.camera_only import CameraOnlyConfig
+from shared.perception.lidar_camera import LidarCameraConfig
+from shared.perception.lidar_preprocess import LidarPreprocessConfig
+from shared.perception.radar_camera import RadarCameraConfig
+from shared.tracking.tracker import TrackerConfig
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+DEFAULT_MEC_CONFIG = REPO_ROOT / "deploy" / "mec" / "mec.yaml"
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class DetectorsConfig(_Model):
+    camera: str = Field("onnx", description="camera detector (shared.detection.registry): onnx | oracle")
+    lidar: str = Field("pointpillars", description="lidar detector: pointpillars | cluster | oracle")
+    camera_threads: int = Field(2, ge=1, description="onnxruntime intra-op threads of the camera model")
+    lidar_threads: int = Field(2, ge=1, description="onnxruntime intra-op threads of the lidar model")
+    camera_min_score: float = Field(0.3, ge=0, le=1, description="2D boxes below this score are not fused")
+    lidar_min_score: float = Field(0.3, ge=0, le=1, description="3D boxes below this score are not fused")
+    lidar_input: str = Field(
+        "merged",
+        pattern="^(merged|preprocessed)$",
+        description="cloud given to the 3D detector: merged (PointPillars was trained on it) or preprocessed",
+    )
+
+
+class SyncConfig(_Model):
+    max_wait_s: float = Field(
+        0.05, gt=0, description="longest wait for an agent frame's expected sensors after its first sample"
+    )
+    max_pending_ticks: int = Field(4, ge=1, description="ticks held at once by the joiner")
+
+
+class HealthConfig(_Model):
+    missing_after_periods: float = Field(3.0, gt=0, description="periods without a frame -> input MISSING")
+    max_age_s: float = Field(
+        0.2, ge=0, description="frames older than this on arrival are stale (dropped, counted); 0 = off"
+    )
+    recover_frames: int = Field(3, ge=1, description="all-OK output frames needed to return to FULL")
+
+
+class MecSettings(RmmdetSettings):
+    model_config = settings_config(env_prefix="RMMDET_MEC_")
+
+    detectors: DetectorsConfig = DetectorsConfig()
+    preprocess: LidarPreprocessConfig = LidarPreprocessConfig()
+    radar_camera: RadarCameraConfig = RadarCameraConfig()
+    lidar_camera: LidarCameraConfig = LidarCameraConfig()
+    camera_only: CameraOnlyConfig = CameraOnlyConfig()
+    tracker: TrackerConfig = TrackerConfig()
+    sync: SyncConfig = SyncConfig()
+    health: HealthConfig = HealthConfig()
+    surface_half_width_m: float = Field(
+        0.2, gt=0, description="road-surface lookup radius around lane samples"
+    )
+    report_interval_s: float = Field(10.0, gt=0, description="log interval of rates and counters")

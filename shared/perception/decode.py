@@ -1,0 +1,63 @@
+"""Sensor messages -> the arrays the perception pipeline takes. Each decoder raises `ValueError` with
+a clear reason on data it cannot use; the MEC counts those as rejections and fuses without them.
+
+Point clouds: `foxglove.PointCloud` with float32 fields x, y, z, intensity (any order and stride).
+Images: `foxglove.CompressedImage` (jpeg / png) -> (H, W, 3) uint8 RGB.
+Radar: `rmmdet.v1.RadarScan` -> `RadarTargets` arrays (radar frame).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
+from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+from rmmdet.v1.sensors_pb2 import RadarScan
+
+from shared.perception.radar_camera import RadarTargets
+
+POINT_FIELDS = ("x", "y", "z", "intensity")
+FLOAT32_BYTES = 4
+POINT_DTYPE = np.dtype("<f4")
+IMAGE_FORMATS = ("jpeg", "jpg", "png")
+
+
+def point_cloud_to_array(msg: PointCloud) -> np.ndarray:
+    """(N, 4) float32 x, y, z, intensity of a foxglove.PointCloud with float32 fields by those names."""
+    offsets = {f.name: f.offset for f in msg.fields if f.type == PackedElementField.FLOAT32}
+    missing = [name for name in POINT_FIELDS if name not in offsets]
+    if missing:
+        raise ValueError(f"point cloud lacks float32 fields {missing}")
+    if msg.point_stride <= 0 or len(msg.data) % msg.point_stride:
+        raise ValueError(f"bad point_stride {msg.point_stride} for {len(msg.data)} bytes")
+    if any(o < 0 or o + FLOAT32_BYTES > msg.point_stride for o in offsets.values()):
+        raise ValueError("a point field lies outside the point stride")
+    rows = np.frombuffer(msg.data, np.uint8).reshape(-1, msg.point_stride)
+    out = np.empty((len(rows), len(POINT_FIELDS)), np.float32)
+    for i, name in enumerate(POINT_FIELDS):
+        o = offsets[name]
+        out[:, i] = rows[:, o : o + FLOAT32_BYTES].copy().view(POINT_DTYPE)[:, 0]
+    return out
+
+
+def image_to_array(msg: CompressedImage) -> np.ndarray:
+    """(H, W, 3) uint8 RGB of a JPEG or PNG foxglove.CompressedImage."""
+    if msg.format.lower() not in IMAGE_FORMATS:
+        raise ValueError(f"unsupported image format {msg.format!r}: expected one of {IMAGE_FORMATS}")
+    bgr = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise ValueError(f"{msg.format} image does not decode ({len(msg.data)} bytes)")
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def radar_to_targets(msg: RadarScan) -> RadarTargets:
+    """Arrays of a scan's targets (the bus validator has already rejected non-finite values)."""
+    t = msg.targets
+    return RadarTargets(
+        np.array([x.range_m for x in t], float),
+        np.array([x.azimuth_rad for x in t], float),
+        np.array([x.elevation_rad for x in t], float),
+        np.array([x.range_rate_mps for x in t], float),
+        np.array([x.rcs_dbsm for x in t], float),
+    )

@@ -1,0 +1,87 @@
+"""Pipeline result -> `rmmdet.v1.TrackedObjects` (the MEC's output message, without its header)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+from rmmdet.v1 import perception_pb2 as pb
+
+from shared.perception.inputs import InputReport, InputState, Status
+from shared.perception.pipeline import AgentResult
+from shared.tracking.tracker import Track, TrackState
+
+MODALITY = {"camera": pb.MODALITY_CAMERA, "lidar": pb.MODALITY_LIDAR, "radar": pb.MODALITY_RADAR}
+STATUS = {
+    Status.FULL: pb.PERCEPTION_STATUS_FULL,
+    Status.DEGRADED: pb.PERCEPTION_STATUS_DEGRADED,
+    Status.UNAVAILABLE: pb.PERCEPTION_STATUS_UNAVAILABLE,
+}
+INPUT_STATE = {
+    InputState.OK: pb.INPUT_STATE_OK,
+    InputState.STALE: pb.INPUT_STATE_STALE,
+    InputState.MISSING: pb.INPUT_STATE_MISSING,
+}
+TRACK_STATE = {
+    TrackState.TENTATIVE: pb.TRACK_STATE_TENTATIVE,
+    TrackState.CONFIRMED: pb.TRACK_STATE_CONFIRMED,
+    TrackState.COASTING: pb.TRACK_STATE_COASTING,
+}
+# Box size reported for a track no sensor has sized (radar-only): the sand table's car, m.
+DEFAULT_SIZE_M = (0.33, 0.22, 0.21)
+# Yaw variance reported when the heading is unknown (uniform over a half turn), rad^2.
+UNKNOWN_YAW_VARIANCE_RAD2 = (np.pi**2) / 12
+
+
+def track_to_message(track: Track, out: pb.TrackedObject) -> None:
+    out.track_id = track.track_id
+    out.existence_probability = float(np.clip(track.existence_probability, 0.0, 1.0))
+    out.classification.add(label=pb.OBJECT_CLASS_CAR, probability=1.0)
+    pos = track.position_m
+    out.box.center_m.x, out.box.center_m.y, out.box.center_m.z = float(pos[0]), float(pos[1]), track.z_m
+    size = track.size_m if track.size_m is not None else DEFAULT_SIZE_M
+    out.box.size_m.x, out.box.size_m.y, out.box.size_m.z = (float(v) for v in size)
+    if track.yaw_rad is None:
+        out.orientation_availability = pb.ORIENTATION_AVAILABILITY_UNAVAILABLE
+        out.yaw_variance_rad2 = UNKNOWN_YAW_VARIANCE_RAD2
+    else:
+        out.box.yaw_rad = float(track.yaw_rad)
+        out.orientation_availability = (
+            pb.ORIENTATION_AVAILABILITY_AVAILABLE
+            if track.heading_sign_known
+            else pb.ORIENTATION_AVAILABILITY_SIGN_UNKNOWN
+        )
+    vel = track.velocity_mps
+    out.velocity_mps.x, out.velocity_mps.y = float(vel[0]), float(vel[1])
+    cov = np.zeros((3, 3))
+    cov[:2, :2] = track.position_cov_m2
+    out.position_covariance_m2.extend(cov.ravel().tolist())
+    vcov = np.zeros((3, 3))
+    vcov[:2, :2] = track.velocity_cov_m2ps2
+    out.velocity_covariance_m2ps2.extend(vcov.ravel().tolist())
+    out.modalities.extend(MODALITY[m] for m in sorted(track.modalities))
+    out.state = TRACK_STATE[track.state]
+    out.age_frames = track.age_frames
+    out.consecutive_misses = track.consecutive_misses
+
+
+def tracked_objects_message(
+    result: AgentResult,
+    agent_id: str,
+    status: Status,
+    inputs: Sequence[InputReport],
+    kinds: Mapping[str, str],
+) -> pb.TrackedObjects:
+    msg = pb.TrackedObjects(agent_id=agent_id, status=STATUS[status])
+    for r in inputs:
+        msg.inputs.add(
+            sensor_id=r.sensor_id,
+            modality=MODALITY[kinds[r.sensor_id]],
+            state=INPUT_STATE[r.state],
+            age_s=r.age_s,
+        )
+    for stage, seconds in result.latencies_s.items():
+        msg.stage_latencies.add(stage=stage, duration_s=seconds)
+    for track in result.tracks:
+        track_to_message(track, msg.objects.add())
+    return msg

@@ -1,0 +1,323 @@
+"""One agent's perception pipeline: detect, fuse and track one synchronised agent frame (no bus inside).
+
+    AgentInputs (images, clouds, radar scans of one tick; absent sensors simply missing)
+      -> 2D detection: all of the agent's images in one batched call
+      -> lidar: merge clouds into the agent frame (full extrinsics), preprocess, 3D detection, to world
+      -> radar + camera (Algorithm 1) for each radar and its paired camera
+      -> lidar + camera (Algorithm 2 + merge) over the agent's cameras
+      -> camera-only objects where no range sensor is available (degraded) or by policy
+      -> tracker (constant-velocity Kalman filter, Hungarian association, confirm / coast / delete)
+    AgentResult (confirmed tracks, the fused measurements, pre-fusion boxes, stage latencies)
+
+What runs is decided per frame by which inputs arrived, so a dead sensor changes the path, never
+stops it: without cameras the lidar (or radar) boxes go straight to the tracker; without the lidar
+(or radar) the camera boxes are placed on the road surface.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from shared.datasets.layout import agent_origin_m
+from shared.detection.interface import CameraDetector, DetectorInputError, LidarDetector
+from shared.detection.registry import camera_detector, lidar_detector
+from shared.perception import camera_only, lidar_camera, radar_camera
+from shared.perception.config import MecSettings
+from shared.perception.lidar_preprocess import agent_frame_transforms, merge_clouds, preprocess
+from shared.perception.radar_camera import RadarTargets
+from shared.perception.views import CameraView, RoadSurface
+from shared.scene.scene import Scene
+from shared.tracking.tracker import Measurement, MultiObjectTracker, Track
+
+FloatArray = NDArray[np.float64]
+NS_PER_S = 1_000_000_000
+
+CAMERA, LIDAR, RADAR = "camera", "lidar", "radar"
+# Per-axis position noise of a lidar box centre (PointPillars on the table), m.
+LIDAR_POSITION_STD_M = 0.02
+
+
+@dataclass
+class AgentInputs:
+    """One synchronised agent frame. Sensors without data this tick are absent from the dicts."""
+
+    stamp_ns: int
+    tick: int = 0
+    images: dict[str, np.ndarray] = field(default_factory=dict)  # camera id -> (H, W, 3) uint8 RGB
+    clouds: dict[str, np.ndarray] = field(default_factory=dict)  # lidar id -> (N, 4) sensor frame
+    radar: dict[str, RadarTargets] = field(default_factory=dict)
+
+
+@dataclass
+class AgentResult:
+    stamp_ns: int
+    tracks: list[Track]  # published: confirmed and coasting
+    measurements: list[Measurement]  # what the tracker was given (post-fusion, per frame)
+    lidar_boxes_world: FloatArray  # (M, 9) 3D detections before fusion (world frame)
+    camera_boxes: dict[str, FloatArray]  # per camera (N, 6) 2D detections
+    latencies_s: dict[str, float]
+    counts: Counter[str]
+    modalities_present: frozenset[str]
+
+
+def _lidar_measurement(
+    box: FloatArray, score: float, modalities: frozenset[str], sensors: tuple[str, ...]
+) -> Measurement:
+    return Measurement(
+        position_m=np.asarray(box[:2], float),
+        position_cov_m2=np.eye(2) * LIDAR_POSITION_STD_M**2,
+        z_m=float(box[2]),
+        size_m=np.asarray(box[3:6], float),
+        yaw_rad=float(box[6]),
+        yaw_mod_pi=True,  # PointPillars' direction bit is at chance: yaw is known modulo pi
+        range_rate=None,
+        modalities=modalities,
+        score=float(score),
+        sensor_ids=sensors,
+    )
+
+
+class AgentPipeline:
+    """Detect-fuse-track for one agent. Detectors may be injected (tests, oracles)."""
+
+    def __init__(
+        self,
+        scene: Scene,
+        agent_id: str,
+        settings: MecSettings,
+        cameras: CameraDetector | None = None,
+        lidar: LidarDetector | None = None,
+    ) -> None:
+        self.scene = scene
+        self.agent_id = agent_id
+        self.cfg = settings
+        self.camera_ids = [s.id for s in scene.sensors_of(agent_id, "camera")]
+        self.lidar_ids = [s.id for s in scene.sensors_of(agent_id, "lidar")]
+        self.radar_specs = scene.sensors_of(agent_id, "radar")
+        self.views = {c: CameraView.from_scene(scene, c) for c in self.camera_ids}
+        self.surface = RoadSurface(scene, settings.surface_half_width_m)
+        det = settings.detectors
+        self.camera_detector = cameras
+        if self.camera_detector is None and self.camera_ids:
+            self.camera_detector = camera_detector(det.camera, threads=det.camera_threads)
+        self.lidar_detector = lidar
+        if self.lidar_detector is None and self.lidar_ids:
+            self.lidar_detector = lidar_detector(det.lidar, threads=det.lidar_threads)
+        self.origin_m = agent_origin_m(scene, agent_id) if self.lidar_ids else np.zeros(3)
+        self.lidar_T = agent_frame_transforms(scene, agent_id) if self.lidar_ids else {}
+        self.radar_T = {s.id: np.asarray(scene.T_world_from_sensor(s.id), float) for s in self.radar_specs}
+        self.tracker = MultiObjectTracker(settings.tracker)
+        self.counts: Counter[str] = Counter()
+        self.last_reduction = float("nan")
+
+    # --- stages ---------------------------------------------------------------------------------
+
+    def detect_2d(self, images: dict[str, np.ndarray]) -> dict[str, FloatArray]:
+        ids = [c for c in self.camera_ids if c in images]
+        if not ids or self.camera_detector is None:
+            return {}
+        out = self.camera_detector.detect([images[c] for c in ids])
+        min_score = self.cfg.detectors.camera_min_score
+        return {c: np.asarray(d[d[:, 4] >= min_score], float) for c, d in zip(ids, out, strict=True)}
+
+    def detect_3d(self, clouds: dict[str, np.ndarray]) -> FloatArray:
+        """(M, 9) world-frame boxes `[x, y, z, dx, dy, dz, yaw, score, class]` of the agent's lidars."""
+        ids = [c for c in self.lidar_ids if c in clouds]
+        if not ids or self.lidar_detector is None:
+            return np.zeros((0, 9))
+        merged = merge_clouds([(self.lidar_T[c], clouds[c]) for c in ids])
+        if self.cfg.detectors.lidar_input == "preprocessed":
+            pre = preprocess(merged, self.cfg.preprocess)
+            self.last_reduction = pre.reduction_fraction
+            merged = pre.points
+        boxes = np.asarray(self.lidar_detector.detect(merged), float)
+        boxes = boxes[boxes[:, 7] >= self.cfg.detectors.lidar_min_score]
+        boxes[:, :3] += self.origin_m
+        return boxes
+
+    # --- one frame ------------------------------------------------------------------------------
+
+    def process(self, frame: AgentInputs) -> AgentResult:
+        lat: dict[str, float] = {}
+        counts: Counter[str] = Counter()
+        t0 = time.perf_counter()
+        try:
+            dets2d = self.detect_2d(frame.images)
+        except DetectorInputError:
+            counts["rejected/camera_input"] += 1
+            dets2d = {}
+        t1 = time.perf_counter()
+        lat["detect_2d"] = t1 - t0
+        try:
+            boxes3d = self.detect_3d(frame.clouds)
+        except DetectorInputError:
+            counts["rejected/lidar_input"] += 1
+            boxes3d = np.zeros((0, 9))
+        t2 = time.perf_counter()
+        lat["detect_3d"] = t2 - t1
+        measurements = self._fuse(frame, dets2d, boxes3d, counts)
+        t3 = time.perf_counter()
+        lat["fuse"] = t3 - t2
+        self.tracker.step(frame.stamp_ns / NS_PER_S, measurements)
+        tracks = self.tracker.confirmed()
+        lat["track"] = time.perf_counter() - t3
+        present = frozenset(
+            m
+            for m, ok in (
+                (CAMERA, bool(dets2d) or bool(frame.images)),
+                (LIDAR, bool(frame.clouds)),
+                (RADAR, bool(frame.radar)),
+            )
+            if ok
+        )
+        self.counts.update(counts)
+        return AgentResult(frame.stamp_ns, tracks, measurements, boxes3d, dets2d, lat, counts, present)
+
+    def _fuse(
+        self, frame: AgentInputs, dets2d: dict[str, FloatArray], boxes3d: FloatArray, counts: Counter[str]
+    ) -> list[Measurement]:
+        out: list[Measurement] = []
+        used_2d: dict[str, set[int]] = {c: set() for c in dets2d}
+        have_lidar = bool(self.lidar_ids) and any(c in frame.clouds for c in self.lidar_ids)
+        have_radar = bool(self.radar_specs) and any(r.id in frame.radar for r in self.radar_specs)
+        lc = self.cfg.lidar_camera
+        if have_lidar:
+            views = [self.views[c] for c in dets2d]
+            res = lidar_camera.match_boxes(boxes3d[:, :7], boxes3d[:, 7], views, dets2d, lc.min_iou)
+            counts["lidar_camera/matched"] += len(res.matches)
+            counts["lidar_camera/masked"] += res.masked
+            for i, cam, j, _iou in res.matches:
+                used_2d[cam].add(j)
+                box, merged = lidar_camera.merge_box(boxes3d[i, :7], dets2d[cam][j], self.views[cam], lc)
+                counts["lidar_camera/merged"] += int(merged)
+                score = max(float(boxes3d[i, 7]), float(dets2d[cam][j, 4]))
+                out.append(_lidar_measurement(box, score, frozenset({LIDAR, CAMERA}), (cam, *self.lidar_ids)))
+            # Without any camera there is nothing to confirm with: lidar boxes pass (degraded mode).
+            if lc.keep_unmatched_lidar or not dets2d:
+                for i in res.unmatched_3d:
+                    out.append(
+                        _lidar_measurement(
+                            boxes3d[i, :7], boxes3d[i, 7], frozenset({LIDAR}), tuple(self.lidar_ids)
+                        )
+                    )
+            for cam, unused in res.unused_2d.items():
+                used_2d[cam].update(set(range(len(dets2d[cam]))) - set(unused))
+        if have_radar:
+            out += self._radar_camera(frame, dets2d, used_2d, counts)
+        # Camera boxes no range sensor accounted for: kept when no range sensor covers that camera this
+        # frame (degraded, or a camera without a paired radar), else by the unmatched-camera policy.
+        paired = {r.paired_camera for r in self.radar_specs if r.id in frame.radar}
+        leftovers = {}
+        for c, d in dets2d.items():
+            covered = have_lidar or c in paired
+            if covered and not self.cfg.camera_only.keep_unconfirmed:
+                continue
+            leftovers[c] = d[[j for j in range(len(d)) if j not in used_2d[c]]]
+        if leftovers:
+            for obj in camera_only.locate(self.views, leftovers, self.surface, self.cfg.camera_only):
+                counts["camera_only"] += 1
+                out.append(
+                    Measurement(
+                        position_m=obj.box[:2].copy(),
+                        position_cov_m2=obj.cov_xy_m2,
+                        z_m=float(obj.box[2]),
+                        size_m=obj.box[3:6].copy(),
+                        yaw_rad=float(obj.box[6]) if obj.yaw_known else None,
+                        yaw_mod_pi=False,
+                        range_rate=None,
+                        modalities=frozenset({CAMERA}),
+                        score=obj.score,
+                        sensor_ids=obj.sensor_ids,
+                    )
+                )
+        return out
+
+    def _radar_camera(
+        self,
+        frame: AgentInputs,
+        dets2d: dict[str, FloatArray],
+        used_2d: dict[str, set[int]],
+        counts: Counter[str],
+    ) -> list[Measurement]:
+        rc = self.cfg.radar_camera
+        out: list[Measurement] = []
+        length, width, height = self.cfg.camera_only.car_size_m
+        for spec in self.radar_specs:
+            targets = frame.radar.get(spec.id)
+            if targets is None or len(targets) == 0:
+                continue
+            assert spec.radar is not None
+            targets = targets.subset(targets.rcs_dbsm >= rc.min_rcs_dbsm)
+            counts["radar/targets"] += len(targets)
+            world = radar_camera.targets_to_world(targets, self.radar_T[spec.id])
+            surface_z = self.surface.heights_near(world[:, :2])
+            on_road = np.isfinite(surface_z)
+            counts["radar/off_road"] += int((~on_road).sum())
+            targets, world, surface_z = targets.subset(on_road), world[on_road], surface_z[on_road]
+            world[:, 2] = surface_z + rc.object_height_m / 2
+            radar_xy = self.radar_T[spec.id][:2, 3]
+            cov_r = radar_camera.radar_position_cov(
+                world[:, :2],
+                radar_xy,
+                targets.range_m,
+                max(spec.radar.range_noise_std_m, 1e-3),
+                max(spec.radar.azimuth_noise_std_rad, 1e-4),
+            )
+            xy, cov = world[:, :2].copy(), cov_r.copy()
+            modalities = [frozenset({RADAR})] * len(targets)
+            sensors: list[tuple[str, ...]] = [(spec.id,)] * len(targets)
+            cam = spec.paired_camera
+            matched = np.zeros(len(targets), bool)
+            if cam is not None and cam in dets2d and len(dets2d[cam]):
+                view = self.views[cam]
+                uv, depth = view.project(world)
+                rois = radar_camera.roi_boxes(uv, depth, rc.roi)
+                free = [j for j in range(len(dets2d[cam])) if j not in used_2d[cam]]
+                m = radar_camera.match_rois(rois, dets2d[cam][free, :4], rc.min_iou)
+                counts["radar_camera/matched"] += len(m.radar_index)
+                for k, jf in zip(m.radar_index, m.camera_index, strict=True):
+                    j = free[jf]
+                    used_2d[cam].add(j)
+                    matched[k] = True
+                    modalities[k] = frozenset({RADAR, CAMERA})
+                    sensors[k] = (spec.id, cam)
+                    if rc.position == "weighted":
+                        box = dets2d[cam][j]
+                        centre = np.array([[(box[0] + box[2]) / 2, (box[1] + box[3]) / 2]])
+                        p_cam = view.to_plane(centre, float(world[k, 2]))[0]
+                        if np.isfinite(p_cam).all():
+                            cov_c = radar_camera.camera_position_cov(
+                                p_cam[None, :2],
+                                view.center_m[:2],
+                                rc.camera_pixel_std_px,
+                                float(view.K[0, 0]),
+                                rc.camera_depth_std_fraction,
+                            )
+                            fxy, fcov = radar_camera.fuse_positions(
+                                xy[k : k + 1], cov[k : k + 1], p_cam[None, :2], cov_c
+                            )
+                            xy[k], cov[k] = fxy[0], fcov[0]
+            for k in range(len(targets)):
+                if not matched[k] and not rc.keep_unmatched_radar:
+                    continue
+                rate_var = max(spec.radar.range_rate_noise_std_mps, 1e-3) ** 2
+                out.append(
+                    Measurement(
+                        position_m=xy[k],
+                        position_cov_m2=cov[k],
+                        z_m=float(world[k, 2]),
+                        size_m=np.array([length, width, height]),
+                        yaw_rad=None,
+                        yaw_mod_pi=False,
+                        range_rate=(radar_xy.copy(), float(targets.range_rate_mps[k]), rate_var),
+                        modalities=modalities[k],
+                        score=1.0 if matched[k] else 0.5,
+                        sensor_ids=sensors[k],
+                    )
+                )
+        return out

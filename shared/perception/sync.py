@@ -1,0 +1,209 @@
+"""Input synchronisation of one agent's sensors: which frames are fused together, and when.
+
+Two joiners, one contract: `add` a sensor sample, `poll` the clock, and take the `JoinedFrame`s that
+are ready, oldest first. Neither ever waits unboundedly: a sensor that does not deliver is left out of
+the frame (listed in `JoinedFrame.missing`) once its wait is over, so a dead sensor degrades the
+output instead of stalling it.
+
+`TickJoiner` (simulated sensors): every sensor of a sim tick carries that tick's id and stamp, so
+frames are joined exactly on the tick. A tick is ready when every sensor that is currently expected
+has delivered it, when `max_wait_s` has passed since its first sample arrived, or when a newer tick is
+ready (ticks are emitted in order). Which sensors are expected is the caller's choice per `poll`/`add`
+call (the MEC passes the inputs its health monitor thinks alive, so a dead camera is not waited for).
+
+`BoundedWaitCollector` (real, asynchronous sensors): a frame is triggered by each sample of the
+`trigger` sensor; every other sensor contributes its sample nearest to the trigger stamp within
+`tolerance_s`. The frame waits for a sensor at most that sensor's own timeout after the trigger
+arrived, then goes out without it.
+
+Times: `now_s` is a monotonic wall clock (arrival), stamps are sensor times in ns.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Collection, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+NS_PER_S = 1_000_000_000
+
+
+@dataclass(frozen=True)
+class Sample:
+    """One decoded sensor frame."""
+
+    sensor_id: str
+    stamp_ns: int
+    data: Any
+    tick: int = 0
+    arrival_s: float = 0.0
+
+
+@dataclass
+class JoinedFrame:
+    """The samples fused as one agent frame, and the expected sensors that did not deliver."""
+
+    stamp_ns: int
+    tick: int
+    samples: dict[str, Sample]
+    missing: tuple[str, ...] = ()
+    first_arrival_s: float = 0.0
+
+
+@dataclass
+class _Pending:
+    tick: int
+    stamp_ns: int
+    first_arrival_s: float
+    samples: dict[str, Sample] = field(default_factory=dict)
+
+
+class TickJoiner:
+    """Exact join on the simulation tick, with a bounded wait per tick.
+
+    Parameters
+    ----------
+    sensors : collection of str
+        Every sensor this agent may fuse.
+    max_wait_s : float
+        Longest wait for the expected sensors of a tick after its first sample arrived, s.
+    max_pending : int
+        Ticks held at once; when exceeded the oldest is emitted as it is.
+    """
+
+    def __init__(self, sensors: Collection[str], max_wait_s: float, max_pending: int = 4) -> None:
+        if max_wait_s <= 0 or max_pending < 1:
+            raise ValueError("max_wait_s must be > 0 and max_pending >= 1")
+        self.sensors = frozenset(sensors)
+        self.max_wait_s = max_wait_s
+        self.max_pending = max_pending
+        self._pending: dict[int, _Pending] = {}
+        self._last_emitted_tick = -1
+        self.late = 0  # samples of a tick already emitted (counted, dropped)
+        self.duplicates = 0
+        self.unknown = 0
+
+    def add(self, sample: Sample, expected: Collection[str], now_s: float) -> list[JoinedFrame]:
+        """Add one sample; returns the frames that became ready (oldest first)."""
+        if sample.sensor_id not in self.sensors:
+            self.unknown += 1
+            return []
+        if sample.tick <= self._last_emitted_tick:
+            self.late += 1
+            return []
+        pending = self._pending.get(sample.tick)
+        if pending is None:
+            pending = _Pending(sample.tick, sample.stamp_ns, now_s)
+            self._pending[sample.tick] = pending
+        if sample.sensor_id in pending.samples:
+            self.duplicates += 1
+            return []
+        pending.samples[sample.sensor_id] = sample
+        return self.poll(expected, now_s)
+
+    def poll(self, expected: Collection[str], now_s: float) -> list[JoinedFrame]:
+        """Frames ready at `now_s`: complete, timed out, or older than a ready one; oldest first."""
+        wanted = self.sensors.intersection(expected)
+        ready_tick = -1
+        for tick, p in self._pending.items():
+            complete = wanted.issubset(p.samples)
+            if complete or now_s - p.first_arrival_s >= self.max_wait_s:
+                ready_tick = max(ready_tick, tick)
+        overflow = len(self._pending) - self.max_pending
+        ticks = sorted(self._pending)
+        if overflow > 0:
+            ready_tick = max(ready_tick, ticks[overflow - 1])
+        out = []
+        for tick in ticks:
+            if tick > ready_tick:
+                break
+            p = self._pending.pop(tick)
+            missing = tuple(sorted(wanted.difference(p.samples)))
+            out.append(JoinedFrame(p.stamp_ns, tick, p.samples, missing, p.first_arrival_s))
+            self._last_emitted_tick = tick
+        return out
+
+    def next_deadline_s(self) -> float | None:
+        """Monotonic time at which the oldest pending tick times out (None if nothing pending)."""
+        if not self._pending:
+            return None
+        return min(p.first_arrival_s for p in self._pending.values()) + self.max_wait_s
+
+
+@dataclass
+class _Trigger:
+    sample: Sample
+    arrival_s: float
+
+
+class BoundedWaitCollector:
+    """Frames triggered by one sensor; the others join by nearest stamp within a tolerance.
+
+    Parameters
+    ----------
+    trigger : str
+        Sensor whose samples start a frame (e.g. the lidar).
+    timeouts_s : mapping of str to float
+        Every other sensor and the longest it is waited for after a trigger arrived, s.
+    tolerance_s : float
+        Largest |stamp - trigger stamp| of a sample joined to a frame, s.
+    history : int
+        Samples kept per sensor to choose the nearest from.
+    """
+
+    def __init__(
+        self, trigger: str, timeouts_s: Mapping[str, float], tolerance_s: float, history: int = 8
+    ) -> None:
+        if trigger in timeouts_s:
+            raise ValueError("the trigger sensor has no timeout of its own")
+        if tolerance_s <= 0 or any(t < 0 for t in timeouts_s.values()):
+            raise ValueError("tolerance must be > 0 and timeouts >= 0")
+        self.trigger = trigger
+        self.timeouts_s = dict(timeouts_s)
+        self.tolerance_ns = int(tolerance_s * NS_PER_S)
+        self._history: dict[str, deque[Sample]] = {s: deque(maxlen=history) for s in timeouts_s}
+        self._triggers: deque[_Trigger] = deque()
+        self.unknown = 0
+
+    def add(self, sample: Sample, now_s: float) -> list[JoinedFrame]:
+        if sample.sensor_id == self.trigger:
+            self._triggers.append(_Trigger(sample, now_s))
+        elif sample.sensor_id in self._history:
+            self._history[sample.sensor_id].append(sample)
+        else:
+            self.unknown += 1
+            return []
+        return self.poll(now_s)
+
+    def poll(self, now_s: float) -> list[JoinedFrame]:
+        out = []
+        while self._triggers:
+            trig = self._triggers[0]
+            waiting = [
+                s
+                for s, timeout in self.timeouts_s.items()
+                if not self._covered(s, trig.sample.stamp_ns) and now_s - trig.arrival_s < timeout
+            ]
+            # A newer trigger means the older frame can wait no longer (frames go out in order).
+            if waiting and len(self._triggers) == 1:
+                break
+            self._triggers.popleft()
+            out.append(self._frame(trig))
+        return out
+
+    def _covered(self, sensor_id: str, stamp_ns: int) -> bool:
+        """True once the sensor has a sample at or after the trigger stamp (nothing nearer can come)."""
+        return any(s.stamp_ns >= stamp_ns for s in self._history[sensor_id])
+
+    def _frame(self, trig: _Trigger) -> JoinedFrame:
+        stamp = trig.sample.stamp_ns
+        samples = {self.trigger: trig.sample}
+        missing = []
+        for sensor_id, history in self._history.items():
+            near = [s for s in history if abs(s.stamp_ns - stamp) <= self.tolerance_ns]
+            if near:
+                samples[sensor_id] = min(near, key=lambda s: abs(s.stamp_ns - stamp))
+            else:
+                missing.append(sensor_id)
+        return JoinedFrame(stamp, trig.sample.tick, samples, tuple(sorted(missing)), trig.arrival_s)

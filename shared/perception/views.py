@@ -1,0 +1,190 @@
+"""Sensor geometry the fusion steps need, derived once from the scene (no offsets anywhere else).
+
+`CameraView`: intrinsics, extrinsics both ways, image size and centre of one camera, with the three
+operations fusion uses: project 3D boxes to image boxes, back-project pixels onto a horizontal plane,
+and tell whether an image box touches the image border (a truncated detection).
+
+`RoadSurface`: the height of the driving surface under a table point, from the scene's lane
+centrelines (the table, the viaduct deck and its ramps). A camera-only detection is placed where its
+viewing ray first meets a lane surface, so a car on the deck is not projected down to the table.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from shared.geometry.boxes import box3d_corners
+from shared.geometry.camera import box3d_to_image_box, pixel_to_world_on_plane, project_points
+from shared.scene.scene import Scene
+
+FloatArray = NDArray[np.float64]
+
+# Lane centrelines are resampled at this spacing for the surface lookup, metres.
+SURFACE_SAMPLE_STEP_M = 0.05
+
+
+@dataclass(frozen=True)
+class CameraView:
+    sensor_id: str
+    K: FloatArray
+    T_optical_from_world: FloatArray
+    T_world_from_optical: FloatArray
+    width_px: int
+    height_px: int
+    distortion: FloatArray | None = None
+
+    @classmethod
+    def from_scene(cls, scene: Scene, camera_id: str) -> CameraView:
+        spec = scene.sensor(camera_id)
+        assert spec.camera is not None
+        return cls(
+            camera_id,
+            np.asarray(scene.K(camera_id), float),
+            np.asarray(scene.T_optical_from_world(camera_id), float),
+            np.asarray(scene.T_world_from_optical(camera_id), float),
+            spec.camera.width_px,
+            spec.camera.height_px,
+            None if scene.distortion(camera_id) is None else np.asarray(scene.distortion(camera_id), float),
+        )
+
+    @property
+    def center_m(self) -> FloatArray:
+        return self.T_world_from_optical[:3, 3]
+
+    def project(self, points_world: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """(N, 3) world points -> (N, 2) pixels and (N,) optical depth (NaN behind the camera)."""
+        return project_points(points_world, self.T_optical_from_world, self.K)
+
+    def _project_pinhole(self, points_world: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """`project` for an undistorted camera without per-call validation (the view was validated
+        once when built): the fusion hot path projects thousands of corners per frame."""
+        T = self.T_optical_from_world
+        cam = points_world @ T[:3, :3].T + T[:3, 3]
+        depth = cam[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = (cam[:, :2] / depth[:, None]) * np.diag(self.K)[:2] + self.K[:2, 2]
+        uv[~(depth > 0)] = np.nan
+        return uv, depth
+
+    def image_boxes(self, boxes3d: FloatArray) -> tuple[FloatArray, NDArray[np.bool_], NDArray[np.bool_]]:
+        """(N, 7) world boxes -> (N, 4) image boxes clamped to the image, visible flags, and `inside`
+        flags (every corner in front of the camera and inside the image: not cut by the border).
+        Same boxes as `shared.geometry.camera.box3d_to_image_box` (tested)."""
+        corners = box3d_corners(boxes3d).reshape(-1, 8, 3)
+        size = np.array([self.width_px, self.height_px], float)
+        if self.distortion is not None:
+            boxes, visible = box3d_to_image_box(
+                corners, self.T_optical_from_world, self.K, self.width_px, self.height_px, self.distortion
+            )
+            uv, depth = self.project(corners.reshape(-1, 3))
+            uv, depth = uv.reshape(-1, 8, 2), depth.reshape(-1, 8)
+        else:
+            uv, depth = self._project_pinhole(corners.reshape(-1, 3))
+            uv, depth = uv.reshape(-1, 8, 2), depth.reshape(-1, 8)
+            boxes = np.zeros((len(corners), 4))
+            in_front = np.isfinite(uv[:, :, 0]).any(axis=1)
+            if in_front.any():
+                lo = np.clip(np.nanmin(uv[in_front], axis=1), 0.0, size)
+                hi = np.clip(np.nanmax(uv[in_front], axis=1), 0.0, size)
+                boxes[in_front] = np.concatenate([lo, hi], axis=1)
+            visible = in_front & (boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1])
+        with np.errstate(invalid="ignore"):
+            inside = np.all(depth > 0, axis=1) & np.all((uv >= 0) & (uv <= size), axis=(1, 2))
+        return boxes, visible, inside
+
+    def to_plane(self, uv_px: FloatArray, z_m: float | FloatArray) -> FloatArray:
+        """Pixels -> world points on horizontal planes z = z_m (scalar or per pixel); NaN rows miss."""
+        uv = np.asarray(uv_px, float).reshape(-1, 2)
+        z = np.broadcast_to(np.asarray(z_m, float), (len(uv),))
+        out = np.full((len(uv), 3), np.nan)
+        for level in np.unique(z):
+            rows = z == level
+            out[rows] = pixel_to_world_on_plane(
+                uv[rows], self.T_world_from_optical, self.K, plane_offset=level
+            )[0]
+        return out
+
+    def touches_border(self, boxes_xyxy: FloatArray, margin_px: float) -> NDArray[np.bool_]:
+        b = np.asarray(boxes_xyxy, float).reshape(-1, 4)
+        return np.asarray(
+            (b[:, 0] <= margin_px)
+            | (b[:, 1] <= margin_px)
+            | (b[:, 2] >= self.width_px - margin_px)
+            | (b[:, 3] >= self.height_px - margin_px)
+        )
+
+
+class RoadSurface:
+    """Driving-surface heights sampled along every lane of the scene.
+
+    Parameters
+    ----------
+    scene : Scene
+    half_width_m : float
+        A point belongs to a lane sample within this xy distance (half a lane plus margin), metres.
+    """
+
+    def __init__(self, scene: Scene, half_width_m: float) -> None:
+        samples, headings = [], []
+        for lane in scene.spec.lanes:
+            line = np.asarray(scene.lane_centreline(lane.id), float)
+            seg = np.diff(line, axis=0)
+            for p, d in zip(line[:-1], seg, strict=True):
+                n = max(1, int(np.ceil(np.linalg.norm(d[:2]) / SURFACE_SAMPLE_STEP_M)))
+                samples.append(p + np.outer(np.arange(n) / n, d))
+                headings.append(np.full(n, np.arctan2(d[1], d[0])))
+        # Junction discs (lanes stop at their edge): surface samples without a direction of travel.
+        for j in scene.spec.junctions:
+            r = np.arange(-j.radius_m, j.radius_m + 1e-9, SURFACE_SAMPLE_STEP_M)
+            gx, gy = np.meshgrid(r, r)
+            disc = np.column_stack([gx.ravel(), gy.ravel()])
+            disc = disc[(disc**2).sum(1) <= j.radius_m**2]
+            samples.append(np.column_stack([disc + j.position_m[:2], np.full(len(disc), j.position_m[2])]))
+            headings.append(np.full(len(disc), np.nan))
+        self.points_m = np.concatenate(samples)
+        self.heading_rad = np.concatenate(headings)  # direction of travel of the lane at each sample
+        self.half_width_m = half_width_m
+
+    def lane_heading(self, xy_m: FloatArray) -> FloatArray:
+        """Direction of travel of the nearest lane at each (N, 2) point, rad; NaN off-road."""
+        xy = np.asarray(xy_m, float).reshape(-1, 2)
+        d2 = ((xy[:, None, :] - self.points_m[None, :, :2]) ** 2).sum(-1)
+        nearest = d2.argmin(axis=1)
+        yaw = self.heading_rad[nearest].copy()
+        yaw[d2[np.arange(len(xy)), nearest] > self.half_width_m**2] = np.nan
+        return yaw
+
+    def heights_near(self, xy_m: FloatArray) -> FloatArray:
+        """Surface height under each (N, 2) point: the nearest lane sample's z; NaN off-road."""
+        xy = np.asarray(xy_m, float).reshape(-1, 2)
+        d2 = ((xy[:, None, :] - self.points_m[None, :, :2]) ** 2).sum(-1)
+        nearest = d2.argmin(axis=1)
+        z = self.points_m[nearest, 2].copy()
+        z[d2[np.arange(len(xy)), nearest] > self.half_width_m**2] = np.nan
+        return z
+
+    def first_hit(self, origin_m: FloatArray, rays_world: FloatArray, height_above_m: float) -> FloatArray:
+        """Where each (N, 3) ray from `origin_m` first reaches `height_above_m` over a lane surface.
+
+        Every lane sample defines a candidate plane z = sample z + height_above_m; the ray's crossing
+        of that plane counts when it lies within `half_width_m` of the sample. The nearest crossing
+        along the ray wins (a ray passes over the deck before reaching the table beneath). NaN rows:
+        the ray never meets a lane.
+        """
+        rays = np.asarray(rays_world, float).reshape(-1, 3)
+        o = np.asarray(origin_m, float)
+        levels = self.points_m[:, 2] + height_above_m  # (S,)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (levels[None, :] - o[2]) / rays[:, 2:3]  # (N, S)
+            hit_xy = o[None, None, :2] + t[..., None] * rays[:, None, :2]
+            d2 = ((hit_xy - self.points_m[None, :, :2]) ** 2).sum(-1)
+            ok = (t > 0) & (d2 <= self.half_width_m**2)
+        t = np.where(ok, t, np.inf)
+        best = t.argmin(axis=1)
+        t_best = t[np.arange(len(rays)), best]
+        out = o[None, :] + t_best[:, None] * rays
+        out[~np.isfinite(t_best)] = np.nan
+        return out

@@ -1,0 +1,324 @@
+"""`rmmdet eval fusion`: the MEC pipeline against simulation ground truth, pre- and post-fusion.
+
+For each (agent, held-out seed) the lock-step simulation renders the agent's sensors at their live
+rates; every tick's frames go through the bus codecs (JPEG, point cloud, radar scan) into
+`AgentPipeline`, exactly as the MEC receives them. Per agent frame the result is scored as:
+
+- `lidar`: the 3D detector's boxes (pre-fusion, agents with a lidar);
+- `radar`: radar targets on the road (pre-fusion, the viaduct agent);
+- `camera`: camera-only objects placed on the road surface (every agent);
+- `fused`: the measurements the fusion step hands to the tracker (post-fusion);
+- `tracked`: the published tracks (post-fusion and tracking), and MOTA / IDF1 against vehicle ids;
+- `tracked_<modality>`: the same tracker fed one modality alone, so "fusion vs the best single
+  modality" compares like with like.
+
+Ground truth: vehicles the agent can observe (>= MIN_LIDAR_POINTS lidar points, or >= MIN_VISIBLE_PX
+pixels in one of its cameras, or a radar return) are scored; vehicles glimpsed below those limits are
+ignore regions (neither missed nor a false positive when detected). The paper's metrics (pose error,
+AOS, BEV IoU, heat maps on its 0.125 m grid) come from `shared.metrics.fusion`, MOTA / IDF1 from
+motmetrics (`shared.metrics.tracking`).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import shapely
+from numpy.typing import NDArray
+
+from shared.datasets.layout import MIN_LIDAR_POINTS, MIN_VISIBLE_PX
+from shared.detection.interface import CameraDetector, LidarDetector
+from shared.metrics.fusion import FusionAccumulator
+from shared.metrics.tracking import TrackingAccumulator
+from shared.perception import camera_only
+from shared.perception.config import MecSettings
+from shared.perception.decode import image_to_array, point_cloud_to_array, radar_to_targets
+from shared.perception.pipeline import AgentInputs, AgentPipeline, AgentResult
+from shared.scene.scene import Scene
+from shared.tracking.tracker import Measurement, MultiObjectTracker, Track
+from sim.config import SimSettings
+from sim.lockstep import LockstepSim
+from sim.sensors.camera import CameraFrame
+from sim.sensors.lidar import LidarScan
+from sim.sensors.rig import Capture
+
+log = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+NS_PER_S = 1_000_000_000
+DEFAULT_SIZE_M = (0.33, 0.22, 0.21)
+SINGLE_MODALITIES = ("lidar", "camera", "radar")
+# Ground truth this close outside the agent's areas is an ignore region; predictions beyond are dropped.
+SCOPE_MARGIN_M = 0.3
+# Vehicle and track ids of run k are offset by k * this (ids restart in every run).
+RUN_ID_STRIDE = 10_000_000
+
+
+@dataclass
+class FrameTruth:
+    boxes: dict[str, FloatArray]  # observable vehicle id -> (7,) world box
+    ignore: list[FloatArray]  # glimpsed vehicles' boxes
+
+
+def vehicle_boxes(gt: Any) -> dict[str, FloatArray]:
+    out = {}
+    for v in gt.vehicles:
+        c, s = v.box.center_m, v.box.size_m
+        out[v.vehicle_id] = np.array([c.x, c.y, c.z, s.x, s.y, s.z, v.box.yaw_rad])
+    return out
+
+
+class AgentScope:
+    """The agent's areas (its responsibility on the table): ground truth inside is scored, within
+    `margin_m` outside it is an ignore region, predictions beyond the margin are not the agent's."""
+
+    def __init__(self, scene: Scene, agent_id: str, margin_m: float) -> None:
+        areas = [a for a in scene.spec.areas if a.id in scene.agents[agent_id].areas]
+        self._areas = [(shapely.Polygon(a.polygon_m), a.z_min_m, a.z_max_m) for a in areas]
+        self._buffered = [(p.buffer(margin_m), lo, hi) for p, lo, hi in self._areas]
+
+    @staticmethod
+    def _test(shapes: list[tuple[Any, float, float]], boxes: FloatArray) -> NDArray[np.bool_]:
+        out = np.zeros(len(boxes), bool)
+        for poly, lo, hi in shapes:
+            xy_in = shapely.contains_xy(poly, boxes[:, 0], boxes[:, 1])
+            out |= xy_in & (boxes[:, 2] >= lo) & (boxes[:, 2] <= hi)
+        return out
+
+    def inside(self, boxes: FloatArray) -> NDArray[np.bool_]:
+        return self._test(self._areas, np.asarray(boxes, float).reshape(-1, 7))
+
+    def near(self, boxes: FloatArray) -> NDArray[np.bool_]:
+        return self._test(self._buffered, np.asarray(boxes, float).reshape(-1, 7))
+
+
+def observable(gt: Any, captures: list[Capture], scope: AgentScope) -> FrameTruth:
+    """Vehicles of the agent's areas its sensors of this tick can see (labels), and the ignore
+    regions: vehicles only glimpsed, and vehicles seen just outside the areas."""
+    seen: set[str] = set()
+    glimpsed: set[str] = set()
+    lidar_points: Counter[str] = Counter()
+    for c in captures:
+        if isinstance(c.data, CameraFrame):
+            for vid, px in c.data.visible_px.items():
+                (seen if px >= MIN_VISIBLE_PX else glimpsed).add(vid)
+        elif isinstance(c.data, LidarScan):
+            ids, counts = np.unique(c.data.vehicle_ids[c.data.vehicle_ids != ""], return_counts=True)
+            lidar_points.update(dict(zip(ids.tolist(), counts.tolist(), strict=True)))
+        else:
+            seen.update(t.vehicle_id for t in c.data if t.vehicle_id)
+    for vid, n in lidar_points.items():
+        (seen if n >= MIN_LIDAR_POINTS else glimpsed).add(vid)
+    boxes = {v: b for v, b in vehicle_boxes(gt).items() if v in seen | glimpsed}
+    ids = list(boxes)
+    stacked = np.stack([boxes[v] for v in ids]) if ids else np.zeros((0, 7))
+    inside, near = scope.inside(stacked), scope.near(stacked)
+    scored = {v: boxes[v] for v, i in zip(ids, inside, strict=True) if i and v in seen}
+    ignore = [boxes[v] for v, i, n in zip(ids, inside, near, strict=True) if n and v not in scored]
+    return FrameTruth(scored, ignore)
+
+
+def to_inputs(tick_stamp_ns: int, tick: int, captures: list[Capture]) -> AgentInputs:
+    """Decode the tick's bus messages the way the MEC does."""
+    inputs = AgentInputs(stamp_ns=tick_stamp_ns, tick=tick)
+    for c in captures:
+        if c.spec.kind == "camera":
+            inputs.images[c.spec.id] = image_to_array(c.message)
+        elif c.spec.kind == "lidar":
+            inputs.clouds[c.spec.id] = point_cloud_to_array(c.message)
+        else:
+            inputs.radar[c.spec.id] = radar_to_targets(c.message)
+    return inputs
+
+
+def measurement_box(m: Measurement) -> tuple[FloatArray, bool]:
+    size = m.size_m if m.size_m is not None else DEFAULT_SIZE_M
+    yaw = m.yaw_rad if m.yaw_rad is not None else 0.0
+    return np.array([m.position_m[0], m.position_m[1], m.z_m, *size, yaw]), m.yaw_rad is not None
+
+
+def track_box(t: Track) -> tuple[FloatArray, bool]:
+    size = t.size_m if t.size_m is not None else DEFAULT_SIZE_M
+    yaw = t.yaw_rad if t.yaw_rad is not None else 0.0
+    p = t.position_m
+    return np.array([p[0], p[1], t.z_m, *size, yaw]), t.yaw_rad is not None
+
+
+def _stack(rows: list[tuple[FloatArray, bool]]) -> tuple[FloatArray, NDArray[np.bool_]]:
+    if not rows:
+        return np.zeros((0, 7)), np.zeros(0, bool)
+    return np.stack([r[0] for r in rows]), np.array([r[1] for r in rows])
+
+
+@dataclass
+class AgentEvaluation:
+    """Accumulators of one agent (or of all agents, merged by adding frames)."""
+
+    fusion: dict[str, FusionAccumulator] = field(default_factory=dict)
+    tracking: dict[str, TrackingAccumulator] = field(default_factory=dict)
+    latencies_s: dict[str, list[float]] = field(default_factory=dict)
+    counts: Counter[str] = field(default_factory=Counter)
+    frames: int = 0
+
+    def acc(self, name: str) -> FusionAccumulator:
+        return self.fusion.setdefault(name, FusionAccumulator())
+
+    def trk(self, name: str) -> TrackingAccumulator:
+        return self.tracking.setdefault(name, TrackingAccumulator())
+
+
+def single_modality_measurements(
+    result: AgentResult, pipeline: AgentPipeline
+) -> dict[str, list[Measurement]]:
+    """What each modality alone would give the tracker this frame."""
+    from shared.perception.pipeline import _lidar_measurement  # one definition of a lidar measurement
+
+    out: dict[str, list[Measurement]] = {}
+    if pipeline.lidar_ids:
+        out["lidar"] = [
+            _lidar_measurement(b[:7], b[7], frozenset({"lidar"}), tuple(pipeline.lidar_ids))
+            for b in result.lidar_boxes_world
+        ]
+    if result.camera_boxes:
+        objs = camera_only.locate(
+            pipeline.views, result.camera_boxes, pipeline.surface, pipeline.cfg.camera_only
+        )
+        out["camera"] = [
+            Measurement(
+                position_m=o.box[:2].copy(),
+                position_cov_m2=o.cov_xy_m2,
+                z_m=float(o.box[2]),
+                size_m=o.box[3:6].copy(),
+                yaw_rad=float(o.box[6]) if o.yaw_known else None,
+                yaw_mod_pi=False,
+                modalities=frozenset({"camera"}),
+                score=o.score,
+                sensor_ids=o.sensor_ids,
+            )
+            for o in objs
+        ]
+    if pipeline.radar_specs:
+        out["radar"] = [m for m in result.measurements if "radar" in m.modalities]
+    return out
+
+
+def evaluate_run(
+    scene: Scene,
+    agent_id: str,
+    sim_settings: SimSettings,
+    mec: MecSettings,
+    duration_s: float,
+    warmup_s: float,
+    cameras: CameraDetector | None = None,
+    lidar: LidarDetector | None = None,
+    ev: AgentEvaluation | None = None,
+    run_index: int = 0,
+) -> AgentEvaluation:
+    """Run one seed for one agent and add its frames to `ev`. `run_index` keeps the vehicle and track
+    ids of different runs apart in the MOT accounting (ids restart in every run)."""
+    ev = ev if ev is not None else AgentEvaluation()
+    vehicle_index: dict[str, int] = {}
+    sensor_ids = [s.id for s in scene.sensors_of(agent_id)]
+    pipeline = AgentPipeline(scene, agent_id, mec, cameras=cameras, lidar=lidar)
+    single_trackers = {m: MultiObjectTracker(mec.tracker) for m in SINGLE_MODALITIES}
+    scope = AgentScope(scene, agent_id, SCOPE_MARGIN_M)
+    with LockstepSim(scene, sim_settings, sensor_ids=sensor_ids, labels=True) as sim:
+        tick_hz = sim_settings.tick_hz
+        warmup_ticks = round(warmup_s * tick_hz)
+        total_ticks = warmup_ticks + round(duration_s * tick_hz)
+        for _ in range(total_ticks):
+            tick = sim.step()
+            if not tick.captures:
+                continue
+            gt = tick.ground_truth
+            stamp_ns = gt.header.stamp.ToNanoseconds()
+            inputs = to_inputs(stamp_ns, gt.header.tick, tick.captures)
+            result = pipeline.process(inputs)
+            singles = single_modality_measurements(result, pipeline)
+            for m, tracker in single_trackers.items():
+                if m in singles:
+                    tracker.step(stamp_ns / NS_PER_S, singles[m])
+            if gt.header.tick < warmup_ticks:
+                continue  # tracks settle in; frames are scored after the warm-up
+            truth = observable(gt, tick.captures, scope)
+            single_tracks = {m: t.confirmed() for m, t in single_trackers.items() if m in singles}
+            ids = {
+                v: run_index * RUN_ID_STRIDE + vehicle_index.setdefault(v, len(vehicle_index))
+                for v in truth.boxes
+            }
+            _score_frame(ev, scope, truth, ids, run_index * RUN_ID_STRIDE, result, singles, single_tracks)
+    ev.counts.update(pipeline.counts)
+    return ev
+
+
+def _score_frame(
+    ev: AgentEvaluation,
+    scope: AgentScope,
+    truth: FrameTruth,
+    gt_numbers: dict[str, int],
+    track_offset: int,
+    result: AgentResult,
+    singles: dict[str, list[Measurement]],
+    single_tracks: dict[str, list[Track]],
+) -> None:
+    ev.frames += 1
+    gt_ids = list(truth.boxes)
+    gt = np.stack([truth.boxes[v] for v in gt_ids]) if gt_ids else np.zeros((0, 7))
+    ignore = np.stack(truth.ignore) if truth.ignore else np.zeros((0, 7))
+    for stage, seconds in result.latencies_s.items():
+        ev.latencies_s.setdefault(stage, []).append(seconds)
+    sets: dict[str, tuple[list[tuple[FloatArray, bool]], list[float], list[int] | None]] = {}
+    for name, rows in {**singles, "fused": result.measurements}.items():
+        sets[name] = ([measurement_box(m) for m in rows], [m.score for m in rows], None)
+    for name, tracks in {
+        "tracked": result.tracks,
+        **{f"tracked_{m}": t for m, t in single_tracks.items()},
+    }.items():
+        sets[name] = (
+            [track_box(t) for t in tracks],
+            [t.existence_probability for t in tracks],
+            [t.track_id for t in tracks],
+        )
+    for name, (rows, score_list, track_ids) in sets.items():
+        boxes, yaw_ok = _stack(rows)
+        keep = scope.near(boxes)  # objects beyond the agent's areas are another agent's business
+        boxes, yaw_ok, scores = boxes[keep], yaw_ok[keep], np.asarray(score_list, float).reshape(-1)[keep]
+        match = ev.acc(name).add_frame(boxes, gt, yaw_valid=yaw_ok, scores=scores, gt_ignore=ignore)
+        if track_ids is not None:
+            # Tracks on ignore regions (glimpsed cars, cars just outside the areas) are not scored.
+            counted = np.ones(len(boxes), bool)
+            counted[match.ignored] = False
+            ids = [track_offset + t for t, k in zip(track_ids, keep, strict=True) if k]
+            ids = [i for i, c in zip(ids, counted, strict=True) if c]
+            ev.trk(name).update([gt_numbers[v] for v in gt_ids], gt[:, :2], ids, boxes[counted, :2])
+
+
+def iter_runs(agents: list[str], seeds: list[int]) -> Iterator[tuple[str, int]]:
+    for agent in agents:
+        for seed in seeds:
+            yield agent, seed
+
+
+def summarise(ev: AgentEvaluation) -> dict[str, Any]:
+    out: dict[str, Any] = {"frames": ev.frames}
+    for name, acc in sorted(ev.fusion.items()):
+        out[name] = acc.summary()
+    for name, trk in sorted(ev.tracking.items()):
+        out[name]["tracking"] = trk.summary()
+    out["latency_ms"] = {
+        stage: {"p50": float(np.percentile(v, 50) * 1e3), "p95": float(np.percentile(v, 95) * 1e3)}
+        for stage, v in ev.latencies_s.items()
+    }
+    out["counts"] = dict(ev.counts)
+    return out
+
+
+def timed(fn: Any, *args: Any, **kwargs: Any) -> tuple[Any, float]:
+    t0 = time.perf_counter()
+    return fn(*args, **kwargs), time.perf_counter() - t0

@@ -1,0 +1,93 @@
+"""Known-answer tests for shared.metrics.tracking (MOTA, MOTP, IDF1, ID switches via motmetrics)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from shared.metrics.tracking import DEFAULT_TRACK_DISTANCE_M, TrackingAccumulator
+
+GT_IDS = [1, 2]
+GT_XY = [[0.0, 0.0], [2.0, 0.0]]
+
+
+def test_perfect_tracks() -> None:
+    acc = TrackingAccumulator()
+    for _ in range(3):
+        acc.update(GT_IDS, GT_XY, [10, 20], GT_XY)
+    s = acc.summary()
+    assert s["mota"] == 1.0 and s["idf1"] == 1.0 and s["motp_m"] == 0.0
+    assert (s["id_switches"], s["fp"], s["misses"], s["num_gt"], s["num_frames"]) == (0, 0, 0, 6, 3)
+    json.dumps(s, allow_nan=False)
+
+
+def test_hand_built_scenario_with_one_id_switch() -> None:
+    acc = TrackingAccumulator()
+    # Frame 0: both objects tracked (distances 0.1 and 0.05 m).
+    acc.update(GT_IDS, GT_XY, [10, 20], [[0.1, 0.0], [2.0, 0.05]])
+    # Frame 1: object 2 missed; track 30 is a false positive far from everything.
+    acc.update(GT_IDS, GT_XY, [10, 30], [[0.05, 0.0], [5.0, 5.0]])
+    # Frame 2: object 1 now carried by a new track 11 -> one ID switch; object 2 back on track 20.
+    acc.update(GT_IDS, GT_XY, [11, 20], [[0.0, 0.1], [2.0, 0.0]])
+    s = acc.summary()
+    assert (s["id_switches"], s["fp"], s["misses"], s["num_gt"], s["num_matches"]) == (1, 1, 1, 6, 5)
+    # MOTA = 1 - (FN + FP + IDSW) / num_gt = 1 - 3 / 6.
+    fn, fp, idsw, num_gt = (int(s[k] or 0) for k in ("misses", "fp", "id_switches", "num_gt"))
+    assert s["mota"] == pytest.approx(1 - (fn + fp + idsw) / num_gt)
+    assert s["mota"] == pytest.approx(0.5)
+    assert s["motp_m"] == pytest.approx((0.1 + 0.05 + 0.05 + 0.1 + 0.0) / 5)
+    # Identity-optimal mapping 1 <-> 10, 2 <-> 20: IDTP 4; IDF1 = 2 * 4 / (6 GT + 6 predictions).
+    assert s["idf1"] == pytest.approx(2 / 3)
+    assert s["num_frames"] == 3 and s["num_predictions"] == 6
+    assert s["precision"] == pytest.approx(5 / 6) and s["recall"] == pytest.approx(5 / 6)
+
+
+def test_gate_turns_a_far_track_into_fp_and_miss() -> None:
+    assert DEFAULT_TRACK_DISTANCE_M == 0.3
+    near = TrackingAccumulator()
+    near.update([1], [[0.0, 0.0]], [7], [[0.25, 0.0]])
+    assert near.summary()["num_matches"] == 1
+    far = TrackingAccumulator()
+    far.update([1], [[0.0, 0.0]], [7], [[0.35, 0.0]])
+    s = far.summary()
+    assert (s["num_matches"], s["fp"], s["misses"]) == (0, 1, 1)
+    assert s["mota"] == pytest.approx(-1.0) and s["motp_m"] is None
+    wide = TrackingAccumulator(max_distance_m=0.5)
+    wide.update([1], [[0.0, 0.0]], [7], [[0.35, 0.0]])
+    assert wide.summary()["num_matches"] == 1
+
+
+def test_empty_frames_and_empty_summary() -> None:
+    acc = TrackingAccumulator()
+    s = acc.summary()
+    assert s["mota"] is None and s["idf1"] is None and s["num_frames"] == 0
+    acc.update([], np.zeros((0, 2)), [], [])
+    acc.update([1], [[0.0, 0.0]], [], np.zeros(0))
+    s = acc.summary()
+    assert (s["num_frames"], s["misses"], s["num_gt"], s["mota"]) == (2, 1, 1, 0.0)
+    json.dumps(s, allow_nan=False)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (([1, 2], [[0.0, 0.0]], [], []), r"gt_xy must have shape \(2, 2\)"),
+        (([1], [[0.0, np.nan]], [], []), "gt_xy must contain only finite"),
+        (([1, 1], GT_XY, [], []), "gt_ids must be unique"),
+        (([1], [[0.0, 0.0]], [0.5], [[0.0, 0.0]]), "track_ids must be integers"),
+        (([1], [[0.0, 0.0]], [[3]], [[0.0, 0.0]]), r"track_ids must have shape \(N,\)"),
+        (([1], [[0.0, 0.0]], [3], [[0.0, 0.0, 0.0]]), r"track_xy must have shape \(1, 2\)"),
+    ],
+)
+def test_malformed_input_raises(args: tuple[object, object, object, object], message: str) -> None:
+    acc = TrackingAccumulator()
+    with pytest.raises(ValueError, match=message):
+        acc.update(*args)  # type: ignore[arg-type]
+    assert acc.num_frames == 0
+
+
+def test_bad_gate_raises() -> None:
+    with pytest.raises(ValueError, match="max_distance_m"):
+        TrackingAccumulator(max_distance_m=-1.0)

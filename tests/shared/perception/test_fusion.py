@@ -1,0 +1,172 @@
+"""Known answers for radar-camera (Algorithm 1), lidar-camera (Algorithm 2 + merge), camera-only."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from shared.geometry.transforms import matrix_from_xyz_rpy
+from shared.perception import camera_only, lidar_camera, radar_camera
+from shared.perception.radar_camera import RadarTargets, RoiSizeConfig
+from shared.perception.views import CameraView, RoadSurface
+from shared.scene.scene import Scene
+from sim.config import DEFAULT_SCENE
+
+CAR = (0.33, 0.22, 0.21)
+
+
+@pytest.fixture(scope="module")
+def scene() -> Scene:
+    return Scene.load(DEFAULT_SCENE)
+
+
+@pytest.fixture(scope="module")
+def cam(scene: Scene) -> CameraView:
+    return CameraView.from_scene(scene, "cam_11")
+
+
+def car(x: float, y: float, yaw: float, z: float = CAR[2] / 2) -> np.ndarray:
+    return np.array([x, y, z, *CAR, yaw])
+
+
+def targets(r: list[float], az: list[float]) -> RadarTargets:
+    n = len(r)
+    return RadarTargets(np.array(r), np.array(az), np.zeros(n), np.zeros(n), np.zeros(n))
+
+
+# --- Algorithm 1 -----------------------------------------------------------------------------------
+
+
+def test_radar_polar_to_world_uses_the_full_pose() -> None:
+    T = matrix_from_xyz_rpy([1.0, 2.0, 0.3], [0.0, 0.0, np.pi / 2])  # looking along +y
+    world = radar_camera.targets_to_world(targets([2.0, 1.0], [0.0, np.pi / 2]), T)
+    np.testing.assert_allclose(world, [[1.0, 4.0, 0.3], [0.0, 2.0, 0.3]], atol=1e-12)
+
+
+def test_roi_size_follows_alpha_over_d_plus_beta() -> None:
+    cfg = RoiSizeConfig(alpha_width_px_m=100, beta_width_px=4, alpha_height_px_m=50, beta_height_px=2)
+    rois = radar_camera.roi_boxes(np.array([[320.0, 240.0], [10.0, 10.0]]), np.array([2.0, -1.0]), cfg)
+    np.testing.assert_allclose(rois[0], [320 - 27, 240 - 13.5, 320 + 27, 240 + 13.5])
+    assert np.isnan(rois[1]).all()  # behind the camera
+
+
+def test_hungarian_on_iou_keeps_pairs_above_threshold() -> None:
+    rois = np.array([[0, 0, 10, 10], [100, 100, 110, 110], [50, 50, 60, 60], [np.nan] * 4], float)
+    boxes = np.array([[101, 100, 111, 110], [0, 0, 10, 11], [55, 50, 65, 60]], float)
+    m = radar_camera.match_rois(rois, boxes, min_iou=0.6)
+    pairs = sorted(zip(m.radar_index.tolist(), m.camera_index.tolist(), strict=True))
+    assert pairs == [(0, 1), (1, 0)]  # roi 2 overlaps box 2 by IoU 1/3 < 0.6: dropped
+    np.testing.assert_allclose(sorted(m.iou), sorted([100 / 110, 90 / 110]))
+
+
+def test_covariance_weighted_fusion_takes_each_sensor_where_it_is_precise() -> None:
+    truth = np.array([[3.0, 0.0]])
+    # Radar at the origin: 1 cm in range (x here), 10 cm across (y). Camera at (-1, 0), 4 m away along
+    # the same line: precise across the ray (1 px at fx 400 = 1 cm), coarse along it (2.5 % = 10 cm).
+    cov_r = radar_camera.radar_position_cov(truth, np.array([0.0, 0.0]), np.array([3.0]), 0.01, 0.1 / 3)
+    cov_c = radar_camera.camera_position_cov(truth, np.array([-1.0, 0.0]), 1.0, 400.0, 0.025)
+    np.testing.assert_allclose(np.sqrt(np.diag(cov_r[0])), [0.01, 0.1], rtol=1e-9)
+    np.testing.assert_allclose(np.sqrt(np.diag(cov_c[0])), [0.1, 0.01], rtol=1e-9)
+    radar_xy, camera_xy = truth + np.array([0.0, 0.1]), truth + np.array([0.1, 0.0])
+    xy, cov = radar_camera.fuse_positions(radar_xy, cov_r, camera_xy, cov_c)
+    np.testing.assert_allclose(xy, truth + np.array([0.1, 0.1]) / 101, atol=1e-12)
+    assert np.sqrt(cov[0, 0, 0]) < 0.0100 and np.sqrt(cov[0, 1, 1]) < 0.0100
+
+
+# --- Algorithm 2 ------------------------------------------------------------------------------------
+
+
+def projected(view: CameraView, boxes: np.ndarray) -> np.ndarray:
+    img, visible, _ = view.image_boxes(boxes)
+    assert visible.all()
+    return np.column_stack([img, np.full(len(img), 0.9), np.zeros(len(img))])
+
+
+def test_algorithm2_matches_each_box_to_its_projection(scene: Scene, cam: CameraView) -> None:
+    boxes = np.stack([car(-0.6, 1.9, 0.0), car(-0.2, 2.4, 1.2), car(-0.9, 2.6, 0.5)])
+    dets = projected(cam, boxes)[[2, 0, 1]]  # the detector's order differs
+    res = lidar_camera.match_boxes(boxes, np.array([0.5, 0.9, 0.7]), [cam], {"cam_11": dets}, 0.7)
+    assert sorted((i, j) for i, _, j, _ in res.matches) == [(0, 1), (1, 2), (2, 0)]
+    assert all(iou == pytest.approx(1.0) for *_, iou in res.matches)
+    assert res.unmatched_3d == [] and res.unused_2d == {"cam_11": []}
+
+
+def test_algorithm2_masks_a_second_cameras_box_and_leaves_disjoint_boxes(scene: Scene) -> None:
+    a, b = CameraView.from_scene(scene, "cam_3"), CameraView.from_scene(scene, "cam_6")  # overlapping views
+    box = car(4.4, 4.4, 0.3)
+    assert all(v.image_boxes(box[None])[2][0] for v in (a, b)), "both cameras must see the car whole"
+    both = {"cam_3": projected(a, box[None]), "cam_6": projected(b, box[None])}
+    res = lidar_camera.match_boxes(box[None], np.array([0.9]), [a, b], both, 0.7)
+    # Matched in the nearer camera, and the other camera's box is masked (used, not a second match).
+    nearest = min((a, b), key=lambda v: np.linalg.norm(v.center_m - box[:3])).sensor_id
+    assert [(c, j) for _, c, j, _ in res.matches] == [(nearest, 0)] and res.masked == 1
+    assert res.unused_2d == {"cam_3": [], "cam_6": []}
+    # A 2D box far from the projection (disjoint in u and v) never matches: IoU is clamped at 0.
+    far = projected(a, box[None]) + np.array([-200, -150, -200, -150, 0, 0])
+    res = lidar_camera.match_boxes(box[None], np.array([0.9]), [a], {"cam_3": far}, 0.01)
+    assert res.matches == [] and res.unmatched_3d == [0] and res.unused_2d == {"cam_3": [0]}
+
+
+def test_merge_moves_the_centre_by_the_camera_weight(cam: CameraView) -> None:
+    truth = car(-0.6, 2.0, 0.0)
+    lidar = truth + np.array([0.05, 0, 0, 0, 0, 0, 0])  # 5 cm off across the camera's view (+y)
+    det = projected(cam, truth[None])[0]
+    cfg = lidar_camera.LidarCameraConfig(camera_weight=0.4, refine_yaw=False)
+    merged, applied = lidar_camera.merge_box(lidar, det, cam, cfg)
+    assert applied
+    # Not exactly 0.6 x 5 cm: box centres are not projected centres under perspective.
+    assert merged[0] == pytest.approx(truth[0] + 0.6 * 0.05, abs=5e-3)
+    assert merged[1] == pytest.approx(truth[1], abs=5e-3)
+    full = lidar_camera.merge_box(lidar, det, cam, cfg.model_copy(update={"camera_weight": 1.0}))[0]
+    assert np.linalg.norm(full[:2] - truth[:2]) < 3e-3
+
+
+def test_yaw_refinement_moves_toward_the_cameras_aspect(cam: CameraView) -> None:
+    truth = car(-0.6, 2.0, 0.4)
+    lidar = truth + np.array([0, 0, 0, 0, 0, 0, 0.1])
+    det = projected(cam, truth[None])[0]
+    cfg = lidar_camera.LidarCameraConfig(camera_weight=1.0, merge_centre=False, yaw_search_rad=0.15)
+    merged, _ = lidar_camera.merge_box(lidar, det, cam, cfg)
+    assert abs(merged[6] - truth[6]) < 0.02
+
+
+def test_truncated_detection_is_not_merged(cam: CameraView) -> None:
+    box = car(-0.6, 2.0, 0.0)
+    det = projected(cam, box[None])[0]
+    det[0] = 0.0  # touches the left border
+    merged, applied = lidar_camera.merge_box(box, det, cam, lidar_camera.LidarCameraConfig())
+    assert not applied and np.array_equal(merged, box)
+
+
+# --- camera only ------------------------------------------------------------------------------------
+
+
+def test_camera_only_places_cars_on_the_lane_surface(scene: Scene) -> None:
+    surface = RoadSurface(scene, half_width_m=0.2)
+    lane = scene.spec.lanes[0]
+    line = np.asarray(scene.lane_centreline(lane.id))
+    views = {c.id: CameraView.from_scene(scene, c.id) for c in scene.sensors_of(kind="camera")}
+    # A car on a lane, seen by whichever cameras show it whole.
+    p, q = line[len(line) // 2], line[len(line) // 2 + 1]
+    yaw = float(np.arctan2(q[1] - p[1], q[0] - p[0]))
+    truth = car(p[0], p[1], yaw, z=p[2] + CAR[2] / 2)
+    dets = {}
+    for cid, v in views.items():
+        img, visible, inside = v.image_boxes(truth[None])
+        if visible[0] and inside[0]:
+            dets[cid] = np.column_stack([img, [0.9], [0.0]])
+    assert dets, "test car must be visible to some camera"
+    (obj,) = camera_only.locate(views, dets, surface, camera_only.CameraOnlyConfig())
+    assert np.linalg.norm(obj.box[:2] - truth[:2]) < 0.06
+    assert obj.box[2] == pytest.approx(truth[2], abs=0.02)
+    assert obj.yaw_known and np.cos(obj.box[6] - yaw) > 0.99
+    assert set(obj.sensor_ids) == set(dets)
+
+
+def test_merge_nearby_fuses_one_car_seen_twice() -> None:
+    a = camera_only.CameraObject(car(0, 0, 0), np.eye(2) * 0.01, True, 0.9, ("a",))
+    b = camera_only.CameraObject(car(0.1, 0, 0), np.eye(2) * 0.01, True, 0.8, ("b",))
+    c = camera_only.CameraObject(car(1.0, 0, 0), np.eye(2) * 0.01, True, 0.7, ("c",))
+    merged = camera_only.merge_nearby([c, b, a], radius_m=0.2)
+    assert len(merged) == 2
+    assert merged[0].box[0] == pytest.approx(0.05) and merged[0].sensor_ids == ("a", "b")

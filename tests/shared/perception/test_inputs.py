@@ -1,0 +1,59 @@
+"""Input health (OK / STALE / MISSING) and the FULL / DEGRADED hysteresis."""
+
+from __future__ import annotations
+
+import pytest
+
+from shared.perception.inputs import InputState, SensorMonitor, Status, StatusHysteresis
+
+NS = 1_000_000_000
+
+
+def monitor(max_age_s: float = 0.2) -> SensorMonitor:
+    return SensorMonitor(
+        {"cam": 15.0, "lidar": 15.0}, missing_after_periods=3, max_age_s=max_age_s, start_s=0.0
+    )
+
+
+def test_missing_after_three_periods_without_frames() -> None:
+    m = monitor()
+    assert m.accept("cam", stamp_ns=10 * NS, now_s=1.0, wall_ns=10 * NS)
+    assert m.state("cam", 1.0 + 3 / 15) is InputState.OK
+    assert m.state("cam", 1.0 + 3 / 15 + 1e-3) is InputState.MISSING
+    # Never delivered: missing three periods after the monitor started.
+    assert m.state("lidar", 0.19) is InputState.OK and m.state("lidar", 0.21) is InputState.MISSING
+    assert m.alive(1.1) == ["cam"]
+
+
+def test_old_frames_are_stale_dropped_and_counted() -> None:
+    m = monitor()
+    assert not m.accept("cam", stamp_ns=10 * NS, now_s=1.0, wall_ns=10 * NS + int(0.25 * NS))
+    assert m.counts("cam") == (0, 1)
+    assert m.state("cam", 1.0) is InputState.STALE
+    assert m.accept("cam", stamp_ns=11 * NS, now_s=1.1, wall_ns=11 * NS + int(0.05 * NS))
+    assert m.state("cam", 1.1) is InputState.OK
+    (cam, _lidar) = m.report(1.2)
+    assert cam.sensor_id == "cam" and cam.age_s == pytest.approx(0.1)
+
+
+def test_staleness_check_can_be_turned_off_for_replays() -> None:
+    m = monitor(max_age_s=0.0)
+    assert m.accept("cam", stamp_ns=0, now_s=1.0, wall_ns=100 * NS)
+
+
+def test_degraded_at_once_full_only_after_recover_frames() -> None:
+    h = StatusHysteresis(recover_frames=3)
+    assert h.update({"cam": True, "lidar": True}) is Status.FULL
+    assert h.update({"cam": False, "lidar": True}) is Status.DEGRADED
+    assert h.update({"cam": True, "lidar": True}) is Status.DEGRADED
+    assert h.update({"cam": True, "lidar": True}) is Status.DEGRADED
+    assert h.update({"cam": True, "lidar": True}) is Status.FULL
+    assert h.transitions == 2
+
+
+def test_stutter_does_not_flap_and_no_input_is_unavailable() -> None:
+    h = StatusHysteresis(recover_frames=3)
+    pattern = [False, True, True, False, True, True]  # a camera dropping every third frame
+    states = [h.update({"cam": ok, "lidar": True}) for ok in pattern]
+    assert states[1:] == [Status.DEGRADED] * 5 and h.transitions == 1
+    assert h.update({"cam": False, "lidar": False}) is Status.UNAVAILABLE
