@@ -75,11 +75,17 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         overrides["detectors"] = {
             k: v for k, v in (("camera", args.camera_detector), ("lidar", args.lidar_detector)) if v
         }
-    settings = load_settings(MecSettings, args.config, **overrides)
+    settings = load_settings(MecSettings, args.settings, **overrides)
     specs = scene.sensors_of(agent)
+    if args.sensors:
+        wanted = set(args.sensors.split(","))
+        unknown = wanted - {s.id for s in specs}
+        if unknown:
+            raise SystemExit(f"--sensors: {sorted(unknown)} are not sensors of {agent}")
+        specs = [s for s in specs if s.id in wanted]
     kinds = {s.id: s.kind for s in specs}
     t0 = time.perf_counter()
-    pipeline = AgentPipeline(scene, agent, settings)
+    pipeline = AgentPipeline(scene, agent, settings, sensor_ids=list(kinds))
     log.info("agent %s: %d sensors, pipeline ready in %.2f s", agent, len(specs), time.perf_counter() - t0)
 
     with Node(conf, service="mec", instance=agent, scope=agent, stop=shutdown.event) as node:
@@ -174,7 +180,10 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
 
 def add_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="scene YAML")
-    parser.add_argument("--config", type=Path, default=DEFAULT_MEC_CONFIG, help="MEC settings YAML")
+    parser.add_argument("--settings", type=Path, default=DEFAULT_MEC_CONFIG, help="MEC settings YAML")
+    parser.add_argument(
+        "--sensors", help="comma-separated subset of the agent's sensors to fuse (default all)"
+    )
     parser.add_argument("--camera-detector", help="override detectors.camera (onnx | oracle)")
     parser.add_argument("--lidar-detector", help="override detectors.lidar (pointpillars | cluster | oracle)")
 

@@ -66,6 +66,13 @@ def newest_due(items: list[Received], specs: list[SensorSpec]) -> tuple[Received
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
     scene = Scene.load(args.scene)
     specs = parse_group(scene, args.group)
+    if args.only:
+        wanted = set(args.only.split(","))
+        if not wanted <= {s.id for s in specs}:
+            raise SystemExit(
+                f"--only: {sorted(wanted - {s.id for s in specs})} are not in group {args.group}"
+            )
+        specs = [s for s in specs if s.id in wanted]
     agent = specs[0].agent
     t0 = time.perf_counter()
     with (
@@ -126,6 +133,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
 def add_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--group", required=True, help="sensor group: <agent>-<cameras|lidars|radars>")
     parser.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="scene YAML")
+    parser.add_argument("--only", help="comma-separated subset of the group's sensors (tests)")
     parser.add_argument("--report-interval-s", type=float, default=10.0, help="log interval")
 
 

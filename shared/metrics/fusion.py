@@ -349,6 +349,15 @@ class FusionAccumulator:
         self.fn = 0
         self.num_ignored = 0
 
+    def merge(self, other: FusionAccumulator) -> None:
+        """Add every frame of `other` (e.g. another agent or seed evaluated in another process)."""
+        if other.max_distance_m != self.max_distance_m:
+            raise ValueError("cannot merge accumulators with different gates")
+        for name in ("_pose_error", "_aos", "_iou", "_tp_gt_xy", "_fn_gt_xy", "_kitti_frames"):
+            getattr(self, name).extend(getattr(other, name))
+        for name in ("num_frames", "num_pred", "num_gt", "tp", "fp", "fn", "num_ignored"):
+            setattr(self, name, getattr(self, name) + getattr(other, name))
+
     def add_frame(
         self,
         pred_boxes: ArrayLike,

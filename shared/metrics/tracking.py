@@ -117,6 +117,14 @@ class TrackingAccumulator:
         self.num_frames = 0
         # auto_id: frames are numbered 0, 1, ... in update order.
         self._acc = mm.MOTAccumulator(auto_id=True)
+        self._merged: list[mm.MOTAccumulator] = []  # other sequences (`merge`)
+
+    def merge(self, other: TrackingAccumulator) -> None:
+        """Add another sequence (its ids are its own: a track id in both never links them)."""
+        if other.max_distance_m != self.max_distance_m:
+            raise ValueError("cannot merge accumulators with different gates")
+        self._merged += [other._acc, *other._merged]
+        self.num_frames += other.num_frames
 
     def update(self, gt_ids: ArrayLike, gt_xy: ArrayLike, track_ids: ArrayLike, track_xy: ArrayLike) -> None:
         """Add one frame.
@@ -164,7 +172,14 @@ class TrackingAccumulator:
             ``num_frames`` (int).
         """
         names = [*_FLOAT_METRICS.values(), *_COUNT_METRICS.values()]
-        row = mm.metrics.create().compute(self._acc, metrics=names, name="sequence").iloc[0]
+        accs = [self._acc, *self._merged]
+        if len(accs) == 1:
+            row = mm.metrics.create().compute(self._acc, metrics=names, name="sequence").iloc[0]
+        else:  # several sequences: motmetrics sums events per sequence, ids never cross sequences
+            table = mm.metrics.create().compute_many(
+                accs, metrics=names, names=[f"seq{i}" for i in range(len(accs))], generate_overall=True
+            )
+            row = table.loc["OVERALL"]
         out: dict[str, float | int | None] = {}
         for key, name in _FLOAT_METRICS.items():
             value = float(row[name])

@@ -39,6 +39,9 @@ class CameraOnlyConfig(BaseModel):
     border_margin_px: float = Field(
         2.0, ge=0, description="boxes touching the border are skipped (centre is cut)"
     )
+    max_fit_shift_m: float = Field(
+        0.3, gt=0, description="the box fit may move the ray-cast position at most this far (else kept)"
+    )
     keep_unconfirmed: bool = Field(
         False,
         description="on cameras a live range sensor covers, publish boxes it did not confirm as camera-only "
@@ -86,9 +89,14 @@ def locate(
             points[:, :2], view.center_m[:2], cfg.pixel_std_px, fx, cfg.depth_std_fraction
         )
         yaws = surface.lane_heading(points[:, :2])
-        for p, c, yaw, score in zip(points, covs, yaws, scores, strict=True):
+        for p, c, yaw, score, det in zip(points, covs, yaws, scores, boxes[ok], strict=True):
             known = bool(np.isfinite(yaw))
             box = np.array([p[0], p[1], p[2], length, width, height, yaw if known else 0.0])
+            # The ray through the box centre misses the car's centre under perspective: fit a
+            # car-sized box with the lane's yaw so its projection is centred on the detection.
+            fitted = view.fit_centre(box, det[:4])
+            if fitted is not None and np.linalg.norm(fitted - box[:2]) <= cfg.max_fit_shift_m:
+                box[:2] = fitted
             found.append(CameraObject(box, c, known, float(score), (cam,)))
     return merge_nearby(found, cfg.merge_radius_m)
 

@@ -35,9 +35,6 @@ from shared.perception.views import CameraView
 
 FloatArray = NDArray[np.float64]
 
-# Fixed-point steps of the camera-centre search (the residual shrinks ~10x per step).
-CENTRE_ITERATIONS = 3
-
 
 class LidarCameraConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -130,25 +127,6 @@ def _centre(boxes_xyxy: FloatArray) -> FloatArray:
     return np.column_stack([(b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2])
 
 
-def _camera_centre(
-    box: FloatArray, box2d: FloatArray, proj: FloatArray, view: CameraView
-) -> FloatArray | None:
-    """The box centre (xy) whose projected box centre falls on the detected box centre, at the box's
-    height: the lidar centre moved by the plane offset between the two box centres, repeated a few
-    times (one step is off by the perspective curvature, ~10 % of the shift); None if a ray misses."""
-    target = view.to_plane(_centre(box2d[:4]), box[2])[0]
-    xy = box[:2].copy()
-    moved = box.copy()
-    for _ in range(CENTRE_ITERATIONS):
-        at = view.to_plane(_centre(proj), box[2])[0]
-        if not (np.isfinite(target).all() and np.isfinite(at).all()):
-            return None
-        xy += target[:2] - at[:2]
-        moved[:2] = xy
-        proj = view.image_boxes(moved[None])[0]
-    return xy
-
-
 def merge_box(
     box3d: FloatArray, box2d: FloatArray, view: CameraView, cfg: LidarCameraConfig
 ) -> tuple[FloatArray, bool]:
@@ -159,7 +137,7 @@ def merge_box(
         return box, False
     w = cfg.camera_weight
     if cfg.merge_centre and w > 0:
-        camera_xy = _camera_centre(box, box2d, proj, view)
+        camera_xy = view.fit_centre(box, box2d[:4])
         if camera_xy is not None:
             box[:2] += w * (camera_xy - box[:2])
     if cfg.refine_yaw and cfg.yaw_search_rad > 0:

@@ -16,8 +16,10 @@ stops it: without cameras the lidar (or radar) boxes go straight to the tracker;
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections import Counter
+from collections.abc import Collection
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -92,13 +94,16 @@ class AgentPipeline:
         settings: MecSettings,
         cameras: CameraDetector | None = None,
         lidar: LidarDetector | None = None,
+        sensor_ids: Collection[str] | None = None,
     ) -> None:
+        """`sensor_ids`: fuse only these of the agent's sensors (default all; tests, partial sites)."""
         self.scene = scene
         self.agent_id = agent_id
         self.cfg = settings
-        self.camera_ids = [s.id for s in scene.sensors_of(agent_id, "camera")]
-        self.lidar_ids = [s.id for s in scene.sensors_of(agent_id, "lidar")]
-        self.radar_specs = scene.sensors_of(agent_id, "radar")
+        specs = [s for s in scene.sensors_of(agent_id) if sensor_ids is None or s.id in sensor_ids]
+        self.camera_ids = [s.id for s in specs if s.kind == "camera"]
+        self.lidar_ids = [s.id for s in specs if s.kind == "lidar"]
+        self.radar_specs = [s for s in specs if s.kind == "radar"]
         self.views = {c: CameraView.from_scene(scene, c) for c in self.camera_ids}
         self.surface = RoadSurface(scene, settings.surface_half_width_m)
         det = settings.detectors
@@ -207,8 +212,7 @@ class AgentPipeline:
                     )
             for cam, unused in res.unused_2d.items():
                 used_2d[cam].update(set(range(len(dets2d[cam]))) - set(unused))
-        if have_radar:
-            out += self._radar_camera(frame, dets2d, used_2d, counts)
+        per_radar = self._radar_camera(frame, dets2d, used_2d, counts) if have_radar else []
         # Camera boxes no range sensor accounted for: kept when no range sensor covers that camera this
         # frame (degraded, or a camera without a paired radar), else by the unmatched-camera policy.
         paired = {r.paired_camera for r in self.radar_specs if r.id in frame.radar}
@@ -218,10 +222,11 @@ class AgentPipeline:
             if covered and not self.cfg.camera_only.keep_unconfirmed:
                 continue
             leftovers[c] = d[[j for j in range(len(d)) if j not in used_2d[c]]]
+        camera_list: list[Measurement] = []
         if leftovers:
             for obj in camera_only.locate(self.views, leftovers, self.surface, self.cfg.camera_only):
                 counts["camera_only"] += 1
-                out.append(
+                camera_list.append(
                     Measurement(
                         position_m=obj.box[:2].copy(),
                         position_cov_m2=obj.cov_xy_m2,
@@ -235,6 +240,14 @@ class AgentPipeline:
                         sensor_ids=obj.sensor_ids,
                     )
                 )
+        # One measurement per car: the radars' lists and the camera-only objects merge when close
+        # (a car two radars see, or a radar car another camera sees too).
+        if per_radar:
+            out += merge_across_sensors(
+                [*per_radar, camera_list], self.cfg.radar_camera.cross_radar_gate_m, counts
+            )
+        else:
+            out += camera_list
         return out
 
     def _radar_camera(
@@ -243,9 +256,10 @@ class AgentPipeline:
         dets2d: dict[str, FloatArray],
         used_2d: dict[str, set[int]],
         counts: Counter[str],
-    ) -> list[Measurement]:
+    ) -> list[list[Measurement]]:
+        """Algorithm 1 per radar and its paired camera: one measurement list per radar."""
         rc = self.cfg.radar_camera
-        out: list[Measurement] = []
+        per_radar: list[list[Measurement]] = []
         length, width, height = self.cfg.camera_only.car_size_m
         for spec in self.radar_specs:
             targets = frame.radar.get(spec.id)
@@ -254,12 +268,17 @@ class AgentPipeline:
             assert spec.radar is not None
             targets = targets.subset(targets.rcs_dbsm >= rc.min_rcs_dbsm)
             counts["radar/targets"] += len(targets)
-            world = radar_camera.targets_to_world(targets, self.radar_T[spec.id])
+            world = radar_camera.reflection_to_centre(
+                radar_camera.targets_to_world(targets, self.radar_T[spec.id]),
+                self.radar_T[spec.id][:3, 3],
+                rc.centre_offset_m,
+            )
             surface_z = self.surface.heights_near(world[:, :2])
             on_road = np.isfinite(surface_z)
             counts["radar/off_road"] += int((~on_road).sum())
             targets, world, surface_z = targets.subset(on_road), world[on_road], surface_z[on_road]
             world[:, 2] = surface_z + rc.object_height_m / 2
+            lane_yaw = self.surface.lane_heading(world[:, :2])  # cars follow their lane
             radar_xy = self.radar_T[spec.id][:2, 3]
             cov_r = radar_camera.radar_position_cov(
                 world[:, :2],
@@ -268,6 +287,7 @@ class AgentPipeline:
                 max(spec.radar.range_noise_std_m, 1e-3),
                 max(spec.radar.azimuth_noise_std_rad, 1e-4),
             )
+            cov_r = cov_r + np.eye(2) * rc.reflection_std_m**2
             xy, cov = world[:, :2].copy(), cov_r.copy()
             modalities = [frozenset({RADAR})] * len(targets)
             sensors: list[tuple[str, ...]] = [(spec.id,)] * len(targets)
@@ -287,9 +307,9 @@ class AgentPipeline:
                     modalities[k] = frozenset({RADAR, CAMERA})
                     sensors[k] = (spec.id, cam)
                     if rc.position == "weighted":
-                        box = dets2d[cam][j]
-                        centre = np.array([[(box[0] + box[2]) / 2, (box[1] + box[3]) / 2]])
-                        p_cam = view.to_plane(centre, float(world[k, 2]))[0]
+                        car = np.array([*world[k], length, width, height, np.nan_to_num(lane_yaw[k])])
+                        fitted = view.fit_centre(car, dets2d[cam][j, :4])
+                        p_cam = np.array([np.nan, np.nan]) if fitted is None else fitted
                         if np.isfinite(p_cam).all():
                             cov_c = radar_camera.camera_position_cov(
                                 p_cam[None, :2],
@@ -302,6 +322,8 @@ class AgentPipeline:
                                 xy[k : k + 1], cov[k : k + 1], p_cam[None, :2], cov_c
                             )
                             xy[k], cov[k] = fxy[0], fcov[0]
+            out: list[Measurement] = []
+            per_radar.append(out)
             for k in range(len(targets)):
                 if not matched[k] and not rc.keep_unmatched_radar:
                     continue
@@ -312,7 +334,7 @@ class AgentPipeline:
                         position_cov_m2=cov[k],
                         z_m=float(world[k, 2]),
                         size_m=np.array([length, width, height]),
-                        yaw_rad=None,
+                        yaw_rad=float(lane_yaw[k]) if np.isfinite(lane_yaw[k]) else None,
                         yaw_mod_pi=False,
                         range_rate=(radar_xy.copy(), float(targets.range_rate_mps[k]), rate_var),
                         modalities=modalities[k],
@@ -320,4 +342,35 @@ class AgentPipeline:
                         sensor_ids=sensors[k],
                     )
                 )
-        return out
+        return per_radar
+
+
+def merge_across_sensors(
+    per_sensor: list[list[Measurement]], gate_m: float, counts: Counter[str]
+) -> list[Measurement]:
+    """One measurement per car when several radars see it: pair each sensor's list with the merged
+    ones so far (Hungarian within `gate_m`) and fuse pairs by their covariances (the first's range rate
+    is kept: one radial direction per measurement)."""
+    merged: list[Measurement] = []
+    for meas in per_sensor:
+        pairs, _, new = radar_camera.pair_observations(
+            np.array([m.position_m for m in merged]).reshape(-1, 2),
+            np.array([m.position_m for m in meas]).reshape(-1, 2),
+            gate_m,
+        )
+        counts["radar/cross_merged"] += len(pairs)
+        for i, j in pairs:
+            a, b = merged[i], meas[j]
+            xy, cov = radar_camera.fuse_positions(
+                a.position_m[None], a.position_cov_m2[None], b.position_m[None], b.position_cov_m2[None]
+            )
+            merged[i] = dataclasses.replace(
+                a,
+                position_m=xy[0],
+                position_cov_m2=cov[0],
+                modalities=a.modalities | b.modalities,
+                score=max(a.score, b.score),
+                sensor_ids=tuple(dict.fromkeys(a.sensor_ids + b.sensor_ids)),
+            )
+        merged += [meas[j] for j in new]
+    return merged

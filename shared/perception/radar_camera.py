@@ -62,10 +62,25 @@ class RadarCameraConfig(BaseModel):
     camera_depth_std_fraction: float = Field(
         0.08, gt=0, description="camera depth-along-ray noise as a fraction of the range (ground-plane fit)"
     )
+    cross_radar_gate_m: float = Field(
+        0.5, gt=0, description="one car seen by two radars: positions this close merge (reference: 0.5 m)"
+    )
     keep_unmatched_radar: bool = Field(
         True, description="radar targets without a camera box still become radar-only measurements"
     )
     min_rcs_dbsm: float = Field(-15.0, description="targets below this RCS are treated as clutter")
+    reflection_std_m: float = Field(
+        0.06,
+        ge=0,
+        description="spread of the reflecting point about the assumed centre (corner vs face), m: added "
+        "to the radar position covariance on both axes",
+    )
+    centre_offset_m: float = Field(
+        0.12,
+        ge=0,
+        description="the radar reflects off a car's nearest point; its centre lies this much farther along "
+        "the line of sight (between half the width 0.11 m and half the length 0.165 m)",
+    )
 
 
 @dataclass(frozen=True)
@@ -95,6 +110,15 @@ def targets_to_world(targets: RadarTargets, T_world_from_radar: FloatArray) -> F
     """(K, 3) world points of the targets."""
     local = polar_to_cartesian(targets.range_m, targets.azimuth_rad, targets.elevation_rad)
     return transform_points(T_world_from_radar, local.reshape(-1, 3))
+
+
+def reflection_to_centre(world_m: FloatArray, radar_m: FloatArray, offset_m: float) -> FloatArray:
+    """(K, 3) target points moved `offset_m` farther from the radar in the horizontal plane."""
+    out = np.array(world_m, float, copy=True).reshape(-1, 3)
+    los = out[:, :2] - np.asarray(radar_m, float)[:2]
+    dist = np.linalg.norm(los, axis=1, keepdims=True)
+    out[:, :2] += np.where(dist > 0, los / np.maximum(dist, 1e-12), 0.0) * offset_m
+    return out
 
 
 def roi_boxes(uv_px: FloatArray, depth_m: FloatArray, cfg: RoiSizeConfig) -> FloatArray:
@@ -156,6 +180,24 @@ def _los_cov(los_xy: FloatArray, along_std: FloatArray, across_std: FloatArray) 
     a2 = np.asarray(along_std, float)[:, None, None] ** 2
     c2 = np.asarray(across_std, float)[:, None, None] ** 2
     return a2 * u[:, :, None] * u[:, None, :] + c2 * v[:, :, None] * v[:, None, :]
+
+
+def pair_observations(
+    xy_a: FloatArray, xy_b: FloatArray, gate_m: float
+) -> tuple[list[tuple[int, int]], list[int], list[int]]:
+    """Pair two sensors' positions of the same cars (reference C.7: two radars seeing one car):
+    Hungarian on the centre distance, pairs within `gate_m`. Returns pairs (a, b), unpaired a, unpaired b."""
+    if len(xy_a) == 0 or len(xy_b) == 0:
+        return [], list(range(len(xy_a))), list(range(len(xy_b)))
+    d = np.linalg.norm(np.asarray(xy_a)[:, None, :] - np.asarray(xy_b)[None, :, :], axis=2)
+    rows, cols = linear_sum_assignment(d)
+    pairs = [(int(r), int(c)) for r, c in zip(rows, cols, strict=True) if d[r, c] <= gate_m]
+    paired_a, paired_b = {p[0] for p in pairs}, {p[1] for p in pairs}
+    return (
+        pairs,
+        [i for i in range(len(xy_a)) if i not in paired_a],
+        [j for j in range(len(xy_b)) if j not in paired_b],
+    )
 
 
 def fuse_positions(

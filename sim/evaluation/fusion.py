@@ -24,7 +24,6 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -56,8 +55,6 @@ DEFAULT_SIZE_M = (0.33, 0.22, 0.21)
 SINGLE_MODALITIES = ("lidar", "camera", "radar")
 # Ground truth this close outside the agent's areas is an ignore region; predictions beyond are dropped.
 SCOPE_MARGIN_M = 0.3
-# Vehicle and track ids of run k are offset by k * this (ids restart in every run).
-RUN_ID_STRIDE = 10_000_000
 
 
 @dataclass
@@ -172,6 +169,16 @@ class AgentEvaluation:
     def trk(self, name: str) -> TrackingAccumulator:
         return self.tracking.setdefault(name, TrackingAccumulator())
 
+    def merge(self, other: AgentEvaluation) -> None:
+        for name, acc in other.fusion.items():
+            self.acc(name).merge(acc)
+        for name, trk in other.tracking.items():
+            self.trk(name).merge(trk)
+        for stage, values in other.latencies_s.items():
+            self.latencies_s.setdefault(stage, []).extend(values)
+        self.counts.update(other.counts)
+        self.frames += other.frames
+
 
 def single_modality_measurements(
     result: AgentResult, pipeline: AgentPipeline
@@ -217,12 +224,9 @@ def evaluate_run(
     warmup_s: float,
     cameras: CameraDetector | None = None,
     lidar: LidarDetector | None = None,
-    ev: AgentEvaluation | None = None,
-    run_index: int = 0,
 ) -> AgentEvaluation:
-    """Run one seed for one agent and add its frames to `ev`. `run_index` keeps the vehicle and track
-    ids of different runs apart in the MOT accounting (ids restart in every run)."""
-    ev = ev if ev is not None else AgentEvaluation()
+    """Run one seed for one agent: its frames scored (one MOT sequence per run)."""
+    ev = AgentEvaluation()
     vehicle_index: dict[str, int] = {}
     sensor_ids = [s.id for s in scene.sensors_of(agent_id)]
     pipeline = AgentPipeline(scene, agent_id, mec, cameras=cameras, lidar=lidar)
@@ -248,11 +252,8 @@ def evaluate_run(
                 continue  # tracks settle in; frames are scored after the warm-up
             truth = observable(gt, tick.captures, scope)
             single_tracks = {m: t.confirmed() for m, t in single_trackers.items() if m in singles}
-            ids = {
-                v: run_index * RUN_ID_STRIDE + vehicle_index.setdefault(v, len(vehicle_index))
-                for v in truth.boxes
-            }
-            _score_frame(ev, scope, truth, ids, run_index * RUN_ID_STRIDE, result, singles, single_tracks)
+            ids = {v: vehicle_index.setdefault(v, len(vehicle_index)) for v in truth.boxes}
+            _score_frame(ev, scope, truth, ids, result, singles, single_tracks)
     ev.counts.update(pipeline.counts)
     return ev
 
@@ -262,7 +263,6 @@ def _score_frame(
     scope: AgentScope,
     truth: FrameTruth,
     gt_numbers: dict[str, int],
-    track_offset: int,
     result: AgentResult,
     singles: dict[str, list[Measurement]],
     single_tracks: dict[str, list[Track]],
@@ -294,15 +294,9 @@ def _score_frame(
             # Tracks on ignore regions (glimpsed cars, cars just outside the areas) are not scored.
             counted = np.ones(len(boxes), bool)
             counted[match.ignored] = False
-            ids = [track_offset + t for t, k in zip(track_ids, keep, strict=True) if k]
+            ids = [t for t, k in zip(track_ids, keep, strict=True) if k]
             ids = [i for i, c in zip(ids, counted, strict=True) if c]
             ev.trk(name).update([gt_numbers[v] for v in gt_ids], gt[:, :2], ids, boxes[counted, :2])
-
-
-def iter_runs(agents: list[str], seeds: list[int]) -> Iterator[tuple[str, int]]:
-    for agent in agents:
-        for seed in seeds:
-            yield agent, seed
 
 
 def summarise(ev: AgentEvaluation) -> dict[str, Any]:
@@ -322,3 +316,97 @@ def summarise(ev: AgentEvaluation) -> dict[str, Any]:
 def timed(fn: Any, *args: Any, **kwargs: Any) -> tuple[Any, float]:
     t0 = time.perf_counter()
     return fn(*args, **kwargs), time.perf_counter() - t0
+
+
+# --- the whole evaluation ---------------------------------------------------------------------------
+
+
+def _run_worker(job: tuple[str, int, float, float, str]) -> tuple[str, int, AgentEvaluation, float]:
+    """One (agent, seed) run in a worker process (spawned: PyBullet and onnxruntime are per process)."""
+    agent, seed, duration_s, warmup_s, mec_json = job
+    from sim.config import DEFAULT_SCENE, load_sim_settings
+    from sim.dataset.config import DatasetSettings
+    from sim.dataset.generate import seed_variation
+
+    scene = Scene.load(DEFAULT_SCENE)
+    mec = MecSettings.model_validate_json(mec_json)
+    vehicles = seed_variation(DatasetSettings(), seed)["vehicles"]  # the detector test split's density
+    t0 = time.perf_counter()
+    ev = evaluate_run(
+        scene, agent, load_sim_settings(vehicles=vehicles, seed=seed), mec, duration_s, warmup_s
+    )
+    return agent, seed, ev, time.perf_counter() - t0
+
+
+def evaluate(
+    agents: list[str], seeds: list[int], duration_s: float, warmup_s: float, mec: MecSettings, workers: int
+) -> dict[str, AgentEvaluation]:
+    """Every (agent, seed) run, merged per agent and over all agents (key "all")."""
+    import multiprocessing as mp
+
+    jobs = [(a, s, duration_s, warmup_s, mec.model_dump_json()) for a in agents for s in seeds]
+    per_agent: dict[str, AgentEvaluation] = {a: AgentEvaluation() for a in agents}
+    if workers <= 1:
+        results = map(_run_worker, jobs)
+        for agent, seed, ev, wall_s in results:
+            log.info("%s seed %d: %d frames in %.0f s", agent, seed, ev.frames, wall_s)
+            per_agent[agent].merge(ev)
+    else:
+        with mp.get_context("spawn").Pool(workers) as pool:
+            for agent, seed, ev, wall_s in pool.imap_unordered(_run_worker, jobs):
+                log.info("%s seed %d: %d frames in %.0f s", agent, seed, ev.frames, wall_s)
+                per_agent[agent].merge(ev)
+    overall = AgentEvaluation()
+    for ev in per_agent.values():
+        overall.merge(ev)
+    return {**per_agent, "all": overall}
+
+
+def fusion_gain(summary: dict[str, Any]) -> dict[str, Any]:
+    """Tracked fusion against the best tracked single modality, by AP-BEV@0.7 and MOTA."""
+    singles = {k: v for k, v in summary.items() if k.startswith("tracked_") and isinstance(v, dict)}
+    out: dict[str, Any] = {}
+    for metric, get in (
+        ("ap_bev_0.7", lambda d: d.get("ap_bev_0.7")),
+        ("mota", lambda d: d.get("tracking", {}).get("mota")),
+        ("pose_error_p95_m", lambda d: d.get("pose_error_p95_m")),
+    ):
+        values = {k: get(v) for k, v in singles.items() if get(v) is not None}
+        fused = get(summary.get("tracked", {}))
+        if not values or fused is None:
+            continue
+        lower_is_better = metric.startswith("pose")
+        best_name = (min if lower_is_better else max)(values, key=values.__getitem__)
+        out[metric] = {
+            "fused": fused,
+            "best_single": best_name,
+            "best_single_value": values[best_name],
+            "gain": (values[best_name] - fused) if lower_is_better else (fused - values[best_name]),
+        }
+    return out
+
+
+def write_heat_maps(ev: AgentEvaluation, scene: Scene, out_dir: Any, name: str = "tracked") -> list[str]:
+    """Pose error, AOS and BEV IoU heat maps (the paper's 0.125 m grid over the table) as PNG."""
+    from pathlib import Path
+
+    from shared.metrics.fusion import DEFAULT_CELL_M, save_heat_map_png
+
+    acc = ev.fusion.get(name)
+    if acc is None:
+        return []
+    t = scene.spec.table
+    x0, y0 = t.origin_m
+    x_range = (x0, x0 + np.ceil(t.size_x_m / DEFAULT_CELL_M) * DEFAULT_CELL_M)
+    y_range = (y0, y0 + np.ceil(t.size_y_m / DEFAULT_CELL_M) * DEFAULT_CELL_M)
+    maps = acc.heat_maps(x_range, y_range, DEFAULT_CELL_M)
+    written = []
+    for key, title, vmin, vmax in (
+        ("pose_error_m", "pose error, m", 0.0, 0.05),
+        ("aos", "AOS", 0.8, 1.0),
+        ("bev_iou", "BEV IoU", 0.5, 1.0),
+    ):
+        path = Path(out_dir) / f"heat_{name}_{key}.png"
+        save_heat_map_png(maps[key], x_range, y_range, path, f"{name}: {title}", vmin, vmax)
+        written.append(str(path))
+    return written

@@ -270,3 +270,16 @@ def test_bad_gate_raises() -> None:
         FusionAccumulator(max_distance_m=0.0)
     with pytest.raises(ValueError, match="max_distance_m"):
         match_frame(NO_BOXES, NO_BOXES, max_distance_m=float("nan"))
+
+
+def test_merge_equals_one_accumulator_over_all_frames() -> None:
+    gt = np.array([[0.0, 0.0, 0.1, 0.33, 0.22, 0.21, 0.0]])
+    shifted = gt + np.array([0.05, 0, 0, 0, 0, 0, 0])
+    one, a, b = FusionAccumulator(), FusionAccumulator(), FusionAccumulator()
+    for acc in (one, a):
+        acc.add_frame(gt, gt)
+    for acc in (one, b):
+        acc.add_frame(shifted, gt)
+        acc.add_frame(np.zeros((0, 7)), gt)
+    a.merge(b)
+    assert a.summary() == one.summary()

@@ -91,3 +91,16 @@ def test_malformed_input_raises(args: tuple[object, object, object, object], mes
 def test_bad_gate_raises() -> None:
     with pytest.raises(ValueError, match="max_distance_m"):
         TrackingAccumulator(max_distance_m=-1.0)
+
+
+def test_merged_sequences_sum_their_events_and_never_link_ids() -> None:
+    a, b = TrackingAccumulator(), TrackingAccumulator()
+    for _ in range(3):
+        a.update([1], [[0.0, 0.0]], [7], [[0.0, 0.0]])
+    # The same ids in another sequence: a new object and track there, not a switch.
+    b.update([1], [[5.0, 5.0]], [8], [[5.0, 5.0]])
+    b.update([1], [[5.0, 5.0]], [], np.zeros((0, 2)))
+    a.merge(b)
+    s = a.summary()
+    assert s["num_frames"] == 5 and s["num_gt"] == 5 and s["misses"] == 1 and s["id_switches"] == 0
+    assert s["mota"] == pytest.approx(1 - 1 / 5)

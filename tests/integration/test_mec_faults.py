@@ -1,0 +1,200 @@
+"""Fault injection on a running MEC (reliability.md F1 / F2): real processes — router, sim at 1x,
+sensor services, the MEC with its ONNX detectors — and a subscriber on the agent's objects.
+
+For each modality in turn (camera, lidar on the roundabout agent; radar on the viaduct agent), the
+sensor service is killed with SIGKILL while objects flow FULL:
+- objects keep flowing: >= 90 % of the sensor rate, no gap over 250 ms;
+- the output is DEGRADED, naming the killed sensor MISSING, within 300 ms of the kill;
+then the service is restarted: the output is FULL again within 1 s of the sensor's first new frame.
+
+The MEC fuses one camera (`--sensors`) and the sensor services render only that one (`--only`), so
+the whole chain fits a 2-core CI machine. Time limits scale with RSP_TIME_SCALE (slow machines).
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import signal
+import subprocess
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import pytest
+from rmmdet.v1 import perception_pb2 as pb
+
+from shared.bus.node import Node
+from shared.bus.streams import SENSOR_STREAM
+from tests.helpers import Router, spawn, stop
+
+pytestmark = [pytest.mark.integration, pytest.mark.fault, pytest.mark.timeout(240)]
+
+SCALE = float(os.environ.get("RSP_TIME_SCALE", "1"))
+RATE_HZ = 15.0  # every sensor of the scene
+MIN_RATE_FRACTION = 0.9
+MAX_GAP_S = 0.25 * SCALE
+DEGRADED_WITHIN_S = 0.3 * SCALE
+FULL_WITHIN_S = 1.0 * SCALE
+STARTUP_S = 60.0
+WINDOW_S = 3.0
+
+
+@dataclass
+class Outputs:
+    """Objects messages received: (monotonic arrival, status, missing sensors)."""
+
+    rows: list[tuple[float, int, frozenset[str]]] = field(default_factory=list)
+    sensor_first: dict[str, float] = field(default_factory=dict)  # sensor id -> first frame after a mark
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def since(self, t: float) -> list[tuple[float, int, frozenset[str]]]:
+        with self.lock:
+            return [r for r in self.rows if r[0] >= t]
+
+    def wait(self, pred, timeout_s: float, since: float) -> float:
+        """Arrival time of the first message after `since` satisfying `pred`; fails after the timeout."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            for row in self.since(since):
+                if pred(row):
+                    return row[0]
+            time.sleep(0.02)
+        last = self.since(since)[-1:] if self.rows else None
+        raise AssertionError(f"condition not met within {timeout_s} s (last: {last})")
+
+
+def status_ok(row) -> bool:
+    return row[1] == pb.PERCEPTION_STATUS_FULL
+
+
+@dataclass
+class Chain:
+    router: Router
+    agent: str
+    sensors: dict[str, tuple[str, str]]  # sensor id -> (group, kind)
+    procs: dict[str, subprocess.Popen]
+    out: Outputs
+
+    def start_group(self, sensor_id: str) -> None:
+        group = self.sensors[sensor_id][0]
+        self.procs[group] = spawn(
+            ["-m", "services.sensor", "--group", group, "--only", sensor_id, *self.router.client_args()]
+        )
+
+
+@pytest.fixture
+def chain_factory(router: Router) -> Iterator:
+    chains: list[tuple[Chain, threading.Event, list[threading.Thread]]] = []
+
+    def make(agent: str, sensors: dict[str, tuple[str, str]]) -> Chain:
+        procs = {
+            "sim": spawn(["-m", "services.sim", *router.client_args(), "--speed", "1", "--vehicles", "16"])
+        }
+        chain = Chain(router, agent, sensors, procs, Outputs())
+        for sensor_id in sensors:
+            chain.start_group(sensor_id)
+        procs["mec"] = spawn(
+            ["-m", "services.mec", "--instance", agent, "--sensors", ",".join(sensors), *router.client_args()]
+        )
+        done = threading.Event()
+        node = Node(router.client_config(), service="test", instance="mec-faults", scope="site")
+        node.open()
+        objects = node.subscribe_stream("objects", agent=agent, maxsize=1000)
+        frames = [
+            node.subscribe_stream(SENSOR_STREAM[k], agent=agent, sensor=s, maxsize=1000)
+            for s, (_, k) in sensors.items()
+        ]
+
+        def consume_objects() -> None:
+            while not done.is_set():
+                item = objects.recv(timeout=0.1)
+                if item is None:
+                    continue
+                msg: pb.TrackedObjects = item.message
+                missing = frozenset(i.sensor_id for i in msg.inputs if i.state != pb.INPUT_STATE_OK)
+                with chain.out.lock:
+                    chain.out.rows.append((time.monotonic(), msg.status, missing))
+
+        def consume_frames(sub) -> None:
+            while not done.is_set():
+                item = sub.recv(timeout=0.1)
+                if item is not None:
+                    sensor = item.key.rsplit("/", 1)[-1]
+                    with chain.out.lock:
+                        chain.out.sensor_first.setdefault(sensor, time.monotonic())
+
+        threads = [threading.Thread(target=consume_objects, daemon=True)]
+        threads += [threading.Thread(target=consume_frames, args=(s,), daemon=True) for s in frames]
+        for t in threads:
+            t.start()
+        chains.append((chain, done, threads))
+        chain.node = node  # type: ignore[attr-defined]
+        return chain
+
+    yield make
+    for chain, done, threads in chains:
+        done.set()
+        for t in threads:
+            t.join(2)
+        chain.node.close()  # type: ignore[attr-defined]
+        for p in chain.procs.values():
+            stop(p)
+
+
+def check_kill_and_restart(chain: Chain, victim: str) -> None:
+    out = chain.out
+    t_start = time.monotonic()
+    out.wait(status_ok, STARTUP_S, since=t_start)
+    # Steady FULL output first.
+    time.sleep(1.0)
+    t0 = time.monotonic()
+    time.sleep(WINDOW_S)
+    rows = out.since(t0)
+    assert len(rows) >= MIN_RATE_FRACTION * RATE_HZ * WINDOW_S, f"baseline rate {len(rows) / WINDOW_S:.1f} Hz"
+
+    group = chain.sensors[victim][0]
+    chain.procs[group].send_signal(signal.SIGKILL)  # the group is one process
+    chain.procs[group].wait(5)
+    t_kill = time.monotonic()
+    t_degraded = out.wait(
+        lambda r: r[1] == pb.PERCEPTION_STATUS_DEGRADED and victim in r[2], 5.0 * SCALE, since=t_kill
+    )
+    assert t_degraded - t_kill <= DEGRADED_WITHIN_S, f"DEGRADED after {t_degraded - t_kill:.3f} s"
+    time.sleep(WINDOW_S)
+    rows = out.since(t_kill)
+    times = [t_kill] + [r[0] for r in rows]
+    gaps = [b - a for a, b in itertools.pairwise(times)]
+    assert max(gaps) <= MAX_GAP_S, f"largest output gap {max(gaps):.3f} s after the kill"
+    rate = len([r for r in rows if r[0] <= t_kill + WINDOW_S]) / WINDOW_S
+    assert rate >= MIN_RATE_FRACTION * RATE_HZ, f"degraded output at {rate:.1f} Hz"
+    assert all(r[1] != pb.PERCEPTION_STATUS_FULL for r in rows if r[0] > t_degraded), "flapped back to FULL"
+
+    with out.lock:
+        out.sensor_first.pop(victim, None)
+    chain.start_group(victim)
+    t_restart = time.monotonic()
+    deadline = t_restart + STARTUP_S
+    while victim not in out.sensor_first:
+        assert time.monotonic() < deadline, f"{victim} did not come back"
+        time.sleep(0.05)
+    t_first = out.sensor_first[victim]
+    t_full = out.wait(status_ok, 5.0 * SCALE, since=t_first)
+    assert t_full - t_first <= FULL_WITHIN_S, f"FULL {t_full - t_first:.3f} s after the sensor's first frame"
+
+
+CAMERA_LIDAR = {"cam_41": ("agent3-cameras", "camera"), "lidar_41": ("agent3-lidars", "lidar")}
+
+
+def test_camera_and_lidar_faults_degrade_and_recover(chain_factory) -> None:
+    chain = chain_factory("agent3", CAMERA_LIDAR)
+    check_kill_and_restart(chain, "cam_41")
+    check_kill_and_restart(chain, "lidar_41")
+
+
+def test_radar_fault_degrades_and_recovers(chain_factory) -> None:
+    chain = chain_factory(
+        "agent2", {"cam_2": ("agent2-cameras", "camera"), "radar_2": ("agent2-radars", "radar")}
+    )
+    check_kill_and_restart(chain, "radar_2")
