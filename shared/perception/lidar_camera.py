@@ -34,6 +34,8 @@ from shared.geometry.boxes import iou2d_matrix
 from shared.perception.views import CameraView
 
 FloatArray = NDArray[np.float64]
+# Aspect errors within this of the best count as equally good (the yaw search then stays nearest).
+ASPECT_TIE = 1e-6
 
 
 class LidarCameraConfig(BaseModel):
@@ -127,28 +129,43 @@ def _centre(boxes_xyxy: FloatArray) -> FloatArray:
     return np.column_stack([(b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2])
 
 
+def merge_boxes(
+    boxes3d: FloatArray, boxes2d: FloatArray, view: CameraView, cfg: LidarCameraConfig
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Merge (K, 7) lidar boxes with their matched (K, >=4) 2D boxes of one camera, all at once.
+    Returns the merged boxes and which were merged (False: truncated, or nothing to do; box kept)."""
+    boxes = np.array(boxes3d, float, copy=True).reshape(-1, 7)
+    dets = np.asarray(boxes2d, float).reshape(len(boxes), -1)[:, :4]
+    if len(boxes) == 0 or not (cfg.merge_centre or cfg.refine_yaw):
+        return boxes, np.zeros(len(boxes), bool)
+    proj, visible, inside = view.image_boxes(boxes)
+    ok = visible & inside & ~view.touches_border(dets, cfg.border_margin_px)
+    w = cfg.camera_weight
+    if cfg.merge_centre and w > 0 and ok.any():
+        camera_xy = view.fit_centres(boxes[ok], dets[ok])
+        found = np.isfinite(camera_xy).all(axis=1)
+        rows = np.flatnonzero(ok)[found]
+        boxes[rows, :2] += w * (camera_xy[found] - boxes[rows, :2])
+    if cfg.refine_yaw and cfg.yaw_search_rad > 0 and ok.any():
+        rows = np.flatnonzero(ok)
+        target = w * _aspect(dets[rows]) + (1 - w) * _aspect(proj[rows])
+        n = round(cfg.yaw_search_rad / cfg.yaw_step_rad)
+        offsets = np.arange(-n, n + 1) * cfg.yaw_step_rad
+        candidates = np.repeat(boxes[rows][:, None, :], len(offsets), axis=1)  # (R, S, 7)
+        candidates[..., 6] += offsets
+        cand_proj, cand_visible, _ = view.image_boxes(candidates.reshape(-1, 7))
+        err = np.where(cand_visible, np.abs(_aspect(cand_proj) - np.repeat(target, len(offsets))), np.inf)
+        err = err.reshape(len(rows), len(offsets))
+        # Nearest the lidar yaw among the (near-)best: the aspect is flat near its optimum.
+        near_best = err <= err.min(axis=1, keepdims=True) + ASPECT_TIE
+        pick = np.argmin(np.where(near_best, np.abs(offsets)[None], np.inf), axis=1)
+        boxes[rows, 6] += offsets[pick]
+    return boxes, ok
+
+
 def merge_box(
     box3d: FloatArray, box2d: FloatArray, view: CameraView, cfg: LidarCameraConfig
 ) -> tuple[FloatArray, bool]:
-    """The merged (7,) box and whether the merge applied (False: truncated, box returned unchanged)."""
-    box = np.asarray(box3d, float).copy()
-    proj, visible, inside = view.image_boxes(box[None])
-    if not (visible[0] and inside[0]) or view.touches_border(box2d[None, :4], cfg.border_margin_px)[0]:
-        return box, False
-    w = cfg.camera_weight
-    if cfg.merge_centre and w > 0:
-        camera_xy = view.fit_centre(box, box2d[:4])
-        if camera_xy is not None:
-            box[:2] += w * (camera_xy - box[:2])
-    if cfg.refine_yaw and cfg.yaw_search_rad > 0:
-        target = w * _aspect(box2d[:4])[0] + (1 - w) * _aspect(proj)[0]
-        n = round(cfg.yaw_search_rad / cfg.yaw_step_rad)
-        offsets = np.arange(-n, n + 1) * cfg.yaw_step_rad
-        candidates = np.repeat(box[None], len(offsets), axis=0)
-        candidates[:, 6] += offsets
-        cand_proj, cand_visible, _ = view.image_boxes(candidates)
-        err = np.where(cand_visible, np.abs(_aspect(cand_proj) - target), np.inf)
-        # Nearest the lidar yaw among the (near-)best: the aspect is flat near its optimum.
-        best = np.flatnonzero(err <= err.min() + 1e-6)
-        box[6] += offsets[best[np.argmin(np.abs(offsets[best]))]]
-    return box, True
+    """`merge_boxes` for one box."""
+    merged, applied = merge_boxes(np.asarray(box3d, float)[None], np.asarray(box2d, float)[None], view, cfg)
+    return merged[0], bool(applied[0])

@@ -196,12 +196,18 @@ class AgentPipeline:
             res = lidar_camera.match_boxes(boxes3d[:, :7], boxes3d[:, 7], views, dets2d, lc.min_iou)
             counts["lidar_camera/matched"] += len(res.matches)
             counts["lidar_camera/masked"] += res.masked
-            for i, cam, j, _iou in res.matches:
-                used_2d[cam].add(j)
-                box, merged = lidar_camera.merge_box(boxes3d[i, :7], dets2d[cam][j], self.views[cam], lc)
-                counts["lidar_camera/merged"] += int(merged)
-                score = max(float(boxes3d[i, 7]), float(dets2d[cam][j, 4]))
-                out.append(_lidar_measurement(box, score, frozenset({LIDAR, CAMERA}), (cam, *self.lidar_ids)))
+            for cam in {c for _, c, _, _ in res.matches}:
+                pairs = [(i, j) for i, c, j, _ in res.matches if c == cam]
+                rows, cols = [p[0] for p in pairs], [p[1] for p in pairs]
+                used_2d[cam].update(cols)
+                merged, applied = lidar_camera.merge_boxes(
+                    boxes3d[rows, :7], dets2d[cam][cols], self.views[cam], lc
+                )
+                counts["lidar_camera/merged"] += int(applied.sum())
+                for box, i, j in zip(merged, rows, cols, strict=True):
+                    score = max(float(boxes3d[i, 7]), float(dets2d[cam][j, 4]))
+                    modalities = frozenset({LIDAR, CAMERA})
+                    out.append(_lidar_measurement(box, score, modalities, (cam, *self.lidar_ids)))
             # Without any camera there is nothing to confirm with: lidar boxes pass (degraded mode).
             if lc.keep_unmatched_lidar or not dets2d:
                 for i in res.unmatched_3d:

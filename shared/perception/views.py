@@ -28,9 +28,9 @@ CENTRE_FIT_ITERATIONS = 3
 SURFACE_SAMPLE_STEP_M = 0.05
 
 
-def _box_centre(box_xyxy: FloatArray) -> FloatArray:
-    b = np.asarray(box_xyxy, float)
-    return np.array([(b[0] + b[2]) / 2, (b[1] + b[3]) / 2])
+def _box_centres(boxes_xyxy: FloatArray) -> FloatArray:
+    b = np.asarray(boxes_xyxy, float).reshape(-1, 4)
+    return np.column_stack([(b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2])
 
 
 @dataclass(frozen=True)
@@ -103,34 +103,53 @@ class CameraView:
         return boxes, visible, inside
 
     def to_plane(self, uv_px: FloatArray, z_m: float | FloatArray) -> FloatArray:
-        """Pixels -> world points on horizontal planes z = z_m (scalar or per pixel); NaN rows miss."""
+        """Pixels -> world points on horizontal planes z = z_m (scalar or one per pixel); NaN rows where
+        the ray is parallel to the plane or meets it behind the camera. Undistorted pinhole (the
+        scene's cameras); `shared.geometry.camera.pixel_to_world_on_plane` is the validated
+        general form (tested equal)."""
+        if self.distortion is not None:
+            uv = np.asarray(uv_px, float).reshape(-1, 2)
+            z = np.broadcast_to(np.asarray(z_m, float), (len(uv),))
+            out = np.full((len(uv), 3), np.nan)
+            for level in np.unique(z):
+                rows = z == level
+                out[rows] = pixel_to_world_on_plane(
+                    uv[rows],
+                    self.T_world_from_optical,
+                    self.K,
+                    plane_offset=level,
+                    distortion=self.distortion,
+                )[0]
+            return out
         uv = np.asarray(uv_px, float).reshape(-1, 2)
-        z = np.broadcast_to(np.asarray(z_m, float), (len(uv),))
-        out = np.full((len(uv), 3), np.nan)
-        for level in np.unique(z):
-            rows = z == level
-            out[rows] = pixel_to_world_on_plane(
-                uv[rows], self.T_world_from_optical, self.K, plane_offset=level
-            )[0]
-        return out
+        rays_optical = np.column_stack([(uv - self.K[:2, 2]) / np.diag(self.K)[:2], np.ones(len(uv))])
+        rays = rays_optical @ self.T_world_from_optical[:3, :3].T
+        origin = self.T_world_from_optical[:3, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (np.asarray(z_m, float) - origin[2]) / rays[:, 2]
+        t = np.where(np.isfinite(t) & (t > 0), t, np.nan)
+        return origin + t[:, None] * rays
+
+    def fit_centres(self, boxes3d: FloatArray, boxes2d: FloatArray) -> FloatArray:
+        """Per row, the xy where `boxes3d[i]` (size, yaw, height kept) projects to a box centred on the
+        detected `boxes2d[i]` centre: the box moves by the offset, on the plane of its centre height,
+        between the two box centres, repeated (one step is off by the perspective curvature, ~10 % of
+        the shift). Comparing box centre with box centre cancels the perspective offset between a 2D
+        box's centre and its 3D centre's projection. NaN rows where a viewing ray misses the plane."""
+        boxes = np.array(boxes3d, float, copy=True).reshape(-1, 7)
+        target = self.to_plane(_box_centres(boxes2d), boxes[:, 2])
+        for _ in range(CENTRE_FIT_ITERATIONS):
+            proj, visible, _ = self.image_boxes(boxes)
+            at = self.to_plane(_box_centres(proj), boxes[:, 2])
+            step = target[:, :2] - at[:, :2]
+            step[~visible] = np.nan
+            boxes[:, :2] += step
+        return boxes[:, :2]
 
     def fit_centre(self, box3d: FloatArray, box2d: FloatArray) -> FloatArray | None:
-        """The xy where `box3d` (size, yaw and height kept) projects to a box centred on the detected
-        `box2d` centre: the box moves by the offset, on the plane of its centre height, between the two
-        box centres, repeated (one step is off by the perspective curvature, ~10 % of the shift).
-        Comparing box centre with box centre cancels the perspective offset between a 2D box's
-        centre and its 3D centre's projection. None when a viewing ray misses the plane."""
-        box = np.array(box3d, float, copy=True)
-        target = self.to_plane(_box_centre(box2d)[None], box[2])[0]
-        if not np.isfinite(target).all():
-            return None
-        for _ in range(CENTRE_FIT_ITERATIONS):
-            proj, visible, _ = self.image_boxes(box[None])
-            at = self.to_plane(_box_centre(proj[0])[None], box[2])[0]
-            if not (visible[0] and np.isfinite(at).all()):
-                return None
-            box[:2] += target[:2] - at[:2]
-        return box[:2]
+        """`fit_centres` for one box; None when a ray misses."""
+        xy = self.fit_centres(np.asarray(box3d, float)[None], np.asarray(box2d, float)[None, :4])[0]
+        return xy if np.isfinite(xy).all() else None
 
     def touches_border(self, boxes_xyxy: FloatArray, margin_px: float) -> NDArray[np.bool_]:
         b = np.asarray(boxes_xyxy, float).reshape(-1, 4)

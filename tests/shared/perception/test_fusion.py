@@ -170,3 +170,33 @@ def test_merge_nearby_fuses_one_car_seen_twice() -> None:
     merged = camera_only.merge_nearby([c, b, a], radius_m=0.2)
     assert len(merged) == 2
     assert merged[0].box[0] == pytest.approx(0.05) and merged[0].sensor_ids == ("a", "b")
+
+
+def test_fast_projection_paths_equal_the_validated_geometry(cam: CameraView) -> None:
+    from shared.geometry.boxes import box3d_corners
+    from shared.geometry.camera import box3d_to_image_box, pixel_to_world_on_plane
+
+    rng = np.random.default_rng(3)
+    boxes = np.stack([car(x, y, yaw) for x, y, yaw in rng.uniform([-1.5, 0.5, -3], [0.5, 3.5, 3], (50, 3))])
+    fast, fast_visible, _ = cam.image_boxes(boxes)
+    ref, ref_visible = box3d_to_image_box(box3d_corners(boxes), cam.T_optical_from_world, cam.K, 640, 480)
+    np.testing.assert_array_equal(fast_visible, ref_visible)
+    np.testing.assert_allclose(fast[fast_visible], ref[ref_visible], atol=1e-9)
+    uv = rng.uniform([0, 0], [640, 480], (50, 2))
+    z = rng.uniform(0.0, 0.3, 50)
+    fast_pts = cam.to_plane(uv, z)
+    for p, q, h in zip(fast_pts, uv, z, strict=True):
+        ref_pt = pixel_to_world_on_plane(q[None], cam.T_world_from_optical, cam.K, plane_offset=h)[0][0]
+        np.testing.assert_allclose(p, ref_pt, atol=1e-9, equal_nan=True)
+
+
+def test_batched_merge_equals_one_at_a_time(cam: CameraView) -> None:
+    truths = np.stack([car(-0.6, 2.0, 0.2), car(-0.3, 1.8, 1.0), car(-0.8, 2.4, -0.4)])
+    lidar = truths + np.array([0.03, -0.02, 0, 0, 0, 0, 0.08])
+    dets = projected(cam, truths)
+    cfg = lidar_camera.LidarCameraConfig()
+    batch, applied = lidar_camera.merge_boxes(lidar, dets, cam, cfg)
+    for k in range(len(truths)):
+        one, ok = lidar_camera.merge_box(lidar[k], dets[k], cam, cfg)
+        np.testing.assert_allclose(batch[k], one, atol=1e-12)
+        assert ok == applied[k]
