@@ -26,8 +26,9 @@ FloatArray = NDArray[np.float64]
 class CameraOnlyConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    car_size_m: tuple[float, float, float] = Field(
-        (0.33, 0.22, 0.21), description="length, width, height given to camera-only objects"
+    car_size_m: tuple[float, float, float] | None = Field(
+        None,
+        description="length, width, height given to camera-only and radar objects (default: the scene's car)",
     )
     merge_radius_m: float = Field(
         0.2, gt=0, description="positions of one car from several cameras merge within this"
@@ -65,10 +66,12 @@ def locate(
     boxes_by_camera: Mapping[str, FloatArray],
     surface: RoadSurface,
     cfg: CameraOnlyConfig,
+    car_size_m: tuple[float, float, float],
 ) -> list[CameraObject]:
-    """Camera-only objects from (N, >=5) `[x0, y0, x1, y1, score, ...]` boxes per camera."""
+    """Camera-only objects from (N, >=5) `[x0, y0, x1, y1, score, ...]` boxes per camera; every car
+    gets `car_size_m` (length, width, height)."""
     found: list[CameraObject] = []
-    length, width, height = cfg.car_size_m
+    length, width, height = car_size_m
     for cam, boxes in boxes_by_camera.items():
         if len(boxes) == 0:
             continue

@@ -55,6 +55,12 @@ class LidarCameraConfig(BaseModel):
     keep_unmatched_lidar: bool = Field(
         True, description="publish 3D boxes no camera confirmed (paper: discard)"
     )
+    unmatched_lidar_min_score: float = Field(
+        0.3,
+        ge=0,
+        le=1,
+        description="... if their detector score reaches this (with cameras live; without, all boxes pass)",
+    )
 
 
 @dataclass

@@ -106,6 +106,8 @@ class AgentPipeline:
         self.radar_specs = [s for s in specs if s.kind == "radar"]
         self.views = {c: CameraView.from_scene(scene, c) for c in self.camera_ids}
         self.surface = RoadSurface(scene, settings.surface_half_width_m)
+        car = scene.spec.vehicle
+        self.car_size_m = settings.camera_only.car_size_m or (car.length_m, car.width_m, car.height_m)
         det = settings.detectors
         self.camera_detector = cameras
         if self.camera_detector is None and self.camera_ids:
@@ -209,8 +211,10 @@ class AgentPipeline:
                     modalities = frozenset({LIDAR, CAMERA})
                     out.append(_lidar_measurement(box, score, modalities, (cam, *self.lidar_ids)))
             # Without any camera there is nothing to confirm with: lidar boxes pass (degraded mode).
+            # With cameras, a lidar box no camera confirmed must be confident on its own.
             if lc.keep_unmatched_lidar or not dets2d:
-                for i in res.unmatched_3d:
+                min_score = lc.unmatched_lidar_min_score if dets2d else 0.0
+                for i in [i for i in res.unmatched_3d if boxes3d[i, 7] >= min_score]:
                     out.append(
                         _lidar_measurement(
                             boxes3d[i, :7], boxes3d[i, 7], frozenset({LIDAR}), tuple(self.lidar_ids)
@@ -230,7 +234,9 @@ class AgentPipeline:
             leftovers[c] = d[[j for j in range(len(d)) if j not in used_2d[c]]]
         camera_list: list[Measurement] = []
         if leftovers:
-            for obj in camera_only.locate(self.views, leftovers, self.surface, self.cfg.camera_only):
+            for obj in camera_only.locate(
+                self.views, leftovers, self.surface, self.cfg.camera_only, self.car_size_m
+            ):
                 counts["camera_only"] += 1
                 camera_list.append(
                     Measurement(
@@ -252,6 +258,15 @@ class AgentPipeline:
             out += merge_across_sensors(
                 [*per_radar, camera_list], self.cfg.radar_camera.cross_radar_gate_m, counts
             )
+        elif out and camera_list:
+            # Lidar agent: a camera-only object near a lidar box is that box's car seen again, not a
+            # car the lidar missed.
+            lidar_xy = np.array([m.position_m for m in out])
+            gate = self.cfg.camera_only.merge_radius_m
+            for m in camera_list:
+                if np.min(np.linalg.norm(lidar_xy - m.position_m, axis=1)) > gate:
+                    out.append(m)
+                    counts["camera_only/fill_in"] += 1
         else:
             out += camera_list
         return out
@@ -266,7 +281,7 @@ class AgentPipeline:
         """Algorithm 1 per radar and its paired camera: one measurement list per radar."""
         rc = self.cfg.radar_camera
         per_radar: list[list[Measurement]] = []
-        length, width, height = self.cfg.camera_only.car_size_m
+        length, width, height = self.car_size_m
         for spec in self.radar_specs:
             targets = frame.radar.get(spec.id)
             if targets is None or len(targets) == 0:
@@ -274,18 +289,22 @@ class AgentPipeline:
             assert spec.radar is not None
             targets = targets.subset(targets.rcs_dbsm >= rc.min_rcs_dbsm)
             counts["radar/targets"] += len(targets)
+            radar_xy = self.radar_T[spec.id][:2, 3]
+            reflection = radar_camera.targets_to_world(targets, self.radar_T[spec.id])
             world = radar_camera.reflection_to_centre(
-                radar_camera.targets_to_world(targets, self.radar_T[spec.id]),
-                self.radar_T[spec.id][:3, 3],
-                rc.centre_offset_m,
+                reflection, self.radar_T[spec.id][:3, 3], rc.centre_offset_m
             )
             surface_z = self.surface.heights_near(world[:, :2])
             on_road = np.isfinite(surface_z)
             counts["radar/off_road"] += int((~on_road).sum())
             targets, world, surface_z = targets.subset(on_road), world[on_road], surface_z[on_road]
+            reflection = reflection[on_road]
             world[:, 2] = surface_z + rc.object_height_m / 2
             lane_yaw = self.surface.lane_heading(world[:, :2])  # cars follow their lane
-            radar_xy = self.radar_T[spec.id][:2, 3]
+            if rc.centre_from_lane_heading:
+                world[:, :2] = radar_camera.centres_from_reflections(
+                    reflection[:, :2], lane_yaw, (length, width), radar_xy, rc.centre_offset_m
+                )
             cov_r = radar_camera.radar_position_cov(
                 world[:, :2],
                 radar_xy,

@@ -31,6 +31,9 @@ from shared.geometry.transforms import polar_to_cartesian, transform_points
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
+# Fixed-point steps of `centres_from_reflections`.
+REFLECTION_FIT_ITERATIONS = 6
+
 
 class RoiSizeConfig(BaseModel):
     """ROI size S = alpha / d + beta per image axis, d = optical depth of the POI."""
@@ -74,6 +77,11 @@ class RadarCameraConfig(BaseModel):
         ge=0,
         description="spread of the reflecting point about the assumed centre (corner vs face), m: added "
         "to the radar position covariance on both axes",
+    )
+    centre_from_lane_heading: bool = Field(
+        True,
+        description="place the car centre so a car-sized footprint with the lane's heading has the "
+        "reflection as its point nearest the radar (else: centre_offset_m along the line of sight)",
     )
     centre_offset_m: float = Field(
         0.12,
@@ -119,6 +127,42 @@ def reflection_to_centre(world_m: FloatArray, radar_m: FloatArray, offset_m: flo
     dist = np.linalg.norm(los, axis=1, keepdims=True)
     out[:, :2] += np.where(dist > 0, los / np.maximum(dist, 1e-12), 0.0) * offset_m
     return out
+
+
+def nearest_footprint_point(
+    centre_xy: FloatArray, yaw_rad: FloatArray, size_xy: tuple[float, float], from_xy: FloatArray
+) -> FloatArray:
+    """(K, 2) point of each car footprint (centre, yaw, length x width) nearest `from_xy` (the radar):
+    the radar reports the box point nearest to it (the first reflection)."""
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    rel = np.asarray(from_xy, float)[None] - centre_xy
+    local = np.column_stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1]])
+    half = np.asarray(size_xy, float) / 2
+    clamped = np.clip(local, -half, half)
+    return centre_xy + np.column_stack(
+        [c * clamped[:, 0] - s * clamped[:, 1], s * clamped[:, 0] + c * clamped[:, 1]]
+    )
+
+
+def centres_from_reflections(
+    reflection_xy: FloatArray,
+    yaw_rad: FloatArray,
+    size_xy: tuple[float, float],
+    radar_xy: FloatArray,
+    first_guess_m: float,
+) -> FloatArray:
+    """Car centres whose footprint's nearest point to the radar is the measured reflection, for cars
+    of known size and heading (the lane's): start `first_guess_m` behind the reflection along the
+    line of sight and move by the residual (converges in a few steps; the nearest point moves
+    smoothly with the centre). Rows with an unknown yaw keep the first guess."""
+    centre = reflection_to_centre(
+        np.column_stack([reflection_xy, np.zeros(len(reflection_xy))]), np.r_[radar_xy, 0.0], first_guess_m
+    )[:, :2]
+    known = np.isfinite(yaw_rad)
+    for _ in range(REFLECTION_FIT_ITERATIONS):
+        near = nearest_footprint_point(centre[known], yaw_rad[known], size_xy, radar_xy)
+        centre[known] += reflection_xy[known] - near
+    return centre
 
 
 def roi_boxes(uv_px: FloatArray, depth_m: FloatArray, cfg: RoiSizeConfig) -> FloatArray:

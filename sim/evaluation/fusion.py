@@ -38,6 +38,7 @@ from shared.metrics.tracking import TrackingAccumulator
 from shared.perception import camera_only
 from shared.perception.config import MecSettings
 from shared.perception.decode import image_to_array, point_cloud_to_array, radar_to_targets
+from shared.perception.output import DEFAULT_SIZE_M
 from shared.perception.pipeline import AgentInputs, AgentPipeline, AgentResult
 from shared.scene.scene import Scene
 from shared.tracking.tracker import Measurement, MultiObjectTracker, Track
@@ -51,7 +52,6 @@ log = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
 NS_PER_S = 1_000_000_000
-DEFAULT_SIZE_M = (0.33, 0.22, 0.21)
 SINGLE_MODALITIES = ("lidar", "camera", "radar")
 # Ground truth this close outside the agent's areas is an ignore region; predictions beyond are dropped.
 SCOPE_MARGIN_M = 0.3

@@ -26,9 +26,10 @@ from shared.perception.pipeline import merge_across_sensors
 from shared.perception.radar_camera import (
     RadarCameraConfig,
     RadarTargets,
-    reflection_to_centre,
+    centres_from_reflections,
     targets_to_world,
 )
+from shared.perception.views import RoadSurface
 from shared.scene.scene import Scene
 from shared.tracking.tracker import Measurement, MultiObjectTracker, TrackerConfig
 from sim.config import load_sim_settings
@@ -81,6 +82,9 @@ def run_noise(
     radars = scene.sensors_of("agent2", "radar")
     T = {r.id: np.asarray(scene.T_world_from_sensor(r.id), float) for r in radars}
     rng = np.random.default_rng(seed)
+    rc = RadarCameraConfig()
+    surface = RoadSurface(scene, SURFACE_HALF_WIDTH_M)
+    car_xy = (scene.spec.vehicle.length_m, scene.spec.vehicle.width_m)
     runs = [NoiseRun(v) for v in variances]
     trackers = {
         (i, m): MultiObjectTracker(_tracker_config(v, m))
@@ -102,11 +106,14 @@ def run_noise(
             for c in tick.captures:
                 targets, vids = _targets(c.data)  # type: ignore[arg-type]
                 if len(vids):
-                    world = targets_to_world(targets, T[c.spec.id])
-                    world = reflection_to_centre(
-                        world, T[c.spec.id][:3, 3], RadarCameraConfig().centre_offset_m
+                    # The MEC's radar positions: the car centre behind the reflection, for a car on
+                    # its lane (radar_camera.centres_from_reflections).
+                    reflection = targets_to_world(targets, T[c.spec.id])[:, :2]
+                    yaw = surface.lane_heading(reflection)
+                    xy = centres_from_reflections(
+                        reflection, yaw, car_xy, T[c.spec.id][:2, 3], rc.centre_offset_m
                     )
-                    per_radar.append((world[:, :2], vids, targets.range_rate_mps, T[c.spec.id][:2, 3]))
+                    per_radar.append((xy, vids, targets.range_rate_mps, T[c.spec.id][:2, 3]))
             stamp_s = tick.ground_truth.header.stamp.ToNanoseconds() / NS_PER_S
             scored = tick.ground_truth.header.tick >= warmup_s * settings.tick_hz
             ids = [v for _, vids, _, _ in per_radar for v in vids]
@@ -158,6 +165,7 @@ IDENTITY_PROCESS_STD_M = 0.1
 MIN_CROSS_GATE_M = 0.5
 CROSS_GATE_SIGMAS = 3.0
 RADAR = frozenset({"radar"})
+SURFACE_HALF_WIDTH_M = 0.2  # as the MEC's default (MecSettings.surface_half_width_m)
 USE_RANGE_RATE = False  # measured: no gain at high noise (the EKF's position cross-term)
 # Range-rate variance given to the tracker: the scene radars' 0.01 m/s noise plus margin, m²/s².
 RANGE_RATE_VARIANCE_M2PS2 = 0.02**2

@@ -92,7 +92,7 @@ class LossConfig(_Model):
 class TrainConfig(_Model):
     """Optimiser, schedule and data loading. The schedule also ends on the time budget."""
 
-    epochs: int = Field(12, gt=0, description="passes over the training split (at most; see max_minutes)")
+    epochs: int = Field(18, gt=0, description="passes over the training split (at most; see max_minutes)")
     batch_size: int = Field(32, gt=0, description="images per step")
     lr: float = Field(8e-3, gt=0, description="peak AdamW learning rate")
     weight_decay: float = Field(1e-4, ge=0, description="AdamW weight decay (not on norms and biases)")
@@ -101,7 +101,7 @@ class TrainConfig(_Model):
     ema_decay: float = Field(0.998, ge=0, lt=1, description="decay of the weight EMA that is saved (0: off)")
     grad_clip: float = Field(10.0, gt=0, description="gradient-norm clip")
     max_minutes: float = Field(
-        22.0, gt=0, description="wall-clock budget: the schedule follows max(step, time) progress, then stops"
+        36.0, gt=0, description="wall-clock budget: the schedule follows max(step, time) progress, then stops"
     )
     num_workers: int = Field(
         1, ge=0, description="DataLoader worker processes: augmentation runs beside the network (RAM cache)"

@@ -73,6 +73,26 @@ def test_covariance_weighted_fusion_takes_each_sensor_where_it_is_precise() -> N
     assert np.sqrt(cov[0, 0, 0]) < 0.0100 and np.sqrt(cov[0, 1, 1]) < 0.0100
 
 
+def test_radar_reflection_gives_the_centre_of_a_car_with_known_heading() -> None:
+    rng = np.random.default_rng(5)
+    centres = rng.uniform([1.0, 1.0], [4.0, 4.0], (40, 2))
+    yaws = rng.uniform(-np.pi, np.pi, 40)
+    radar = np.array([0.0, 0.0])
+    reflections = radar_camera.nearest_footprint_point(centres, yaws, CAR[:2], radar)
+    # The reflection lies on the footprint's boundary, on the radar's side.
+    assert np.all(np.linalg.norm(reflections - radar, axis=1) < np.linalg.norm(centres - radar, axis=1))
+    found = radar_camera.centres_from_reflections(reflections, yaws, CAR[:2], radar, 0.12)
+    # Every centre found explains its reflection; a face reflection leaves the position along the face
+    # open (any centre sliding along it fits), so most but not all are the true centre.
+    again = radar_camera.nearest_footprint_point(found, yaws, CAR[:2], radar)
+    np.testing.assert_allclose(again, reflections, atol=1e-6)
+    err = np.linalg.norm(found - centres, axis=1)
+    assert np.mean(err < 1e-3) >= 0.9 and err.max() <= CAR[0] / 2
+    # Unknown heading: the fixed offset along the line of sight.
+    guess = radar_camera.centres_from_reflections(reflections[:1], np.array([np.nan]), CAR[:2], radar, 0.12)
+    assert np.linalg.norm(guess[0] - reflections[0]) == pytest.approx(0.12)
+
+
 # --- Algorithm 2 ------------------------------------------------------------------------------------
 
 
@@ -156,7 +176,7 @@ def test_camera_only_places_cars_on_the_lane_surface(scene: Scene) -> None:
         if visible[0] and inside[0]:
             dets[cid] = np.column_stack([img, [0.9], [0.0]])
     assert dets, "test car must be visible to some camera"
-    (obj,) = camera_only.locate(views, dets, surface, camera_only.CameraOnlyConfig())
+    (obj,) = camera_only.locate(views, dets, surface, camera_only.CameraOnlyConfig(), CAR)
     assert np.linalg.norm(obj.box[:2] - truth[:2]) < 0.06
     assert obj.box[2] == pytest.approx(truth[2], abs=0.02)
     assert obj.yaw_known and np.cos(obj.box[6] - yaw) > 0.99
