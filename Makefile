@@ -85,7 +85,7 @@ MODELS_DIR := deploy/models
 # Detector benches time real frames of the held-out split when the dataset exists (else simulated ones).
 BENCH_DATA = $(if $(wildcard $(DATASET)/manifest.json),--data $(DATASET) --split test,)
 
-models: install ## regenerate the default dataset, train + export both detectors (CPU ~45 min), evaluate; results in deploy/models
+models: install ## regenerate the default dataset, train + export both detectors (CPU ~1 h), evaluate; results in deploy/models
 	$(BIN)/python -m sim.dataset.generate --out $(DATASET) --workers 2 --no-progress
 	cp $(DATASET)/manifest.json $(MODELS_DIR)/dataset_manifest.json
 	$(BIN)/python -m shared.detection.camera.train --data $(DATASET) --out $(MODEL_RUNS)/camera --threads 2

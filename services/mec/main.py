@@ -93,10 +93,10 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         queue: BoundedQueue[Received] = BoundedQueue(
             QUEUE_PER_SENSOR * len(specs), OverflowPolicy.DROP_OLDEST
         )
+        # No expected rate on the bus-level monitors: a missing sensor makes this MEC DEGRADED (its
+        # status below names it), not CRITICAL; the rates are still reported per input.
         for s in specs:
-            node.subscribe_stream(
-                SENSOR_STREAM[s.kind], agent=agent, sensor=s.id, expected_rate_hz=s.rate_hz, queue=queue
-            )
+            node.subscribe_stream(SENSOR_STREAM[s.kind], agent=agent, sensor=s.id, queue=queue)
         monitor = SensorMonitor(
             {s.id: s.rate_hz for s in specs},
             settings.health.missing_after_periods,
@@ -125,14 +125,14 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             items = ([received] if received is not None else []) + queue.drain()
             ready: list[JoinedFrame] = []
             now = time.monotonic()
-            wall_ns = time.time_ns()
             for item in items:
                 sensor_id = item.key.rsplit("/", 1)[-1]
                 if sensor_id not in kinds:
                     counters["rejected/unknown_sensor"] += 1
                     continue
                 stamp_ns = item.header.stamp.ToNanoseconds()
-                if not monitor.accept(sensor_id, stamp_ns, now, wall_ns):
+                # Staleness is judged at arrival (sensor + transport lag), not after our own backlog.
+                if not monitor.accept(sensor_id, stamp_ns, now, item.received_wall_ns):
                     counters[f"stale/{sensor_id}"] += 1
                     node.counters.inc("rejected/stale")
                     continue

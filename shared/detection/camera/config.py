@@ -131,9 +131,19 @@ class PostprocessConfig(_Model):
         description="detections below this score are dropped (scores estimate the box IoU; low keeps "
         "AP: 0.3 costs ~1 point of AP@0.5)",
     )
-    nms_iou: float = Field(0.5, gt=0, le=1, description="NMS IoU threshold")
-    pre_nms_top_k: int = Field(200, gt=0, description="best cells kept before NMS, per image")
-    max_detections: int = Field(100, gt=0, description="detections kept after NMS, per image")
+    nms_iou: float = Field(
+        0.6,
+        gt=0,
+        le=1,
+        description="NMS IoU threshold (0.6 chosen on the validation split: cars queue and overlap)",
+    )
+    pre_nms_top_k: int = Field(
+        1000,
+        gt=0,
+        description="best cells kept before NMS, per image: every car lights up ~10-20 cells, so 200 cut "
+        "the weakest cars of dense scenes (validation AP@0.5 0.950 -> 0.967 at 1000)",
+    )
+    max_detections: int = Field(300, gt=0, description="detections kept after NMS, per image")
 
 
 class CameraDetectorConfig(_Model):
