@@ -45,6 +45,7 @@ log = logging.getLogger("services.mec")
 
 QUEUE_PER_SENSOR = 4  # latest-wins: a few frames per sensor, oldest dropped
 IDLE_WAIT_S = 0.1
+ERROR_LOG_EVERY = 100  # log the first pipeline error, then every 100th
 
 
 def decode_frame(frame: JoinedFrame, kinds: dict[str, str], counters: Counter[str]) -> AgentInputs:
@@ -148,7 +149,14 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             start_ns = time.time_ns()
             inputs = decode_frame(frame, kinds, counters)
             decoded_ns = time.time_ns()
-            result = pipeline.process(inputs)
+            try:
+                result = pipeline.process(inputs)
+            except Exception:  # a bug on one frame must not take the agent's perception down
+                counters["errors/pipeline"] += 1
+                node.counters.inc("errors/pipeline")
+                if counters["errors/pipeline"] == 1 or counters["errors/pipeline"] % ERROR_LOG_EVERY == 0:
+                    log.exception("frame %d failed (%d so far)", frame.tick, counters["errors/pipeline"])
+                continue
             result.latencies_s = {"decode": (decoded_ns - start_ns) / 1e9, **result.latencies_s}
             now = time.monotonic()
             fused = {s: s in inputs.images or s in inputs.clouds or s in inputs.radar for s in kinds}

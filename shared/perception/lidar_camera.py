@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from shared.geometry.boxes import iou2d_matrix
+from shared.geometry.boxes import box3d_corners, iou2d_matrix
 from shared.perception.views import CameraView
 
 FloatArray = NDArray[np.float64]
@@ -47,8 +47,14 @@ class LidarCameraConfig(BaseModel):
     camera_weight: float = Field(
         0.4, ge=0, le=1, description="weight of the camera in the centre and aspect merge (lidar: 1 - this)"
     )
-    merge_centre: bool = Field(True, description="shift the lidar centre toward the camera's")
-    refine_yaw: bool = Field(True, description="search the yaw that matches the weighted aspect ratio")
+    # Both merge steps are the paper's; on the simulated table they do not pay (rmmdet eval fusion,
+    # 4 runs x 20 s of agents 1 and 3): the centre shift turns 4 false positives into 48 (a detected 2D
+    # box covers only the visible part of an occluded car, so its centre is biased), and the yaw search
+    # leaves the tracked output unchanged (AP-BEV@0.7 0.970 either way) at 0.7 ms more per frame.
+    merge_centre: bool = Field(False, description="shift the lidar centre toward the camera's (paper)")
+    refine_yaw: bool = Field(
+        False, description="search the yaw that matches the weighted aspect ratio (paper)"
+    )
     yaw_search_rad: float = Field(0.15, ge=0, description="yaw search half-range around the lidar yaw")
     yaw_step_rad: float = Field(0.01, gt=0, description="yaw search step (paper: 0.01 rad increments)")
     border_margin_px: float = Field(2.0, ge=0, description="2D boxes this close to the border are truncated")
@@ -94,8 +100,9 @@ def match_boxes(
     live = [v for v in views if v.sensor_id in detections]
     # IoU of every projected 3D box with every 2D box, per camera (0 where the box is not in view).
     ious = {}
+    corners = box3d_corners(boxes3d).reshape(-1, 8, 3)  # once for every camera
     for v in live:
-        img_boxes, visible = v.image_boxes(boxes3d)[:2]
+        img_boxes, visible = v.corner_boxes(corners)[:2]
         dets = detections[v.sensor_id]
         iou = iou2d_matrix(img_boxes, dets[:, :4]) if len(dets) else np.zeros((len(boxes3d), 0))
         iou[~visible] = 0.0

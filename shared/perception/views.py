@@ -80,7 +80,10 @@ class CameraView:
         """(N, 7) world boxes -> (N, 4) image boxes clamped to the image, visible flags, and `inside`
         flags (every corner in front of the camera and inside the image: not cut by the border).
         Same boxes as `shared.geometry.camera.box3d_to_image_box` (tested)."""
-        corners = box3d_corners(boxes3d).reshape(-1, 8, 3)
+        return self.corner_boxes(box3d_corners(boxes3d).reshape(-1, 8, 3))
+
+    def corner_boxes(self, corners: FloatArray) -> tuple[FloatArray, NDArray[np.bool_], NDArray[np.bool_]]:
+        """`image_boxes` from (N, 8, 3) world corners (compute the corners once for many cameras)."""
         size = np.array([self.width_px, self.height_px], float)
         if self.distortion is not None:
             boxes, visible = box3d_to_image_box(
@@ -138,13 +141,16 @@ class CameraView:
         box's centre and its 3D centre's projection. NaN rows where a viewing ray misses the plane."""
         boxes = np.array(boxes3d, float, copy=True).reshape(-1, 7)
         target = self.to_plane(_box_centres(boxes2d), boxes[:, 2])
+        lost = ~np.isfinite(target).all(axis=1)
         for _ in range(CENTRE_FIT_ITERATIONS):
             proj, visible, _ = self.image_boxes(boxes)
             at = self.to_plane(_box_centres(proj), boxes[:, 2])
             step = target[:, :2] - at[:, :2]
-            step[~visible] = np.nan
-            boxes[:, :2] += step
-        return boxes[:, :2]
+            lost |= ~visible | ~np.isfinite(step).all(axis=1)
+            boxes[~lost, :2] += step[~lost]  # lost rows stay finite (and are reported NaN)
+        out = boxes[:, :2]
+        out[lost] = np.nan
+        return out
 
     def fit_centre(self, box3d: FloatArray, box2d: FloatArray) -> FloatArray | None:
         """`fit_centres` for one box; None when a ray misses."""

@@ -131,7 +131,7 @@ def test_merge_moves_the_centre_by_the_camera_weight(cam: CameraView) -> None:
     truth = car(-0.6, 2.0, 0.0)
     lidar = truth + np.array([0.05, 0, 0, 0, 0, 0, 0])  # 5 cm off across the camera's view (+y)
     det = projected(cam, truth[None])[0]
-    cfg = lidar_camera.LidarCameraConfig(camera_weight=0.4, refine_yaw=False)
+    cfg = lidar_camera.LidarCameraConfig(camera_weight=0.4, merge_centre=True, refine_yaw=False)
     merged, applied = lidar_camera.merge_box(lidar, det, cam, cfg)
     assert applied
     # Not exactly 0.6 x 5 cm: box centres are not projected centres under perspective.
@@ -145,7 +145,9 @@ def test_yaw_refinement_moves_toward_the_cameras_aspect(cam: CameraView) -> None
     truth = car(-0.6, 2.0, 0.4)
     lidar = truth + np.array([0, 0, 0, 0, 0, 0, 0.1])
     det = projected(cam, truth[None])[0]
-    cfg = lidar_camera.LidarCameraConfig(camera_weight=1.0, merge_centre=False, yaw_search_rad=0.15)
+    cfg = lidar_camera.LidarCameraConfig(
+        camera_weight=1.0, merge_centre=False, refine_yaw=True, yaw_search_rad=0.15
+    )
     merged, _ = lidar_camera.merge_box(lidar, det, cam, cfg)
     assert abs(merged[6] - truth[6]) < 0.02
 
@@ -154,7 +156,7 @@ def test_truncated_detection_is_not_merged(cam: CameraView) -> None:
     box = car(-0.6, 2.0, 0.0)
     det = projected(cam, box[None])[0]
     det[0] = 0.0  # touches the left border
-    merged, applied = lidar_camera.merge_box(box, det, cam, lidar_camera.LidarCameraConfig())
+    merged, applied = lidar_camera.merge_box(box, det, cam, lidar_camera.LidarCameraConfig(merge_centre=True))
     assert not applied and np.array_equal(merged, box)
 
 
@@ -214,9 +216,18 @@ def test_batched_merge_equals_one_at_a_time(cam: CameraView) -> None:
     truths = np.stack([car(-0.6, 2.0, 0.2), car(-0.3, 1.8, 1.0), car(-0.8, 2.4, -0.4)])
     lidar = truths + np.array([0.03, -0.02, 0, 0, 0, 0, 0.08])
     dets = projected(cam, truths)
-    cfg = lidar_camera.LidarCameraConfig()
+    cfg = lidar_camera.LidarCameraConfig(merge_centre=True, refine_yaw=True)
     batch, applied = lidar_camera.merge_boxes(lidar, dets, cam, cfg)
     for k in range(len(truths)):
         one, ok = lidar_camera.merge_box(lidar[k], dets[k], cam, cfg)
         np.testing.assert_allclose(batch[k], one, atol=1e-12)
         assert ok == applied[k]
+
+
+def test_centre_fit_reports_rays_that_miss_and_keeps_the_others(cam: CameraView) -> None:
+    truth = car(-0.6, 2.0, 0.2)
+    det = projected(cam, truth[None])[0, :4]
+    sky = np.array([300.0, 0.0, 340.0, 2.0])  # above the horizon: its ray never meets the plane
+    xy = cam.fit_centres(np.stack([truth, truth]), np.stack([det, sky]))
+    assert np.isfinite(xy[0]).all() and np.isnan(xy[1]).all()
+    np.testing.assert_allclose(xy[0], truth[:2], atol=3e-3)
