@@ -21,6 +21,7 @@ import logging
 import sys
 import time
 from collections import Counter
+from collections.abc import Mapping
 from pathlib import Path
 
 import zenoh
@@ -48,7 +49,7 @@ IDLE_WAIT_S = 0.1
 ERROR_LOG_EVERY = 100  # log the first pipeline error, then every 100th
 
 
-def decode_frame(frame: JoinedFrame, kinds: dict[str, str], counters: Counter[str]) -> AgentInputs:
+def decode_frame(frame: JoinedFrame, kinds: Mapping[str, str], counters: Counter[str]) -> AgentInputs:
     """Decode the joined messages; a frame that does not decode is left out and counted."""
     inputs = AgentInputs(stamp_ns=frame.stamp_ns, tick=frame.tick)
     for sensor_id, sample in frame.samples.items():
@@ -107,13 +108,14 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         joiner = TickJoiner(kinds, settings.sync.max_wait_s, settings.sync.max_pending_ticks)
         status = StatusHysteresis(settings.health.recover_frames)
         counters: Counter[str] = Counter()
-        last = {"status": Status.FULL, "tick": -1}
+        last_status = Status.FULL
+        last_tick = -1
 
         def health() -> tuple[int, str]:
             now = time.monotonic()
             bad = [f"{r.sensor_id}: {r.state.value}" for r in monitor.report(now) if r.state.value != "ok"]
             level = {Status.FULL: NOMINAL, Status.DEGRADED: DEGRADED}.get(status.status, CRITICAL)
-            text = f"{status.status.value}, tick {last['tick']}, {counters['frames/published']} frames"
+            text = f"{status.status.value}, tick {last_tick}, {counters['frames/published']} frames"
             return level, text + (f"; {', '.join(bad)}" if bad else "")
 
         node.health.set_status(health)
@@ -161,18 +163,16 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             now = time.monotonic()
             fused = {s: s in inputs.images or s in inputs.clouds or s in inputs.radar for s in kinds}
             state = status.update(fused)
-            if state is not last["status"]:
+            if state is not last_status:
                 missing = sorted(s for s, ok in fused.items() if not ok)
-                log.warning(
-                    "status %s -> %s (missing: %s)", last["status"].value, state.value, missing or "none"
-                )
-                last["status"] = state
+                log.warning("status %s -> %s (missing: %s)", last_status.value, state.value, missing or "none")
+                last_status = state
             msg = tracked_objects_message(result, agent, state, monitor.report(now), kinds)
             header = objects_pub.next_header(stamp_ns=frame.stamp_ns, tick=frame.tick, frame_id="world")
             stages = [processing_stamp("mec/process", start_ns, time.time_ns())]
             objects_pub.put(msg, header, stages=stages)
             counters["frames/published"] += 1
-            last["tick"] = frame.tick
+            last_tick = frame.tick
             now = time.monotonic()
             if now - last_log >= settings.report_interval_s:
                 log.info(

@@ -113,11 +113,11 @@ def observable(gt: Any, captures: list[Capture], scope: AgentScope) -> FrameTrut
     for vid, n in lidar_points.items():
         (seen if n >= MIN_LIDAR_POINTS else glimpsed).add(vid)
     boxes = {v: b for v, b in vehicle_boxes(gt).items() if v in seen | glimpsed}
-    ids = list(boxes)
-    stacked = np.stack([boxes[v] for v in ids]) if ids else np.zeros((0, 7))
+    vehicle_ids = list(boxes)
+    stacked = np.stack([boxes[v] for v in vehicle_ids]) if vehicle_ids else np.zeros((0, 7))
     inside, near = scope.inside(stacked), scope.near(stacked)
-    scored = {v: boxes[v] for v, i in zip(ids, inside, strict=True) if i and v in seen}
-    ignore = [boxes[v] for v, i, n in zip(ids, inside, near, strict=True) if n and v not in scored]
+    scored = {v: boxes[v] for v, i in zip(vehicle_ids, inside, strict=True) if i and v in seen}
+    ignore = [boxes[v] for v, i, n in zip(vehicle_ids, inside, near, strict=True) if n and v not in scored]
     return FrameTruth(scored, ignore)
 
 
@@ -126,9 +126,9 @@ def to_inputs(tick_stamp_ns: int, tick: int, captures: list[Capture]) -> AgentIn
     inputs = AgentInputs(stamp_ns=tick_stamp_ns, tick=tick)
     for c in captures:
         if c.spec.kind == "camera":
-            inputs.images[c.spec.id] = image_to_array(c.message)
+            inputs.images[c.spec.id] = image_to_array(c.message)  # type: ignore[arg-type]
         elif c.spec.kind == "lidar":
-            inputs.clouds[c.spec.id] = point_cloud_to_array(c.message)
+            inputs.clouds[c.spec.id] = point_cloud_to_array(c.message)  # type: ignore[arg-type]
         else:
             inputs.radar[c.spec.id] = radar_to_targets(c.message)
     return inputs
@@ -194,7 +194,11 @@ def single_modality_measurements(
         ]
     if result.camera_boxes:
         objs = camera_only.locate(
-            pipeline.views, result.camera_boxes, pipeline.surface, pipeline.cfg.camera_only
+            pipeline.views,
+            result.camera_boxes,
+            pipeline.surface,
+            pipeline.cfg.camera_only,
+            pipeline.car_size_m,
         )
         out["camera"] = [
             Measurement(
@@ -285,8 +289,8 @@ def _score_frame(
             [t.existence_probability for t in tracks],
             [t.track_id for t in tracks],
         )
-    for name, (rows, score_list, track_ids) in sets.items():
-        boxes, yaw_ok = _stack(rows)
+    for name, (box_rows, score_list, track_ids) in sets.items():
+        boxes, yaw_ok = _stack(box_rows)
         keep = scope.near(boxes)  # objects beyond the agent's areas are another agent's business
         boxes, yaw_ok, scores = boxes[keep], yaw_ok[keep], np.asarray(score_list, float).reshape(-1)[keep]
         match = ev.acc(name).add_frame(boxes, gt, yaw_valid=yaw_ok, scores=scores, gt_ignore=ignore)
@@ -344,6 +348,11 @@ def evaluate(
     """Every (agent, seed) run, merged per agent and over all agents (key "all")."""
     import multiprocessing as mp
 
+    if workers > 1:
+        # One onnxruntime thread per model and process: spinning ORT threads of parallel workers
+        # oversubscribe the cores and run many times slower.
+        one = {"camera_threads": 1, "lidar_threads": 1}
+        mec = mec.model_copy(update={"detectors": mec.detectors.model_copy(update=one)})
     jobs = [(a, s, duration_s, warmup_s, mec.model_dump_json()) for a in agents for s in seeds]
     per_agent: dict[str, AgentEvaluation] = {a: AgentEvaluation() for a in agents}
     if workers <= 1:

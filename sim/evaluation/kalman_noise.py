@@ -174,7 +174,7 @@ RANGE_RATE_VARIANCE_M2PS2 = 0.02**2
 def _tracker_config(variance_m2: float, model: str) -> TrackerConfig:
     std = np.sqrt(variance_m2 + RADAR_BASE_VARIANCE_M2)
     return TrackerConfig(
-        motion_model=model,  # type: ignore[arg-type]
+        motion_model=model,
         gate_m=max(0.5, 5 * std),
         gate_mahalanobis=CHI2_2DOF_999,
         identity_process_std_m=IDENTITY_PROCESS_STD_M,
