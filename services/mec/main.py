@@ -165,7 +165,9 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             state = status.update(fused)
             if state is not last_status:
                 missing = sorted(s for s, ok in fused.items() if not ok)
-                log.warning("status %s -> %s (missing: %s)", last_status.value, state.value, missing or "none")
+                log.warning(
+                    "status %s -> %s (missing: %s)", last_status.value, state.value, missing or "none"
+                )
                 last_status = state
             msg = tracked_objects_message(result, agent, state, monitor.report(now), kinds)
             header = objects_pub.next_header(stamp_ns=frame.stamp_ns, tick=frame.tick, frame_id="world")
