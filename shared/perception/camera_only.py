@@ -43,6 +43,13 @@ class CameraOnlyConfig(BaseModel):
     max_fit_shift_m: float = Field(
         0.3, gt=0, description="the box fit may move the ray-cast position at most this far (else kept)"
     )
+    min_cameras_with_range: int = Field(
+        2,
+        ge=1,
+        description="while a lidar or radar of the agent is live, camera-only objects need this many "
+        "cameras to agree (a monocular position is coarse: on the viaduct agent single-camera objects "
+        "cost more precision than they add recall, tracked AP-BEV@0.7 0.39 -> 0.45); else one suffices",
+    )
     keep_unconfirmed: bool = Field(
         False,
         description="on cameras a live range sensor covers, publish boxes it did not confirm as camera-only "

@@ -61,6 +61,11 @@ class LidarCameraConfig(BaseModel):
     keep_unmatched_lidar: bool = Field(
         True, description="publish 3D boxes no camera confirmed (paper: discard)"
     )
+    matched_score: str = Field(
+        "max",
+        pattern="^(max|noisy_or)$",
+        description="score of a camera-confirmed lidar box: the larger of the two, or 1 - (1 - s_l)(1 - s_c)",
+    )
     unmatched_lidar_min_score: float = Field(
         0.3,
         ge=0,

@@ -207,7 +207,11 @@ class AgentPipeline:
                 )
                 counts["lidar_camera/merged"] += int(applied.sum())
                 for box, i, j in zip(merged, rows, cols, strict=True):
-                    score = max(float(boxes3d[i, 7]), float(dets2d[cam][j, 4]))
+                    s_lidar, s_camera = float(boxes3d[i, 7]), float(dets2d[cam][j, 4])
+                    if lc.matched_score == "noisy_or":  # two independent confirmations
+                        score = 1.0 - (1.0 - s_lidar) * (1.0 - s_camera)
+                    else:
+                        score = max(s_lidar, s_camera)
                     modalities = frozenset({LIDAR, CAMERA})
                     out.append(_lidar_measurement(box, score, modalities, (cam, *self.lidar_ids)))
             # Without any camera there is nothing to confirm with: lidar boxes pass (degraded mode).
@@ -234,9 +238,14 @@ class AgentPipeline:
             leftovers[c] = d[[j for j in range(len(d)) if j not in used_2d[c]]]
         camera_list: list[Measurement] = []
         if leftovers:
+            # With a range sensor live, a monocular position is trusted only if enough cameras agree.
+            min_cameras = self.cfg.camera_only.min_cameras_with_range if (have_lidar or have_radar) else 1
             for obj in camera_only.locate(
                 self.views, leftovers, self.surface, self.cfg.camera_only, self.car_size_m
             ):
+                if len(obj.sensor_ids) < min_cameras:
+                    counts["camera_only/single_camera_dropped"] += 1
+                    continue
                 counts["camera_only"] += 1
                 camera_list.append(
                     Measurement(

@@ -39,7 +39,7 @@ from shared.perception import camera_only
 from shared.perception.config import MecSettings
 from shared.perception.decode import image_to_array, point_cloud_to_array, radar_to_targets
 from shared.perception.output import DEFAULT_SIZE_M
-from shared.perception.pipeline import AgentInputs, AgentPipeline, AgentResult
+from shared.perception.pipeline import AgentInputs, AgentPipeline, AgentResult, merge_across_sensors
 from shared.scene.scene import Scene
 from shared.tracking.tracker import Measurement, MultiObjectTracker, Track
 from sim.config import SimSettings
@@ -181,9 +181,10 @@ class AgentEvaluation:
 
 
 def single_modality_measurements(
-    result: AgentResult, pipeline: AgentPipeline
+    result: AgentResult, pipeline: AgentPipeline, inputs: AgentInputs
 ) -> dict[str, list[Measurement]]:
-    """What each modality alone would give the tracker this frame."""
+    """What each modality alone would give the tracker this frame (radar: its targets without any
+    camera, one measurement per car across the radars)."""
     from shared.perception.pipeline import _lidar_measurement  # one definition of a lidar measurement
 
     out: dict[str, list[Measurement]] = {}
@@ -215,7 +216,10 @@ def single_modality_measurements(
             for o in objs
         ]
     if pipeline.radar_specs:
-        out["radar"] = [m for m in result.measurements if "radar" in m.modalities]
+        per_radar = pipeline._radar_camera(inputs, {}, {}, Counter())
+        out["radar"] = merge_across_sensors(
+            per_radar, pipeline.cfg.radar_camera.cross_radar_gate_m, Counter()
+        )
     return out
 
 
@@ -248,7 +252,7 @@ def evaluate_run(
             stamp_ns = gt.header.stamp.ToNanoseconds()
             inputs = to_inputs(stamp_ns, gt.header.tick, tick.captures)
             result = pipeline.process(inputs)
-            singles = single_modality_measurements(result, pipeline)
+            singles = single_modality_measurements(result, pipeline, inputs)
             for m, tracker in single_trackers.items():
                 if m in singles:
                     tracker.step(stamp_ns / NS_PER_S, singles[m])
