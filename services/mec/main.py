@@ -32,7 +32,7 @@ from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.bus.streams import SENSOR_STREAM
 from shared.config import load_settings
 from shared.perception.config import DEFAULT_MEC_CONFIG, MecSettings
-from shared.perception.decode import image_to_array, point_cloud_to_array, radar_to_targets
+from shared.perception.decode import decode_sensor
 from shared.perception.inputs import SensorMonitor, Status, StatusHysteresis
 from shared.perception.output import tracked_objects_message
 from shared.perception.pipeline import AgentInputs, AgentPipeline
@@ -55,12 +55,7 @@ def decode_frame(frame: JoinedFrame, kinds: Mapping[str, str], counters: Counter
     for sensor_id, sample in frame.samples.items():
         kind = kinds[sensor_id]
         try:
-            if kind == "camera":
-                inputs.images[sensor_id] = image_to_array(sample.data)
-            elif kind == "lidar":
-                inputs.clouds[sensor_id] = point_cloud_to_array(sample.data)
-            else:
-                inputs.radar[sensor_id] = radar_to_targets(sample.data)
+            inputs.add(kind, sensor_id, decode_sensor(kind, sample.data))
         except ValueError as err:
             counters[f"rejected/{kind}_decode"] += 1
             log.debug("%s frame rejected: %s", sensor_id, err)

@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from shared.geometry.camera import pixel_rays
-from shared.perception.radar_camera import camera_position_cov
+from shared.perception.radar_camera import camera_position_cov, fuse_positions
 from shared.perception.views import CameraView, RoadSurface
 
 FloatArray = NDArray[np.float64]
@@ -118,11 +118,12 @@ def merge_nearby(objects: list[CameraObject], radius_m: float) -> list[CameraObj
     for obj in sorted(objects, key=lambda o: -o.score):
         for i, k in enumerate(kept):
             if np.linalg.norm(obj.box[:2] - k.box[:2]) <= radius_m:
-                info_k, info_o = np.linalg.inv(k.cov_xy_m2), np.linalg.inv(obj.cov_xy_m2)
-                cov = np.linalg.inv(info_k + info_o)
-                xy = cov @ (info_k @ k.box[:2] + info_o @ obj.box[:2])
+                xy, cov = fuse_positions(
+                    k.box[None, :2], k.cov_xy_m2[None], obj.box[None, :2], obj.cov_xy_m2[None]
+                )
                 box = k.box.copy()
-                box[:2] = xy
+                box[:2] = xy[0]
+                cov = cov[0]
                 cams = tuple(sorted(set(k.sensor_ids) | set(obj.sensor_ids)))
                 kept[i] = CameraObject(box, cov, k.yaw_known, k.score, cams)
                 break

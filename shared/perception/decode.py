@@ -61,3 +61,14 @@ def radar_to_targets(msg: RadarScan) -> RadarTargets:
         np.array([x.range_rate_mps for x in t], float),
         np.array([x.rcs_dbsm for x in t], float),
     )
+
+
+def decode_sensor(kind: str, msg: object) -> np.ndarray | RadarTargets:
+    """The decoder for a sensor kind ("camera", "lidar", "radar"); ValueError on unusable data."""
+    if kind == "camera":
+        return image_to_array(msg)  # type: ignore[arg-type]
+    if kind == "lidar":
+        return point_cloud_to_array(msg)  # type: ignore[arg-type]
+    if kind == "radar":
+        return radar_to_targets(msg)
+    raise ValueError(f"unknown sensor kind {kind!r}")

@@ -54,6 +54,15 @@ class AgentInputs:
     clouds: dict[str, np.ndarray] = field(default_factory=dict)  # lidar id -> (N, 4) sensor frame
     radar: dict[str, RadarTargets] = field(default_factory=dict)
 
+    def add(self, kind: str, sensor_id: str, data: np.ndarray | RadarTargets) -> None:
+        """File one decoded frame under its kind."""
+        if kind == "camera":
+            self.images[sensor_id] = data  # type: ignore[assignment]
+        elif kind == "lidar":
+            self.clouds[sensor_id] = data  # type: ignore[assignment]
+        else:
+            self.radar[sensor_id] = data  # type: ignore[assignment]
+
 
 @dataclass
 class AgentResult:
@@ -67,7 +76,7 @@ class AgentResult:
     modalities_present: frozenset[str]
 
 
-def _lidar_measurement(
+def lidar_measurement(
     box: FloatArray, score: float, modalities: frozenset[str], sensors: tuple[str, ...]
 ) -> Measurement:
     return Measurement(
@@ -81,6 +90,22 @@ def _lidar_measurement(
         modalities=modalities,
         score=float(score),
         sensor_ids=sensors,
+    )
+
+
+def camera_measurement(obj: camera_only.CameraObject) -> Measurement:
+    """A camera-only object as a tracker measurement (yaw: the lane's direction of travel, if known)."""
+    return Measurement(
+        position_m=obj.box[:2].copy(),
+        position_cov_m2=obj.cov_xy_m2,
+        z_m=float(obj.box[2]),
+        size_m=obj.box[3:6].copy(),
+        yaw_rad=float(obj.box[6]) if obj.yaw_known else None,
+        yaw_mod_pi=False,
+        range_rate=None,
+        modalities=frozenset({CAMERA}),
+        score=obj.score,
+        sensor_ids=obj.sensor_ids,
     )
 
 
@@ -213,14 +238,14 @@ class AgentPipeline:
                     else:
                         score = max(s_lidar, s_camera)
                     modalities = frozenset({LIDAR, CAMERA})
-                    out.append(_lidar_measurement(box, score, modalities, (cam, *self.lidar_ids)))
+                    out.append(lidar_measurement(box, score, modalities, (cam, *self.lidar_ids)))
             # Without any camera there is nothing to confirm with: lidar boxes pass (degraded mode).
             # With cameras, a lidar box no camera confirmed must be confident on its own.
             if lc.keep_unmatched_lidar or not dets2d:
                 min_score = lc.unmatched_lidar_min_score if dets2d else 0.0
                 for i in [i for i in res.unmatched_3d if boxes3d[i, 7] >= min_score]:
                     out.append(
-                        _lidar_measurement(
+                        lidar_measurement(
                             boxes3d[i, :7], boxes3d[i, 7], frozenset({LIDAR}), tuple(self.lidar_ids)
                         )
                     )
@@ -247,20 +272,7 @@ class AgentPipeline:
                     counts["camera_only/single_camera_dropped"] += 1
                     continue
                 counts["camera_only"] += 1
-                camera_list.append(
-                    Measurement(
-                        position_m=obj.box[:2].copy(),
-                        position_cov_m2=obj.cov_xy_m2,
-                        z_m=float(obj.box[2]),
-                        size_m=obj.box[3:6].copy(),
-                        yaw_rad=float(obj.box[6]) if obj.yaw_known else None,
-                        yaw_mod_pi=False,
-                        range_rate=None,
-                        modalities=frozenset({CAMERA}),
-                        score=obj.score,
-                        sensor_ids=obj.sensor_ids,
-                    )
-                )
+                camera_list.append(camera_measurement(obj))
         # One measurement per car: the radars' lists and the camera-only objects merge when close
         # (a car two radars see, or a radar car another camera sees too).
         if per_radar:

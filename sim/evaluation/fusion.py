@@ -37,9 +37,16 @@ from shared.metrics.fusion import FusionAccumulator
 from shared.metrics.tracking import TrackingAccumulator
 from shared.perception import camera_only
 from shared.perception.config import MecSettings
-from shared.perception.decode import image_to_array, point_cloud_to_array, radar_to_targets
+from shared.perception.decode import decode_sensor
 from shared.perception.output import DEFAULT_SIZE_M
-from shared.perception.pipeline import AgentInputs, AgentPipeline, AgentResult, merge_across_sensors
+from shared.perception.pipeline import (
+    AgentInputs,
+    AgentPipeline,
+    AgentResult,
+    camera_measurement,
+    lidar_measurement,
+    merge_across_sensors,
+)
 from shared.scene.scene import Scene
 from shared.tracking.tracker import Measurement, MultiObjectTracker, Track
 from sim.config import SimSettings
@@ -125,12 +132,7 @@ def to_inputs(tick_stamp_ns: int, tick: int, captures: list[Capture]) -> AgentIn
     """Decode the tick's bus messages the way the MEC does."""
     inputs = AgentInputs(stamp_ns=tick_stamp_ns, tick=tick)
     for c in captures:
-        if c.spec.kind == "camera":
-            inputs.images[c.spec.id] = image_to_array(c.message)  # type: ignore[arg-type]
-        elif c.spec.kind == "lidar":
-            inputs.clouds[c.spec.id] = point_cloud_to_array(c.message)  # type: ignore[arg-type]
-        else:
-            inputs.radar[c.spec.id] = radar_to_targets(c.message)
+        inputs.add(c.spec.kind, c.spec.id, decode_sensor(c.spec.kind, c.message))
     return inputs
 
 
@@ -185,12 +187,10 @@ def single_modality_measurements(
 ) -> dict[str, list[Measurement]]:
     """What each modality alone would give the tracker this frame (radar: its targets without any
     camera, one measurement per car across the radars)."""
-    from shared.perception.pipeline import _lidar_measurement  # one definition of a lidar measurement
-
     out: dict[str, list[Measurement]] = {}
     if pipeline.lidar_ids:
         out["lidar"] = [
-            _lidar_measurement(b[:7], b[7], frozenset({"lidar"}), tuple(pipeline.lidar_ids))
+            lidar_measurement(b[:7], b[7], frozenset({"lidar"}), tuple(pipeline.lidar_ids))
             for b in result.lidar_boxes_world
         ]
     if result.camera_boxes:
@@ -201,20 +201,7 @@ def single_modality_measurements(
             pipeline.cfg.camera_only,
             pipeline.car_size_m,
         )
-        out["camera"] = [
-            Measurement(
-                position_m=o.box[:2].copy(),
-                position_cov_m2=o.cov_xy_m2,
-                z_m=float(o.box[2]),
-                size_m=o.box[3:6].copy(),
-                yaw_rad=float(o.box[6]) if o.yaw_known else None,
-                yaw_mod_pi=False,
-                modalities=frozenset({"camera"}),
-                score=o.score,
-                sensor_ids=o.sensor_ids,
-            )
-            for o in objs
-        ]
+        out["camera"] = [camera_measurement(o) for o in objs]
     if pipeline.radar_specs:
         per_radar = pipeline._radar_camera(inputs, {}, {}, Counter())
         out["radar"] = merge_across_sensors(

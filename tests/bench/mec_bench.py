@@ -31,7 +31,7 @@ from shared.bus.streams import SENSOR_STREAM
 from shared.config import load_settings
 from shared.perception import lidar_camera
 from shared.perception.config import DEFAULT_MEC_CONFIG, MecSettings
-from shared.perception.pipeline import _lidar_measurement
+from shared.perception.pipeline import lidar_measurement
 from shared.perception.views import CameraView
 from shared.scene.scene import Scene
 from shared.tracking.tracker import MultiObjectTracker
@@ -89,10 +89,8 @@ def fusion_tracking(scene: Scene, agent: str, n_objects: int, mec: MecSettings) 
             rows, cols = [p[0] for p in pairs], [p[1] for p in pairs]
             merged, _ = lidar_camera.merge_boxes(boxes[rows], dets[v.sensor_id][cols], v, mec.lidar_camera)
             for box, i in zip(merged, rows, strict=True):
-                meas.append(
-                    _lidar_measurement(box, scores[i], frozenset({"lidar", "camera"}), (v.sensor_id,))
-                )
-        meas += [_lidar_measurement(boxes[i], scores[i], frozenset({"lidar"}), ()) for i in res.unmatched_3d]
+                meas.append(lidar_measurement(box, scores[i], frozenset({"lidar", "camera"}), (v.sensor_id,)))
+        meas += [lidar_measurement(boxes[i], scores[i], frozenset({"lidar"}), ()) for i in res.unmatched_3d]
         tracker.step(frame / FRAME_HZ, meas)
         if frame >= WARMUP_FRAMES:
             times.append(time.perf_counter() - t0)
