@@ -47,10 +47,11 @@ class LidarCameraConfig(BaseModel):
     camera_weight: float = Field(
         0.4, ge=0, le=1, description="weight of the camera in the centre and aspect merge (lidar: 1 - this)"
     )
-    # Both merge steps are the paper's; on the simulated table they do not pay (rmmdet eval fusion,
-    # 4 runs x 20 s of agents 1 and 3): the centre shift turns 4 false positives into 48 (a detected 2D
-    # box covers only the visible part of an occluded car, so its centre is biased), and the yaw search
-    # leaves the tracked output unchanged (AP-BEV@0.7 0.970 either way) at 0.7 ms more per frame.
+    # Both merge steps are the paper's; on the simulated table they did not pay in a one-off comparison
+    # on cached detections (4 runs x 20 s of agents 1 and 3; the script was not kept): the centre shift
+    # turned 4 false positives into 48 (a detected 2D box covers only the visible part of an occluded
+    # car, so its centre is biased), and the yaw search left the tracked output unchanged (AP-BEV@0.7
+    # 0.970 either way) at 0.7 ms more per frame.
     merge_centre: bool = Field(False, description="shift the lidar centre toward the camera's (paper)")
     refine_yaw: bool = Field(
         False, description="search the yaw that matches the weighted aspect ratio (paper)"
