@@ -54,6 +54,12 @@ class TrafficSettings(_Model):
     junction_request_m: float = Field(
         0.7, gt=0, description="distance before a lane's end at which a vehicle asks to enter the junction"
     )
+    plan_request_m: float = Field(
+        1.0,
+        gt=0,
+        description="distance before a lane's end at which a connected vehicle asks for a plan (more "
+        "than junction_request_m, so the plan is there when the vehicle picks its exit)",
+    )
     horizon_m: float = Field(2.5, gt=0, description="car-following look-ahead along the route")
     detour_after_s: float = Field(
         10.0,

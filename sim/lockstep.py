@@ -19,10 +19,10 @@ from typing import Any
 from rmmdet.v1.sim_pb2 import GroundTruth
 
 from shared.scene.model import SensorSpec
+from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from sim.config import SimSettings
 from sim.ground_truth import ground_truth_message
-from sim.road_network import RoadNetwork
 from sim.sensors.camera import Lighting
 from sim.sensors.rig import Capture, SensorRig
 from sim.traffic import TrafficSim

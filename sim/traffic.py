@@ -20,9 +20,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from shared.geometry.boxes import bev_iou_matrix
+from shared.scene.road_network import Path, RoadNetwork
 from shared.scene.scene import Scene
+from shared.traffic.plans import Ack, vehicle_decision
 from sim.config import TrafficSettings
-from sim.road_network import Path, RoadNetwork
 
 log = logging.getLogger(__name__)
 
@@ -73,11 +74,14 @@ class Vehicle:
     admitted: bool = False
     releasing: str | None = None  # junction to release once the body has left its connector
     destination: str = ""
+    next_destination: str = ""  # drawn ahead, so a plan made before arriving can already aim at it
     origin: str = ""
     trip_start_s: float = 0.0
     arriving: bool = False  # the junction ahead is this trip's destination
     plan: list[str] = field(default_factory=list)  # lanes to take, from a route plan
     plan_version: int = 0
+    plan_id: str = ""
+    planned_lane: str = ""  # lane on which the latest plan was asked for (one request per lane)
     connected: bool = True
     requested_at_s: float = 0.0
     detours: int = 0
@@ -169,6 +173,8 @@ class TrafficSim:
             vehicle.destination = self._new_destination(exclude=self.net.lane_end_junction(lane_id))
             self.vehicles.append(vehicle)
             self._by_id[vid] = vehicle
+        for vehicle in self.vehicles:  # after placement, so placement draws do not depend on this
+            vehicle.next_destination = self._new_destination(exclude=vehicle.destination)
 
     def _too_close_to_any(self, pos: np.ndarray) -> bool:
         spacing = SPAWN_SPACING_FACTOR * self.length_m
@@ -186,19 +192,40 @@ class TrafficSim:
     def vehicle(self, vehicle_id: str) -> Vehicle:
         return self._by_id[vehicle_id]
 
-    def set_plan(self, vehicle_id: str, lanes: list[str], version: int) -> bool:
-        """Give a vehicle the lanes to take (from its current lane on). False if not a valid route."""
+    def set_plan(self, vehicle_id: str, lanes: list[str], version: int, plan_id: str = "") -> Ack:
+        """Give a vehicle a plan: the lanes to take, listing first the lane it was made on. Only a plan
+        newer than the one followed applies (repeats are DUPLICATE, older ones REJECTED_STALE); a vehicle
+        that has moved on along the plan since takes it from its current lane; a plan that does not
+        continue from where the vehicle is gets REJECTED_INVALID."""
         v = self._by_id[vehicle_id]
-        if version <= v.plan_version:
-            return True  # idempotent: older or repeated plans change nothing
+        decision = vehicle_decision(v.plan_version, v.plan_id, plan_id, version)
+        if decision is not None:
+            return decision
         start = v.lane_id if not v.requested else (v.next_lane or v.lane_id)
-        if lanes and lanes[0] == start:
-            lanes = lanes[1:]  # plans list the current lane first
+        if start in lanes:
+            lanes = lanes[lanes.index(start) + 1 :]
         if not self.net.is_valid_route(start, lanes):
-            return False
+            return Ack.REJECTED_INVALID
         v.plan = list(lanes)
         v.plan_version = version
-        return True
+        v.plan_id = plan_id
+        return Ack.ACCEPTED
+
+    def routing_destination(self, v: Vehicle) -> str:
+        """The junction a plan made now should aim at: the next trip's when this lane ends the current."""
+        if v.path.lane_id is not None and self.net.lane_end_junction(v.lane_id) == v.destination:
+            return v.next_destination
+        return v.destination
+
+    def needs_plan(self, v: Vehicle) -> bool:
+        """A connected vehicle asks for a plan once per lane, `plan_request_m` before the lane's end."""
+        return (
+            v.connected
+            and v.path.lane_id is not None
+            and not v.requested
+            and v.planned_lane != v.lane_id
+            and v.path.length_m - v.s <= self.cfg.plan_request_m
+        )
 
     def step(self) -> None:
         """Advance every vehicle by one tick."""
@@ -246,7 +273,8 @@ class TrafficSim:
             junction = self.net.lane_end_junction(v.lane_id)
             if junction == v.destination:
                 v.arriving = True
-                v.destination = self._new_destination(exclude=junction)
+                v.destination = v.next_destination
+                v.next_destination = self._new_destination(exclude=v.destination)
             v.next_lane = self._choose_next_lane(v)
             v.requested = True
             v.requested_at_s = self.time_s

@@ -24,12 +24,13 @@ from rmmdet.v1.sim_pb2 import SimClock
 from shared.bus.health import DEGRADED, NOMINAL
 from shared.bus.node import Node, processing_stamp
 from shared.scene.calibration import calibration_set
+from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.service import run_service
 from shared.shutdown import GracefulShutdown
+from shared.traffic.plans import Ack
 from sim.config import DEFAULT_SIM_CONFIG, SimSettings, load_sim_settings
 from sim.ground_truth import ground_truth_message
-from sim.road_network import RoadNetwork
 from sim.traffic import TrafficSim
 
 log = logging.getLogger("services.sim")
@@ -91,7 +92,10 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 plan = received.message
                 if plan.vehicle_id not in vehicle_ids:
                     node.counters.inc("rejected/plan_unknown_vehicle")
-                elif not traffic.set_plan(plan.vehicle_id, list(plan.lane_ids), int(plan.version)):
+                elif (
+                    traffic.set_plan(plan.vehicle_id, list(plan.lane_ids), int(plan.version), plan.plan_id)
+                    is Ack.REJECTED_INVALID
+                ):
                     node.counters.inc("rejected/plan_invalid_route")
             t0 = time.time_ns()
             traffic.step()

@@ -10,9 +10,9 @@ import pybullet as pb
 import pytest
 
 from shared.perception.decode import point_cloud_to_array as from_point_cloud
+from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from sim.config import TrafficSettings
-from sim.road_network import RoadNetwork
 from sim.sensors.lidar import (
     INTENSITY_VEHICLE,
     POINT_STRIDE_BYTES,

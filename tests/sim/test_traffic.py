@@ -5,10 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
+from shared.traffic.plans import Ack
 from sim.config import TrafficSettings
 from sim.ground_truth import ground_truth_message
-from sim.road_network import RoadNetwork
 from sim.traffic import TrafficSim
 
 TICK_HZ = 60.0
@@ -108,9 +109,11 @@ def test_plans_are_followed_versioned_and_validated(scene: Scene, network: RoadN
     v = sim.vehicles[0]
     options = network.successors[v.lane_id]
     target = options[-1]
-    assert sim.set_plan(v.id, [v.lane_id, target], version=1)
-    assert not sim.set_plan(v.id, [v.lane_id, "l_nonexistent"], version=2)  # invalid route refused
-    assert sim.set_plan(v.id, [v.lane_id, options[0]], version=1)  # stale version: no change
+    assert sim.set_plan(v.id, [v.lane_id, target], version=1, plan_id="a") is Ack.ACCEPTED
+    assert sim.set_plan(v.id, [v.lane_id, target], version=1, plan_id="a") is Ack.DUPLICATE
+    bad = sim.set_plan(v.id, [v.lane_id, "l_nonexistent"], version=2, plan_id="b")
+    assert bad is Ack.REJECTED_INVALID  # invalid route refused
+    assert sim.set_plan(v.id, [v.lane_id, options[0]], version=1, plan_id="c") is Ack.REJECTED_STALE
     assert v.plan == [target]
     first = v.lane_id
     while v.lane_id == first:

@@ -1,0 +1,112 @@
+"""Coordinator settings: maps, coverage, planning, plan delivery. Typed, with defaults and descriptions.
+
+Loaded from `deploy/coordinator/coordinator.yaml` with environment overrides `RMMDET_COORD_<SECTION>__<FIELD>`
+(e.g. `RMMDET_COORD_PLANNER__POLICY=shortest`).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from shared.config import RmmdetSettings, load_settings, settings_config
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+DEFAULT_COORDINATOR_CONFIG = REPO_ROOT / "deploy" / "coordinator" / "coordinator.yaml"
+DEFAULT_SCENE = REPO_ROOT / "deploy" / "scenes" / "sand_table.yaml"
+
+PolicyName = Literal["random", "paper_rule", "shortest", "dynamic_ground_truth", "balanced"]
+POLICIES: tuple[PolicyName, ...] = ("random", "paper_rule", "shortest", "dynamic_ground_truth", "balanced")
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class MapConfig(_Section):
+    smoothing_time_constant_s: float = Field(
+        5.0, gt=0, description="exponential smoothing of densities and speeds (time constant)"
+    )
+    speed_valid_s: float = Field(
+        15.0, gt=0, description="a lane/area/cell speed without a new sample for this long is invalid"
+    )
+    grid_cell_m: float = Field(0.25, gt=0, description="cell size of the density/speed grid")
+    dedup_gate_m: float = Field(
+        0.3, gt=0, description="objects of two agents closer than this (same level) are one vehicle"
+    )
+    level_separation_m: float = Field(
+        0.1, gt=0, description="objects further apart in z are on different levels (deck / ground)"
+    )
+    lane_match_max_m: float = Field(
+        0.3, gt=0, description="an object further than this from every lane centreline is off-lane"
+    )
+    lane_level_weight: float = Field(
+        3.0, ge=1, description="z distance counts this many times more than xy when matching a lane"
+    )
+    heading_gate_rad: float = Field(
+        math.pi / 2, gt=0, le=math.pi, description="a moving object's heading must agree with its lane's"
+    )
+    min_speed_for_heading_mps: float = Field(
+        0.05, ge=0, description="below this speed the velocity direction is not used to pick the lane"
+    )
+    min_existence_probability: float = Field(
+        0.0, ge=0, le=1, description="objects with a lower existence probability are ignored"
+    )
+
+
+class CoverageConfig(_Section):
+    stale_after_s: float = Field(
+        0.5, gt=0, description="agent data older than this (or presence gone): STALE"
+    )
+    lost_after_s: float = Field(5.0, gt=0, description="agent data older than this: LOST")
+
+
+class PlannerConfig(_Section):
+    policy: PolicyName = Field("balanced", description="route policy served to vehicles")
+    junction_service_s: float = Field(
+        1.0, gt=0, description="time a junction takes to pass one queued vehicle (queue delay per car)"
+    )
+    load_weight: float = Field(
+        1.0, ge=0, description="cost of one other vehicle planned onto a lane, in junction services"
+    )
+    load_horizon_lanes: int = Field(
+        3, ge=1, description="lanes ahead of each planned vehicle counted as its future load"
+    )
+    min_speed_mps: float = Field(
+        0.05, gt=0, description="perceived speeds are floored here (a stopped queue is slow, not closed)"
+    )
+    plan_ttl_s: float = Field(120.0, gt=0, description="validity of a plan; vehicles fall back after")
+    seed: int = Field(0, ge=0, description="random policy's generator seed")
+
+
+class DeliveryConfig(_Section):
+    ack_timeout_s: float = Field(0.5, gt=0, description="resend a pushed plan not acknowledged by then")
+    max_sends: int = Field(5, ge=1, description="a pushed plan is sent at most this many times")
+
+
+class CoordinatorSettings(RmmdetSettings):
+    model_config = settings_config(env_prefix="RMMDET_COORD_")
+
+    scene: Path = Field(DEFAULT_SCENE, description="scene YAML (road network, areas, agents)")
+    maps: MapConfig = MapConfig()
+    coverage: CoverageConfig = CoverageConfig()
+    planner: PlannerConfig = PlannerConfig()
+    delivery: DeliveryConfig = DeliveryConfig()
+    map_publish_hz: float = Field(2.0, gt=0, description="traffic map update and publication rate")
+    replan_interval_s: float = Field(
+        2.0, gt=0, description="pushed plans are re-checked this often against the current maps"
+    )
+    replan_gain: float = Field(
+        0.2, ge=0, description="push a new plan when it is expected to save this share of the trip time"
+    )
+    report_interval_s: float = Field(10.0, gt=0, description="log interval of rates and counters")
+
+
+def load_coordinator_settings(path: Path | None = DEFAULT_COORDINATOR_CONFIG) -> CoordinatorSettings:
+    settings = load_settings(CoordinatorSettings, path) if path is not None else CoordinatorSettings()
+    if not settings.scene.is_absolute():
+        settings.scene = REPO_ROOT / settings.scene
+    return settings

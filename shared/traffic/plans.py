@@ -1,0 +1,99 @@
+"""Plan delivery bookkeeping: versions, acknowledgements, resends (coordinator side), and the
+vehicle side's decision on a received plan.
+
+Plans are must-deliver: each vehicle's plans carry strictly increasing versions; a pushed plan is resent
+until acknowledged (at most `max_sends` times); the vehicle applies a plan only if it is newer than the
+one it follows, so a repeated or reordered plan changes nothing (idempotent) and is acknowledged as
+DUPLICATE or REJECTED_STALE. Times are monotonic seconds.
+"""
+
+from __future__ import annotations
+
+import uuid
+from dataclasses import dataclass
+from enum import Enum
+
+from shared.traffic.config import DeliveryConfig
+from shared.traffic.planner import Route
+
+
+class Ack(Enum):
+    """Mirrors rmmdet.v1.AckStatus."""
+
+    ACCEPTED = 1
+    DUPLICATE = 2
+    REJECTED_STALE = 3
+    REJECTED_INVALID = 4
+    COMPLETED = 5
+
+
+@dataclass
+class IssuedPlan:
+    vehicle_id: str
+    plan_id: str
+    version: int
+    route: Route
+    issued_s: float
+    pushed: bool  # sent unsolicited (needs resends until acknowledged); replies to requests are not
+    sends: int = 0
+    last_send_s: float = 0.0
+    ack: Ack | None = None
+
+
+class PlanBook:
+    """The latest plan issued to each vehicle, and the acknowledgement state of pushed ones."""
+
+    def __init__(self, cfg: DeliveryConfig) -> None:
+        self.cfg = cfg
+        self._latest: dict[str, IssuedPlan] = {}
+        self._version: dict[str, int] = {}
+        self.unacknowledged_dropped = 0  # pushed plans given up after max_sends
+
+    def issue(self, vehicle_id: str, route: Route, now_s: float, *, pushed: bool) -> IssuedPlan:
+        version = self._version.get(vehicle_id, 0) + 1
+        self._version[vehicle_id] = version
+        plan = IssuedPlan(vehicle_id, uuid.uuid4().hex, version, route, now_s, pushed)
+        self._latest[vehicle_id] = plan
+        return plan
+
+    def latest(self, vehicle_id: str) -> IssuedPlan | None:
+        return self._latest.get(vehicle_id)
+
+    def vehicles(self) -> list[str]:
+        return list(self._latest)
+
+    def sent(self, plan: IssuedPlan, now_s: float) -> None:
+        plan.sends += 1
+        plan.last_send_s = now_s
+
+    def on_ack(self, vehicle_id: str, plan_id: str, version: int, status: Ack) -> bool:
+        """Record an acknowledgement; False if it is not for the vehicle's latest plan (ignored)."""
+        plan = self._latest.get(vehicle_id)
+        if plan is None or plan.plan_id != plan_id or plan.version != version:
+            return False
+        plan.ack = status
+        return True
+
+    def due(self, now_s: float) -> list[IssuedPlan]:
+        """Pushed plans to (re)send now: never sent, or unacknowledged past the ack timeout."""
+        out = []
+        for plan in self._latest.values():
+            if not plan.pushed or plan.ack is not None:
+                continue
+            if plan.sends == 0 or now_s - plan.last_send_s >= self.cfg.ack_timeout_s:
+                if plan.sends >= self.cfg.max_sends:
+                    plan.ack = Ack.REJECTED_STALE  # give up; the vehicle asks again at its next junction
+                    self.unacknowledged_dropped += 1
+                    continue
+                out.append(plan)
+        return out
+
+
+def vehicle_decision(current_version: int, current_plan_id: str, plan_id: str, version: int) -> Ack | None:
+    """Vehicle side: DUPLICATE / REJECTED_STALE for a plan not newer than the one followed, else None
+    (the caller then validates the route and answers ACCEPTED or REJECTED_INVALID)."""
+    if version == current_version and plan_id == current_plan_id:
+        return Ack.DUPLICATE
+    if version <= current_version:
+        return Ack.REJECTED_STALE
+    return None
