@@ -83,6 +83,12 @@ class SimSettings(RmmdetSettings):
     clock_publish_hz: float = Field(10.0, gt=0, description="SimClock publication rate")
     calibration_publish_hz: float = Field(1.0, gt=0, description="per-agent CalibrationSet republish rate")
     collision_check_hz: float = Field(10.0, gt=0, description="rate of the vehicle overlap monitor")
+    plan_request_timeout_s: float = Field(
+        1.0,
+        gt=0,
+        description="route_policy=plan: a route request unanswered by then is given up (the vehicle keeps "
+        "its route and asks again on its next lane)",
+    )
     traffic: TrafficSettings = TrafficSettings()
 
 

@@ -5,9 +5,10 @@
 Every tick (default 60 Hz of simulated time) it publishes `rmmdet/@v1/sim/ground_truth` stamped with
 the sim time (start wall time + tick / tick_hz, so latencies measured downstream are real at 1x);
 sensor services render from it, so all sensors of one tick share its stamp. It also publishes the
-SimClock (with the measured real-time factor) and each agent's CalibrationSet at low rate, and applies
-route plans received on `rmmdet/@v1/cloud/plans/*` when the route policy is `plan`.
-`--speed 0` runs as fast as possible (no wall-clock pacing).
+SimClock (with the measured real-time factor) and each agent's CalibrationSet at low rate. With route
+policy `plan` the vehicles are the coordinator's clients (services/sim/plans.py): they ask for plans
+over the route RPC, follow the plans they get (replies and pushes) and acknowledge each one; requests
+never block the tick loop. `--speed 0` runs as fast as possible (no wall-clock pacing).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from pathlib import Path
 import zenoh
 from rmmdet.v1.sim_pb2 import SimClock
 
+from services.sim.plans import PlanClient
 from shared.bus.health import DEGRADED, NOMINAL
 from shared.bus.node import Node, processing_stamp
 from shared.scene.calibration import calibration_set
@@ -28,7 +30,6 @@ from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.service import run_service
 from shared.shutdown import GracefulShutdown
-from shared.traffic.plans import Ack
 from sim.config import DEFAULT_SIM_CONFIG, SimSettings, load_sim_settings
 from sim.ground_truth import ground_truth_message
 from sim.traffic import TrafficSim
@@ -55,13 +56,16 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     scene = Scene.load(settings.scene)
     traffic = TrafficSim(scene, RoadNetwork(scene), settings.traffic, settings.seed, settings.tick_hz)
     dt_s = 1.0 / settings.tick_hz
-    vehicle_ids = {v.id for v in traffic.vehicles}
     collision_every = max(1, round(settings.tick_hz / settings.collision_check_hz))
     with Node(conf, service="sim", instance=args.instance, scope=SCOPE, stop=shutdown.event) as node:
         gt_pub = node.publisher("ground_truth")
         clock_pub = node.publisher("sim_clock")
         calib_pubs = {agent: node.publisher("calibration", agent=agent) for agent in scene.agents}
-        plans = node.subscribe_stream("route_plan", maxsize=1024)
+        plans = (
+            PlanClient(node, traffic, settings.plan_request_timeout_s)
+            if settings.traffic.route_policy == "plan"
+            else None
+        )
         state = {"rtf": 0.0, "late_s": 0.0}
 
         def status() -> tuple[int, str]:
@@ -88,15 +92,8 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             settings.traffic.route_policy,
         )
         while not shutdown.requested:
-            for received in plans.drain():
-                plan = received.message
-                if plan.vehicle_id not in vehicle_ids:
-                    node.counters.inc("rejected/plan_unknown_vehicle")
-                elif (
-                    traffic.set_plan(plan.vehicle_id, list(plan.lane_ids), int(plan.version), plan.plan_id)
-                    is Ack.REJECTED_INVALID
-                ):
-                    node.counters.inc("rejected/plan_invalid_route")
+            if plans is not None:  # replies and pushes that arrived, then this tick's requests
+                plans.tick(start_wall_ns + round(traffic.time_s * NS))
             t0 = time.time_ns()
             traffic.step()
             stamp_ns = start_wall_ns + round(traffic.time_s * NS)
@@ -133,14 +130,17 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                     pub.put(calibration_set(scene, agent), stamp_ns=stamp_ns, tick=traffic.tick)
             if now - last_log >= args.report_interval_s:
                 log.info(
-                    "sim %.1f s, real-time factor %.2f, %d junction arrivals, %d trips, %d detours",
+                    "sim %.1f s, real-time factor %.2f, %d junction arrivals, %d trips, %d detours%s",
                     traffic.time_s,
                     state["rtf"],
                     sum(traffic.arrivals.values()),
                     len(traffic.trips),
                     traffic.detours,
+                    f"; plans {plans.summary()}" if plans is not None else "",
                 )
                 last_log = now
+        if plans is not None:
+            plans.close()
     return 0
 
 

@@ -70,7 +70,7 @@ class PlannerConfig(_Section):
         1.0, gt=0, description="time a junction takes to pass one queued vehicle (queue delay per car)"
     )
     load_weight: float = Field(
-        1.0, ge=0, description="cost of one other vehicle planned onto a lane, in junction services"
+        2.0, ge=0, description="cost of one other vehicle planned onto a lane, in junction services"
     )
     load_horizon_lanes: int = Field(
         3, ge=1, description="lanes ahead of each planned vehicle counted as its future load"
@@ -87,6 +87,22 @@ class DeliveryConfig(_Section):
     max_sends: int = Field(5, ge=1, description="a pushed plan is sent at most this many times")
 
 
+class ServiceConfig(_Section):
+    """Bus-side knobs of the coordinator process."""
+
+    map_update_max_hz: float = Field(
+        20.0,
+        gt=0,
+        description="maps are rebuilt when object lists arrive, at most this often (plans use fresh maps)",
+    )
+    objects_queue_per_agent: int = Field(
+        4, ge=1, description="latest-wins queue depth of incoming object lists, per agent"
+    )
+    max_vehicles: int = Field(
+        256, ge=1, description="distinct vehicles served; requests from further vehicle ids are rejected"
+    )
+
+
 class CoordinatorSettings(RmmdetSettings):
     model_config = settings_config(env_prefix="RMMDET_COORD_")
 
@@ -95,6 +111,7 @@ class CoordinatorSettings(RmmdetSettings):
     coverage: CoverageConfig = CoverageConfig()
     planner: PlannerConfig = PlannerConfig()
     delivery: DeliveryConfig = DeliveryConfig()
+    service: ServiceConfig = ServiceConfig()
     map_publish_hz: float = Field(2.0, gt=0, description="traffic map update and publication rate")
     replan_interval_s: float = Field(
         2.0, gt=0, description="pushed plans are re-checked this often against the current maps"
@@ -106,7 +123,7 @@ class CoordinatorSettings(RmmdetSettings):
 
 
 def load_coordinator_settings(path: Path | None = DEFAULT_COORDINATOR_CONFIG) -> CoordinatorSettings:
-    settings = load_settings(CoordinatorSettings, path) if path is not None else CoordinatorSettings()
+    settings = load_settings(CoordinatorSettings, path)
     if not settings.scene.is_absolute():
         settings.scene = REPO_ROOT / settings.scene
     return settings

@@ -186,7 +186,10 @@ class TrafficMapBuilder:
         self._grid = _Smoothed(self.grid_shape[0] * self.grid_shape[1])
         self._last_t_s: float | None = None
 
-    def lane_observed(self, live_agents: Collection[str]) -> BoolArray:
+    def lane_observed(self, live_agents: Collection[str] | None) -> BoolArray:
+        """Lanes some live agent covers; `None` means everything is observed (ground truth)."""
+        if live_agents is None:
+            return np.ones(len(self.lane_ids), dtype=bool)
         return np.array([any(a in live_agents for a in self.lane_agents[lane]) for lane in self.lane_ids])
 
     def cells(self, position_m: FloatArray) -> NDArray[np.int64]:
@@ -196,7 +199,8 @@ class TrafficMapBuilder:
         inside = (col >= 0) & (col < self.grid_shape[1]) & (row >= 0) & (row < self.grid_shape[0])
         return np.where(inside, row * self.grid_shape[1] + col, -1)
 
-    def update(self, vehicles: Vehicles, t_s: float, live_agents: Collection[str]) -> TrafficSnapshot:
+    def update(self, vehicles: Vehicles, t_s: float, live_agents: Collection[str] | None) -> TrafficSnapshot:
+        """Fold in the merged vehicles of time `t_s`; `live_agents` decide which lanes are observed."""
         gain = (
             1.0
             if self._last_t_s is None

@@ -49,8 +49,12 @@ class PlanBook:
         self._version: dict[str, int] = {}
         self.unacknowledged_dropped = 0  # pushed plans given up after max_sends
 
-    def issue(self, vehicle_id: str, route: Route, now_s: float, *, pushed: bool) -> IssuedPlan:
-        version = self._version.get(vehicle_id, 0) + 1
+    def issue(
+        self, vehicle_id: str, route: Route, now_s: float, *, pushed: bool, after_version: int = 0
+    ) -> IssuedPlan:
+        """`after_version`: the version the vehicle says it follows; a restarted coordinator continues
+        above it (else every plan it sends would be rejected as stale)."""
+        version = max(self._version.get(vehicle_id, 0), after_version) + 1
         self._version[vehicle_id] = version
         plan = IssuedPlan(vehicle_id, uuid.uuid4().hex, version, route, now_s, pushed)
         self._latest[vehicle_id] = plan

@@ -1,0 +1,1 @@
+"""Cloud coordinator service: merged traffic maps and route plans for connected vehicles."""

@@ -1,0 +1,5 @@
+import sys
+
+from services.coordinator.main import cli
+
+sys.exit(cli())

@@ -1,0 +1,269 @@
+"""The coordinator's state and decisions, without the bus (unit-testable, benchmarked in-process).
+
+    on_objects / on_presence   the latest objects of each agent, and its coverage (LIVE/STALE/LOST)
+    update_map                 merge the LIVE agents' objects -> smoothed maps -> lane conditions
+    serve                      a RouteRequest answered with a plan on the latest maps (RPC)
+    replan / due               re-check active plans; pushed plans to send or resend
+    on_ack                     delivery bookkeeping from the vehicles' acknowledgements
+
+Only LIVE agents' objects enter the maps: a STALE agent's last list no longer describes its area, and
+the lanes it covers turn unobserved (count unknown) instead of keeping ghosts. Every plan records
+which agents were missing when it was made, so a coverage change can be pushed to the vehicles.
+
+Thread safety: every public method takes the core's lock (the RPC handler runs on a Zenoh thread,
+everything else on the service's main thread). Times: monotonic seconds `now_s`, wall-clock `wall_ns`.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+from rmmdet.v1.common_pb2 import ErrorCode
+from rmmdet.v1.planning_pb2 import RoutePlan, RouteRequest
+from rmmdet.v1.traffic_pb2 import TrafficMap
+
+from shared.bus.streams import validate_id
+from shared.scene.road_network import RoadNetwork
+from shared.scene.scene import Scene
+from shared.traffic import messages
+from shared.traffic.config import CoordinatorSettings
+from shared.traffic.coverage import AgentState, CoverageTracker
+from shared.traffic.maps import AgentObjects, TrafficMapBuilder, TrafficSnapshot, merge_agents
+from shared.traffic.planner import ONE_JUNCTION_POLICIES, LaneConditions, NoRouteError, Route, RoutePlanner
+from shared.traffic.plans import Ack, IssuedPlan, PlanBook
+
+NS_PER_S = 1_000_000_000
+#: Acknowledgements after which the vehicle no longer follows the plan (its lanes are no load).
+ENDED = (Ack.REJECTED_INVALID, Ack.REJECTED_STALE, Ack.COMPLETED)
+
+
+class RequestRejected(Exception):
+    """A route request that cannot be served; `reason` names the rejection counter."""
+
+    def __init__(self, reason: str, code: ErrorCode.ValueType, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+        self.code = code
+        self.message = message
+
+
+@dataclass
+class _Active:
+    """What the coordinator keeps about a vehicle's latest plan beyond the PlanBook."""
+
+    destination: str
+    missing: frozenset[str]  # agents not LIVE in the maps the plan was made on
+    message: RoutePlan  # as sent; resends repeat it unchanged (idempotent at the vehicle)
+    stamp_ns: int  # data stamp of the maps it was made on
+
+
+class CoordinatorCore:
+    def __init__(self, scene: Scene, settings: CoordinatorSettings, max_vehicles: int) -> None:
+        self.settings = settings
+        self.max_vehicles = max_vehicles
+        self.agents = list(scene.agents)
+        network = RoadNetwork(scene)
+        self.net = network
+        self.coverage = CoverageTracker(self.agents, settings.coverage)
+        self.builder = TrafficMapBuilder(scene, network, settings.maps)
+        self.planner = RoutePlanner(scene, network, settings.planner)
+        self.book = PlanBook(settings.delivery)
+        self._lock = threading.Lock()
+        self._objects: dict[str, AgentObjects] = {}
+        self._stamp_ns: dict[str, int] = {}  # data stamp of each agent's latest objects
+        self._active: dict[str, _Active] = {}
+        self.snapshot: TrafficSnapshot | None = None
+        self._cond = LaneConditions()
+        self._missing: frozenset[str] = frozenset(self.agents)  # as of the latest maps
+        self._map_stamp_ns = 0
+        self.dirty = False  # objects arrived since the last map update
+
+    # --- inputs ----------------------------------------------------------------------------------
+
+    def on_objects(self, agent: str, objects: AgentObjects, stamp_ns: int, now_s: float) -> bool:
+        """Keep `agent`'s latest objects; False for an agent not in the scene (caller counts it)."""
+        if agent not in self.coverage.agents:
+            return False
+        with self._lock:
+            if stamp_ns < self._stamp_ns.get(agent, 0):
+                return True  # reordered: the newer list is already held (latest wins)
+            self._objects[agent] = objects
+            self._stamp_ns[agent] = stamp_ns
+            self.coverage.on_data(agent, now_s, len(objects))
+            self.dirty = True
+        return True
+
+    def on_presence(self, agent: str, alive: bool) -> bool:
+        if agent not in self.coverage.agents:
+            return False
+        with self._lock:
+            self.coverage.on_presence(agent, alive)
+        return True
+
+    # --- maps ------------------------------------------------------------------------------------
+
+    def states(self, now_s: float) -> dict[str, AgentState]:
+        with self._lock:
+            return {a: self.coverage.state(a, now_s) for a in self.agents}
+
+    def update_map(self, now_s: float) -> TrafficSnapshot:
+        with self._lock:
+            return self._update_map(now_s)
+
+    def _update_map(self, now_s: float) -> TrafficSnapshot:
+        live = self.coverage.live(now_s)
+        held = [a for a in live if a in self._objects]
+        gate_m, level_m = self.settings.maps.dedup_gate_m, self.settings.maps.level_separation_m
+        vehicles = merge_agents([self._objects[a] for a in held], gate_m, level_m)
+        snap = self.builder.update(vehicles, now_s, live)
+        self.snapshot = snap
+        self._cond = LaneConditions.from_snapshot(snap)
+        self._missing = frozenset(a for a in self.agents if a not in live)
+        self._map_stamp_ns = max((self._stamp_ns[a] for a in held), default=0)
+        self.dirty = False
+        return snap
+
+    def map_message(self, now_s: float) -> tuple[TrafficMap, int]:
+        """The latest maps as a TrafficMap with the current coverage, and their data stamp (0: none)."""
+        with self._lock:
+            if self.snapshot is None:
+                raise RuntimeError("update_map() first")
+            coverage = [
+                (
+                    a,
+                    self.coverage.state(a, now_s),
+                    self.coverage.age_s(a, now_s),
+                    self.coverage.object_count(a),
+                )
+                for a in self.agents
+            ]
+            msg = messages.traffic_map(self.snapshot, coverage, self.settings.maps.smoothing_time_constant_s)
+            return msg, self._map_stamp_ns
+
+    # --- plans -----------------------------------------------------------------------------------
+
+    def serve(self, req: RouteRequest, now_s: float, wall_ns: int) -> tuple[RoutePlan, int]:
+        """Plan for a request (already decoded and range-checked by the codec): the RoutePlan (no
+        header) and the data stamp of the maps it was made on. Raises RequestRejected."""
+        try:
+            validate_id(req.vehicle_id, "vehicle_id")
+        except ValueError as err:
+            raise RequestRejected("vehicle_id", ErrorCode.ERROR_CODE_INVALID_REQUEST, str(err)) from None
+        if req.current_lane_id not in self.net.lanes:
+            raise RequestRejected(
+                "unknown_lane", ErrorCode.ERROR_CODE_NOT_FOUND, f"unknown lane {req.current_lane_id!r}"
+            )
+        if req.destination_junction_id not in self.planner.junctions:
+            raise RequestRejected(
+                "unknown_junction",
+                ErrorCode.ERROR_CODE_NOT_FOUND,
+                f"unknown junction {req.destination_junction_id!r}",
+            )
+        with self._lock:
+            if self.dirty or self.snapshot is None:
+                # Object lists arrived since the maps were built: a plan uses the newest data (the
+                # main loop's rebuilds are rate-limited).
+                self._update_map(now_s)
+            vid = req.vehicle_id
+            if self.book.latest(vid) is None and len(self.book.vehicles()) >= self.max_vehicles:
+                raise RequestRejected(
+                    "too_many_vehicles",
+                    ErrorCode.ERROR_CODE_UNAVAILABLE,
+                    f"serving {self.max_vehicles} vehicles already",
+                )
+            try:
+                route = self.planner.plan(vid, req.current_lane_id, req.destination_junction_id, self._cond)
+            except NoRouteError as err:
+                raise RequestRejected("no_route", ErrorCode.ERROR_CODE_NOT_FOUND, str(err)) from None
+            plan = self.book.issue(
+                vid, route, now_s, pushed=False, after_version=int(req.current_plan_version)
+            )
+            msg = self._record(plan, req.destination_junction_id, wall_ns)
+            return msg, self._map_stamp_ns
+
+    def _record(self, plan: IssuedPlan, destination: str, wall_ns: int) -> RoutePlan:
+        self.planner.commit(plan.vehicle_id, plan.route)
+        valid_until_ns = wall_ns + round(self.settings.planner.plan_ttl_s * NS_PER_S)
+        live = [a for a in self.agents if a not in self._missing]
+        msg = messages.route_plan(plan, destination, valid_until_ns, live, sorted(self._missing))
+        self._active[plan.vehicle_id] = _Active(destination, self._missing, msg, self._map_stamp_ns)
+        return msg
+
+    def replan(self, now_s: float, wall_ns: int) -> int:
+        """Re-check every active plan on the latest maps; issue a pushed plan where a new route from
+        the lane the vehicle drives next saves more than `replan_gain` of the expected time, or where
+        the coverage changed since the plan was made. Returns the number issued (sent by `due`)."""
+        issued = 0
+        with self._lock:
+            for vid in self.book.vehicles():
+                plan = self.book.latest(vid)
+                active = self._active.get(vid)
+                if plan is None or active is None or not self._replannable(plan, now_s):
+                    continue
+                route = self._better_route(vid, plan.route, active)
+                if route is None:
+                    continue
+                new = self.book.issue(vid, route, now_s, pushed=True)
+                self._record(new, active.destination, wall_ns)
+                issued += 1
+        return issued
+
+    def _replannable(self, plan: IssuedPlan, now_s: float) -> bool:
+        if now_s - plan.issued_s > self.settings.planner.plan_ttl_s or plan.ack in ENDED:
+            self.planner.forget(plan.vehicle_id)
+            return False
+        if plan.pushed and plan.ack is None:
+            return False  # still being delivered
+        # The vehicle may already have turned onto lanes[1] (it asks 1 m before a lane's end), so the
+        # first turn stays and the rest is planned again from there.
+        return plan.route.policy not in ONE_JUNCTION_POLICIES and len(plan.route.lanes) >= 2
+
+    def _better_route(self, vid: str, route: Route, active: _Active) -> Route | None:
+        head, start = route.lanes[0], route.lanes[1]
+        try:
+            new = self.planner.plan(vid, start, active.destination, self._cond, route.policy)
+        except NoRouteError:
+            return None
+        old_s = self.planner.route_time_s(route.lanes[1:], self._cond, route.policy, vid)
+        saves = old_s - new.expected_travel_time_s > self.settings.replan_gain * old_s
+        if not saves and active.missing == self._missing:
+            return None
+        lanes = [head, *new.lanes]
+        return Route(
+            lanes,
+            [route.junctions[0], *new.junctions],
+            self.planner.route_time_s(lanes, self._cond, route.policy, vid),
+            self.net.lanes[head].length_m + self.net.route_length_m(lanes),
+            route.policy,
+        )
+
+    @property
+    def plans_given_up(self) -> int:
+        """Pushed plans never acknowledged after `delivery.max_sends` sends."""
+        return self.book.unacknowledged_dropped
+
+    def due(self, now_s: float) -> list[tuple[RoutePlan, int, bool]]:
+        """Pushed plans to send now, marked sent: (plan, data stamp, first send)."""
+        out = []
+        with self._lock:
+            for plan in self.book.due(now_s):
+                active = self._active[plan.vehicle_id]
+                out.append((active.message, active.stamp_ns, plan.sends == 0))
+                self.book.sent(plan, now_s)
+        return out
+
+    def on_ack(self, vehicle_id: str, plan_id: str, version: int, status: Ack) -> bool:
+        """Record an acknowledgement; False when it is not for the vehicle's latest plan."""
+        with self._lock:
+            recorded = self.book.on_ack(vehicle_id, plan_id, version, status)
+            if recorded and status in ENDED:
+                self.planner.forget(vehicle_id)
+            return recorded
+
+    def active_plans(self, now_s: float) -> int:
+        """Vehicles whose latest plan is within its TTL and not ended."""
+        ttl_s = self.settings.planner.plan_ttl_s
+        with self._lock:
+            plans = [self.book.latest(vid) for vid in self.book.vehicles()]
+        return sum(1 for p in plans if p is not None and now_s - p.issued_s <= ttl_s and p.ack not in ENDED)

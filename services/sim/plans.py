@@ -1,0 +1,186 @@
+"""The connected vehicles' side of route planning on the bus (route_policy `plan`).
+
+Each vehicle is a client of the coordinator: once per lane (`TrafficSim.needs_plan`) it sends a
+RouteRequest on the route RPC key with a non-blocking query; the reply (or an error, or nothing by
+`plan_request_timeout_s`) is queued by the Zenoh callback and applied on the next tick, so the 60 Hz
+loop never waits for the network. Plans pushed on `rmmdet/@v1/cloud/plans/<vehicle>` are applied the
+same way. Every plan received is answered with a RouteAck carrying the vehicle's decision
+(ACCEPTED, DUPLICATE, REJECTED_STALE, REJECTED_INVALID). Without a coordinator vehicles keep driving:
+no plan means the shortest route.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import cast
+
+import zenoh
+from google.protobuf.message import DecodeError
+from rmmdet.v1.common_pb2 import ErrorCode, ErrorResponse
+from rmmdet.v1.planning_pb2 import RouteAck, RoutePlan, RouteRequest, RouteResponse
+
+from shared.bus.codec import MessageDecoder, encode
+from shared.bus.node import Node, Publisher, Received
+from shared.bus.queues import BoundedQueue, OverflowPolicy
+from shared.bus.streams import get_stream
+from shared.traffic.plans import Ack
+from sim.traffic import TrafficSim, Vehicle
+
+log = logging.getLogger("services.sim.plans")
+
+#: Outstanding replies held between ticks; more than one per vehicle only if ticks stall.
+REPLY_QUEUE_PER_VEHICLE = 4
+ERROR_NAMES = {v: ErrorCode.Name(v).removeprefix("ERROR_CODE_").lower() for v in ErrorCode.values()}
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """A finished request: the plan, or why there is none (`error` names the counter)."""
+
+    vehicle_id: str
+    plan: RoutePlan | None
+    error: str = ""
+
+
+class PlanClient:
+    def __init__(self, node: Node, traffic: TrafficSim, request_timeout_s: float) -> None:
+        self.node = node
+        self.traffic = traffic
+        self.counters = node.counters
+        rpc = get_stream("route_rpc")
+        # One querier declared for the whole run (declaring per request would churn declarations).
+        self.querier = node.session.declare_querier(
+            rpc.key(), timeout=request_timeout_s, **rpc.qos.publisher_kwargs()
+        )
+        self.decoder = MessageDecoder(RouteResponse, node.counters)
+        self.outcomes: BoundedQueue[Outcome] = BoundedQueue(
+            REPLY_QUEUE_PER_VEHICLE * max(1, len(traffic.vehicles)), OverflowPolicy.DROP_OLDEST
+        )
+        self.pushed = node.subscribe_stream("route_plan", maxsize=1024)
+        self.ack_pubs: dict[str, Publisher] = {
+            v.id: node.publisher("route_ack", vehicle=v.id, source_id=f"vehicles/{v.id}")
+            for v in traffic.vehicles
+        }
+        self._request_seq: dict[str, int] = dict.fromkeys(self.ack_pubs, 0)
+
+    def close(self) -> None:
+        self.querier.undeclare()
+
+    def summary(self) -> dict[str, int]:
+        """Request and acknowledgement counters, for the periodic log."""
+        return {k: v for k, v in self.counters.snapshot().items() if k.startswith(("plans/", "acks/"))}
+
+    # --- per tick --------------------------------------------------------------------------------
+
+    def tick(self, stamp_ns: int) -> None:
+        """Apply what arrived since the last tick, then send this tick's requests."""
+        for outcome in self.outcomes.drain():
+            if outcome.plan is None:
+                self.counters.inc(f"plans/{outcome.error}")
+            else:
+                self.counters.inc("plans/replied")
+                self.apply(outcome.plan)
+        for received in self.pushed.drain():
+            self.counters.inc("plans/pushed_received")
+            self.apply_pushed(received)
+        for v in self.traffic.vehicles:
+            if self.traffic.needs_plan(v):
+                v.planned_lane = v.lane_id  # one request per lane, answered or not
+                self.request(v, stamp_ns)
+
+    def request(self, v: Vehicle, stamp_ns: int) -> None:
+        req = RouteRequest(
+            vehicle_id=v.id,
+            current_lane_id=v.lane_id,
+            lane_progress_m=max(0.0, v.s),
+            destination_junction_id=self.traffic.routing_destination(v),
+            current_plan_version=v.plan_version,
+        )
+        req.position_m.x_m, req.position_m.y_m = v.x, v.y
+        self._request_seq[v.id] += 1
+        req.header.source_id = f"vehicles/{v.id}"
+        req.header.seq = self._request_seq[v.id]
+        req.header.stamp.FromNanoseconds(stamp_ns)
+        req.header.frame_id = "world"
+        encoded = encode(req)
+        handler = _ReplyHandler(v.id, self.decoder, self.outcomes)
+        self.querier.get(
+            zenoh.handlers.Callback(handler.on_reply, handler.on_done),
+            payload=encoded.payload,
+            encoding=encoded.encoding,
+        )
+        self.counters.inc("plans/requested")
+
+    def apply_pushed(self, received: Received) -> None:
+        plan: RoutePlan = received.message
+        if received.key.rsplit("/", 1)[-1] != plan.vehicle_id:
+            self.counters.inc("rejected/plan_key_mismatch")
+            return
+        self.apply(plan)
+
+    def apply(self, plan: RoutePlan) -> None:
+        """Hand the plan to its vehicle and acknowledge with the vehicle's decision."""
+        if plan.vehicle_id not in self.ack_pubs:
+            self.counters.inc("rejected/plan_unknown_vehicle")
+            return
+        reason = ""
+        if plan.HasField("valid_until") and plan.valid_until.ToNanoseconds() < time.time_ns():
+            status, reason = Ack.REJECTED_STALE, "expired"
+        else:
+            lanes = list(plan.lane_ids)
+            status = self.traffic.set_plan(plan.vehicle_id, lanes, int(plan.version), plan.plan_id)
+            if status is Ack.REJECTED_INVALID:
+                reason = "route does not continue from the vehicle's lane"
+        self.counters.inc(f"acks/{status.name.lower()}")
+        ack = RouteAck(
+            vehicle_id=plan.vehicle_id,
+            plan_id=plan.plan_id,
+            version=plan.version,
+            status=status.value,  # Ack mirrors AckStatus
+            reason=reason,
+        )
+        self.ack_pubs[plan.vehicle_id].put(ack, derived_from=plan.header)
+
+
+class _ReplyHandler:
+    """Callbacks of one request. They run on Zenoh threads: decode and enqueue only."""
+
+    def __init__(self, vehicle_id: str, decoder: MessageDecoder, outcomes: BoundedQueue[Outcome]) -> None:
+        self.vehicle_id = vehicle_id
+        self.decoder = decoder
+        self.outcomes = outcomes
+        self.answered = False
+
+    def on_reply(self, reply: zenoh.Reply) -> None:
+        if self.answered:
+            return  # one coordinator answers; extra replies are ignored
+        self.answered = True
+        try:
+            if reply.ok is not None:
+                sample = reply.ok
+                attachment = sample.attachment.to_bytes() if sample.attachment is not None else None
+                decoded = self.decoder.decode(sample.payload.to_bytes(), str(sample.encoding), attachment)
+                if decoded is None:  # counted by the decoder as rejected/<reason>
+                    self.outcomes.put(Outcome(self.vehicle_id, None, "bad_reply"))
+                    return
+                response = cast(RouteResponse, decoded.message)
+                if response.plan.vehicle_id != self.vehicle_id:
+                    self.outcomes.put(Outcome(self.vehicle_id, None, "wrong_vehicle"))
+                else:
+                    self.outcomes.put(Outcome(self.vehicle_id, response.plan))
+                return
+            error = ErrorResponse()
+            try:
+                error.ParseFromString(reply.err.payload.to_bytes() if reply.err is not None else b"")
+            except DecodeError:
+                error.code = ErrorCode.ERROR_CODE_UNSPECIFIED
+            self.outcomes.put(Outcome(self.vehicle_id, None, f"error_{ERROR_NAMES.get(error.code, 'other')}"))
+        except Exception:  # never raise into Zenoh's thread
+            log.exception("route reply for %s failed", self.vehicle_id)
+            self.outcomes.put(Outcome(self.vehicle_id, None, "bad_reply"))
+
+    def on_done(self) -> None:
+        if not self.answered:
+            self.outcomes.put(Outcome(self.vehicle_id, None, "no_reply"))

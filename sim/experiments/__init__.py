@@ -1,0 +1,1 @@
+"""Experiments on the simulated table (`make experiments`): the paper's traffic-flow experiment."""

@@ -1,0 +1,112 @@
+"""Client-side helpers for tests and benchmarks of the coordinator: route RPC calls, its health report,
+and a recorder of the traffic maps it publishes."""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+
+import zenoh
+from rmmdet.v1.common_pb2 import ErrorResponse
+from rmmdet.v1.health_pb2 import ServiceHealth
+from rmmdet.v1.planning_pb2 import RoutePlan, RouteRequest, RouteResponse
+from rmmdet.v1.traffic_pb2 import AgentState
+
+from shared.bus.codec import encode
+from shared.bus.node import Node, Subscription
+from shared.bus.streams import get_stream
+
+RPC_TIMEOUT_S = 2.0
+STATE_NAMES = {AgentState.AGENT_STATE_LIVE: "LIVE", AgentState.AGENT_STATE_STALE: "STALE"}
+STATE_NAMES[AgentState.AGENT_STATE_LOST] = "LOST"
+HEALTH_KEY = get_stream("health").key(scope="cloud", service="coordinator", instance="cloud")
+
+
+class RouteClient:
+    """Blocking route requests on one querier (tests only; vehicles use non-blocking gets)."""
+
+    def __init__(self, node: Node, source_id: str = "test/route-client") -> None:
+        self.querier = node.session.declare_querier(get_stream("route_rpc").key(), timeout=RPC_TIMEOUT_S)
+        self.source_id = source_id
+        self.seq = 0
+
+    def wait_ready(self, timeout_s: float) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not getattr(self.querier.matching_status, "matching", False):
+            if time.monotonic() > deadline:
+                raise TimeoutError("no route queryable")
+            time.sleep(0.05)
+
+    def request(
+        self, vehicle_id: str, lane: str, destination: str, version: int = 0
+    ) -> RoutePlan | ErrorResponse | None:
+        """The plan, the error reply, or None when nobody answered."""
+        self.seq += 1
+        req = RouteRequest(
+            vehicle_id=vehicle_id,
+            current_lane_id=lane,
+            destination_junction_id=destination,
+            current_plan_version=version,
+        )
+        req.header.source_id = self.source_id
+        req.header.seq = self.seq
+        req.header.stamp.FromNanoseconds(time.time_ns())
+        encoded = encode(req)
+        for reply in self.querier.get(payload=encoded.payload, encoding=encoded.encoding):
+            if reply.ok is not None:
+                response = RouteResponse()
+                response.ParseFromString(reply.ok.payload.to_bytes())
+                return response.plan
+            error = ErrorResponse()
+            if reply.err is not None:
+                error.ParseFromString(reply.err.payload.to_bytes())
+            return error
+        return None
+
+    def close(self) -> None:
+        self.querier.undeclare()
+
+
+def coordinator_health(session: zenoh.Session, timeout_s: float = 2.0) -> ServiceHealth | None:
+    for reply in session.get(HEALTH_KEY, timeout=timeout_s):
+        if reply.ok is not None:
+            report = ServiceHealth()
+            report.ParseFromString(reply.ok.payload.to_bytes())
+            return report
+    return None
+
+
+def counters(report: ServiceHealth) -> dict[str, int]:
+    return {c.name: c.value for c in report.counters}
+
+
+@dataclass
+class MapLog:
+    """Traffic maps received: (monotonic arrival, {agent: LIVE/STALE/LOST})."""
+
+    rows: list[tuple[float, dict[str, str]]] = field(default_factory=list)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def consume(self, sub: Subscription, done: threading.Event) -> None:
+        while not done.is_set():
+            item = sub.recv(timeout=0.1)
+            if item is not None:
+                states = {c.agent_id: STATE_NAMES.get(c.state, "?") for c in item.message.coverage}
+                with self.lock:
+                    self.rows.append((time.monotonic(), states))
+
+    def since(self, t: float) -> list[tuple[float, dict[str, str]]]:
+        with self.lock:
+            return [r for r in self.rows if r[0] >= t]
+
+    def wait(self, pred, timeout_s: float, since: float) -> float:
+        """Arrival of the first map after `since` whose coverage satisfies `pred`."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            for t, states in self.since(since):
+                if pred(states):
+                    return t
+            time.sleep(0.02)
+        last = self.since(since)[-1:]
+        raise AssertionError(f"no such map within {timeout_s} s (last: {last})")

@@ -1,0 +1,121 @@
+"""Closed loop over the bus: router + coordinator + sim (route policy `plan`, 2x real time).
+
+Vehicles ask the coordinator for a plan once per lane (RPC), follow it and acknowledge it; the test
+sees ACCEPTED acks on `rmmdet/@v1/vehicles/*/plan_ack` and the coordinator's health counters show
+plans served and acks. Then a stand-in MEC for one agent comes up: the coverage change makes the
+coordinator push new plans (`rmmdet/@v1/cloud/plans/*`, replan interval shortened through
+RMMDET_COORD_REPLAN_INTERVAL_S), and the vehicles acknowledge them.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import pytest
+from rmmdet.v1.planning_pb2 import AckStatus
+
+from shared.bus.node import Node
+from tests.helpers import Router, spawn, stop
+from tests.integration.coordinator_client import coordinator_health, counters
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
+
+SCALE = float(os.environ.get("RSP_TIME_SCALE", "1"))
+SIM_SPEED = "2"
+VEHICLES = "10"
+REPLAN_INTERVAL_S = "0.5"
+STARTUP_S = 45.0
+MIN_ACCEPTED = 3
+PUSH_WITHIN_S = 10.0 * SCALE
+MEC_AGENT = "agent3"  # the roundabout: most routes pass it
+
+
+@dataclass
+class Bus:
+    """Acks (plan id -> status) and pushed plans (plan id -> vehicle) seen by the test."""
+
+    acks: dict[str, int] = field(default_factory=dict)
+    pushed: dict[str, str] = field(default_factory=dict)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def accepted(self) -> int:
+        with self.lock:
+            return sum(s == AckStatus.ACK_STATUS_ACCEPTED for s in self.acks.values())
+
+    def pushed_acks(self) -> dict[str, int]:
+        with self.lock:
+            return {pid: self.acks[pid] for pid in self.pushed if pid in self.acks}
+
+
+def wait_until(pred, timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not pred():
+        assert time.monotonic() < deadline, f"{what} not within {timeout_s} s"
+        time.sleep(0.1)
+
+
+@pytest.fixture
+def loop(router: Router) -> Iterator[tuple[Router, Node, Bus, dict]]:
+    coord_env = {"RMMDET_COORD_REPLAN_INTERVAL_S": REPLAN_INTERVAL_S}
+    sim_env = {"RMMDET_SIM_TRAFFIC__ROUTE_POLICY": "plan"}
+    procs = {
+        "coordinator": spawn(["-m", "services.coordinator", *router.client_args()], env=coord_env),
+        "sim": spawn(
+            ["-m", "services.sim", "--speed", SIM_SPEED, "--vehicles", VEHICLES, *router.client_args()],
+            env=sim_env,
+        ),
+    }
+    node = Node(router.client_config(), service="test", instance="closed-loop", scope="site")
+    node.open()
+    bus = Bus()
+    done = threading.Event()
+    acks = node.subscribe_stream("route_ack", maxsize=10_000)
+    plans = node.subscribe_stream("route_plan", maxsize=10_000)
+
+    def consume() -> None:
+        while not done.is_set():
+            for item in acks.drain():
+                with bus.lock:
+                    bus.acks[item.message.plan_id] = item.message.status
+            for item in plans.drain():
+                with bus.lock:
+                    bus.pushed[item.message.plan_id] = item.message.vehicle_id
+            time.sleep(0.05)
+
+    thread = threading.Thread(target=consume, daemon=True)
+    thread.start()
+    try:
+        yield router, node, bus, procs
+    finally:
+        done.set()
+        thread.join(2)
+        node.close()
+        for p in procs.values():
+            stop(p)
+
+
+def test_vehicles_follow_and_acknowledge_plans(loop) -> None:
+    router, node, bus, procs = loop
+    wait_until(lambda: bus.accepted() >= MIN_ACCEPTED, STARTUP_S, f"{MIN_ACCEPTED} ACCEPTED acks")
+    report = coordinator_health(node.session)
+    assert report is not None
+    c = counters(report)
+    assert c["plans/served"] >= MIN_ACCEPTED and c["acks/accepted"] >= 1, c
+    assert not any(k.startswith("rejected/") for k in c), c
+
+    # An agent comes up: plans made without it are pushed again, and acknowledged.
+    procs["mec"] = spawn(["-m", "tests.integration.fake_mec", "--instance", MEC_AGENT, *router.client_args()])
+    wait_until(lambda: bus.pushed_acks(), STARTUP_S + PUSH_WITHIN_S, "an acknowledged pushed plan")
+    wait_until(
+        lambda: AckStatus.ACK_STATUS_ACCEPTED in bus.pushed_acks().values(),
+        PUSH_WITHIN_S,
+        "an ACCEPTED pushed plan",
+    )
+    report = coordinator_health(node.session)
+    assert report is not None
+    c = counters(report)
+    assert c["plans/pushed"] >= 1 and c["acks/accepted"] >= MIN_ACCEPTED, c

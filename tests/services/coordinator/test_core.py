@@ -1,0 +1,201 @@
+"""Coordinator core (no bus): coverage-filtered maps, served plans and rejections, pushed replans and
+their delivery, acknowledgements; plus the key parsers of the service shell."""
+
+from __future__ import annotations
+
+import pytest
+from rmmdet.v1.common_pb2 import ErrorCode
+from rmmdet.v1.planning_pb2 import RouteRequest
+from rmmdet.v1.traffic_pb2 import AgentState as PbState
+
+from services.coordinator.core import CoordinatorCore, RequestRejected
+from services.coordinator.main import agent_of_key, mec_of_token, vehicle_of_ack_key
+from shared.scene.road_network import RoadNetwork
+from shared.scene.scene import Scene
+from shared.traffic.config import CoordinatorSettings
+from shared.traffic.coverage import AgentState
+from shared.traffic.messages import agent_objects
+from shared.traffic.plans import Ack
+from sim.config import DEFAULT_SCENE
+from tests.integration.fake_mec import AgentCars
+
+NS = 1_000_000_000
+WALL0_NS = 1_700_000_000 * NS
+CARS = 3
+
+
+@pytest.fixture(scope="module")
+def scene() -> Scene:
+    return Scene.load(DEFAULT_SCENE)
+
+
+@pytest.fixture(scope="module")
+def cars(scene: Scene) -> dict[str, AgentCars]:
+    net = RoadNetwork(scene)
+    return {a: AgentCars(scene, net, a, CARS) for a in scene.agents}
+
+
+def make_core(scene: Scene, max_vehicles: int = 16) -> CoordinatorCore:
+    return CoordinatorCore(scene, CoordinatorSettings(), max_vehicles)
+
+
+def feed(core: CoordinatorCore, cars: dict[str, AgentCars], now_s: float, agents=None) -> None:
+    for agent in agents or core.agents:
+        msg = cars[agent].message(now_s)
+        core.on_objects(agent, agent_objects(agent, msg), WALL0_NS + round(now_s * NS), now_s)
+
+
+def request(vid: str = "v01", lane: str = "l0", dest: str = "j3", version: int = 0) -> RouteRequest:
+    return RouteRequest(
+        vehicle_id=vid, current_lane_id=lane, destination_junction_id=dest, current_plan_version=version
+    )
+
+
+def test_maps_hold_only_live_agents(scene: Scene, cars: dict[str, AgentCars]) -> None:
+    core = make_core(scene)
+    feed(core, cars, 1.0)
+    snap = core.update_map(1.0)
+    assert snap.lane_count.sum() == len(core.agents) * CARS
+    only_agent1 = [i for i, lane in enumerate(snap.lane_ids) if core.builder.lane_agents[lane] == ["agent1"]]
+    assert only_agent1 and snap.lane_observed[only_agent1].all()
+    # agent1's MEC dies (presence gone): its cars leave the maps at once, its lanes turn unobserved.
+    core.on_presence("agent1", False)
+    feed(core, cars, 1.2, agents=["agent2", "agent3"])
+    snap = core.update_map(1.2)
+    assert snap.lane_count.sum() == 2 * CARS
+    assert not snap.lane_observed[only_agent1].any()
+    states = core.states(1.2)
+    assert states["agent1"] is AgentState.STALE and states["agent2"] is AgentState.LIVE
+    msg, stamp_ns = core.map_message(1.2)
+    coverage = {c.agent_id: c.state for c in msg.coverage}
+    live, stale = PbState.AGENT_STATE_LIVE, PbState.AGENT_STATE_STALE
+    assert coverage == {"agent1": stale, "agent2": live, "agent3": live}
+    assert stamp_ns == WALL0_NS + round(1.2 * NS)
+    # Back, but its data is old: data age alone keeps it STALE (a hung MEC keeps its token) ...
+    core.on_presence("agent1", True)
+    assert core.states(2.0)["agent1"] is AgentState.STALE
+    # ... and LOST after lost_after_s; its first new list makes it LIVE again.
+    lost_s = 1.0 + core.settings.coverage.lost_after_s + 0.1
+    assert core.states(lost_s)["agent1"] is AgentState.LOST
+    feed(core, cars, lost_s, agents=["agent1"])
+    assert core.states(lost_s)["agent1"] is AgentState.LIVE
+
+
+def test_unknown_agent_and_reordered_lists(scene: Scene, cars: dict[str, AgentCars]) -> None:
+    core = make_core(scene)
+    msg = cars["agent1"].message(0.0)
+    assert not core.on_objects("agent9", agent_objects("agent9", msg), WALL0_NS, 0.0)
+    assert not core.on_presence("agent9", True)
+    assert core.on_objects("agent1", agent_objects("agent1", msg), WALL0_NS + NS, 0.0)
+    empty = agent_objects("agent1", cars["agent1"].message(0.0).__class__())
+    assert core.on_objects("agent1", empty, WALL0_NS, 0.1)  # older stamp: ignored, newer list kept
+    assert core.update_map(0.1).lane_count.sum() == CARS
+
+
+def test_serve_plans_with_coverage_and_versions(scene: Scene, cars: dict[str, AgentCars]) -> None:
+    core = make_core(scene)
+    feed(core, cars, 1.0, agents=["agent1", "agent3"])
+    core.update_map(1.0)
+    plan, stamp_ns = core.serve(request(), 1.0, WALL0_NS)
+    assert plan.lane_ids[0] == "l0" and plan.version == 1 and plan.plan_id
+    assert core.net.lane_end_junction(plan.lane_ids[-1]) == "j3"
+    assert list(plan.coverage.missing_agents) == ["agent2"]
+    assert sorted(plan.coverage.live_agents) == ["agent1", "agent3"]
+    assert plan.valid_until.ToNanoseconds() == WALL0_NS + round(core.settings.planner.plan_ttl_s * NS)
+    assert stamp_ns == WALL0_NS + NS
+    assert core.serve(request(), 1.1, WALL0_NS)[0].version == 2
+    # A restarted coordinator continues above the version the vehicle follows.
+    assert core.serve(request("v02", version=41), 1.2, WALL0_NS)[0].version == 42
+
+
+def test_serve_uses_lists_that_arrived_after_the_last_map(scene: Scene, cars: dict[str, AgentCars]) -> None:
+    core = make_core(scene)
+    core.update_map(0.0)
+    feed(core, cars, 0.5)
+    assert core.dirty
+    plan, stamp_ns = core.serve(request(), 0.5, WALL0_NS)
+    assert stamp_ns == WALL0_NS + round(0.5 * NS) and not core.dirty
+    assert list(plan.coverage.missing_agents) == []
+
+
+@pytest.mark.parametrize(
+    ("req", "reason", "code"),
+    [
+        (request(vid="V 1"), "vehicle_id", ErrorCode.ERROR_CODE_INVALID_REQUEST),
+        (request(lane="l99"), "unknown_lane", ErrorCode.ERROR_CODE_NOT_FOUND),
+        (request(dest="j99"), "unknown_junction", ErrorCode.ERROR_CODE_NOT_FOUND),
+    ],
+)
+def test_serve_rejects_bad_requests(scene: Scene, req: RouteRequest, reason: str, code: int) -> None:
+    core = make_core(scene)
+    core.update_map(0.0)
+    with pytest.raises(RequestRejected) as err:
+        core.serve(req, 0.0, WALL0_NS)
+    assert err.value.reason == reason and err.value.code == code
+
+
+def test_vehicle_cap(scene: Scene) -> None:
+    core = make_core(scene, max_vehicles=1)
+    core.update_map(0.0)
+    core.serve(request("v01"), 0.0, WALL0_NS)
+    core.serve(request("v01"), 0.1, WALL0_NS)  # a known vehicle is still served
+    with pytest.raises(RequestRejected) as err:
+        core.serve(request("v02"), 0.2, WALL0_NS)
+    assert err.value.reason == "too_many_vehicles"
+
+
+def test_coverage_change_pushes_plan_until_acknowledged(scene: Scene, cars: dict[str, AgentCars]) -> None:
+    core = make_core(scene)
+    delivery = core.settings.delivery
+    core.update_map(0.0)  # nothing LIVE yet
+    first, _ = core.serve(request(), 0.0, WALL0_NS)
+    core.on_ack("v01", first.plan_id, first.version, Ack.ACCEPTED)
+    assert core.replan(0.5, WALL0_NS) == 0  # same coverage, same (empty) maps: nothing to push
+    feed(core, cars, 1.0)
+    core.update_map(1.0)  # every agent LIVE now: the plan was made without them
+    assert core.replan(1.0, WALL0_NS) == 1
+    due = core.due(1.0)
+    assert len(due) == 1
+    pushed, _, first_send = due[0]
+    assert first_send and pushed.version == 2 and list(pushed.coverage.missing_agents) == []
+    assert list(pushed.lane_ids[:2]) == list(first.lane_ids[:2])  # the first turn is kept
+    assert core.replan(1.1, WALL0_NS) == 0  # still being delivered: not replanned again
+    assert core.due(1.0 + delivery.ack_timeout_s / 2) == []
+    resent = core.due(1.0 + delivery.ack_timeout_s)
+    assert [(p.plan_id, first_send) for p, _, first_send in resent] == [(pushed.plan_id, False)]
+    assert not core.on_ack("v01", first.plan_id, first.version, Ack.ACCEPTED)  # not the latest
+    assert core.on_ack("v01", pushed.plan_id, pushed.version, Ack.ACCEPTED)
+    assert core.due(5.0) == []
+    assert core.active_plans(5.0) == 1
+
+
+def test_pushed_plan_given_up_after_max_sends(scene: Scene, cars: dict[str, AgentCars]) -> None:
+    core = make_core(scene)
+    core.update_map(0.0)
+    core.serve(request(), 0.0, WALL0_NS)
+    feed(core, cars, 1.0)
+    core.update_map(1.0)
+    assert core.replan(1.0, WALL0_NS) == 1
+    timeout_s = core.settings.delivery.ack_timeout_s
+    sends = sum(len(core.due(1.0 + k * timeout_s)) for k in range(core.settings.delivery.max_sends + 2))
+    assert sends == core.settings.delivery.max_sends and core.plans_given_up == 1
+    assert core.active_plans(10.0) == 0
+
+
+def test_ended_plans_are_not_replanned(scene: Scene, cars: dict[str, AgentCars]) -> None:
+    core = make_core(scene)
+    core.update_map(0.0)
+    plan, _ = core.serve(request(), 0.0, WALL0_NS)
+    assert core.on_ack("v01", plan.plan_id, plan.version, Ack.REJECTED_INVALID)
+    assert core.planner.planned_load() == {}  # its lanes are no longer load for others
+    feed(core, cars, 1.0)
+    core.update_map(1.0)
+    assert core.replan(1.0, WALL0_NS) == 0
+
+
+def test_key_parsers() -> None:
+    assert agent_of_key("rmmdet/@v1/agent2/objects") == "agent2"
+    assert vehicle_of_ack_key("rmmdet/@v1/vehicles/v07/plan_ack") == "v07"
+    assert mec_of_token("rmmdet/@v1/agent3/@alive/mec/agent3") == "agent3"
+    assert mec_of_token("rmmdet/@v1/agent3/@alive/mec/agent1") is None
+    assert mec_of_token("rmmdet/@v1/site/@alive/router/main") is None
