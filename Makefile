@@ -12,7 +12,7 @@ SUPERVISOR_CONF := deploy/local/supervisord.conf
 RUN_DIR := .run
 PYTEST_ARGS ?=
 
-.PHONY: help install proto up down status logs test test-unit test-integration test-fault bench models eval eval-fusion lint typecheck fmt clean
+.PHONY: help install proto up down status logs test test-unit test-integration test-fault bench models eval eval-fusion experiments lint typecheck fmt clean
 
 help: ## list targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-18s %s\n", $$1, $$2}'
@@ -78,6 +78,7 @@ bench: install ## benchmarks (bus latency/throughput, sim step/sensor cost/real-
 	$(BIN)/python -m tests.bench.camera_detector_bench --model $(MODELS_DIR)/camera/model.onnx $(BENCH_DATA)
 	$(BIN)/python -m tests.bench.lidar_detector_bench --model $(MODELS_DIR)/lidar/pointpillars.onnx $(BENCH_DATA)
 	$(BIN)/python -m tests.bench.mec_bench
+	$(BIN)/python -m tests.bench.coordinator_bench
 
 DATASET ?= data/datasets/default
 MODEL_RUNS ?= data/models
@@ -101,6 +102,9 @@ eval: install ## evaluate every detector on the held-out split -> deploy/models/
 
 eval-fusion: install ## MEC fusion + tracking vs sim ground truth on the held-out seeds (~15 min) -> docs/eval/fusion
 	$(BIN)/rmmdet eval fusion --workers 2 --out docs/eval/fusion
+
+experiments: install ## the paper's flow experiment: 5 policies x 10/20/40 vehicles x 5 seeds + one full-perception run (~25 min) -> docs/eval/flow
+	$(BIN)/rmmdet experiments flow --out docs/eval/flow
 
 lint: install ## ruff
 	$(BIN)/ruff check .

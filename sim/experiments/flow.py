@@ -31,7 +31,8 @@ from numpy.typing import NDArray
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.traffic.config import CoordinatorSettings, PolicyName
-from shared.traffic.maps import AgentObjects, TrafficMapBuilder, merge_agents
+from shared.traffic.lanes import OFF_LANE
+from shared.traffic.maps import AgentObjects, TrafficMapBuilder, TrafficSnapshot, merge_agents
 from shared.traffic.planner import LaneConditions, RoutePlanner
 from sim.config import SimSettings, TrafficSettings
 from sim.experiments.config import FlowExperimentSettings, OraclePerception
@@ -187,8 +188,11 @@ class Scheduler:
         self.live_agents = live_agents
         self.cond = LaneConditions()
         self.plans = 0
+        self.map_errors: list[float] = []  # per map update: sum over observed lanes of |perceived - true|
+        self.map_truth: list[float] = []  # and the true number of vehicles on those lanes
 
     def update_maps(self, traffic: TrafficSim, objects: list[AgentObjects] | None = None) -> None:
+        """Rebuild the maps from `objects` (default: this scheduler's source; none: no maps)."""
         if objects is None:
             if self.source is None:
                 return
@@ -197,6 +201,17 @@ class Scheduler:
         vehicles = merge_agents(objects, cfg.dedup_gate_m, cfg.level_separation_m)
         snap = self.builder.update(vehicles, traffic.time_s, self.live_agents)
         self.cond = LaneConditions.from_snapshot(snap)
+        self._score_maps(traffic, snap)
+
+    def _score_maps(self, traffic: TrafficSim, snap: TrafficSnapshot) -> None:
+        """Perceived vs true vehicles per observed lane (how good the maps the planner uses are)."""
+        pos, vel = vehicle_state(traffic)
+        true_lane = self.builder.locator.locate(pos, vel)
+        on = true_lane != OFF_LANE
+        truth = np.bincount(true_lane[on], minlength=len(snap.lane_ids))
+        observed = snap.lane_observed
+        self.map_errors.append(float(np.abs(snap.lane_count - truth)[observed].sum()))
+        self.map_truth.append(float(truth[observed].sum()))
 
     def serve(self, traffic: TrafficSim) -> None:
         """Plan for every vehicle that asks now (once per lane, like the bus clients)."""
@@ -262,17 +277,23 @@ def _drive(
     seed: int,
     duration_s: float,
     t0: float,
-    step: Callable[[], None] | None = None,
+    step: Callable[[], list[AgentObjects] | None] | None = None,
 ) -> RunResult:
+    """Drive `duration_s`; `step` advances the world and returns fresh objects when it perceives
+    (default: the traffic alone, maps from the scheduler's source)."""
     map_every = max(1, round(exp.map_period_s * sim.tick_hz))
     sample_every = max(1, round(exp.speed_sample_period_s * sim.tick_hz))
     grid = HeatGrid(scene, exp.heat_map_cell_m)
     speed_total, speed_n = 0.0, 0
+    latest: list[AgentObjects] | None = None
     for tick in range(round(duration_s * sim.tick_hz)):
         if tick % map_every == 0:
-            scheduler.update_maps(traffic)
+            scheduler.update_maps(traffic, latest)
         scheduler.serve(traffic)
-        (step or traffic.step)()
+        if step is None:
+            traffic.step()
+        else:
+            latest = step() or latest
         if tick % sample_every == 0:
             pos, _ = vehicle_state(traffic)
             speed = np.array([v.v for v in traffic.vehicles])
@@ -293,4 +314,81 @@ def _drive(
         speed_sum=grid.speed_sum,
         speed_samples=grid.samples,
         wall_s=time.perf_counter() - t0,
+        extra=map_quality(scheduler),
     )
+
+
+def map_quality(scheduler: Scheduler) -> dict[str, Any]:
+    """Lane-count error of the maps the planner used, over observed lanes and map updates."""
+    if not scheduler.map_truth:
+        return {}
+    truth = float(np.sum(scheduler.map_truth))
+    return {
+        "map_updates": len(scheduler.map_truth),
+        "lane_count_abs_error_per_update": float(np.mean(scheduler.map_errors)),
+        "lane_count_relative_error": float(np.sum(scheduler.map_errors)) / max(truth, 1.0),
+    }
+
+
+# --- the full chain ---------------------------------------------------------------------------------
+
+
+def run_full_perception(
+    scene: Scene,
+    sim: SimSettings,
+    coordinator: CoordinatorSettings,
+    exp: FlowExperimentSettings,
+    mec: Any,
+) -> RunResult:
+    """Closed loop through rendered sensors and the MEC pipelines (ONNX detectors, fusion, tracking):
+    each agent's tracks become its object list exactly as the MEC publishes and the coordinator reads
+    them (TrackedObjects message -> `agent_objects`)."""
+    from shared.perception.inputs import Status
+    from shared.perception.output import tracked_objects_message
+    from shared.perception.pipeline import AgentPipeline
+    from shared.traffic.messages import agent_objects
+    from sim.evaluation.fusion import to_inputs
+    from sim.lockstep import LockstepSim
+
+    run = exp.full_perception
+    t0 = time.perf_counter()
+    settings = sim.model_copy(update={"seed": run.seed, "traffic": traffic_settings(sim, run.vehicles)})
+    pipelines = {a: AgentPipeline(scene, a, mec) for a in scene.agents}
+    kinds = {s.id: s.kind for s in scene.spec.sensors}
+    latest = {a: AgentObjects.empty(a) for a in scene.agents}
+    min_existence = coordinator.maps.min_existence_probability
+    with LockstepSim(scene, settings) as world:
+        traffic = world.traffic
+        scheduler = Scheduler(scene, traffic.net, coordinator, run.policy, run.seed, None, list(scene.agents))
+
+        def step() -> list[AgentObjects] | None:
+            tick = world.step()
+            if not tick.captures:
+                return None
+            by_agent: dict[str, list[Any]] = {}
+            for capture in tick.captures:
+                by_agent.setdefault(capture.spec.agent, []).append(capture)
+            stamp_ns = tick.ground_truth.header.stamp.ToNanoseconds()
+            for agent, captures in by_agent.items():
+                result = pipelines[agent].process(
+                    to_inputs(stamp_ns, tick.ground_truth.header.tick, captures)
+                )
+                msg = tracked_objects_message(result, agent, Status.FULL, [], kinds)
+                latest[agent] = agent_objects(agent, msg, min_existence)
+            return list(latest.values())
+
+        result = _drive(
+            scene,
+            settings,
+            exp,
+            traffic,
+            scheduler,
+            run.policy,
+            run.vehicles,
+            run.seed,
+            run.duration_s,
+            t0,
+            step,
+        )
+    result.extra["perception"] = "full"
+    return result

@@ -1,0 +1,188 @@
+"""Run the flow experiment grid and write its results: JSON, a Markdown summary with the paper's Table II
+layout, and mean-speed heat maps.
+
+Statistics per (fleet size, policy) over seeds: mean and a 95 % confidence interval of the mean
+(Student t, n - 1 degrees of freedom). "Scheduled" is the `balanced` policy.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+from shared.scene.scene import Scene
+from shared.traffic.config import CoordinatorSettings, PolicyName
+from sim.config import SimSettings
+from sim.experiments.config import FlowExperimentSettings
+from sim.experiments.flow import RunResult, run_flow
+
+log = logging.getLogger(__name__)
+
+SCHEDULED: PolicyName = "balanced"
+METRICS = ("total_flow", "trips", "travel_time_mean_s", "travel_time_p95_s", "mean_speed_mps")
+CONFIDENCE = 0.95
+
+
+def mean_ci(values: list[float]) -> dict[str, float]:
+    """Mean and half-width of its `CONFIDENCE` interval."""
+    x = np.asarray([v for v in values if v is not None], float)
+    if len(x) == 0:
+        return {"mean": math.nan, "ci95": math.nan, "n": 0}
+    half = (
+        float(stats.t.ppf(0.5 + CONFIDENCE / 2, len(x) - 1) * x.std(ddof=1) / math.sqrt(len(x)))
+        if len(x) > 1
+        else math.nan
+    )
+    return {"mean": float(x.mean()), "ci95": half, "n": len(x)}
+
+
+def _worker(job: tuple[str, int, int, str, str, str]) -> RunResult:
+    policy, vehicles, seed, exp_json, sim_json, coord_json = job
+    exp = FlowExperimentSettings.model_validate_json(exp_json)
+    sim = SimSettings.model_validate_json(sim_json)
+    coordinator = CoordinatorSettings.model_validate_json(coord_json)
+    scene = Scene.load(sim.scene)
+    return run_flow(scene, sim, coordinator, exp, policy, vehicles, seed)  # type: ignore[arg-type]
+
+
+def run_grid(
+    exp: FlowExperimentSettings, sim: SimSettings, coordinator: CoordinatorSettings
+) -> list[RunResult]:
+    """Every (policy, fleet size, seed) run; processes in parallel (spawned, one per run)."""
+    import multiprocessing as mp
+
+    dumps = (exp.model_dump_json(), sim.model_dump_json(), coordinator.model_dump_json())
+    # Longest first, so the pool does not end on one big run.
+    jobs = sorted(
+        ((p, n, s, *dumps) for n in exp.vehicle_counts for p in exp.policies for s in exp.seeds),
+        key=lambda j: -j[1],
+    )
+    results: list[RunResult] = []
+    t0 = time.perf_counter()
+    if exp.workers <= 1:
+        iterator: Any = map(_worker, jobs)
+        for r in iterator:
+            results.append(r)
+    else:
+        with mp.get_context("spawn").Pool(exp.workers) as pool:
+            for r in pool.imap_unordered(_worker, jobs):
+                results.append(r)
+                log.info(
+                    "%s %d vehicles seed %d: flow %d, %d trips (%d/%d, %.0f s)",
+                    r.policy,
+                    r.vehicles,
+                    r.seed,
+                    r.total_flow,
+                    len(r.trip_times_s),
+                    len(results),
+                    len(jobs),
+                    time.perf_counter() - t0,
+                )
+    return results
+
+
+def aggregate(results: list[RunResult]) -> dict[str, dict[str, Any]]:
+    """{"<vehicles>": {"<policy>": {metric: mean/ci, "flow_per_junction": {...}}}}."""
+    out: dict[str, dict[str, Any]] = {}
+    groups: dict[tuple[int, str], list[RunResult]] = {}
+    for r in results:
+        groups.setdefault((r.vehicles, r.policy), []).append(r)
+    for (n, policy), runs in sorted(groups.items()):
+        summaries = [r.summary() for r in runs]
+        row: dict[str, Any] = {m: mean_ci([s[m] for s in summaries]) for m in METRICS}
+        junctions = sorted(runs[0].arrivals)
+        row["flow_per_junction"] = {str(j): mean_ci([r.arrivals[j] for r in runs])["mean"] for j in junctions}
+        if "lane_count_relative_error" in summaries[0]:
+            row["lane_count_relative_error"] = mean_ci([s["lane_count_relative_error"] for s in summaries])
+        row["seeds"] = sorted(r.seed for r in runs)
+        out.setdefault(str(n), {})[policy] = row
+    return out
+
+
+def acceptance(agg: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """The issue's checks: flow gain at the smallest fleet; travel times at the larger ones."""
+    checks: dict[str, Any] = {}
+    sizes = sorted(int(n) for n in agg)
+    if not sizes:
+        return checks
+    small = agg[str(sizes[0])]
+    if SCHEDULED in small and "random" in small:
+        gain = small[SCHEDULED]["total_flow"]["mean"] / small["random"]["total_flow"]["mean"] - 1.0
+        checks[f"flow_gain_vs_random_{sizes[0]}_vehicles"] = gain
+    for n in sizes[1:]:
+        row = agg[str(n)]
+        if SCHEDULED not in row:
+            continue
+        tt = row[SCHEDULED]["travel_time_mean_s"]["mean"]
+        for base in ("shortest", "dynamic_ground_truth"):
+            if base in row:
+                checks[f"travel_time_{n}_vehicles_{SCHEDULED}_minus_{base}_s"] = (
+                    tt - row[base]["travel_time_mean_s"]["mean"]
+                )
+    return checks
+
+
+def markdown(agg: dict[str, dict[str, Any]], junction_numbers: list[int], full: dict[str, Any] | None) -> str:
+    lines = ["# Flow experiment", ""]
+    fmt = {"total_flow": "{:.0f}", "trips": "{:.0f}", "mean_speed_mps": "{:.3f}"}
+    for n, row in agg.items():
+        lines += [f"## {n} vehicles", ""]
+        lines.append("| policy | total flow | trips | travel time mean (s) | p95 (s) | mean speed (m/s) |")
+        lines.append("|---|---|---|---|---|---|")
+        for policy, r in row.items():
+            cells = []
+            for m in METRICS:
+                f = fmt.get(m, "{:.1f}")
+                cells.append(f"{f.format(r[m]['mean'])} ± {f.format(r[m]['ci95'])}")
+            lines.append(f"| {policy} | " + " | ".join(cells) + " |")
+        lines += ["", "Flow per junction (mean over seeds; the paper's Table II):", ""]
+        lines.append("| policy | " + " | ".join(str(j) for j in junction_numbers) + " | total |")
+        lines.append("|---|" + "---|" * (len(junction_numbers) + 1))
+        for policy, r in row.items():
+            per = [r["flow_per_junction"][str(j)] for j in junction_numbers]
+            lines.append(f"| {policy} | " + " | ".join(f"{v:.0f}" for v in per) + f" | {sum(per):.0f} |")
+        lines.append("")
+    if full:
+        lines += ["## Full perception run", "", "```", *(f"{k}: {v}" for k, v in full.items()), "```", ""]
+    return "\n".join(lines)
+
+
+def write_heat_maps(results: list[RunResult], scene: Scene, cell_m: float, out_dir: Path) -> list[str]:
+    """Mean speed per cell, pooled over seeds, one PNG per fleet size with a panel per policy."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    table = scene.spec.table
+    extent = (
+        table.origin_m[0],
+        table.origin_m[0] + table.size_x_m,
+        table.origin_m[1],
+        table.origin_m[1] + table.size_y_m,
+    )
+    written = []
+    for n in sorted({r.vehicles for r in results}):
+        policies = list(dict.fromkeys(r.policy for r in results if r.vehicles == n))
+        fig = Figure(figsize=(3.2 * len(policies), 4.2))
+        FigureCanvasAgg(fig)
+        for k, policy in enumerate(policies):
+            runs = [r for r in results if r.vehicles == n and r.policy == policy]
+            total = np.sum([r.speed_sum for r in runs], axis=0)
+            count = np.sum([r.speed_samples for r in runs], axis=0)
+            mean = np.where(count > 0, total / np.maximum(count, 1), np.nan)
+            ax = fig.add_subplot(1, len(policies), k + 1)
+            im = ax.imshow(mean, origin="lower", extent=extent, vmin=0.0, vmax=0.5, cmap="viridis")
+            ax.set_title(f"{policy}", fontsize=9)
+            ax.set_xticks([])
+            ax.set_yticks([])
+        fig.colorbar(im, ax=fig.axes, shrink=0.8, label="mean speed (m/s)")
+        fig.suptitle(f"mean vehicle speed, {n} vehicles, {cell_m} m cells")
+        path = out_dir / f"speed_heat_map_{n}_vehicles.png"
+        fig.savefig(path, dpi=110)
+        written.append(path.name)
+    return written

@@ -1,0 +1,117 @@
+"""Flow experiment: runs drive planned routes, count flow and trips, and the statistics are right."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from shared.scene.scene import Scene
+from shared.traffic.config import CoordinatorSettings
+from sim.config import load_sim_settings
+from sim.experiments import report
+from sim.experiments.config import FlowExperimentSettings, OraclePerception
+from sim.experiments.flow import OracleAgents, RunResult, Scheduler, run_flow, traffic_settings
+from sim.traffic import TrafficSim
+
+DURATION_S = 20.0
+
+
+@pytest.fixture(scope="module")
+def setup() -> tuple[Scene, object, CoordinatorSettings, FlowExperimentSettings]:
+    sim = load_sim_settings()
+    return Scene.load(sim.scene), sim, CoordinatorSettings(), FlowExperimentSettings(duration_s=DURATION_S)
+
+
+@pytest.mark.parametrize("policy", ["random", "paper_rule", "shortest", "dynamic_ground_truth", "balanced"])
+def test_every_policy_plans_and_moves_traffic(setup, policy) -> None:  # type: ignore[no-untyped-def]
+    scene, sim, coord, exp = setup
+    result = run_flow(scene, sim, coord, exp, policy, vehicles=8, seed=7)
+    assert result.plans > 0
+    assert result.total_flow > 0
+    assert set(result.arrivals) == {j.number for j in scene.spec.junctions}
+    assert 0.0 < result.mean_speed_mps <= sim.traffic.max_speed_mps + 1e-9
+    assert result.speed_samples.sum() > 0
+    if policy in ("paper_rule", "balanced", "dynamic_ground_truth"):
+        assert result.extra["map_updates"] == round(DURATION_S / exp.map_period_s)
+
+
+def test_vehicles_follow_their_plans(setup) -> None:  # type: ignore[no-untyped-def]
+    """Every lane a vehicle enters is the one its latest plan named (shortest: whole routes)."""
+    scene, sim, coord, _exp = setup
+    traffic = TrafficSim(scene, _net(scene), traffic_settings(sim, 6), 3, sim.tick_hz)
+    scheduler = Scheduler(scene, traffic.net, coord, "shortest", 3, None, None)
+    expected: dict[str, str] = {}
+    version = {v.id: v.plan_version for v in traffic.vehicles}
+    entered = followed = 0
+    for _ in range(round(30 * sim.tick_hz)):
+        scheduler.serve(traffic)
+        for v in traffic.vehicles:
+            if v.plan_version != version[v.id]:  # a new plan: its first lane is the next one
+                version[v.id] = v.plan_version
+                expected[v.id] = v.plan[0]
+        before = {v.id: v.lane_id for v in traffic.vehicles}
+        traffic.step()
+        for v in traffic.vehicles:
+            if v.lane_id != before[v.id] and v.id in expected:
+                entered += 1
+                followed += v.lane_id == expected[v.id]
+    assert entered > 5
+    assert followed == entered
+
+
+def test_oracle_agents_report_only_their_areas(setup) -> None:  # type: ignore[no-untyped-def]
+    scene, sim, _coord, _exp = setup
+    traffic = TrafficSim(scene, _net(scene), traffic_settings(sim, 20), 5, sim.tick_hz)
+    oracle = OracleAgents(scene, OraclePerception(position_std_m=0.0, detection_probability=1.0), 0)
+    objects = {o.agent_id: o for o in oracle(traffic)}
+    assert set(objects) == set(scene.agents)
+    areas = {a.id: set(a.areas) for a in scene.spec.agents}
+    for agent, obj in objects.items():
+        for x, y, z in obj.position_m:
+            assert scene.area_of(x, y, z) in areas[agent]
+    outer = [v for v in traffic.vehicles if scene.area_of(v.x, v.y, v.z) == "outer_ring"]
+    reported = sum(len(o) for o in objects.values())
+    assert reported == len(traffic.vehicles) - len(outer)  # outer ring: no agent
+
+
+def test_mean_ci_known_answer() -> None:
+    out = report.mean_ci([1.0, 2.0, 3.0])
+    # t(0.975, 2) = 4.3027; sd = 1; half-width = 4.3027 / sqrt(3)
+    assert out["mean"] == pytest.approx(2.0)
+    assert out["ci95"] == pytest.approx(4.302653 / math.sqrt(3), rel=1e-5)
+    assert math.isnan(report.mean_ci([5.0])["ci95"])
+
+
+def _result(policy: str, vehicles: int, seed: int, flow: int, trip_s: float) -> RunResult:
+    return RunResult(
+        policy, vehicles, seed, 10.0, {1: flow, 2: 0}, [trip_s], 0.3, 0, 1, np.zeros((1, 1)), np.zeros((1, 1))
+    )
+
+
+def test_aggregate_and_acceptance() -> None:
+    runs = [
+        _result("random", 10, 1, 100, 50.0),
+        _result("random", 10, 2, 120, 50.0),
+        _result("balanced", 10, 1, 130, 20.0),
+        _result("balanced", 10, 2, 134, 20.0),
+        _result("balanced", 20, 1, 200, 30.0),
+        _result("balanced", 20, 2, 200, 32.0),
+        _result("shortest", 20, 1, 190, 35.0),
+        _result("shortest", 20, 2, 190, 37.0),
+    ]
+    agg = report.aggregate(runs)
+    assert agg["10"]["random"]["total_flow"]["mean"] == pytest.approx(110.0)
+    assert agg["10"]["balanced"]["flow_per_junction"] == {"1": 132.0, "2": 0.0}
+    checks = report.acceptance(agg)
+    assert checks["flow_gain_vs_random_10_vehicles"] == pytest.approx(132 / 110 - 1)
+    assert checks["travel_time_20_vehicles_balanced_minus_shortest_s"] == pytest.approx(-5.0)
+    text = report.markdown(agg, [1, 2], None)
+    assert "| balanced | 132 | 0 | 132 |" in text  # the per-junction table
+
+
+def _net(scene: Scene):  # type: ignore[no-untyped-def]
+    from shared.scene.road_network import RoadNetwork
+
+    return RoadNetwork(scene)
