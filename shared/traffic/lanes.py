@@ -21,7 +21,6 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 OFF_LANE = -1
-CANDIDATES = 16  # nearest centreline samples examined per vehicle (covers both lanes of a road)
 
 
 class LaneLocator:
@@ -49,19 +48,24 @@ class LaneLocator:
         out = np.full(n, OFF_LANE, dtype=np.int64)
         if n == 0:
             return out
-        k = min(CANDIDATES, len(self._points))
-        dist, idx = self._tree.query(np.asarray(position_m, float) * self._scale, k=k)
-        dist, idx = dist.reshape(n, k), idx.reshape(n, k)
+        scaled = np.asarray(position_m, float) * self._scale
         speed = np.hypot(velocity_mps[:, 0], velocity_mps[:, 1])
         course = np.arctan2(velocity_mps[:, 1], velocity_mps[:, 0])
+        # Every centreline sample within reach, not a fixed number of nearest ones: a lane passes ~30
+        # samples within `lane_match_max_m`, so a k-nearest query would see only the closer lane of a road.
+        near = self._tree.query_ball_point(scaled, r=self.cfg.lane_match_max_m)
         for i in range(n):
-            ok = dist[i] <= self.cfg.lane_match_max_m
+            idx = np.asarray(near[i], dtype=np.int64)
+            if len(idx) == 0:
+                continue
+            idx = idx[np.argsort(np.linalg.norm(self._tree.data[idx] - scaled[i], axis=1), kind="stable")]
+            ok = np.ones(len(idx), dtype=bool)
             if speed[i] >= self.cfg.min_speed_for_heading_mps:
-                delta = np.abs(np.remainder(self._heading[idx[i]] - course[i] + np.pi, 2 * np.pi) - np.pi)
+                delta = np.abs(np.remainder(self._heading[idx] - course[i] + np.pi, 2 * np.pi) - np.pi)
                 ok &= delta <= self.cfg.heading_gate_rad
             hits = np.flatnonzero(ok)
             if len(hits):
-                out[i] = self._owner[idx[i, hits[0]]]  # query results are sorted by distance
+                out[i] = self._owner[idx[hits[0]]]  # nearest agreeing sample
         return out
 
 

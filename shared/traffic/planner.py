@@ -147,7 +147,7 @@ class RoutePlanner:
         if destination not in self.junctions:
             raise NoRouteError(f"unknown junction {destination!r}")
         options = self.net.successors[current_lane]
-        if not options:
+        if not options and policy in ONE_JUNCTION_POLICIES:
             raise NoRouteError(f"lane {current_lane} is a dead end")
         if policy == "random":
             lanes = [current_lane, options[int(self.rng.integers(len(options)))]]

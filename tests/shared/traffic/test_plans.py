@@ -1,0 +1,111 @@
+"""PlanBook versions, acknowledgements and resends; the vehicle's decision on a received plan."""
+
+from __future__ import annotations
+
+import pytest
+
+from shared.traffic.config import DeliveryConfig
+from shared.traffic.planner import Route
+from shared.traffic.plans import Ack, PlanBook, vehicle_decision
+
+ROUTE = Route(["in", "ab"], ["ja"], 4.0, 3.0, "shortest")
+
+
+@pytest.fixture
+def book() -> PlanBook:
+    return PlanBook(DeliveryConfig(ack_timeout_s=0.5, max_sends=3))
+
+
+def test_versions_increase_per_vehicle(book: PlanBook) -> None:
+    v1 = [book.issue("v1", ROUTE, t, pushed=False).version for t in (0.0, 1.0, 2.0)]
+    v2 = [book.issue("v2", ROUTE, 3.0, pushed=True).version]
+    assert v1 == [1, 2, 3]
+    assert v2 == [1]
+    latest = book.latest("v1")
+    assert latest is not None and latest.version == 3
+    assert book.latest("nobody") is None
+    assert book.vehicles() == ["v1", "v2"]
+
+
+def test_plan_ids_are_unique(book: PlanBook) -> None:
+    ids = {book.issue("v1", ROUTE, 0.0, pushed=False).plan_id for _ in range(20)}
+    assert len(ids) == 20
+
+
+def test_after_version_continues_above_the_vehicles_version(book: PlanBook) -> None:
+    assert book.issue("v1", ROUTE, 0.0, pushed=False, after_version=41).version == 42
+    assert book.issue("v1", ROUTE, 0.0, pushed=False).version == 43
+    # an older version reported by the vehicle never moves the counter back
+    assert book.issue("v1", ROUTE, 0.0, pushed=False, after_version=5).version == 44
+
+
+def test_issue_keeps_the_plan(book: PlanBook) -> None:
+    plan = book.issue("v1", ROUTE, 7.5, pushed=True)
+    assert (plan.vehicle_id, plan.route, plan.issued_s, plan.pushed) == ("v1", ROUTE, 7.5, True)
+    assert (plan.sends, plan.ack) == (0, None)
+
+
+def test_on_ack_only_for_the_latest_plan(book: PlanBook) -> None:
+    old = book.issue("v1", ROUTE, 0.0, pushed=True)
+    new = book.issue("v1", ROUTE, 1.0, pushed=True)
+    assert not book.on_ack("v1", old.plan_id, old.version, Ack.ACCEPTED)  # superseded plan
+    assert not book.on_ack("v1", new.plan_id, old.version, Ack.ACCEPTED)  # wrong version
+    assert not book.on_ack("v1", "other", new.version, Ack.ACCEPTED)  # wrong plan id
+    assert not book.on_ack("v2", new.plan_id, new.version, Ack.ACCEPTED)  # unknown vehicle
+    assert new.ack is None and old.ack is None
+    assert book.on_ack("v1", new.plan_id, new.version, Ack.DUPLICATE)
+    assert new.ack is Ack.DUPLICATE
+
+
+def test_due_sends_resends_and_gives_up(book: PlanBook) -> None:
+    plan = book.issue("v1", ROUTE, 0.0, pushed=True)
+    assert book.due(0.0) == [plan]  # never sent: due at once
+    book.sent(plan, 0.0)
+    assert (plan.sends, plan.last_send_s) == (1, 0.0)
+    assert book.due(0.3) == []  # within the ack timeout
+    assert book.due(0.6) == [plan]
+    book.sent(plan, 0.6)
+    assert book.due(1.2) == [plan]
+    book.sent(plan, 1.2)
+    assert plan.sends == 3
+    assert book.due(1.5) == []
+    assert book.unacknowledged_dropped == 0
+    assert book.due(1.8) == []  # max_sends reached: given up, counted once
+    assert book.unacknowledged_dropped == 1
+    assert plan.ack is Ack.REJECTED_STALE
+    assert book.due(10.0) == []
+    assert book.unacknowledged_dropped == 1
+
+
+def test_acknowledged_and_request_reply_plans_are_never_due(book: PlanBook) -> None:
+    reply = book.issue("v1", ROUTE, 0.0, pushed=False)
+    pushed = book.issue("v2", ROUTE, 0.0, pushed=True)
+    book.sent(pushed, 0.0)
+    assert book.on_ack("v2", pushed.plan_id, pushed.version, Ack.ACCEPTED)
+    for t in (0.0, 1.0, 100.0):
+        assert book.due(t) == []
+    assert reply.sends == 0
+    assert book.unacknowledged_dropped == 0
+
+
+def test_a_new_plan_replaces_the_pending_one(book: PlanBook) -> None:
+    old = book.issue("v1", ROUTE, 0.0, pushed=True)
+    book.sent(old, 0.0)
+    new = book.issue("v1", ROUTE, 0.1, pushed=True)
+    assert book.due(0.2) == [new]
+
+
+@pytest.mark.parametrize(
+    ("current", "received", "decision"),
+    [
+        ((3, "p3"), ("p3", 3), Ack.DUPLICATE),
+        ((3, "p3"), ("p2", 2), Ack.REJECTED_STALE),
+        ((3, "p3"), ("px", 3), Ack.REJECTED_STALE),  # same version, other plan: not newer
+        ((3, "p3"), ("p3", 1), Ack.REJECTED_STALE),
+        ((3, "p3"), ("p4", 4), None),
+        ((3, "p3"), ("p9", 9), None),
+        ((0, ""), ("p1", 1), None),  # first plan
+    ],
+)
+def test_vehicle_decision(current: tuple[int, str], received: tuple[str, int], decision: Ack | None) -> None:
+    assert vehicle_decision(*current, *received) is decision
