@@ -631,14 +631,6 @@ def eval_fusion(
     console.print(f"results: {out / 'results.json'}")
 
 
-def main() -> None:
-    app()
-
-
-if __name__ == "__main__":
-    main()
-
-
 experiments_app = typer.Typer(add_completion=False, no_args_is_help=True, help="experiments (offline)")
 app.add_typer(experiments_app, name="experiments")
 
@@ -713,3 +705,11 @@ def experiments_flow(
     console.print(report.markdown(agg, numbers, full_summary))
     console.print(f"acceptance: {results['acceptance']}")
     console.print(f"results: {out}")
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()
