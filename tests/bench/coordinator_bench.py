@@ -58,6 +58,9 @@ SEED = 0
 LOAD_STAMP_LAG_S = 0.2
 
 
+FLEET_CYCLES = 200  # merge + a plan for every vehicle, repeated
+
+
 def pct(values: list[float]) -> dict[str, float]:
     a = np.asarray(values) * MS_PER_S
     return {"p50_ms": float(np.percentile(a, 50)), "p95_ms": float(np.percentile(a, 95)), "n": len(a)}
@@ -106,6 +109,30 @@ def in_process(scene: Scene, vehicles: int, cycles: int) -> dict[str, Any]:
     t0 = time.perf_counter()
     pushed = core.replan(cycles / LIST_HZ, wall_ns)
     sweep_s = time.perf_counter() - t0
+    # The "merge + replan for N vehicles": new object lists merged into the maps, then a plan
+    # served to every vehicle of the fleet on them.
+    fleet_s, fleet_cpu_s = [], []
+    for i in range(FLEET_CYCLES + WARMUP):
+        now_s = (cycles + WARMUP + i) / LIST_HZ
+        lists = {a: cars[a].message(now_s) for a in core.agents}
+        reqs = [
+            RouteRequest(
+                vehicle_id=f"v{k:02d}",
+                current_lane_id=lanes[int(rng.integers(len(lanes)))],
+                destination_junction_id=junctions[int(rng.integers(len(junctions)))],
+            )
+            for k in range(vehicles)
+        ]
+        c0 = time.thread_time()
+        t0 = time.perf_counter()
+        for agent, msg in lists.items():
+            core.on_objects(agent, agent_objects(agent, msg), wall_ns + round(now_s * NS_PER_S), now_s)
+        core.update_map(now_s)
+        for req in reqs:
+            core.serve(req, now_s, wall_ns)
+        if i >= WARMUP:
+            fleet_s.append(time.perf_counter() - t0)
+            fleet_cpu_s.append(time.thread_time() - c0)
     return {
         "vehicles": vehicles,
         "objects_per_agent": per_agent,
@@ -116,6 +143,8 @@ def in_process(scene: Scene, vehicles: int, cycles: int) -> dict[str, Any]:
         # CPU time of the cycle: wall-time tails on a shared machine are mostly time slices lost to
         # other processes (the wall p95 jumps by ~4 ms, one scheduler slice, when the box is busy).
         "cycle_cpu": pct(cycle_cpu_s),
+        "merge_and_replan_fleet": pct(fleet_s),
+        "merge_and_replan_fleet_cpu": pct(fleet_cpu_s),
         "replan_sweep_ms": sweep_s * MS_PER_S,
         "replan_sweep_pushed": pushed,
         "policy": settings.planner.policy,
