@@ -251,7 +251,7 @@ class AgentPipeline:
                     )
             for cam, unused in res.unused_2d.items():
                 used_2d[cam].update(set(range(len(dets2d[cam]))) - set(unused))
-        per_radar = self._radar_camera(frame, dets2d, used_2d, counts) if have_radar else []
+        per_radar = self.radar_measurements(frame, dets2d, used_2d, counts) if have_radar else []
         # Camera boxes no range sensor accounted for: kept when no range sensor covers that camera this
         # frame (degraded, or a camera without a paired radar), else by the unmatched-camera policy.
         paired = {r.paired_camera for r in self.radar_specs if r.id in frame.radar}
@@ -292,14 +292,19 @@ class AgentPipeline:
             out += camera_list
         return out
 
-    def _radar_camera(
+    def radar_measurements(
         self,
         frame: AgentInputs,
-        dets2d: dict[str, FloatArray],
-        used_2d: dict[str, set[int]],
-        counts: Counter[str],
+        dets2d: dict[str, FloatArray] | None = None,
+        used_2d: dict[str, set[int]] | None = None,
+        counts: Counter[str] | None = None,
     ) -> list[list[Measurement]]:
-        """Algorithm 1 per radar and its paired camera: one measurement list per radar."""
+        """Algorithm 1 per radar and its paired camera: one measurement list per radar. Camera boxes
+        matched here are added to `used_2d`; without `dets2d` the lists are pure radar (the evaluation's
+        radar-only baseline)."""
+        dets2d = {} if dets2d is None else dets2d
+        used_2d = {c: set() for c in dets2d} if used_2d is None else used_2d
+        counts = Counter() if counts is None else counts
         rc = self.cfg.radar_camera
         per_radar: list[list[Measurement]] = []
         length, width, height = self.car_size_m
@@ -315,13 +320,19 @@ class AgentPipeline:
             world = radar_camera.reflection_to_centre(
                 reflection, self.radar_T[spec.id][:3, 3], rc.centre_offset_m
             )
-            surface_z = self.surface.heights_near(world[:, :2])
+            level = (
+                None
+                if rc.level_tolerance_m is None
+                else radar_camera.level_ranges(reflection[:, 2], height, rc.level_tolerance_m)
+            )
+            surface_z = self.surface.heights_near(world[:, :2], level)
             on_road = np.isfinite(surface_z)
             counts["radar/off_road"] += int((~on_road).sum())
             targets, world, surface_z = targets.subset(on_road), world[on_road], surface_z[on_road]
             reflection = reflection[on_road]
+            level = None if level is None else level[on_road]
             world[:, 2] = surface_z + rc.object_height_m / 2
-            lane_yaw = self.surface.lane_heading(world[:, :2])  # cars follow their lane
+            lane_yaw = self.surface.lane_heading(world[:, :2], level)  # cars follow their lane
             if rc.centre_from_lane_heading:
                 world[:, :2] = radar_camera.centres_from_reflections(
                     reflection[:, :2], lane_yaw, (length, width), radar_xy, rc.centre_offset_m
@@ -368,6 +379,13 @@ class AgentPipeline:
                                 xy[k : k + 1], cov[k : k + 1], p_cam[None, :2], cov_c
                             )
                             xy[k], cov[k] = fxy[0], fcov[0]
+            if rc.lane_lateral_std_m is not None:
+                lane = self.surface.nearest_sample(xy, level)
+                on_lane = lane >= 0
+                lane_yaw_now = np.where(on_lane, self.surface.heading_rad[lane], np.nan)
+                xy, cov = radar_camera.constrain_to_lane(
+                    xy, cov, self.surface.points_m[lane, :2], lane_yaw_now, rc.lane_lateral_std_m
+                )
             out: list[Measurement] = []
             per_radar.append(out)
             for k in range(len(targets)):

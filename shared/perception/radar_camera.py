@@ -4,7 +4,9 @@ Per radar scan and its paired camera:
 
 1. polar -> world: each target (range, azimuth, elevation) through the radar's full world pose;
    its height is then set to the driving surface under it plus half a car (`RoadSurface`), because
-   the radar's elevation is coarse and the POI should sit on the car's centre (reference: deck + 0.11 m);
+   the POI should sit on the car's centre (reference: deck + 0.11 m). The target's own height picks
+   the surface where the deck crosses a table lane (`level_ranges`: a car under the deck is not put
+   on it), and the car centre is placed from the reflection with that lane's heading;
 2. POI: the world point projected into the paired camera, with its optical depth d;
 3. ROI: a box centred on the POI of S = alpha / d + beta pixels wide and high (alpha, beta per class
    in config; the reference used 120 px m for both and beta = 0, and fed it the wrong distance);
@@ -13,7 +15,9 @@ Per radar scan and its paired camera:
 
 The matched pairs give one world position per car. Radar ranges are precise along the line of sight
 and coarse across it; the camera is the other way round. `fuse_positions` combines them by their
-covariances (information-weighted mean), or keeps the radar position as the paper does.
+covariances (information-weighted mean), or keeps the radar position as the paper does. Last,
+`constrain_to_lane` fuses each position with its lane's centreline across the lane: which end of a
+face seen end-on reflects depends on a few degrees of yaw the lane heading does not know.
 """
 
 from __future__ import annotations
@@ -72,6 +76,21 @@ class RadarCameraConfig(BaseModel):
         True, description="radar targets without a camera box still become radar-only measurements"
     )
     min_rcs_dbsm: float = Field(-15.0, description="targets below this RCS are treated as clutter")
+    level_tolerance_m: float | None = Field(
+        0.05,
+        ge=0,
+        description="a target's measured height picks its road level (deck or table beneath): the "
+        "reflection lies on the car, between the surface and a car height above it, give or take this "
+        "(range noise, pitch on the ramps), m; None: elevation not trusted, nearest lane in xy",
+    )
+    lane_lateral_std_m: float | None = Field(
+        0.03,
+        gt=0,
+        description="cars keep to their lane's centreline (simulated traffic: |offset| p95 0.03 m on the "
+        "viaduct): each position is fused with that line across the lane with this std, m, which settles "
+        "where along a face seen end-on the reflection lies (tuned on 2 seeds: 0.01 / 0.02 / 0.03 / 0.04 "
+        "m gave tracked AP-BEV@0.7 0.75 / 0.83 / 0.87 / 0.84); None: no lane constraint",
+    )
     reflection_std_m: float = Field(
         0.06,
         ge=0,
@@ -165,6 +184,13 @@ def centres_from_reflections(
     return centre
 
 
+def level_ranges(reflection_z_m: FloatArray, car_height_m: float, tolerance_m: float) -> FloatArray:
+    """(K, 2) `[low, high]` surface heights consistent with reflections at these heights: a car's
+    nearest point lies between its road surface and a car height above it."""
+    z = np.asarray(reflection_z_m, float).reshape(-1)
+    return np.column_stack([z - car_height_m - tolerance_m, z + tolerance_m])
+
+
 def roi_boxes(uv_px: FloatArray, depth_m: FloatArray, cfg: RoiSizeConfig) -> FloatArray:
     """(K, 4) ROIs `[x0, y0, x1, y1]` centred on the POIs; NaN rows where the POI is behind the camera."""
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -192,7 +218,9 @@ def match_rois(rois: FloatArray, camera_boxes: FloatArray, min_iou: float) -> Ro
     iou = np.zeros((len(rois), len(camera_boxes)))
     if valid.any():
         iou[valid] = iou2d_matrix(rois[valid], camera_boxes)
-    rows, cols = linear_sum_assignment(iou, maximize=True)
+    # Gate before assigning: otherwise two sub-threshold pairs can outweigh one good pair and take its
+    # ROI or box, and all three are then dropped.
+    rows, cols = linear_sum_assignment(np.where(iou >= min_iou, iou, 0.0), maximize=True)
     keep = iou[rows, cols] >= min_iou
     return RoiMatch(rows[keep].astype(np.int64), cols[keep].astype(np.int64), iou[rows, cols][keep])
 
@@ -234,8 +262,13 @@ def pair_observations(
     if len(xy_a) == 0 or len(xy_b) == 0:
         return [], list(range(len(xy_a))), list(range(len(xy_b)))
     d = np.linalg.norm(np.asarray(xy_a)[:, None, :] - np.asarray(xy_b)[None, :, :], axis=2)
-    rows, cols = linear_sum_assignment(d)
-    pairs = [(int(r), int(c)) for r, c in zip(rows, cols, strict=True) if d[r, c] <= gate_m]
+    # Gate before assigning: on the raw distances a square assignment minimises the sum over far
+    # pairs too and can give a close pair's partners away (one car then stays two measurements).
+    # Pairs outside the gate cost more than all gated pairs together, so the gated pairs are maximised.
+    inside = d <= gate_m
+    outside_cost = 1.0 + float(d[inside].sum())
+    rows, cols = linear_sum_assignment(np.where(inside, d, outside_cost))
+    pairs = [(int(r), int(c)) for r, c in zip(rows, cols, strict=True) if inside[r, c]]
     paired_a, paired_b = {p[0] for p in pairs}, {p[1] for p in pairs}
     return (
         pairs,
@@ -254,4 +287,27 @@ def fuse_positions(
     xy = np.einsum(
         "kij,kj->ki", cov, np.einsum("kij,kj->ki", info_a, xy_a) + np.einsum("kij,kj->ki", info_b, xy_b)
     )
+    return xy, cov
+
+
+def constrain_to_lane(
+    xy_m: FloatArray,
+    cov_m2: FloatArray,
+    lane_xy_m: FloatArray,
+    lane_yaw_rad: FloatArray,
+    lateral_std_m: float,
+) -> tuple[FloatArray, FloatArray]:
+    """Fuse (K, 2) positions and (K, 2, 2) covariances with their lane's centreline: a measurement of
+    the offset across the lane (zero, `lateral_std_m`), none along it. `lane_xy_m` is any point of the
+    line, `lane_yaw_rad` its direction; rows with a NaN direction (off a lane) are returned unchanged."""
+    xy, cov = np.array(xy_m, float, copy=True), np.array(cov_m2, float, copy=True)
+    ok = np.isfinite(lane_yaw_rad)
+    if not ok.any():
+        return xy, cov
+    normal = np.column_stack([-np.sin(lane_yaw_rad[ok]), np.cos(lane_yaw_rad[ok])])
+    info_lane = normal[:, :, None] * normal[:, None, :] / lateral_std_m**2  # rank 1: across only
+    info = np.linalg.inv(cov[ok])
+    cov[ok] = np.linalg.inv(info + info_lane)
+    rhs = np.einsum("kij,kj->ki", info, xy[ok]) + np.einsum("kij,kj->ki", info_lane, lane_xy_m[ok])
+    xy[ok] = np.einsum("kij,kj->ki", cov[ok], rhs)
     return xy, cov

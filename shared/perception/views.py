@@ -198,23 +198,37 @@ class RoadSurface:
         self.heading_rad = np.concatenate(headings)  # direction of travel of the lane at each sample
         self.half_width_m = half_width_m
 
-    def lane_heading(self, xy_m: FloatArray) -> FloatArray:
-        """Direction of travel of the nearest lane at each (N, 2) point, rad; NaN off-road."""
-        xy = np.asarray(xy_m, float).reshape(-1, 2)
-        d2 = ((xy[:, None, :] - self.points_m[None, :, :2]) ** 2).sum(-1)
-        nearest = d2.argmin(axis=1)
-        yaw = self.heading_rad[nearest].copy()
-        yaw[d2[np.arange(len(xy)), nearest] > self.half_width_m**2] = np.nan
-        return yaw
+    def nearest_sample(self, xy_m: FloatArray, z_range_m: FloatArray | None = None) -> NDArray[np.int64]:
+        """Index of the nearest lane sample within `half_width_m` of each (N, 2) point; -1 off-road.
 
-    def heights_near(self, xy_m: FloatArray) -> FloatArray:
-        """Surface height under each (N, 2) point: the nearest lane sample's z; NaN off-road."""
+        `z_range_m` (N, 2) `[low, high]`: for points whose height was measured (a radar target), only
+        samples with their surface height in that range count, so a car under the deck is not put on
+        it (nor one on the deck under it). A point with no sample of its level keeps the nearest one.
+        """
         xy = np.asarray(xy_m, float).reshape(-1, 2)
         d2 = ((xy[:, None, :] - self.points_m[None, :, :2]) ** 2).sum(-1)
+        rows = np.arange(len(xy))
         nearest = d2.argmin(axis=1)
-        z = self.points_m[nearest, 2].copy()
-        z[d2[np.arange(len(xy)), nearest] > self.half_width_m**2] = np.nan
-        return z
+        if z_range_m is not None:
+            z_range = np.asarray(z_range_m, float).reshape(-1, 2)
+            z = self.points_m[None, :, 2]
+            level = (z >= z_range[:, :1]) & (z <= z_range[:, 1:]) & (d2 <= self.half_width_m**2)
+            on_level = np.where(level, d2, np.inf).argmin(axis=1)
+            nearest = np.where(level.any(axis=1), on_level, nearest)
+        nearest[d2[rows, nearest] > self.half_width_m**2] = -1
+        return nearest
+
+    def lane_heading(self, xy_m: FloatArray, z_range_m: FloatArray | None = None) -> FloatArray:
+        """Direction of travel of the nearest lane at each (N, 2) point, rad; NaN off-road
+        (`z_range_m`: see `nearest_sample`)."""
+        idx = self.nearest_sample(xy_m, z_range_m)
+        return np.where(idx >= 0, self.heading_rad[idx], np.nan)
+
+    def heights_near(self, xy_m: FloatArray, z_range_m: FloatArray | None = None) -> FloatArray:
+        """Surface height under each (N, 2) point: the nearest lane sample's z; NaN off-road
+        (`z_range_m`: see `nearest_sample`)."""
+        idx = self.nearest_sample(xy_m, z_range_m)
+        return np.where(idx >= 0, self.points_m[idx, 2], np.nan)
 
     def first_hit(self, origin_m: FloatArray, rays_world: FloatArray, height_above_m: float) -> FloatArray:
         """Where each (N, 3) ray from `origin_m` first reaches `height_above_m` over a lane surface.

@@ -62,6 +62,9 @@ NS_PER_S = 1_000_000_000
 SINGLE_MODALITIES = ("lidar", "camera", "radar")
 # Ground truth this close outside the agent's areas is an ignore region; predictions beyond are dropped.
 SCOPE_MARGIN_M = 0.3
+# The same margin in height, for areas bounded in z (the viaduct): the ramps climb 0.4 m over 2 m, so
+# 0.3 m along a ramp is 0.06 m of height.
+SCOPE_MARGIN_Z_M = 0.06
 
 
 @dataclass
@@ -80,19 +83,23 @@ def vehicle_boxes(gt: Any) -> dict[str, FloatArray]:
 
 class AgentScope:
     """The agent's areas (its responsibility on the table): ground truth inside is scored, within
-    `margin_m` outside it is an ignore region, predictions beyond the margin are not the agent's."""
+    `margin_m` (`margin_z_m` in height) outside it is an ignore region, predictions beyond the margin
+    are not the agent's. Like `Scene.area_of` (the ground truth's area id), the height tested is the
+    road surface under the car, its box bottom: a car on the floor has its centre 0.105 m up, above
+    the viaduct's 0.1 m floor, and would count as on the viaduct by its centre."""
 
-    def __init__(self, scene: Scene, agent_id: str, margin_m: float) -> None:
+    def __init__(self, scene: Scene, agent_id: str, margin_m: float, margin_z_m: float = 0.0) -> None:
         areas = [a for a in scene.spec.areas if a.id in scene.agents[agent_id].areas]
         self._areas = [(shapely.Polygon(a.polygon_m), a.z_min_m, a.z_max_m) for a in areas]
-        self._buffered = [(p.buffer(margin_m), lo, hi) for p, lo, hi in self._areas]
+        self._buffered = [(p.buffer(margin_m), lo - margin_z_m, hi + margin_z_m) for p, lo, hi in self._areas]
 
     @staticmethod
     def _test(shapes: list[tuple[Any, float, float]], boxes: FloatArray) -> NDArray[np.bool_]:
         out = np.zeros(len(boxes), bool)
+        surface_z = boxes[:, 2] - boxes[:, 5] / 2
         for poly, lo, hi in shapes:
             xy_in = shapely.contains_xy(poly, boxes[:, 0], boxes[:, 1])
-            out |= xy_in & (boxes[:, 2] >= lo) & (boxes[:, 2] <= hi)
+            out |= xy_in & (surface_z >= lo) & (surface_z <= hi)
         return out
 
     def inside(self, boxes: FloatArray) -> NDArray[np.bool_]:
@@ -203,7 +210,7 @@ def single_modality_measurements(
         )
         out["camera"] = [camera_measurement(o) for o in objs]
     if pipeline.radar_specs:
-        per_radar = pipeline._radar_camera(inputs, {}, {}, Counter())
+        per_radar = pipeline.radar_measurements(inputs)
         out["radar"] = merge_across_sensors(
             per_radar, pipeline.cfg.radar_camera.cross_radar_gate_m, Counter()
         )
@@ -226,7 +233,7 @@ def evaluate_run(
     sensor_ids = [s.id for s in scene.sensors_of(agent_id)]
     pipeline = AgentPipeline(scene, agent_id, mec, cameras=cameras, lidar=lidar)
     single_trackers = {m: MultiObjectTracker(mec.tracker) for m in SINGLE_MODALITIES}
-    scope = AgentScope(scene, agent_id, SCOPE_MARGIN_M)
+    scope = AgentScope(scene, agent_id, SCOPE_MARGIN_M, SCOPE_MARGIN_Z_M)
     with LockstepSim(scene, sim_settings, sensor_ids=sensor_ids, labels=True) as sim:
         tick_hz = sim_settings.tick_hz
         warmup_ticks = round(warmup_s * tick_hz)

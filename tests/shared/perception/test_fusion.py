@@ -59,6 +59,49 @@ def test_hungarian_on_iou_keeps_pairs_above_threshold() -> None:
     np.testing.assert_allclose(sorted(m.iou), sorted([100 / 110, 90 / 110]))
 
 
+def test_roi_assignment_gates_before_maximising() -> None:
+    # ROI 0 fits box 0 (IoU 0.69); the crossed pairs are below 0.6 each but sum to more (0.27 + 0.5).
+    rois = np.array([[4, 0, 15, 10], [10, 0, 20, 10]], float)
+    boxes = np.array([[6, 0, 17, 10], [0, 0, 8, 10]], float)
+    m = radar_camera.match_rois(rois, boxes, min_iou=0.6)
+    assert m.radar_index.tolist() == [0] and m.camera_index.tolist() == [0]
+    assert m.iou[0] == pytest.approx(9 / 13)
+
+
+def test_pairing_keeps_a_close_pair_that_raw_distances_would_split() -> None:
+    # Raw Hungarian: 0.1 + 20.0 > 10.0 + 9.9, so it would pair across and lose the one real pair.
+    a = np.array([[0.0, 0.0], [10.0, 0.0]])
+    b = np.array([[0.1, 0.0], [-10.0, 0.0]])
+    pairs, only_a, only_b = radar_camera.pair_observations(a, b, gate_m=0.5)
+    assert pairs == [(0, 0)] and only_a == [1] and only_b == [1]
+
+
+def test_target_height_picks_the_deck_or_the_lane_beneath(scene: Scene) -> None:
+    # (0.15, 3.3): the northbound table lane l2 (x = 0.15) passes under the westbound deck (y = 3.3).
+    surface = RoadSurface(scene, half_width_m=0.2)
+    xy = np.array([[0.15, 3.3], [0.15, 3.3]])
+    # A radar sees the top edge of a car on the table (0.21 m) and the bottom edge of one on the deck.
+    level = radar_camera.level_ranges(np.array([0.21, 0.40]), CAR[2], 0.05)
+    np.testing.assert_allclose(level, [[-0.05, 0.26], [0.14, 0.45]])
+    np.testing.assert_allclose(surface.heights_near(xy, level), [0.0, 0.4])
+    np.testing.assert_allclose(surface.lane_heading(xy, level), [np.pi / 2, np.pi], atol=1e-9)
+    # Off the road stays off the road whatever the height; no sample at that level: nearest in xy.
+    far = surface.nearest_sample(np.array([[0.0, -4.8], [1.75, 2.5]]), np.array([[-1, 1], [0.9, 1.0]]))
+    assert far[0] == -1 and surface.points_m[far[1], 2] == pytest.approx(0.4)
+
+
+def test_lane_constraint_moves_a_position_across_the_lane_only() -> None:
+    xy = np.array([[2.0, 1.1], [2.0, 1.1]])
+    cov = np.tile(np.diag([0.02**2, 0.01**2]), (2, 1, 1))
+    # Lane along +x through (0, 1), lateral std 0.01 m = the measurement's: halfway across, x untouched.
+    lane_xy = np.array([[0.0, 1.0], [0.0, 1.0]])
+    out, out_cov = radar_camera.constrain_to_lane(xy, cov, lane_xy, np.array([0.0, np.nan]), 0.01)
+    np.testing.assert_allclose(out[0], [2.0, 1.05], atol=1e-12)
+    np.testing.assert_allclose(out_cov[0], np.diag([0.02**2, 0.01**2 / 2]), atol=1e-15)
+    np.testing.assert_array_equal(out[1], xy[1])  # no lane direction: unchanged
+    np.testing.assert_array_equal(out_cov[1], cov[1])
+
+
 def test_covariance_weighted_fusion_takes_each_sensor_where_it_is_precise() -> None:
     truth = np.array([[3.0, 0.0]])
     # Radar at the origin: 1 cm in range (x here), 10 cm across (y). Camera at (-1, 0), 4 m away along
@@ -91,6 +134,38 @@ def test_radar_reflection_gives_the_centre_of_a_car_with_known_heading() -> None
     # Unknown heading: the fixed offset along the line of sight.
     guess = radar_camera.centres_from_reflections(reflections[:1], np.array([np.nan]), CAR[:2], radar, 0.12)
     assert np.linalg.norm(guess[0] - reflections[0]) == pytest.approx(0.12)
+
+
+def test_viaduct_radar_places_a_car_yawed_off_its_lane_on_the_lane(scene: Scene) -> None:
+    from shared.geometry.transforms import cartesian_to_polar, invert_transform
+    from shared.perception.config import MecSettings
+    from shared.perception.pipeline import AgentInputs, AgentPipeline
+
+    # A car on the west deck (lane x = -3.7, southbound, deck 0.4 m) leaving the corner 0.12 rad off its
+    # lane: radar_2, 4.5 m south and 0.2 m west, sees its east front corner, the lane's heading says
+    # the west one. Nearest point of the box to the radar (below the deck): on the box's bottom face.
+    truth_xy, yaw = np.array([-3.7, 2.6]), -np.pi / 2 - 0.12
+    T = np.asarray(scene.T_world_from_sensor("radar_2"), float)
+    corner = radar_camera.nearest_footprint_point(truth_xy[None], np.array([yaw]), CAR[:2], T[:2, 3])
+    local = (invert_transform(T) @ np.r_[corner[0], 0.4, 1.0])[:3]
+    r, az, el = cartesian_to_polar(local[None])
+    scan = RadarTargets(r, az, el, np.zeros(1), np.zeros(1))
+    found = {}
+    for std in (None, 0.03):
+        settings = MecSettings()
+        settings = settings.model_copy(
+            update={"radar_camera": settings.radar_camera.model_copy(update={"lane_lateral_std_m": std})}
+        )
+        pipe = AgentPipeline(scene, "agent2", settings, sensor_ids=["radar_2"])
+        ((m,),) = pipe.radar_measurements(AgentInputs(stamp_ns=0, radar={"radar_2": scan}))
+        assert m.z_m == pytest.approx(0.4 + settings.radar_camera.object_height_m / 2)
+        found[std] = m.position_m
+    off_lane = abs(found[None][0] - truth_xy[0])
+    assert off_lane > 0.15  # the corner on the wrong side: off by about the car's width
+    # Across the line of sight the radar position has std ~0.064 m (azimuth + reflection spread), the
+    # lane 0.03 m: about a fifth of the offset remains.
+    assert abs(found[0.03][0] - truth_xy[0]) < off_lane / 5
+    assert abs(found[0.03][1] - truth_xy[1]) < 0.05  # the range still places it along the lane
 
 
 # --- Algorithm 2 ------------------------------------------------------------------------------------

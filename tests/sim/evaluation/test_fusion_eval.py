@@ -3,6 +3,7 @@ the Kalman noise experiment runs (the full evaluation is `make eval-fusion`)."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from shared.config import load_settings
@@ -16,6 +17,16 @@ from sim.evaluation import kalman_noise
 @pytest.fixture(scope="module")
 def scene() -> Scene:
     return Scene.load(DEFAULT_SCENE)
+
+
+def test_viaduct_scope_tests_the_road_surface_not_the_box_centre(scene: Scene) -> None:
+    scope = fe.AgentScope(scene, "agent2", fe.SCOPE_MARGIN_M, fe.SCOPE_MARGIN_Z_M)
+    half = 0.21 / 2
+    # On the table (centre 0.105 m, above the viaduct's 0.1 m floor), on the deck, low on a ramp.
+    surfaces = np.array([0.0, 0.4, 0.07])
+    boxes = np.array([[-3.2, 0.0, z + half, 0.33, 0.22, 0.21, 0.0] for z in surfaces])
+    assert scope.inside(boxes).tolist() == [False, True, False]
+    assert scope.near(boxes).tolist() == [False, True, True]  # the ramp car: an ignore region
 
 
 def test_short_run_scores_every_output_and_merges(scene: Scene) -> None:
