@@ -446,7 +446,10 @@ def dataset_generate(
     from sim.dataset.config import DEFAULT_DATASET_CONFIG, DatasetSettings
     from sim.dataset.generate import generate
 
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    # force: the common callback configured ERROR for the online tools; offline runs log progress.
+    logging.basicConfig(
+        level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s", force=True
+    )
     try:
         cfg = load_settings(DatasetSettings, config or DEFAULT_DATASET_CONFIG)
     except ConfigError as err:
@@ -570,7 +573,10 @@ def eval_fusion(
     from sim.evaluation import fusion as fe
     from sim.evaluation import kalman_noise
 
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    # force: the common callback configured ERROR for the online tools; offline runs log progress.
+    logging.basicConfig(
+        level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s", force=True
+    )
     scene = Scene.load(DEFAULT_SCENE)
     dataset = load_settings(DatasetSettings, DEFAULT_DATASET_CONFIG)
     agents = agents or sorted(scene.agents)
@@ -663,7 +669,10 @@ def experiments_flow(
     from sim.experiments.config import load_flow_settings
     from sim.experiments.flow import run_full_perception
 
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    # force: the common callback configured ERROR for the online tools; offline runs log progress.
+    logging.basicConfig(
+        level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s", force=True
+    )
     exp = load_flow_settings(config)
     update: dict[str, object] = {}
     for key, value in (
