@@ -61,7 +61,7 @@ class CoverageConfig(_Section):
     stale_after_s: float = Field(
         0.5, gt=0, description="agent data older than this (or presence gone): STALE"
     )
-    lost_after_s: float = Field(5.0, gt=0, description="agent data older than this: LOST")
+    lost_after_s: float = Field(3.0, gt=0, description="agent data older than this: LOST (reliability.md R4)")
 
 
 class PlannerConfig(_Section):
