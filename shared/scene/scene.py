@@ -149,3 +149,15 @@ class Scene:
             if area.z_min_m <= z_m <= area.z_max_m and footprint.covers(point):
                 return area.id
         return None
+
+    def area_indices(self, points_m: FloatArray) -> np.ndarray:
+        """`area_of` for (N, 3) points at once: the index into `spec.areas` of each point's first area
+        in file order, -1 for none."""
+        pts = np.asarray(points_m, float).reshape(-1, 3)
+        out = np.full(len(pts), -1, dtype=np.int64)
+        for k in reversed(range(len(self.spec.areas))):  # earlier areas overwrite later ones
+            area = self.spec.areas[k]
+            inside = shapely.intersects_xy(self._area_footprints[k], pts[:, 0], pts[:, 1])
+            inside &= (pts[:, 2] >= area.z_min_m) & (pts[:, 2] <= area.z_max_m)
+            out[inside] = k
+        return out

@@ -21,6 +21,7 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 OFF_LANE = -1
+MAX_LANES_IN_REACH = 6  # lanes that can pass within lane_match_max_m of one point (junction mouths)
 
 
 class LaneLocator:
@@ -40,6 +41,13 @@ class LaneLocator:
         self._heading = np.concatenate(heading)
         self._scale = np.array([1.0, 1.0, cfg.lane_level_weight])
         self._tree = cKDTree(self._points * self._scale)
+        # Candidates per query: every sample within reach of up to MAX_LANES_IN_REACH lanes (a lane
+        # passes about 2 * reach / step samples), so the farther lane of a two-lane road is among them.
+        step_m = float(
+            np.median(np.linalg.norm(np.diff(network.lanes[self.lane_ids[0]].points, axis=0), axis=1))
+        )
+        per_lane = int(np.ceil(2 * cfg.lane_match_max_m / step_m)) + 1
+        self._k = min(len(self._points), MAX_LANES_IN_REACH * per_lane)
         self.lengths_m = np.array([network.lanes[lane].length_m for lane in self.lane_ids])
 
     def locate(self, position_m: FloatArray, velocity_mps: FloatArray) -> IntArray:
@@ -49,23 +57,18 @@ class LaneLocator:
         if n == 0:
             return out
         scaled = np.asarray(position_m, float) * self._scale
+        dist, idx = self._tree.query(scaled, k=self._k, distance_upper_bound=self.cfg.lane_match_max_m)
+        dist, idx = dist.reshape(n, self._k), idx.reshape(n, self._k)
+        ok = np.isfinite(dist)  # misses come back as inf with index == number of samples
+        idx = np.where(ok, idx, 0)
         speed = np.hypot(velocity_mps[:, 0], velocity_mps[:, 1])
         course = np.arctan2(velocity_mps[:, 1], velocity_mps[:, 0])
-        # Every centreline sample within reach, not a fixed number of nearest ones: a lane passes ~30
-        # samples within `lane_match_max_m`, so a k-nearest query would see only the closer lane of a road.
-        near = self._tree.query_ball_point(scaled, r=self.cfg.lane_match_max_m)
-        for i in range(n):
-            idx = np.asarray(near[i], dtype=np.int64)
-            if len(idx) == 0:
-                continue
-            idx = idx[np.argsort(np.linalg.norm(self._tree.data[idx] - scaled[i], axis=1), kind="stable")]
-            ok = np.ones(len(idx), dtype=bool)
-            if speed[i] >= self.cfg.min_speed_for_heading_mps:
-                delta = np.abs(np.remainder(self._heading[idx] - course[i] + np.pi, 2 * np.pi) - np.pi)
-                ok &= delta <= self.cfg.heading_gate_rad
-            hits = np.flatnonzero(ok)
-            if len(hits):
-                out[i] = self._owner[idx[hits[0]]]  # nearest agreeing sample
+        moving = speed >= self.cfg.min_speed_for_heading_mps
+        delta = np.abs(np.remainder(self._heading[idx] - course[:, None] + np.pi, 2 * np.pi) - np.pi)
+        ok &= ~moving[:, None] | (delta <= self.cfg.heading_gate_rad)
+        first = np.argmax(ok, axis=1)  # results are sorted by distance: the nearest agreeing sample
+        found = ok[np.arange(n), first]
+        out[found] = self._owner[idx[found, first[found]]]
         return out
 
 

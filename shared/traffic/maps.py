@@ -218,7 +218,7 @@ class TrafficMapBuilder:
         self._lanes.update(gain, lane_count, lane_speed, t_s)
         self._lanes.count[~observed] = prev_count[~observed]
 
-        area_idx = np.array([self._area_index(*p) for p in vehicles.position_m], dtype=np.int64).reshape(-1)
+        area_idx = self.scene.area_indices(vehicles.position_m)
         has_area = area_idx >= 0
         area_count = np.bincount(area_idx[has_area], minlength=len(self.area_ids)).astype(float)
         area_speed = np.bincount(area_idx[has_area], weights=speed[has_area], minlength=len(self.area_ids))
@@ -255,7 +255,3 @@ class TrafficMapBuilder:
             grid_samples=self._grid.samples.reshape(self.grid_shape).copy(),
             vehicle_lane=lane,
         )
-
-    def _area_index(self, x: float, y: float, z: float) -> int:
-        area = self.scene.area_of(x, y, z)
-        return self.area_ids.index(area) if area is not None else -1

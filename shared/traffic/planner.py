@@ -86,7 +86,6 @@ class RoutePlanner:
         self.lane_area = {lane.id: lane.area for lane in scene.spec.lanes}
         self.junctions = {j.id for j in scene.spec.junctions}
         self._planned: dict[str, list[str]] = {}  # vehicle -> lanes ahead it was planned onto
-        self._load_total: Counter[str] = Counter()  # the sum of all `_planned`
         # Lane graph as arrays: lane k <-> self.lane_ids[k]; edge e goes src[e] -> dst[e].
         self.lane_ids = sorted(network.lanes)
         self._index = {lane: k for k, lane in enumerate(self.lane_ids)}
@@ -104,6 +103,10 @@ class RoutePlanner:
         self._order = self._graph.data.astype(np.int64) - 1
         self._edge_dst = dst[self._order]
         self._edge_connector_s = (connector_m / self._free_mps[dst])[self._order]
+        self._load = np.zeros(n)  # vehicles planned onto each lane (the sum of all `_planned`)
+        self._cond: LaneConditions | None = None  # the conditions `_speed` / `_count` were built from
+        self._speed = self._free_mps.copy()
+        self._count = np.zeros(n)
         self._ends_at: dict[str, NDArray[np.int64]] = {
             j: np.array([self._index[lane] for lane in self.lane_ids if network.lane_end_junction(lane) == j])
             for j in self.junctions
@@ -116,19 +119,27 @@ class RoutePlanner:
         self.forget(vehicle_id)
         lanes = route.lanes[1 : 1 + self.cfg.load_horizon_lanes]
         self._planned[vehicle_id] = lanes
-        self._load_total.update(lanes)
+        np.add.at(self._load, self._indices(lanes), 1.0)
 
     def forget(self, vehicle_id: str) -> None:
         old = self._planned.pop(vehicle_id, None)
         if old:
-            self._load_total.subtract(old)
-            self._load_total = +self._load_total  # drop zero counts
+            np.subtract.at(self._load, self._indices(old), 1.0)
 
     def planned_load(self, exclude: str | None = None) -> Counter[str]:
-        load = Counter(self._load_total)
-        if exclude in self._planned:
-            load.subtract(self._planned[exclude])
-            load = +load
+        load = self._load_array(exclude)
+        return Counter({lane: round(float(load[k])) for k, lane in enumerate(self.lane_ids) if load[k] > 0})
+
+    def _indices(self, lanes: list[str]) -> NDArray[np.int64]:
+        return np.array([self._index[lane] for lane in lanes], dtype=np.int64)
+
+    def _load_array(self, exclude: str | None) -> FloatArray:
+        """(L,) planned vehicles per lane, without `exclude`'s own plan."""
+        own = self._planned.get(exclude or "")
+        if not own:
+            return self._load
+        load = self._load.copy()
+        np.subtract.at(load, self._indices(own), 1.0)
         return load
 
     # --- costs -----------------------------------------------------------------------------------
@@ -137,34 +148,43 @@ class RoutePlanner:
         self, lane: str, cond: LaneConditions, policy: PolicyName, load: Counter[str] | None = None
     ) -> float:
         """Expected time to drive `lane` (and wait at its end) under `policy`'s cost model."""
-        return float(self._lane_times(cond, policy, load or Counter())[self._index[lane]])
+        load_arr = np.zeros(len(self.lane_ids))
+        for name, c in (load or {}).items():
+            load_arr[self._index[name]] = c
+        return float(self._lane_times(cond, policy, load_arr)[self._index[lane]])
 
-    def _lane_times(self, cond: LaneConditions, policy: PolicyName, load: Counter[str]) -> FloatArray:
+    def _observe(self, cond: LaneConditions) -> None:
+        """Speeds and counts of `cond` as arrays, rebuilt only when the conditions object changes (one
+        map update serves many plans)."""
+        if cond is self._cond:
+            return
+        self._speed = self._free_mps.copy()
+        self._count = np.zeros(len(self.lane_ids))
+        for lane, v in cond.speed_mps.items():
+            if lane in self._index:
+                self._speed[self._index[lane]] = v
+        for lane, c in cond.count.items():
+            if lane in self._index:
+                self._count[self._index[lane]] = c
+        self._speed = np.minimum(np.maximum(self._speed, self.cfg.min_speed_mps), self._free_mps)
+        self._cond = cond
+
+    def _lane_times(self, cond: LaneConditions, policy: PolicyName, load: FloatArray) -> FloatArray:
         """(L,) lane times: length at the measured (else free) speed; balanced adds a junction service
         per car on the lane and per vehicle planned onto it (weighted)."""
         if policy == "shortest":
             return self._length_m / self._free_mps
-        speed = self._free_mps.copy()
-        for lane, v in cond.speed_mps.items():
-            k = self._index.get(lane)
-            if k is not None:
-                speed[k] = v
-        speed = np.minimum(np.maximum(speed, self.cfg.min_speed_mps), self._free_mps)
-        t = self._length_m / speed
+        self._observe(cond)
+        t = self._length_m / self._speed
         if policy == "balanced":
-            queued = np.zeros(len(t))
-            for lane, c in cond.count.items():
-                if lane in self._index:
-                    queued[self._index[lane]] += c
-            for lane, c in load.items():
-                if lane in self._index:
-                    queued[self._index[lane]] += self.cfg.load_weight * c
-            t = t + self.cfg.junction_service_s * queued
+            t = t + self.cfg.junction_service_s * (self._count + self.cfg.load_weight * load)
         return t
 
     def route_time_s(self, lanes: list[str], cond: LaneConditions, policy: PolicyName, exclude: str) -> float:
         """Expected time of `lanes` after the first (the vehicle is on the first)."""
-        times = self._lane_times(cond, policy, self.planned_load(exclude))
+        return self._route_time_s(lanes, self._lane_times(cond, policy, self._load_array(exclude)))
+
+    def _route_time_s(self, lanes: list[str], times: FloatArray) -> float:
         total = 0.0
         for a, b in itertools.pairwise(lanes):
             connector_m = self.net.graph.edges[a, b]["weight"] - self.net.lanes[b].length_m
@@ -191,27 +211,25 @@ class RoutePlanner:
         options = self.net.successors[current_lane]
         if not options and policy in ONE_JUNCTION_POLICIES:
             raise NoRouteError(f"lane {current_lane} is a dead end")
+        times = self._lane_times(cond, policy, self._load_array(vehicle_id))
         if policy == "random":
             lanes = [current_lane, options[int(self.rng.integers(len(options)))]]
         elif policy == "paper_rule":
             lanes = [current_lane, min(options, key=lambda lane: self._paper_score(lane, cond))]
         else:
-            lanes = self._fastest(current_lane, destination, cond, policy, vehicle_id)
+            lanes = self._fastest(current_lane, destination, times)
         junctions = [self.net.lane_end_junction(lane) for lane in lanes[:-1]]
         length = self.net.lanes[current_lane].length_m + self.net.route_length_m(lanes)
-        time_s = self.route_time_s(lanes, cond, policy, vehicle_id)
+        time_s = self._route_time_s(lanes, times)
         return Route(lanes, junctions, time_s, length, policy)
 
     def _paper_score(self, lane: str, cond: LaneConditions) -> float:
         rank = cond.area_rank.get(self.lane_area[lane], 0)
         return (cond.count.get(lane, 0.0) + 1.0) * (rank + 1.0)
 
-    def _fastest(
-        self, current_lane: str, destination: str, cond: LaneConditions, policy: PolicyName, vehicle_id: str
-    ) -> list[str]:
+    def _fastest(self, current_lane: str, destination: str, times: FloatArray) -> list[str]:
         if self.net.lane_end_junction(current_lane) == destination:
             return [current_lane]
-        times = self._lane_times(cond, policy, self.planned_load(vehicle_id))
         self._graph.data[:] = self._edge_connector_s + times[self._edge_dst]
         source = self._index[current_lane]
         dist, pred = dijkstra(self._graph, indices=source, return_predecessors=True)

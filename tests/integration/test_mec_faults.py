@@ -7,6 +7,9 @@ sensor service is killed with SIGKILL while objects flow FULL:
 - the output is DEGRADED, naming the killed sensor MISSING, within 300 ms of the kill;
 then the service is restarted: the output is FULL again within 1 s of the sensor's first new frame.
 
+Last, the MEC itself is killed under the real coordinator: its agent turns STALE in the maps and in the
+plans' coverage within 1 s, and LIVE again within 1 s of the restarted MEC's first object list.
+
 The MEC fuses one camera (`--sensors`) and the sensor services render only that one (`--only`), so
 the whole chain fits a 2-core CI machine. Time limits scale with RSP_TIME_SCALE (slow machines).
 """
@@ -24,10 +27,12 @@ from dataclasses import dataclass, field
 
 import pytest
 from rmmdet.v1 import perception_pb2 as pb
+from rmmdet.v1.planning_pb2 import RoutePlan
 
 from shared.bus.node import Node
 from shared.bus.streams import SENSOR_STREAM
 from tests.helpers import Router, spawn, stop
+from tests.integration.coordinator_client import MapLog, RouteClient
 
 pytestmark = [pytest.mark.integration, pytest.mark.fault, pytest.mark.timeout(240)]
 
@@ -39,6 +44,8 @@ DEGRADED_WITHIN_S = 0.3 * SCALE
 FULL_WITHIN_S = 1.0 * SCALE
 STARTUP_S = 60.0
 WINDOW_S = 3.0
+COORDINATOR_STALE_WITHIN_S = 1.0 * SCALE  # reliability.md R4
+COORDINATOR_LIVE_WITHIN_S = 1.0 * SCALE
 
 
 @dataclass
@@ -198,3 +205,45 @@ def test_radar_fault_degrades_and_recovers(chain_factory) -> None:
         "agent2", {"cam_2": ("agent2-cameras", "camera"), "radar_2": ("agent2-radars", "radar")}
     )
     check_kill_and_restart(chain, "radar_2")
+
+
+def test_coordinator_sees_a_killed_mec_stale_and_back(chain_factory, router: Router) -> None:
+    """The real MEC (radar branch of the viaduct agent) under the real coordinator (reliability.md R4):
+    SIGKILL the MEC -> its agent is STALE in the coordinator's maps within 1 s and plans list it as
+    missing; restart it -> LIVE again within 1 s of its first object list."""
+    radar_only = {"radar_2": ("agent2-radars", "radar")}
+    chain = chain_factory("agent2", radar_only)
+    chain.procs["coordinator"] = spawn(["-m", "services.coordinator", *router.client_args()])
+    maps, done = MapLog(), threading.Event()
+    consumer = threading.Thread(
+        target=maps.consume,
+        args=(chain.node.subscribe_stream("traffic_map", maxsize=1000), done),  # type: ignore[attr-defined]
+        daemon=True,
+    )
+    consumer.start()
+    routes = RouteClient(chain.node)  # type: ignore[attr-defined]
+    try:
+        maps.wait(lambda s: s.get("agent2") == "LIVE", STARTUP_S, since=time.monotonic())
+        routes.wait_ready(STARTUP_S)
+        chain.procs["mec"].send_signal(signal.SIGKILL)
+        chain.procs["mec"].wait(5)
+        t_kill = time.monotonic()
+        t_stale = maps.wait(lambda s: s.get("agent2") in ("STALE", "LOST"), 5.0 * SCALE, since=t_kill)
+        assert t_stale - t_kill <= COORDINATOR_STALE_WITHIN_S, f"STALE after {t_stale - t_kill:.3f} s"
+        plan = routes.request("t01", "l0", "j3")
+        assert isinstance(plan, RoutePlan), f"no plan while the MEC is down: {plan}"
+        assert "agent2" in plan.coverage.missing_agents
+
+        t_restart = time.monotonic()
+        chain.procs["mec"] = spawn(
+            ["-m", "services.mec", "--instance", "agent2", "--sensors", "radar_2", *router.client_args()]
+        )
+        t_first = chain.out.wait(lambda _row: True, STARTUP_S, since=t_restart)
+        t_live = maps.wait(lambda s: s.get("agent2") == "LIVE", 5.0 * SCALE, since=t_first)
+        assert t_live - t_first <= COORDINATOR_LIVE_WITHIN_S, f"LIVE {t_live - t_first:.3f} s after return"
+        plan = routes.request("t01", "l0", "j3")
+        assert isinstance(plan, RoutePlan) and "agent2" in plan.coverage.live_agents
+    finally:
+        routes.close()
+        done.set()
+        consumer.join(2)
