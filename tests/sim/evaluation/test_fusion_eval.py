@@ -45,6 +45,13 @@ def test_short_run_scores_every_output_and_merges(scene: Scene) -> None:
     assert both.frames == 2 * ev.frames and both.fusion["fused"].num_gt == 2 * ev.fusion["fused"].num_gt
     gain = fe.fusion_gain(summary)
     assert gain == {} or {"fused", "best_single", "gain"} <= set(next(iter(gain.values())))
+    # The system view: per-modality trackers give way to each agent's best single modality.
+    best = fe.best_single_modality(ev)
+    assert best in ("tracked_lidar", "tracked_camera")
+    system = fe.merge_agents({"agent3": ev})
+    assert fe.BEST_SINGLE in system.fusion and "tracked_lidar" not in system.fusion
+    assert system.fusion[fe.BEST_SINGLE].num_gt == ev.fusion[best].num_gt
+    assert system.counts[f"best_single/agent3/{best.removeprefix('tracked_')}"] == 1
 
 
 def test_noise_experiment_adds_the_noise_it_claims(scene: Scene) -> None:
