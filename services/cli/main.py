@@ -254,9 +254,11 @@ def health(
     # Presence without a health reply: connected but not answering (hung main loop, overload).
     silent = []
     for key in alive:
-        parts = key.split("/")  # rmmdet/@v1/<scope>/@alive/<service>/<instance>
-        unanswered = len(parts) == 6 and f"{parts[2]}/{parts[4]}/{parts[5]}" not in answered
-        if unanswered and (service is None or parts[4] == service):
+        ids = get_stream("alive").ids(key)
+        if ids is None:
+            continue
+        unanswered = f"{ids['scope']}/{ids['service']}/{ids['instance']}" not in answered
+        if unanswered and (service is None or ids["service"] == service):
             silent.append(key)
     for key in silent:
         console.print(f"[red]alive but no health reply:[/] {key}")

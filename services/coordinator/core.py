@@ -229,14 +229,7 @@ class CoordinatorCore:
         saves = old_s - new.expected_travel_time_s > self.settings.replan_gain * old_s
         if not saves and active.missing == self._missing:
             return None
-        lanes = [head, *new.lanes]
-        return Route(
-            lanes,
-            [route.junctions[0], *new.junctions],
-            self.planner.route_time_s(lanes, self._cond, route.policy, vid),
-            self.net.lanes[head].length_m + self.net.route_length_m(lanes),
-            route.policy,
-        )
+        return self.planner.route(vid, [head, *new.lanes], self._cond, route.policy)
 
     @property
     def plans_given_up(self) -> int:

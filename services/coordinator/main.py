@@ -63,22 +63,20 @@ ACK_STATUS = {a.value: a for a in Ack}
 
 def agent_of_key(key: str) -> str:
     """`agent1` from `rmmdet/@v1/agent1/objects` (the key, not the payload, says who published)."""
-    parts = key.split("/")
-    return parts[2] if len(parts) > 2 else ""
+    return (get_stream("objects").ids(key) or {}).get("agent", "")
 
 
 def vehicle_of_ack_key(key: str) -> str:
     """`v01` from `rmmdet/@v1/vehicles/v01/plan_ack`."""
-    parts = key.split("/")
-    return parts[3] if len(parts) > 3 else ""
+    return (get_stream("route_ack").ids(key) or {}).get("vehicle", "")
 
 
 def mec_of_token(key: str) -> str | None:
     """The agent of a MEC presence token `rmmdet/@v1/<agent>/@alive/mec/<agent>`, None otherwise."""
-    parts = key.split("/")
-    if len(parts) == 6 and parts[3] == "@alive" and parts[4] == "mec" and parts[2] == parts[5]:
-        return parts[5]
-    return None
+    ids = get_stream("alive").ids(key)
+    if ids is None or ids["service"] != "mec" or ids["scope"] != ids["instance"]:
+        return None
+    return ids["instance"]
 
 
 class RouteRpc:

@@ -82,6 +82,19 @@ class Stream:
             validate_id(value, field)
         return self.key_template.format(**{f: ids.get(f, "*") for f in self.fields})
 
+    def ids(self, key: str) -> dict[str, str] | None:
+        """The ids of a concrete key of this stream (the inverse of `key`), None if it is not one."""
+        template, chunks = self.key_template.split("/"), key.split("/")
+        if len(template) != len(chunks):
+            return None
+        out: dict[str, str] = {}
+        for pattern, chunk in zip(template, chunks, strict=True):
+            if pattern.startswith("{") and pattern.endswith("}"):
+                out[pattern[1:-1]] = chunk
+            elif pattern != chunk:
+                return None
+        return out
+
     def matches(self, key: str) -> bool:
         return zenoh.KeyExpr(self.pattern()).intersects(zenoh.KeyExpr(key))
 

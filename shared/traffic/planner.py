@@ -218,10 +218,16 @@ class RoutePlanner:
             lanes = [current_lane, min(options, key=lambda lane: self._paper_score(lane, cond))]
         else:
             lanes = self._fastest(current_lane, destination, times)
+        return self._route(lanes, times, policy)
+
+    def route(self, vehicle_id: str, lanes: list[str], cond: LaneConditions, policy: PolicyName) -> Route:
+        """`lanes` (the vehicle's current lane first) as a Route, timed like a plan for this vehicle."""
+        return self._route(lanes, self._lane_times(cond, policy, self._load_array(vehicle_id)), policy)
+
+    def _route(self, lanes: list[str], times: FloatArray, policy: PolicyName) -> Route:
         junctions = [self.net.lane_end_junction(lane) for lane in lanes[:-1]]
-        length = self.net.lanes[current_lane].length_m + self.net.route_length_m(lanes)
-        time_s = self._route_time_s(lanes, times)
-        return Route(lanes, junctions, time_s, length, policy)
+        length = self.net.lanes[lanes[0]].length_m + self.net.route_length_m(lanes)
+        return Route(lanes, junctions, self._route_time_s(lanes, times), length, policy)
 
     def _paper_score(self, lane: str, cond: LaneConditions) -> float:
         rank = cond.area_rank.get(self.lane_area[lane], 0)

@@ -61,3 +61,13 @@ def test_stream_for_key() -> None:
 def test_proto_readme_table_is_current() -> None:
     readme = (REPO_ROOT / "proto" / "README.md").read_text()
     assert markdown_table() in readme, "regenerate: python -m shared.bus.streams --markdown"
+
+
+def test_ids_inverts_key() -> None:
+    alive = get_stream("alive")
+    ids = {"scope": "agent2", "service": "mec", "instance": "agent2"}
+    assert alive.ids(alive.key(**ids)) == ids
+    assert get_stream("objects").ids("rmmdet/@v1/agent1/objects") == {"agent": "agent1"}
+    assert get_stream("objects").ids("rmmdet/@v1/agent1/objects/extra") is None  # other length
+    assert get_stream("objects").ids("rmmdet/@v2/agent1/objects") is None  # other literal chunk
+    assert get_stream("route_ack").ids("rmmdet/@v1/agent1/objects") is None
