@@ -157,6 +157,36 @@ class TrafficSnapshot:
         return self.lane_ids.index(lane_id)
 
 
+@dataclass(frozen=True)
+class TableGrid:
+    """A regular grid over the table, laid out like foxglove.Grid: cell (row, col) covers
+    [origin + col * cell, origin + (col + 1) * cell) in x, likewise rows in y; flat index row-major."""
+
+    origin_m: tuple[float, float]
+    cell_m: float
+    shape: tuple[int, int]  # rows (y), columns (x)
+
+    @classmethod
+    def over(cls, scene: Scene, cell_m: float) -> TableGrid:
+        table = scene.spec.table
+        return cls(
+            (float(table.origin_m[0]), float(table.origin_m[1])),
+            cell_m,
+            (math.ceil(table.size_y_m / cell_m), math.ceil(table.size_x_m / cell_m)),
+        )
+
+    @property
+    def size(self) -> int:
+        return self.shape[0] * self.shape[1]
+
+    def cells(self, position_m: FloatArray) -> NDArray[np.int64]:
+        """Flat cell index per (N, 2+) position; -1 outside the table."""
+        col = np.floor((position_m[:, 0] - self.origin_m[0]) / self.cell_m).astype(np.int64)
+        row = np.floor((position_m[:, 1] - self.origin_m[1]) / self.cell_m).astype(np.int64)
+        inside = (col >= 0) & (col < self.shape[1]) & (row >= 0) & (row < self.shape[0])
+        return np.where(inside, row * self.shape[1] + col, -1)
+
+
 def area_ranks(counts: FloatArray) -> NDArray[np.int64]:
     """Rank of each area by count, 0 = emptiest; equal counts keep file order (stable sort)."""
     order = np.argsort(counts, kind="stable")
@@ -175,15 +205,11 @@ class TrafficMapBuilder:
         self.lane_ids = self.locator.lane_ids
         self.lane_agents = lane_agents(scene, network)
         self.area_ids = [a.id for a in scene.spec.areas]
-        table = scene.spec.table
-        self.grid_origin_m = (float(table.origin_m[0]), float(table.origin_m[1]))
-        self.grid_shape = (
-            math.ceil(table.size_y_m / cfg.grid_cell_m),
-            math.ceil(table.size_x_m / cfg.grid_cell_m),
-        )
+        self.grid = TableGrid.over(scene, cfg.grid_cell_m)
+        self.grid_origin_m, self.grid_shape = self.grid.origin_m, self.grid.shape
         self._lanes = _Smoothed(len(self.lane_ids))
         self._areas = _Smoothed(len(self.area_ids))
-        self._grid = _Smoothed(self.grid_shape[0] * self.grid_shape[1])
+        self._grid = _Smoothed(self.grid.size)
         self._last_t_s: float | None = None
 
     def lane_observed(self, live_agents: Collection[str] | None) -> BoolArray:
@@ -194,10 +220,7 @@ class TrafficMapBuilder:
 
     def cells(self, position_m: FloatArray) -> NDArray[np.int64]:
         """Flat grid index per position; -1 outside the table."""
-        col = np.floor((position_m[:, 0] - self.grid_origin_m[0]) / self.cfg.grid_cell_m).astype(np.int64)
-        row = np.floor((position_m[:, 1] - self.grid_origin_m[1]) / self.cfg.grid_cell_m).astype(np.int64)
-        inside = (col >= 0) & (col < self.grid_shape[1]) & (row >= 0) & (row < self.grid_shape[0])
-        return np.where(inside, row * self.grid_shape[1] + col, -1)
+        return self.grid.cells(position_m)
 
     def update(self, vehicles: Vehicles, t_s: float, live_agents: Collection[str] | None) -> TrafficSnapshot:
         """Fold in the merged vehicles of time `t_s`; `live_agents` decide which lanes are observed."""
@@ -226,7 +249,7 @@ class TrafficMapBuilder:
 
         cell = self.cells(vehicles.position_m)
         inside = cell >= 0
-        n_cells = self.grid_shape[0] * self.grid_shape[1]
+        n_cells = self.grid.size
         grid_count = np.bincount(cell[inside], minlength=n_cells).astype(float)
         grid_speed = np.bincount(cell[inside], weights=speed[inside], minlength=n_cells)
         self._grid.update(gain, grid_count, grid_speed, t_s)

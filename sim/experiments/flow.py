@@ -32,7 +32,7 @@ from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.traffic.config import CoordinatorSettings, PolicyName
 from shared.traffic.lanes import OFF_LANE
-from shared.traffic.maps import AgentObjects, TrafficMapBuilder, TrafficSnapshot, merge_agents
+from shared.traffic.maps import AgentObjects, TableGrid, TrafficMapBuilder, TrafficSnapshot, merge_agents
 from shared.traffic.planner import LaneConditions, RoutePlanner
 from sim.config import SimSettings, TrafficSettings
 from sim.experiments.config import FlowExperimentSettings, OraclePerception
@@ -152,19 +152,15 @@ class HeatGrid:
     """Sum and count of vehicle speeds per cell of a regular grid over the table."""
 
     def __init__(self, scene: Scene, cell_m: float) -> None:
-        table = scene.spec.table
-        self.origin_m = (float(table.origin_m[0]), float(table.origin_m[1]))
-        self.cell_m = cell_m
-        self.shape = (math.ceil(table.size_y_m / cell_m), math.ceil(table.size_x_m / cell_m))
-        self.speed_sum = np.zeros(self.shape)
-        self.samples = np.zeros(self.shape)
+        self.grid = TableGrid.over(scene, cell_m)
+        self.speed_sum = np.zeros(self.grid.shape)
+        self.samples = np.zeros(self.grid.shape)
 
     def add(self, pos: FloatArray, speed: FloatArray) -> None:
-        col = np.floor((pos[:, 0] - self.origin_m[0]) / self.cell_m).astype(int)
-        row = np.floor((pos[:, 1] - self.origin_m[1]) / self.cell_m).astype(int)
-        ok = (row >= 0) & (row < self.shape[0]) & (col >= 0) & (col < self.shape[1])
-        np.add.at(self.speed_sum, (row[ok], col[ok]), speed[ok])
-        np.add.at(self.samples, (row[ok], col[ok]), 1.0)
+        cell = self.grid.cells(pos)
+        ok = cell >= 0
+        np.add.at(self.speed_sum.reshape(-1), cell[ok], speed[ok])
+        np.add.at(self.samples.reshape(-1), cell[ok], 1.0)
 
 
 class Scheduler:
