@@ -115,7 +115,7 @@ class PlanClient:
 
     def apply_pushed(self, received: Received) -> None:
         plan: RoutePlan = received.message
-        if received.key.rsplit("/", 1)[-1] != plan.vehicle_id:
+        if (get_stream("route_plan").ids(received.key) or {}).get("vehicle") != plan.vehicle_id:
             self.counters.inc("rejected/plan_key_mismatch")
             return
         self.apply(plan)
