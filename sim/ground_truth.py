@@ -33,8 +33,6 @@ def ground_truth_message(traffic: TrafficSim, scene: Scene, seed: int, tick_hz: 
     msg = GroundTruth(seed=seed, tick_hz=tick_hz)
     h = traffic.height_m
     for v in traffic.vehicles:
-        vz = v.v * math.sin(-v.pitch)
-        v_xy = v.v * math.cos(v.pitch)
         gt = VehicleGroundTruth(
             vehicle_id=v.id,
             label=ObjectClass.OBJECT_CLASS_CAR,
@@ -55,9 +53,7 @@ def ground_truth_message(traffic: TrafficSim, scene: Scene, seed: int, tick_hz: 
         c.z = v.z + math.cos(v.pitch) * h / 2
         gt.box.size_m.x, gt.box.size_m.y, gt.box.size_m.z = traffic.length_m, traffic.width_m, h
         gt.box.yaw_rad = v.yaw
-        gt.velocity_mps.x = v_xy * math.cos(v.yaw)
-        gt.velocity_mps.y = v_xy * math.sin(v.yaw)
-        gt.velocity_mps.z = vz
+        gt.velocity_mps.x, gt.velocity_mps.y, gt.velocity_mps.z = v.velocity_mps
         msg.vehicles.append(gt)
     for junction in scene.spec.junctions:
         msg.junction_flows.append(

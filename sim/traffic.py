@@ -86,6 +86,12 @@ class Vehicle:
     requested_at_s: float = 0.0
     detours: int = 0
 
+    @property
+    def velocity_mps(self) -> tuple[float, float, float]:
+        """World velocity, along the pitched body on the ramps, m/s."""
+        v_xy = self.v * math.cos(self.pitch)
+        return (v_xy * math.cos(self.yaw), v_xy * math.sin(self.yaw), self.v * math.sin(-self.pitch))
+
 
 Occupancy = dict[str, list[tuple[float, Vehicle]]]  # path id -> (progress m, vehicle), rearmost first
 

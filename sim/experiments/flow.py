@@ -19,7 +19,6 @@ and a mean-speed grid for the heat maps. Units: metres, seconds, m/s.
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -56,17 +55,7 @@ ObjectSource = Callable[[TrafficSim], list[AgentObjects]]
 def vehicle_state(traffic: TrafficSim) -> tuple[FloatArray, FloatArray]:
     """(N, 3) road-contact positions and (N, 3) velocities of every vehicle."""
     pos = np.array([[v.x, v.y, v.z] for v in traffic.vehicles], float).reshape(-1, 3)
-    vel = np.array(
-        [
-            [
-                v.v * math.cos(v.pitch) * math.cos(v.yaw),
-                v.v * math.cos(v.pitch) * math.sin(v.yaw),
-                -v.v * math.sin(v.pitch),
-            ]
-            for v in traffic.vehicles
-        ],
-        float,
-    ).reshape(-1, 3)
+    vel = np.array([v.velocity_mps for v in traffic.vehicles], float).reshape(-1, 3)
     return pos, vel
 
 
