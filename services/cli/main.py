@@ -81,6 +81,13 @@ def common(
     ctx.obj = ZenohOptions(config, connect or [], cfg or [])
 
 
+def log_progress() -> None:
+    """Offline commands log their progress at INFO (the common callback set ERROR for the online tools)."""
+    logging.basicConfig(
+        level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s", force=True
+    )
+
+
 def connect(ctx: typer.Context, timeout_s: float = 3.0) -> zenoh.Session:
     """Open a session to the router or exit 2 with a clear message."""
     try:
@@ -448,10 +455,7 @@ def dataset_generate(
     from sim.dataset.config import DEFAULT_DATASET_CONFIG, DatasetSettings
     from sim.dataset.generate import generate
 
-    # force: the common callback configured ERROR for the online tools; offline runs log progress.
-    logging.basicConfig(
-        level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s", force=True
-    )
+    log_progress()
     try:
         cfg = load_settings(DatasetSettings, config or DEFAULT_DATASET_CONFIG)
     except ConfigError as err:
@@ -575,10 +579,7 @@ def eval_fusion(
     from sim.evaluation import fusion as fe
     from sim.evaluation import kalman_noise
 
-    # force: the common callback configured ERROR for the online tools; offline runs log progress.
-    logging.basicConfig(
-        level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s", force=True
-    )
+    log_progress()
     scene = Scene.load(DEFAULT_SCENE)
     dataset = load_settings(DatasetSettings, DEFAULT_DATASET_CONFIG)
     agents = agents or sorted(scene.agents)
@@ -671,10 +672,7 @@ def experiments_flow(
     from sim.experiments.config import load_flow_settings
     from sim.experiments.flow import run_full_perception
 
-    # force: the common callback configured ERROR for the online tools; offline runs log progress.
-    logging.basicConfig(
-        level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s", force=True
-    )
+    log_progress()
     exp = load_flow_settings(config)
     update: dict[str, object] = {}
     for key, value in (
