@@ -7,9 +7,11 @@ Statistics per (fleet size, policy) over seeds: mean and a 95 % confidence inter
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -65,25 +67,25 @@ def run_grid(
     )
     results: list[RunResult] = []
     t0 = time.perf_counter()
-    if exp.workers <= 1:
-        iterator: Any = map(_worker, jobs)
-        for r in iterator:
+    with contextlib.ExitStack() as stack:
+        if exp.workers <= 1:
+            finished: Iterator[RunResult] = map(_worker, jobs)
+        else:
+            pool = stack.enter_context(mp.get_context("spawn").Pool(exp.workers))
+            finished = pool.imap_unordered(_worker, jobs)
+        for r in finished:
             results.append(r)
-    else:
-        with mp.get_context("spawn").Pool(exp.workers) as pool:
-            for r in pool.imap_unordered(_worker, jobs):
-                results.append(r)
-                log.info(
-                    "%s %d vehicles seed %d: flow %d, %d trips (%d/%d, %.0f s)",
-                    r.policy,
-                    r.vehicles,
-                    r.seed,
-                    r.total_flow,
-                    len(r.trip_times_s),
-                    len(results),
-                    len(jobs),
-                    time.perf_counter() - t0,
-                )
+            log.info(
+                "%s %d vehicles seed %d: flow %d, %d trips (%d/%d, %.0f s)",
+                r.policy,
+                r.vehicles,
+                r.seed,
+                r.total_flow,
+                len(r.trip_times_s),
+                len(results),
+                len(jobs),
+                time.perf_counter() - t0,
+            )
     return results
 
 
