@@ -37,12 +37,13 @@ $(PROTO_STAMP): $(INSTALLED) $(PROTO_SRC) proto/generate.py
 proto: $(INSTALLED) ## (re)generate the protobuf Python code into proto/gen
 	$(BIN)/python proto/generate.py
 
-up: install ## start router and every service under supervisord (idempotent)
+SPEED ?=
+up: install ## start router and every service under supervisord (idempotent); SPEED=x: sim seconds per wall second
 	@mkdir -p $(RUN_DIR)/logs
 	@if $(BIN)/supervisorctl -c $(SUPERVISOR_CONF) pid >/dev/null 2>&1; then \
 	  echo "already up"; \
 	else \
-	  $(BIN)/supervisord -c $(SUPERVISOR_CONF) && echo "supervisord started"; \
+	  $(if $(SPEED),RMMDET_SIM_SPEED=$(SPEED)) $(BIN)/supervisord -c $(SUPERVISOR_CONF) && echo "supervisord started"; \
 	fi
 	@$(BIN)/python -m services.cli.main wait-ready --timeout 30
 	@$(BIN)/supervisorctl -c $(SUPERVISOR_CONF) status || true

@@ -30,8 +30,8 @@ import typer
 import zenoh
 from rich.console import Console
 from rich.table import Table
-from rmmdet.v1.health_pb2 import HealthLevel, ServiceHealth
 
+from services.cli.health import level_name, probe
 from shared.bus.codec import Counters, MessageDecoder, schema_of
 from shared.bus.liveliness import alive_tokens
 from shared.bus.session import SessionUnavailable, open_session
@@ -42,15 +42,15 @@ from shared.recording.reader import RecordingReader
 from shared.recording.recorder import Recorder
 from shared.recording.schedule import ReplayStats, check_speed, replay
 from shared.recording.writer import RecordingWriter, default_recording_path
+from shared.scene.scene import Scene
 from shared.shutdown import GracefulShutdown
+from sim.config import DEFAULT_SCENE
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
 # Wide when piped (logs, tests): rich would otherwise truncate key expressions at 80 columns.
 console = Console(width=None if sys.stdout.isatty() else 200)
 
 DATA_KEYS = "rmmdet/@v1/**"
-HEALTH_KEYS = "rmmdet/@v1/*/@health/**"
-ALIVE_KEYS = "rmmdet/@v1/*/@alive/**"
 #: record/replay: main-loop period and the pause after the last replayed sample (lets the session
 #: deliver what it has queued before it closes), seconds.
 LOOP_S = 0.1
@@ -198,30 +198,6 @@ def topics(
 # --- health ----------------------------------------------------------------------------------------
 
 
-def query_health(session: zenoh.Session, timeout_s: float = 2.0) -> tuple[list[ServiceHealth], list[str]]:
-    """Health reports of every service, and reply errors (undecodable replies)."""
-    decoder = MessageDecoder(ServiceHealth, Counters())
-    reports: list[ServiceHealth] = []
-    errors: list[str] = []
-    # Every queryable must answer: ALL targets, no consolidation of replies.
-    replies = session.get(
-        HEALTH_KEYS,
-        target=zenoh.QueryTarget.ALL,
-        consolidation=zenoh.ConsolidationMode.NONE,
-        timeout=timeout_s,
-    )
-    for reply in replies:
-        if reply.ok is None:
-            errors.append(f"error reply: {reply.err.payload.to_bytes()[:200]!r}")
-            continue
-        decoded = decoder.decode(reply.ok.payload.to_bytes(), str(reply.ok.encoding))
-        if decoded is None:
-            errors.append(f"{reply.ok.key_expr}: undecodable health reply")
-        else:
-            reports.append(decoded.message)
-    return reports, errors
-
-
 _LEVEL_STYLE = {"NOMINAL": "green", "DEGRADED": "yellow", "CRITICAL": "red", "UNKNOWN": "magenta"}
 
 
@@ -230,22 +206,16 @@ def health(
     ctx: typer.Context,
     service: Annotated[str | None, typer.Option(help="only this service")] = None,
     timeout: Annotated[float, typer.Option(help="query timeout, seconds")] = 2.0,
+    scene: Annotated[Path, typer.Option(help="scene YAML: which services the loop needs")] = DEFAULT_SCENE,
 ) -> None:
-    """Query every service's @health queryable; exit 1 unless all are NOMINAL."""
+    """Every service's health; exit 0 exactly when the closed loop does its job (services/cli/health.py)."""
     with connect(ctx) as session:
-        reports, errors = query_health(session, timeout)
-        alive = alive_tokens(session, ALIVE_KEYS, timeout)
-    if service:
-        reports = [r for r in reports if r.service == service]
+        verdict = probe(session, Scene.load(scene), timeout, service)
     table = Table(title="service health")
     for col in ("service", "instance", "level", "uptime s", "inputs", "rejected", "message"):
         table.add_column(col)
-    ok = bool(reports) and not errors
-    answered: set[str] = set()
-    for r in sorted(reports, key=lambda r: (r.service, r.instance)):
-        level = HealthLevel.Name(r.level).removeprefix("HEALTH_LEVEL_")
-        ok &= r.level == HealthLevel.HEALTH_LEVEL_NOMINAL
-        answered.add(r.header.source_id)
+    for r in verdict.reports:
+        level = level_name(r.level)
         rejected = sum(c.value for c in r.counters if c.name.startswith("rejected/"))
         inputs = ", ".join(f"{i.key_expr.split('/')[-1]}@{i.rate_hz:.1f}Hz" for i in r.inputs) or "-"
         table.add_row(
@@ -258,22 +228,8 @@ def health(
             r.message,
         )
     console.print(table)
-    # Presence without a health reply: connected but not answering (hung main loop, overload).
-    silent = []
-    for key in alive:
-        ids = get_stream("alive").ids(key)
-        if ids is None:
-            continue
-        unanswered = f"{ids['scope']}/{ids['service']}/{ids['instance']}" not in answered
-        if unanswered and (service is None or ids["service"] == service):
-            silent.append(key)
-    for key in silent:
-        console.print(f"[red]alive but no health reply:[/] {key}")
-    for err in errors:
-        console.print(f"[red]{err}[/]")
-    if not reports:
-        console.print("no service answered (is `make up` running?)")
-    raise typer.Exit(0 if ok and not silent else 1)
+    console.print(f"[green]{verdict.summary()}[/]" if verdict.ok else f"[red]{verdict.summary()}[/]")
+    raise typer.Exit(0 if verdict.ok else 1)
 
 
 @app.command("wait-ready")
@@ -427,7 +383,6 @@ def snapshot(
 ) -> None:
     """Offline (no bus): run the sim lock-step, then write one PNG per camera and a bird's-eye map
     (lanes, junction numbers, areas, sensors and their fields of view, vehicles)."""
-    from shared.scene.scene import Scene
     from sim.config import load_sim_settings
     from sim.snapshot import snapshot as take_snapshot
 
@@ -572,8 +527,6 @@ def eval_fusion(
     0.05, 0.1 m²: raw vs filtered RMSE)."""
     from shared.config import load_settings
     from shared.perception.config import DEFAULT_MEC_CONFIG, MecSettings
-    from shared.scene.scene import Scene
-    from sim.config import DEFAULT_SCENE
     from sim.dataset.config import DEFAULT_DATASET_CONFIG, DatasetSettings
     from sim.dataset.generate import seed_variation
     from sim.evaluation import fusion as fe
@@ -665,7 +618,6 @@ def experiments_flow(
     the full perception chain."""
     from shared.config import load_settings
     from shared.perception.config import DEFAULT_MEC_CONFIG, MecSettings
-    from shared.scene.scene import Scene
     from shared.traffic.config import load_coordinator_settings
     from sim.config import load_sim_settings
     from sim.experiments import report

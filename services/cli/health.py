@@ -1,0 +1,125 @@
+"""Is the closed loop doing its job? One verdict for `rmmdet health`, the system benchmark and CI.
+
+The loop is OK exactly when every service the scene calls for answers its `@health` query and reports
+NOMINAL: the router, the sim, one sensor service per sensor group, one MEC per agent (NOMINAL = its
+output FULL) and the coordinator (NOMINAL = every agent LIVE). Anything else makes the verdict fail,
+and its `problems` say what is missing, one line each: a service that never answered, one that is
+alive (liveliness token) but silent (hung main loop), and every report below NOMINAL with its message.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import zenoh
+from rmmdet.v1.health_pb2 import HealthLevel, ServiceHealth
+
+from shared.bus.codec import Counters, MessageDecoder
+from shared.bus.liveliness import alive_tokens
+from shared.bus.streams import get_stream
+from shared.scene.scene import Scene
+
+HEALTH_KEYS = "rmmdet/@v1/*/@health/**"
+ALIVE_KEYS = "rmmdet/@v1/*/@alive/**"
+
+
+def level_name(level: int) -> str:
+    return HealthLevel.Name(level).removeprefix("HEALTH_LEVEL_")
+
+
+def expected_services(scene: Scene) -> list[str]:
+    """`scope/service/instance` of every service the closed loop needs, from the scene."""
+    out = ["site/router/main", "sim/sim/main", "cloud/coordinator/cloud"]
+    for agent in scene.agents:
+        out.append(f"{agent}/mec/{agent}")
+        kinds = sorted({s.kind for s in scene.sensors_of(agent)})
+        out += [f"{agent}/sensor/{agent}-{kind}s" for kind in kinds]
+    return out
+
+
+def query_health(session: zenoh.Session, timeout_s: float = 2.0) -> tuple[list[ServiceHealth], list[str]]:
+    """Health reports of every service, and reply errors (undecodable replies)."""
+    decoder = MessageDecoder(ServiceHealth, Counters())
+    reports: list[ServiceHealth] = []
+    errors: list[str] = []
+    # Every queryable must answer: ALL targets, no consolidation of replies.
+    replies = session.get(
+        HEALTH_KEYS,
+        target=zenoh.QueryTarget.ALL,
+        consolidation=zenoh.ConsolidationMode.NONE,
+        timeout=timeout_s,
+    )
+    for reply in replies:
+        if reply.ok is None:
+            errors.append(f"error reply: {reply.err.payload.to_bytes()[:200]!r}")
+            continue
+        decoded = decoder.decode(reply.ok.payload.to_bytes(), str(reply.ok.encoding))
+        if decoded is None:
+            errors.append(f"{reply.ok.key_expr}: undecodable health reply")
+        else:
+            reports.append(decoded.message)
+    return reports, errors
+
+
+@dataclass
+class Verdict:
+    """The loop's state at one probe. `ok` is what `rmmdet health` exits 0 on."""
+
+    reports: list[ServiceHealth]
+    problems: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return bool(self.reports) and not self.problems
+
+    def summary(self) -> str:
+        if self.ok:
+            return f"loop OK: {len(self.reports)} services NOMINAL"
+        return "loop NOT OK: " + "; ".join(self.problems)
+
+
+def judge(
+    reports: Iterable[ServiceHealth],
+    errors: Iterable[str],
+    alive: Iterable[str],
+    expected: Iterable[str],
+    service: str | None = None,
+) -> Verdict:
+    """Verdict from one probe's replies, reply errors and liveliness tokens (`service`: only that one)."""
+    chosen = sorted(
+        (r for r in reports if service is None or r.service == service),
+        key=lambda r: (r.service, r.instance),
+    )
+    verdict = Verdict(chosen)
+    answered = {r.header.source_id for r in chosen}
+    for r in chosen:
+        if r.level != HealthLevel.HEALTH_LEVEL_NOMINAL:
+            verdict.problems.append(f"{r.header.source_id} {level_name(r.level)}: {r.message}")
+    alive_ids = set()
+    for key in alive:
+        ids = get_stream("alive").ids(key)
+        if ids is None:
+            continue
+        source = f"{ids['scope']}/{ids['service']}/{ids['instance']}"
+        alive_ids.add(source)
+        if source not in answered and (service is None or ids["service"] == service):
+            verdict.problems.append(f"{source} alive but no health reply")
+    for source in expected:
+        if source in answered or source in alive_ids:
+            continue
+        if service is None or source.split("/")[1] == service:
+            verdict.problems.append(f"{source} not running")
+    verdict.problems += list(errors)
+    if not chosen:
+        verdict.problems.append("no service answered (is `make up` running?)")
+    return verdict
+
+
+def probe(
+    session: zenoh.Session, scene: Scene, timeout_s: float = 2.0, service: str | None = None
+) -> Verdict:
+    """Query every service's health and the liveliness tokens, and judge the loop."""
+    reports, errors = query_health(session, timeout_s)
+    alive = alive_tokens(session, ALIVE_KEYS, timeout_s)
+    return judge(reports, errors, alive, expected_services(scene), service)

@@ -1,0 +1,513 @@
+"""Whole-system benchmark: exactly what `make up` starts, measured while it all runs.
+
+    python -m tests.bench.system_bench [--minutes 10] [--warmup-s 60] [--speed 1] [--record-s 120]
+                                       [--label TEXT] [--readme]
+
+Starts the system with `make up` (refuses if it is already up), lets it settle `--warmup-s`, then
+measures for `--minutes` and stops it with `make down`. The judge of every performance change: a
+component benchmark says what a part costs alone, this one what the loop does with everything running.
+
+Measured (results appended to `tests/bench/results/system.json` under `runs`, one per label):
+- CPU share of every process (a whole core = 1.0), resident memory, threads and file descriptors;
+- the loop verdict (`services/cli/health.py`, the same as `rmmdet health`) at a probe every 10 s;
+- rates of every stream, from the services' own input monitors (health reports) and, for the loop's
+  outputs, from this process's subscriptions to objects, traffic maps, pushed plans and the sim clock;
+- latency sensor stamp -> objects and objects -> traffic map / pushed plan, p50 / p95, in simulated time
+  (the sim clock's samples map each arrival to sim time) and in wall time;
+- each MEC's output status (fraction FULL), the coordinator's coverage (fraction of maps with every
+  agent LIVE, state changes per agent), the sim's real-time factor over the window;
+- the CPU model and its vector flags, and the commit.
+
+`--record-s N` runs `rmmdet record` of the whole bus for the first N seconds of the window (the
+recording is deleted afterwards); its CPU is reported with the rest.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections import Counter, defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import psutil
+import zenoh
+from rmmdet.v1.perception_pb2 import PerceptionStatus, TrackedObjects
+from rmmdet.v1.planning_pb2 import RoutePlan
+from rmmdet.v1.sim_pb2 import SimClock
+from rmmdet.v1.traffic_pb2 import AgentState, TrafficMap
+
+from services.cli.health import level_name, probe
+from shared.bus.codec import Counters, MessageDecoder
+from shared.bus.session import open_session
+from shared.bus.streams import get_stream
+from shared.bus.zenoh_config import DEFAULT_CLIENT_CONFIG, REPO_ROOT, zenoh_config
+from shared.scene.scene import Scene
+from sim.config import DEFAULT_SCENE
+from tests.bench.machine import machine_info
+
+RESULTS = REPO_ROOT / "tests" / "bench" / "results" / "system.json"
+README = REPO_ROOT / "README.md"
+README_BEGIN, README_END = "<!-- system-bench:begin -->", "<!-- system-bench:end -->"
+SUPERVISOR_CONF = REPO_ROOT / "deploy" / "local" / "supervisord.conf"
+PROBE_EVERY_S = 10.0
+NS = 1_000_000_000
+VECTOR_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16", "amx_tile")
+
+
+def cpu_flags() -> list[str]:
+    for line in Path("/proc/cpuinfo").read_text().splitlines():
+        if line.startswith("flags"):
+            flags = set(line.split(":", 1)[1].split())
+            return [f for f in VECTOR_FLAGS if f in flags]
+    return []
+
+
+def commit() -> str:
+    out = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=REPO_ROOT
+    )
+    dirty = subprocess.run(["git", "status", "--porcelain"], capture_output=True, text=True, cwd=REPO_ROOT)
+    return out.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
+
+
+def supervised_pids() -> dict[str, int]:
+    """Program name -> pid of every RUNNING supervisord program."""
+    out = subprocess.run(
+        [str(REPO_ROOT / ".venv" / "bin" / "supervisorctl"), "-c", str(SUPERVISOR_CONF), "status"],
+        capture_output=True,
+        text=True,
+    ).stdout
+    pids = {}
+    for line in out.splitlines():
+        m = re.match(r"(\S+)\s+RUNNING\s+pid (\d+)", line)
+        if m:
+            pids[m.group(1)] = int(m.group(2))
+    return pids
+
+
+def pct(values: list[float], q: float) -> float | None:
+    return float(np.percentile(values, q)) if values else None
+
+
+class ProcessSampler:
+    """CPU seconds, RSS, threads and fds of named processes (each with its children)."""
+
+    def __init__(self) -> None:
+        self.procs: dict[str, psutil.Process] = {}
+        self.start_cpu: dict[str, float] = {}
+        self.samples: dict[str, list[dict[str, float]]] = defaultdict(list)
+        self.restarts: Counter[str] = Counter()
+
+    def _cpu(self, proc: psutil.Process) -> float:
+        total = 0.0
+        for p in [proc, *proc.children(recursive=True)]:
+            try:
+                t = p.cpu_times()
+                total += t.user + t.system
+            except psutil.Error:
+                pass
+        return total
+
+    def track(self, name: str, pid: int) -> None:
+        if name in self.procs and self.procs[name].pid == pid:
+            return
+        if name in self.procs:
+            self.restarts[name] += 1
+        try:
+            proc = psutil.Process(pid)
+            self.procs[name] = proc
+            self.start_cpu[name] = self.start_cpu.get(name, 0.0) - self._cpu(proc)
+        except psutil.Error:
+            pass
+
+    def sample(self) -> None:
+        for name, proc in self.procs.items():
+            try:
+                with proc.oneshot():
+                    self.samples[name].append(
+                        {
+                            "rss_mb": proc.memory_info().rss / 1e6,
+                            "threads": proc.num_threads(),
+                            "fds": proc.num_fds(),
+                        }
+                    )
+            except psutil.Error:
+                pass
+
+    def cpu_seconds(self) -> dict[str, float]:
+        """CPU seconds since tracking began (restarts: the processes before a restart are lost)."""
+        out = {}
+        for name, proc in self.procs.items():
+            try:
+                out[name] = self.start_cpu[name] + self._cpu(proc)
+            except psutil.Error:
+                out[name] = max(0.0, self.start_cpu[name])
+        return out
+
+
+@dataclass
+class Tap:
+    """What this process hears of the loop's outputs."""
+
+    clock: list[tuple[int, int, float]] = field(default_factory=list)  # (wall ns, sim ns, rtf)
+    objects: dict[str, list[tuple[int, int, int, int]]] = field(default_factory=lambda: defaultdict(list))
+    maps: list[tuple[int, int, dict[str, int]]] = field(default_factory=list)  # (wall, stamp, states)
+    plans: list[tuple[int, int]] = field(default_factory=list)  # (wall, stamp)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+def subscribe(session: zenoh.Session, tap: Tap) -> list[Any]:
+    counters = Counters()
+    dec_clock = MessageDecoder(SimClock, counters)
+    dec_obj = MessageDecoder(TrackedObjects, counters)
+    dec_map = MessageDecoder(TrafficMap, counters)
+    dec_plan = MessageDecoder(RoutePlan, counters)
+
+    def payload(sample: zenoh.Sample) -> tuple[bytes, str, bytes | None]:
+        att = sample.attachment.to_bytes() if sample.attachment is not None else None
+        return sample.payload.to_bytes(), str(sample.encoding), att
+
+    def on_clock(sample: zenoh.Sample) -> None:
+        d = dec_clock.decode(*payload(sample))
+        if d is not None:
+            with tap.lock:
+                tap.clock.append(
+                    (time.time_ns(), d.message.sim_time.ToNanoseconds(), d.message.real_time_factor)
+                )
+
+    def on_objects(sample: zenoh.Sample) -> None:
+        d = dec_obj.decode(*payload(sample))
+        if d is not None:
+            agent = str(sample.key_expr).split("/")[2]
+            with tap.lock:
+                tap.objects[agent].append(
+                    (time.time_ns(), d.header.stamp.ToNanoseconds(), d.header.tick, d.message.status)
+                )
+
+    def on_map(sample: zenoh.Sample) -> None:
+        d = dec_map.decode(*payload(sample))
+        if d is not None:
+            states = {c.agent_id: c.state for c in d.message.coverage}
+            with tap.lock:
+                tap.maps.append((time.time_ns(), d.header.stamp.ToNanoseconds(), states))
+
+    def on_plan(sample: zenoh.Sample) -> None:
+        d = dec_plan.decode(*payload(sample))
+        if d is not None:
+            with tap.lock:
+                tap.plans.append((time.time_ns(), d.header.stamp.ToNanoseconds()))
+
+    return [
+        session.declare_subscriber(get_stream("sim_clock").pattern(), on_clock),
+        session.declare_subscriber(get_stream("objects").pattern(), on_objects),
+        session.declare_subscriber(get_stream("traffic_map").pattern(), on_map),
+        session.declare_subscriber(get_stream("route_plan").pattern(), on_plan),
+    ]
+
+
+def sim_time_of(clock: list[tuple[int, int, float]], wall_ns: np.ndarray) -> np.ndarray:
+    """Simulated time (sim-epoch ns) at wall instants, interpolated between sim clock samples."""
+    c = np.array([(w, s) for w, s, _ in clock], dtype=np.float64)
+    return np.interp(wall_ns.astype(np.float64), c[:, 0], c[:, 1])
+
+
+def latency_stats(sim_ms: np.ndarray, wall_ms: np.ndarray) -> dict[str, Any]:
+    return {
+        "count": len(sim_ms),
+        "sim_p50_ms": pct(list(sim_ms), 50),
+        "sim_p95_ms": pct(list(sim_ms), 95),
+        "wall_p50_ms": pct(list(wall_ms), 50),
+        "wall_p95_ms": pct(list(wall_ms), 95),
+    }
+
+
+def analyse(tap: Tap, t0_wall_ns: int, t1_wall_ns: int) -> dict[str, Any]:
+    with tap.lock:
+        clock = [c for c in tap.clock]
+        objects = {a: list(v) for a, v in tap.objects.items()}
+        maps = list(tap.maps)
+        plans = list(tap.plans)
+    inside = [c for c in clock if t0_wall_ns <= c[0] <= t1_wall_ns]
+    out: dict[str, Any] = {}
+    if len(inside) < 2:
+        return {"error": "no sim clock heard"}
+    sim_s = (inside[-1][1] - inside[0][1]) / NS
+    wall_s = (inside[-1][0] - inside[0][0]) / NS
+    out["sim"] = {"sim_s": sim_s, "wall_s": wall_s, "real_time_factor": sim_s / wall_s}
+    agents: dict[str, Any] = {}
+    for agent, rows in sorted(objects.items()):
+        r = np.array([x for x in rows if t0_wall_ns <= x[0] <= t1_wall_ns], dtype=np.int64)
+        if len(r) == 0:
+            agents[agent] = {"messages": 0}
+            continue
+        sim_ms = (sim_time_of(clock, r[:, 0]) - r[:, 1]) / 1e6
+        wall_ms = (r[:, 0] - r[:, 1]) / 1e6
+        ticks = np.diff(r[:, 2])
+        agents[agent] = {
+            "messages": len(r),
+            "rate_hz_sim": len(r) / sim_s,
+            "rate_hz_wall": len(r) / wall_s,
+            "fraction_full": float(np.mean(r[:, 3] == PerceptionStatus.PERCEPTION_STATUS_FULL)),
+            "ticks_per_output_p50": pct(list(ticks), 50) if len(ticks) else None,
+            "sensor_to_objects": latency_stats(sim_ms, wall_ms),
+        }
+    out["agents"] = agents
+    m = [x for x in maps if t0_wall_ns <= x[0] <= t1_wall_ns]
+    if m:
+        w = np.array([x[0] for x in m], dtype=np.int64)
+        s = np.array([x[1] for x in m], dtype=np.int64)
+        ok = s > 0
+        all_live = [bool(x[2]) and all(v == AgentState.AGENT_STATE_LIVE for v in x[2].values()) for x in m]
+        changes: Counter[str] = Counter()
+        for prev, cur in itertools.pairwise(m):
+            for agent, state in cur[2].items():
+                if prev[2].get(agent) != state:
+                    changes[agent] += 1
+        out["coordinator"] = {
+            "maps": len(m),
+            "fraction_all_live": float(np.mean(all_live)),
+            "coverage_changes": dict(changes),
+            "objects_to_map": latency_stats((sim_time_of(clock, w[ok]) - s[ok]) / 1e6, (w[ok] - s[ok]) / 1e6),
+        }
+    p = [x for x in plans if t0_wall_ns <= x[0] <= t1_wall_ns and x[1] > 0]
+    if p:
+        w = np.array([x[0] for x in p], dtype=np.int64)
+        s = np.array([x[1] for x in p], dtype=np.int64)
+        out.setdefault("coordinator", {})["objects_to_pushed_plan"] = latency_stats(
+            (sim_time_of(clock, w) - s) / 1e6, (w - s) / 1e6
+        )
+    else:
+        out.setdefault("coordinator", {})["objects_to_pushed_plan"] = {"count": 0}
+    return out
+
+
+def input_rates(reports: list[Any]) -> dict[str, dict[str, float]]:
+    """Per service, the rate of each input its monitor measured (Hz of wall time)."""
+    rates: dict[str, dict[str, float]] = {}
+    for r in reports:
+        rates[r.header.source_id] = {i.key_expr: round(i.rate_hz, 2) for i in r.inputs if i.rate_hz > 0}
+    return rates
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    if supervised_pids():
+        raise SystemExit("the system is already up: `make down` first (this benchmark starts it itself)")
+    env = dict(os.environ)
+    make = ["make", "-C", str(REPO_ROOT), "up"] + ([f"SPEED={args.speed}"] if args.speed != 1.0 else [])
+    scene = Scene.load(DEFAULT_SCENE)
+    sampler = ProcessSampler()
+    tap = Tap()
+    probes: list[dict[str, Any]] = []
+    rates: dict[str, list[dict[str, float]]] = defaultdict(list)
+    recorder: subprocess.Popen[bytes] | None = None
+    recording = Path(tempfile.mkdtemp()) / "bench.mcap"
+    subprocess.run(make, check=True, env=env, stdout=subprocess.DEVNULL)
+    try:
+        session = open_session(zenoh_config(DEFAULT_CLIENT_CONFIG), timeout_s=10)
+        subs = subscribe(session, tap)
+        print(f"system up; warming up {args.warmup_s:.0f} s", flush=True)
+        time.sleep(args.warmup_s)
+        for name, pid in supervised_pids().items():
+            sampler.track(name, pid)
+        if args.record_s > 0:
+            recorder = subprocess.Popen(
+                [
+                    str(REPO_ROOT / ".venv" / "bin" / "rmmdet"),
+                    "record",
+                    "--out",
+                    str(recording),
+                    "--duration",
+                    str(args.record_s),
+                ],
+                stdout=subprocess.DEVNULL,
+            )
+            sampler.track("recorder", recorder.pid)
+        t0 = time.time_ns()
+        t0_mono = time.monotonic()
+        end = t0_mono + args.minutes * 60
+        next_probe = t0_mono
+        while time.monotonic() < end:
+            time.sleep(max(0.0, min(next_probe, end) - time.monotonic()))
+            if time.monotonic() >= end:
+                break
+            next_probe += PROBE_EVERY_S
+            verdict = probe(session, scene)
+            probes.append(
+                {
+                    "t_s": round(time.monotonic() - t0_mono, 1),
+                    "ok": verdict.ok,
+                    "problems": verdict.problems,
+                    "levels": {r.header.source_id: level_name(r.level) for r in verdict.reports},
+                }
+            )
+            for source, r in input_rates(verdict.reports).items():
+                rates[source].append(r)
+            for name, pid in supervised_pids().items():
+                sampler.track(name, pid)
+            sampler.sample()
+            print(f"  {probes[-1]['t_s']:6.0f} s  {verdict.summary()[:160]}", flush=True)
+        t1 = time.time_ns()
+        wall_s = (t1 - t0) / NS
+        cpu = sampler.cpu_seconds()
+        for sub in subs:
+            sub.undeclare()
+        session.close()
+    finally:
+        if recorder is not None:
+            recorder.wait(timeout=60)
+        recording.unlink(missing_ok=True)
+        subprocess.run(["make", "-C", str(REPO_ROOT), "down"], stdout=subprocess.DEVNULL)
+    result = analyse(tap, t0, t1)
+    result["processes"] = {
+        name: {
+            "cpu_cores": round(cpu[name] / wall_s, 4),
+            "rss_mb_max": round(max((s["rss_mb"] for s in sampler.samples[name]), default=0.0), 1),
+            "threads_max": max((int(s["threads"]) for s in sampler.samples[name]), default=0),
+            "fds_max": max((int(s["fds"]) for s in sampler.samples[name]), default=0),
+            "restarts": sampler.restarts[name],
+        }
+        for name in sorted(cpu)
+    }
+    result["cpu_cores_total"] = round(sum(p["cpu_cores"] for p in result["processes"].values()), 3)
+    stream_rates: dict[str, dict[str, float]] = {}
+    for source, samples in rates.items():
+        keys = {k for s in samples for k in s}
+        stream_rates[source] = {
+            k: round(float(np.median([s[k] for s in samples if k in s])), 2) for k in keys
+        }
+    result["input_rates_hz"] = stream_rates
+    result["probes"] = {
+        "count": len(probes),
+        "ok": sum(p["ok"] for p in probes),
+        "failures": [p for p in probes if not p["ok"]][:20],
+    }
+    return result
+
+
+def acceptance(r: dict[str, Any]) -> dict[str, bool]:
+    """The live-system issue's acceptance points, judged on one run."""
+    agents = r.get("agents", {})
+    coord = r.get("coordinator", {})
+    plan = coord.get("objects_to_pushed_plan", {})
+    return {
+        "health_ok_every_probe": r["probes"]["count"] > 0 and r["probes"]["ok"] == r["probes"]["count"],
+        "mec_full_99": bool(agents) and all(a.get("fraction_full", 0) >= 0.99 for a in agents.values()),
+        "all_live_99": coord.get("fraction_all_live", 0) >= 0.99,
+        "objects_10hz_sim": bool(agents)
+        and all(a.get("rate_hz_sim", 0) >= 10 * 0.98 for a in agents.values()),
+        "sensor_to_objects_p95_150ms": bool(agents)
+        and all((a["sensor_to_objects"]["sim_p95_ms"] or 1e9) <= 150 for a in agents.values()),
+        "objects_to_map_p95_250ms": (coord.get("objects_to_map", {}).get("sim_p95_ms") or 1e9) <= 250,
+        "objects_to_plan_p95_250ms": plan.get("count", 0) == 0 or (plan.get("sim_p95_ms") or 1e9) <= 250,
+        "rtf_098": r.get("sim", {}).get("real_time_factor", 0) >= 0.98,
+        "cpu_le_1_5_cores": r["cpu_cores_total"] <= 1.5,
+    }
+
+
+def fmt(v: Any, digits: int = 0) -> str:
+    return "–" if v is None else f"{v:.{digits}f}"
+
+
+def readme_table(runs: list[dict[str, Any]]) -> str:
+    lines = [
+        "| run (label, commit) | speed | RTF | CPU cores | health OK probes | FULL % (a1/a2/a3) "
+        "| all LIVE % | objects Hz sim (a1/a2/a3) | sensor→objects p50/p95 ms | objects→map p95 ms "
+        "| objects→plan p95 ms |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for run in runs:
+        r = run["result"]
+        agents = [r.get("agents", {}).get(a, {}) for a in ("agent1", "agent2", "agent3")]
+        coord = r.get("coordinator", {})
+        lat = [a.get("sensor_to_objects", {}) for a in agents]
+        lines.append(
+            f"| {run['label']} ({run['commit']}) | {run['args']['speed']}"
+            + (f" + record {run['args']['record_s']:.0f} s" if run["args"]["record_s"] else "")
+            + f" | {fmt(r.get('sim', {}).get('real_time_factor'), 2)} | {r['cpu_cores_total']:.2f}"
+            f" | {r['probes']['ok']}/{r['probes']['count']}"
+            f" | {'/'.join(fmt(100 * a['fraction_full'], 1) if 'fraction_full' in a else '–' for a in agents)}"
+            f" | {fmt(100 * coord['fraction_all_live'], 1) if 'fraction_all_live' in coord else '–'}"
+            f" | {'/'.join(fmt(a.get('rate_hz_sim'), 1) for a in agents)}"
+            f" | {' / '.join(fmt(x.get('sim_p50_ms')) + '/' + fmt(x.get('sim_p95_ms')) for x in lat)}"
+            f" | {fmt(coord.get('objects_to_map', {}).get('sim_p95_ms'))}"
+            f" | {fmt(coord.get('objects_to_pushed_plan', {}).get('sim_p95_ms'))} |"
+        )
+    last = runs[-1]
+    lines += [
+        "",
+        f'Per process, run "{last["label"]}" ({last["machine"]["cpu_model"]}, '
+        f"{last['machine']['cpu_count']} cores, flags {' '.join(last['cpu_flags'])}):",
+        "",
+        "| process | CPU (cores) | RSS max MB | threads | fds |",
+        "|---|---|---|---|---|",
+    ]
+    for name, p in sorted(last["result"]["processes"].items(), key=lambda kv: -kv[1]["cpu_cores"]):
+        lines.append(
+            f"| {name} | {p['cpu_cores']:.3f} | {p['rss_mb_max']:.0f} | {p['threads_max']} | {p['fds_max']} |"
+        )
+    return "\n".join(lines)
+
+
+def update_readme(table: str) -> None:
+    text = README.read_text()
+    if README_BEGIN not in text:
+        raise SystemExit(f"README has no {README_BEGIN} marker")
+    head, rest = text.split(README_BEGIN, 1)
+    _, tail = rest.split(README_END, 1)
+    README.write_text(f"{head}{README_BEGIN}\n{table}\n{README_END}{tail}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--minutes", type=float, default=10.0, help="measurement window, minutes")
+    parser.add_argument("--warmup-s", type=float, default=60.0, help="settling time after `make up`, s")
+    parser.add_argument("--speed", type=float, default=1.0, help="sim speed (make up SPEED=...)")
+    parser.add_argument("--record-s", type=float, default=0.0, help="run `rmmdet record` this long, s")
+    parser.add_argument("--label", default="default", help="name of this run in the results")
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--readme", action="store_true", help="rewrite the README's system table")
+    args = parser.parse_args(argv)
+    result = run(args)
+    passed = acceptance(result)
+    entry = {
+        "label": args.label,
+        "commit": commit(),
+        "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        "args": {
+            "minutes": args.minutes,
+            "warmup_s": args.warmup_s,
+            "speed": args.speed,
+            "record_s": args.record_s,
+        },
+        "machine": machine_info(),
+        "cpu_flags": cpu_flags(),
+        "acceptance": passed,
+        "result": result,
+    }
+    previous = json.loads(args.out.read_text()) if args.out.exists() else {"runs": []}
+    runs = [r for r in previous["runs"] if r["label"] != args.label] + [entry]
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps({"runs": runs}, indent=1) + "\n")
+    table = readme_table(runs)
+    print(table)
+    print(json.dumps(passed, indent=1))
+    if args.readme:
+        update_readme(table)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
