@@ -71,6 +71,22 @@ class TrafficSettings(_Model):
     pursuit: PursuitParams = PursuitParams()
 
 
+class PacingSettings(_Model):
+    """The live sim's pacing to its consumers (sim/pacing.py)."""
+
+    enabled: bool = Field(True, description="hold ticks back while a consumer lags (live runs only)")
+    stream: str = Field("objects", description="stream whose outputs pace the sim (stamp = data time)")
+    max_lag_s: float = Field(
+        0.25,
+        gt=0,
+        description="largest lag of a consumer's newest output behind the next tick, s of sim time (one "
+        "sensor period plus the loop's latency budget)",
+    )
+    consumer_timeout_s: float = Field(
+        1.0, gt=0, description="a consumer silent this long (wall s) no longer holds the sim"
+    )
+
+
 class SimSettings(RmmdetSettings):
     model_config = settings_config(env_prefix="RMMDET_SIM_")
 
@@ -80,7 +96,11 @@ class SimSettings(RmmdetSettings):
     speed: float = Field(
         1.0, ge=0, description="simulated seconds per wall second; 0 = as fast as possible (lock-step)"
     )
-    clock_publish_hz: float = Field(10.0, gt=0, description="SimClock publication rate")
+    clock_publish_hz: float = Field(
+        20.0,
+        gt=0,
+        description="SimClock publication rate: other processes follow sim time from it (shared/timebase.py)",
+    )
     calibration_publish_hz: float = Field(1.0, gt=0, description="per-agent CalibrationSet republish rate")
     collision_check_hz: float = Field(10.0, gt=0, description="rate of the vehicle overlap monitor")
     plan_request_timeout_s: float = Field(
@@ -90,6 +110,7 @@ class SimSettings(RmmdetSettings):
         "its route and asks again on its next lane)",
     )
     traffic: TrafficSettings = TrafficSettings()
+    pacing: PacingSettings = PacingSettings()
 
 
 def load_sim_settings(

@@ -11,7 +11,8 @@ the lanes it covers turn unobserved (count unknown) instead of keeping ghosts. E
 which agents were missing when it was made, so a coverage change can be pushed to the vehicles.
 
 Thread safety: every public method takes the core's lock (the RPC handler runs on a Zenoh thread,
-everything else on the service's main thread). Times: monotonic seconds `now_s`, wall-clock `wall_ns`.
+everything else on the service's main thread). Times: `now_s` in seconds on the clock of record (sim
+time when a sim runs, shared/timebase.py), wall-clock `wall_ns`.
 """
 
 from __future__ import annotations

@@ -46,6 +46,7 @@ from shared.bus.streams import get_stream
 from shared.scene.scene import Scene
 from shared.service import run_service
 from shared.shutdown import GracefulShutdown
+from shared.timebase import SimTime
 from shared.traffic.config import DEFAULT_COORDINATOR_CONFIG, CoordinatorSettings, load_coordinator_settings
 from shared.traffic.coverage import AgentState
 from shared.traffic.messages import agent_objects
@@ -83,10 +84,13 @@ class RouteRpc:
     """The route queryable's handler. Runs on a Zenoh thread: decode, plan (the core's lock guards the
     state), reply; never raises, never blocks beyond the planning itself."""
 
-    def __init__(self, node: Node, core: CoordinatorCore, before_plan: Callable[[], None]) -> None:
+    def __init__(
+        self, node: Node, core: CoordinatorCore, before_plan: Callable[[], None], clock: SimTime
+    ) -> None:
         self.node = node
         self.core = core
         self.before_plan = before_plan
+        self.clock = clock
         self.stream = get_stream("route_rpc")
         self.key = self.stream.key()
         self.qos = self.stream.qos.publisher_kwargs()
@@ -104,7 +108,7 @@ class RouteRpc:
             attachment = query.attachment.to_bytes() if query.attachment is not None else None
             decoded = self.decoder.decode_or_raise(query.payload.to_bytes(), str(query.encoding), attachment)
             self.before_plan()
-            plan, stamp_ns = self.core.serve(decoded.message, time.monotonic(), start_ns)
+            plan, stamp_ns = self.core.serve(decoded.message, self.clock.now_s(), start_ns)
         except Rejected as err:
             counters.inc(f"rejected/{err.reason}")
             self._error(query, ErrorCode.ERROR_CODE_INVALID_REQUEST, str(err))
@@ -137,12 +141,15 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     scene = Scene.load(settings.scene)
     core = CoordinatorCore(scene, settings, settings.service.max_vehicles)
     with Node(conf, service=SERVICE, instance=args.instance, scope=SCOPE, stop=shutdown.event) as node:
-        service = CoordinatorService(node, core, settings)
+        # Coverage, map smoothing and plan timing run on the clock of record (sim time when a sim runs).
+        clock = SimTime()
+        node.follow_sim_time(clock)
+        service = CoordinatorService(node, core, settings, clock)
         monitor = LivelinessMonitor(
             node.session, get_stream("alive").pattern(service="mec"), on_change=service.on_presence
         )
         try:
-            node.queryable(get_stream("route_rpc").key(), RouteRpc(node, core, service.record_objects))
+            node.queryable(get_stream("route_rpc").key(), RouteRpc(node, core, service.record_objects, clock))
             log.info(
                 "coordinator up: scene %s, agents %s, policy %s, maps %.1f Hz, replan every %.1f s",
                 scene.scene_id,
@@ -161,16 +168,20 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
 class CoordinatorService:
     """The main loop: ingest objects, presence and acks; rebuild and publish maps; push plans."""
 
-    def __init__(self, node: Node, core: CoordinatorCore, settings: CoordinatorSettings) -> None:
+    def __init__(
+        self, node: Node, core: CoordinatorCore, settings: CoordinatorSettings, clock: SimTime
+    ) -> None:
         self.node = node
         self.core = core
         self.settings = settings
+        self.clock = clock
         self.counters = node.counters
         # Object lists older than the stale threshold on arrival would not make their agent LIVE.
         self.objects = node.subscribe_stream(
             "objects",
             maxsize=settings.service.objects_queue_per_agent * len(core.agents),
             max_age_s=settings.coverage.stale_after_s,
+            clock_s=clock.now_s,
         )
         self.acks = node.subscribe_stream("route_ack")
         self.map_pub = node.publisher("traffic_map")
@@ -199,15 +210,15 @@ class CoordinatorService:
         settings = self.settings
         map_period_s = 1.0 / settings.map_publish_hz
         min_update_s = 1.0 / settings.service.map_update_max_hz
-        now = time.monotonic()
+        now = self.clock.now_s()
         next_map_s = now
         next_replan_s = now + settings.replan_interval_s
         next_log_s = now + settings.report_interval_s
         last_update_s = -math.inf
         while not shutdown.requested:
-            wait_s = min(POLL_S, next_map_s - time.monotonic(), next_replan_s - time.monotonic())
+            wait_s = min(POLL_S, next_map_s - self.clock.now_s(), next_replan_s - self.clock.now_s())
             self.ingest(wait_s)
-            now = time.monotonic()
+            now = self.clock.now_s()
             changed = self.check_coverage(now)
             if changed or now >= next_map_s or (self.core.dirty and now - last_update_s >= min_update_s):
                 self.core.update_map(now)
@@ -245,7 +256,7 @@ class CoordinatorService:
         """Keep the latest lists of `items` and of everything queued. Also called by the route handler
         (Zenoh thread) so a plan includes every list that reached the process before the request."""
         items = (items or []) + self.objects.drain()
-        now = time.monotonic()
+        now = self.clock.now_s()
         min_existence = self.settings.maps.min_existence_probability
         for item in items:
             agent = agent_of_key(item.key)

@@ -40,6 +40,7 @@ from shared.perception.sync import JoinedFrame, Sample, TickJoiner
 from shared.scene.scene import Scene
 from shared.service import run_service
 from shared.shutdown import GracefulShutdown
+from shared.timebase import SimTime
 from sim.config import DEFAULT_SCENE
 
 log = logging.getLogger("services.mec")
@@ -49,17 +50,26 @@ IDLE_WAIT_S = 0.1
 ERROR_LOG_EVERY = 100  # log the first pipeline error, then every 100th
 
 
-def decode_frame(frame: JoinedFrame, kinds: Mapping[str, str], counters: Counter[str]) -> AgentInputs:
-    """Decode the joined messages; a frame that does not decode is left out and counted."""
+def decode_frame(
+    frame: JoinedFrame, kinds: Mapping[str, str], counters: Counter[str], cameras: bool = True
+) -> tuple[AgentInputs, set[str]]:
+    """Decode the joined messages; a frame that does not decode is left out and counted. With
+    `cameras` False the images are not decoded (the pipeline will not look at them this frame).
+    Returns the inputs and the sensors that delivered a usable (or unneeded) frame."""
     inputs = AgentInputs(stamp_ns=frame.stamp_ns, tick=frame.tick)
+    delivered = set()
     for sensor_id, sample in frame.samples.items():
         kind = kinds[sensor_id]
+        if kind == "camera" and not cameras:
+            delivered.add(sensor_id)
+            continue
         try:
             inputs.add(kind, sensor_id, decode_sensor(kind, sample.data))
+            delivered.add(sensor_id)
         except ValueError as err:
             counters[f"rejected/{kind}_decode"] += 1
             log.debug("%s frame rejected: %s", sensor_id, err)
-    return inputs
+    return inputs, delivered
 
 
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
@@ -94,12 +104,21 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         # status below names it), not CRITICAL; the rates are still reported per input.
         for s in specs:
             node.subscribe_stream(SENSOR_STREAM[s.kind], agent=agent, sensor=s.id, queue=queue)
-        monitor = SensorMonitor(
-            {s.id: s.rate_hz for s in specs},
-            settings.health.missing_after_periods,
-            settings.health.max_age_s,
-            start_s=time.monotonic(),
-        )
+        # Input health is judged on the clock of record (sim time when a sim runs): a slow host slows
+        # the sim, not the verdict. The monitor starts afresh when the sim clock is first heard.
+        sim_time = SimTime()
+        node.follow_sim_time(sim_time)
+
+        def new_monitor() -> SensorMonitor:
+            return SensorMonitor(
+                {s.id: s.rate_hz for s in specs},
+                settings.health.missing_after_periods,
+                settings.health.max_age_s,
+                start_s=sim_time.now_s(),
+            )
+
+        monitor = new_monitor()
+        following = sim_time.following
         joiner = TickJoiner(kinds, settings.sync.max_wait_s, settings.sync.max_pending_ticks)
         status = StatusHysteresis(settings.health.recover_frames)
         counters: Counter[str] = Counter()
@@ -107,7 +126,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         last_tick = -1
 
         def health() -> tuple[int, str]:
-            now = time.monotonic()
+            now = sim_time.now_s()
             bad = [f"{r.sensor_id}: {r.state.value}" for r in monitor.report(now) if r.state.value != "ok"]
             level = {Status.FULL: NOMINAL, Status.DEGRADED: DEGRADED}.get(status.status, CRITICAL)
             text = f"{status.status.value}, tick {last_tick}, {counters['frames/published']} frames"
@@ -123,6 +142,10 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             items = ([received] if received is not None else []) + queue.drain()
             ready: list[JoinedFrame] = []
             now = time.monotonic()
+            if sim_time.following != following:
+                following = sim_time.following
+                monitor = new_monitor()
+            clock_s = sim_time.now_s()
             for item in items:
                 sensor_id = item.key.rsplit("/", 1)[-1]
                 if sensor_id not in kinds:
@@ -130,13 +153,14 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                     continue
                 stamp_ns = item.header.stamp.ToNanoseconds()
                 # Staleness is judged at arrival (sensor + transport lag), not after our own backlog.
-                if not monitor.accept(sensor_id, stamp_ns, now, item.received_wall_ns):
+                arrival_ns = sim_time.now_ns(item.received_wall_ns)
+                if not monitor.accept(sensor_id, stamp_ns, clock_s, arrival_ns):
                     counters[f"stale/{sensor_id}"] += 1
                     node.counters.inc("rejected/stale")
                     continue
                 sample = Sample(sensor_id, stamp_ns, item.message, item.header.tick, now)
-                ready += joiner.add(sample, monitor.alive(now), now)
-            ready += joiner.poll(monitor.alive(now), now)
+                ready += joiner.add(sample, monitor.alive(clock_s), now)
+            ready += joiner.poll(monitor.alive(clock_s), now)
             if not ready:
                 continue
             if len(ready) > 1:
@@ -144,7 +168,8 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 node.counters.inc("frames/skipped", len(ready) - 1)
             frame = ready[-1]
             start_ns = time.time_ns()
-            inputs = decode_frame(frame, kinds, counters)
+            lidar_live = pipeline.lidar_live(frame.samples)
+            inputs, delivered = decode_frame(frame, kinds, counters, pipeline.cameras_due(lidar_live))
             decoded_ns = time.time_ns()
             try:
                 result = pipeline.process(inputs)
@@ -156,7 +181,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 continue
             result.latencies_s = {"decode": (decoded_ns - start_ns) / 1e9, **result.latencies_s}
             now = time.monotonic()
-            fused = {s: s in inputs.images or s in inputs.clouds or s in inputs.radar for s in kinds}
+            fused = {s: s in delivered for s in kinds}
             state = status.update(fused)
             if state is not last_status:
                 missing = sorted(s for s, ok in fused.items() if not ok)
@@ -164,7 +189,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                     "status %s -> %s (missing: %s)", last_status.value, state.value, missing or "none"
                 )
                 last_status = state
-            msg = tracked_objects_message(result, agent, state, monitor.report(now), kinds)
+            msg = tracked_objects_message(result, agent, state, monitor.report(sim_time.now_s()), kinds)
             header = objects_pub.next_header(stamp_ns=frame.stamp_ns, tick=frame.tick, frame_id="world")
             stages = [processing_stamp("mec/process", start_ns, time.time_ns())]
             objects_pub.put(msg, header, stages=stages)

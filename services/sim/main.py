@@ -2,13 +2,21 @@
 
     python -m services.sim [--settings deploy/sim/sim.yaml] [--speed 1.0] [--vehicles 10] [--seed 0]
 
-Every tick (default 60 Hz of simulated time) it publishes `rmmdet/@v1/sim/ground_truth` stamped with
-the sim time (start wall time + tick / tick_hz, so latencies measured downstream are real at 1x);
-sensor services render from it, so all sensors of one tick share its stamp. It also publishes the
-SimClock (with the measured real-time factor) and each agent's CalibrationSet at low rate. With route
-policy `plan` the vehicles are the coordinator's clients (services/sim/plans.py): they ask for plans
-over the route RPC, follow the plans they get (replies and pushes) and acknowledge each one; requests
-never block the tick loop. `--speed 0` runs as fast as possible (no wall-clock pacing).
+Ticks run at 60 Hz of simulated time. On every tick on which a scene sensor fires (10 Hz) it publishes
+`rmmdet/@v1/sim/ground_truth` stamped with the sim time (start wall time + simulated seconds: the
+clock of record, equal to wall time while the sim keeps real time); sensor services render from it, so
+all sensors of one tick share its stamp. It also publishes the SimClock (sim time, target speed and the
+measured real-time factor; other processes judge freshness on it, shared/timebase.py) and each agent's
+CalibrationSet at low rate.
+
+Pacing (sim/pacing.py): a sensor tick is held back while a consumer's newest output (the MECs' object
+lists) lags it by more than `pacing.max_lag_s` of sim time, and a sim that falls behind its schedule
+moves the schedule on instead of sprinting, so on a host that cannot keep real time the whole loop runs
+slower together and stays correct; the real-time factor reached is reported.
+
+With route policy `plan` the vehicles are the coordinator's clients (services/sim/plans.py): they ask
+for plans over the route RPC, follow the plans they get (replies and pushes) and acknowledge each one;
+requests never block the tick loop. `--speed 0` runs as fast as possible (no wall-clock pacing).
 """
 
 from __future__ import annotations
@@ -17,13 +25,15 @@ import argparse
 import logging
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import zenoh
 from rmmdet.v1.sim_pb2 import SimClock
 
 from services.sim.plans import PlanClient
-from shared.bus.health import DEGRADED, NOMINAL
+from shared.bus.health import NOMINAL
 from shared.bus.node import Node, processing_stamp
 from shared.scene.calibration import calibration_set
 from shared.scene.road_network import RoadNetwork
@@ -32,13 +42,17 @@ from shared.service import run_service
 from shared.shutdown import GracefulShutdown
 from sim.config import DEFAULT_SIM_CONFIG, SimSettings, load_sim_settings
 from sim.ground_truth import ground_truth_message
+from sim.pacing import Pacer
+from sim.sensors.rig import fires
 from sim.traffic import TrafficSim
 
 log = logging.getLogger("services.sim")
 
 SCOPE = "sim"
 RTF_WINDOW_S = 2.0  # real-time factor measured over this wall window
-LATE_TOLERANCE_S = 0.25  # behind schedule by more than this: report DEGRADED
+LATE_TOLERANCE_S = 0.25  # behind schedule by more than this: the schedule moves on (no sprint)
+HOLD_POLL_S = 0.002  # while held: how often the consumers' progress is looked at
+PACING_QUEUE = 64  # consumer outputs between two looks (a few agents at sensor rate)
 NS = 1_000_000_000
 
 
@@ -57,39 +71,59 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     traffic = TrafficSim(scene, RoadNetwork(scene), settings.traffic, settings.seed, settings.tick_hz)
     dt_s = 1.0 / settings.tick_hz
     collision_every = max(1, round(settings.tick_hz / settings.collision_check_hz))
+    sensor_rates = sorted({s.rate_hz for s in scene.sensors.values()})
+    live = settings.speed > 0
+    pacer = Pacer(settings.pacing.max_lag_s, settings.pacing.consumer_timeout_s)
     with Node(conf, service="sim", instance=args.instance, scope=SCOPE, stop=shutdown.event) as node:
         gt_pub = node.publisher("ground_truth")
         clock_pub = node.publisher("sim_clock")
         calib_pubs = {agent: node.publisher("calibration", agent=agent) for agent in scene.agents}
+        outputs = (
+            node.subscribe_stream(settings.pacing.stream, maxsize=PACING_QUEUE)
+            if live and settings.pacing.enabled
+            else None
+        )
         plans = (
             PlanClient(node, traffic, settings.plan_request_timeout_s)
             if settings.traffic.route_policy == "plan"
             else None
         )
-        state = {"rtf": 0.0, "late_s": 0.0}
+        state = {"rtf": 0.0, "held_s": 0.0, "paced_by": ""}
 
         def status() -> tuple[int, str]:
-            level = DEGRADED if settings.speed > 0 and state["late_s"] > LATE_TOLERANCE_S else NOMINAL
-            return level, (
+            held = f", held {state['held_s']:.1f} s by lagging consumers" if state["held_s"] else ""
+            return NOMINAL, (
                 f"tick {traffic.tick}, sim {traffic.time_s:.1f} s, real-time factor {state['rtf']:.2f} "
-                f"(target {settings.speed or 'max'}), {len(traffic.vehicles)} vehicles, "
+                f"(target {settings.speed or 'max'}{held}), {len(traffic.vehicles)} vehicles, "
                 f"{sum(traffic.arrivals.values())} junction arrivals, {len(traffic.trips)} trips"
             )
 
+        def take_progress() -> None:
+            if outputs is None:
+                return
+            now = time.monotonic()
+            for item in outputs.drain():
+                pacer.on_progress(item.key, item.header.stamp.ToNanoseconds(), now)
+
         node.health.set_status(status)
         start_wall_ns = time.time_ns()
-        start_mono = time.monotonic()
-        rtf_mark = (start_mono, 0.0)
+        # Wall time of sim time 0; moved on whenever the sim is held or falls behind, so it resumes at
+        # its speed instead of sprinting to catch up (sim time is the clock of record).
+        anchor_mono = time.monotonic()
+        rtf_mark = (anchor_mono, 0.0)
         next_clock = next_calib = 0.0
-        last_log = start_mono
+        last_log = anchor_mono
         log.info(
-            "sim up: scene %s, %d vehicles, seed %d, %g Hz ticks, speed %s, route policy %s",
+            "sim up: scene %s, %d vehicles, seed %d, %g Hz ticks, sensors at %s Hz, speed %s, route policy "
+            "%s, pacing %s",
             scene.scene_id,
             len(traffic.vehicles),
             settings.seed,
             settings.tick_hz,
+            sensor_rates,
             settings.speed or "max",
             settings.traffic.route_policy,
+            f"to {settings.pacing.stream} within {settings.pacing.max_lag_s} s" if outputs else "off",
         )
         while not shutdown.requested:
             if plans is not None:  # replies and pushes that arrived, then this tick's requests
@@ -97,18 +131,23 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             t0 = time.time_ns()
             traffic.step()
             stamp_ns = start_wall_ns + round(traffic.time_s * NS)
-            msg = ground_truth_message(traffic, scene, settings.seed, settings.tick_hz)
-            stage = processing_stamp("sim/step", t0, time.time_ns())
-            if settings.speed > 0:  # publish a tick at its stamp, not before (latencies stay >= 0)
-                due = start_mono + traffic.time_s / settings.speed
-                wait = due - time.monotonic()
-                state["late_s"] = max(0.0, -wait)
+            sensor_tick = any(fires(r, traffic.tick, settings.tick_hz) for r in sensor_rates)
+            if live:  # publish a tick at its stamp, not before (latencies stay >= 0)
+                wait = anchor_mono + traffic.time_s / settings.speed - time.monotonic()
+                if wait < -LATE_TOLERANCE_S:  # the host cannot keep up: slow down, do not sprint
+                    anchor_mono -= wait
+                    wait = 0.0
                 if wait > 0 and shutdown.wait(wait):
                     break
-            header = gt_pub.next_header(stamp_ns=stamp_ns, tick=traffic.tick, frame_id="world")
-            msg.header.CopyFrom(header)
-            gt_pub.put(msg, header, stages=[stage])
-            node.counters.inc("published/ground_truth")
+                if sensor_tick and outputs is not None:
+                    held_s = hold(pacer, take_progress, stamp_ns, shutdown, state)
+                    anchor_mono += held_s
+            if sensor_tick:  # the sensors fire only on these ticks: nobody else needs ground truth
+                msg = ground_truth_message(traffic, scene, settings.seed, settings.tick_hz)
+                header = gt_pub.next_header(stamp_ns=stamp_ns, tick=traffic.tick, frame_id="world")
+                msg.header.CopyFrom(header)
+                gt_pub.put(msg, header, stages=[processing_stamp("sim/step", t0, time.time_ns())])
+                node.counters.inc("published/ground_truth")
             if traffic.tick % collision_every == 0:
                 for pair in traffic.overlapping_pairs():
                     node.counters.inc("traffic/overlaps")
@@ -120,7 +159,12 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                     state["rtf"] = (traffic.time_s - rtf_mark[1]) / (now - rtf_mark[0])
                     rtf_mark = (now, traffic.time_s)
                 clock = SimClock(
-                    tick=traffic.tick, step_s=dt_s, real_time_factor=state["rtf"], lock_step=False
+                    tick=traffic.tick,
+                    step_s=dt_s,
+                    real_time_factor=state["rtf"],
+                    lock_step=False,
+                    target_speed=settings.speed,
+                    paced_by=state["paced_by"],
                 )
                 clock.sim_time.FromNanoseconds(stamp_ns)
                 clock_pub.put(clock, stamp_ns=stamp_ns, tick=traffic.tick, frame_id="world")
@@ -130,9 +174,11 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                     pub.put(calibration_set(scene, agent), stamp_ns=stamp_ns, tick=traffic.tick)
             if now - last_log >= args.report_interval_s:
                 log.info(
-                    "sim %.1f s, real-time factor %.2f, %d junction arrivals, %d trips, %d detours%s",
+                    "sim %.1f s, real-time factor %.2f, held %.1f s by consumers, %d junction arrivals, "
+                    "%d trips, %d detours%s",
                     traffic.time_s,
                     state["rtf"],
+                    state["held_s"],
                     sum(traffic.arrivals.values()),
                     len(traffic.trips),
                     traffic.detours,
@@ -142,6 +188,27 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         if plans is not None:
             plans.close()
     return 0
+
+
+def hold(
+    pacer: Pacer,
+    take_progress: Callable[[], None],
+    stamp_ns: int,
+    shutdown: GracefulShutdown,
+    state: dict[str, Any],
+) -> float:
+    """Wait while a consumer lags more than the pacer allows; returns the wall seconds held."""
+    start = time.monotonic()
+    take_progress()
+    while (lagging := pacer.holding(stamp_ns, time.monotonic())) is not None:
+        state["paced_by"] = lagging
+        if shutdown.wait(HOLD_POLL_S):
+            break
+        take_progress()
+    state["paced_by"] = ""
+    held = time.monotonic() - start
+    state["held_s"] += held
+    return held
 
 
 def add_args(parser: argparse.ArgumentParser) -> None:

@@ -28,6 +28,7 @@ from typing import Any
 import zenoh
 from google.protobuf.message import Message
 from rmmdet.v1.common_pb2 import Header, ProcessingStamp
+from rmmdet.v1.sim_pb2 import SimClock
 
 from shared.bus.codec import (
     DEFAULT_MAX_PAYLOAD_BYTES,
@@ -41,6 +42,7 @@ from shared.bus.health import DEFAULT_THRESHOLDS, HealthTracker, InputMonitor, R
 from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.bus.session import open_session
 from shared.bus.streams import Stream, get_stream, validate_id
+from shared.timebase import SimTime
 
 log = logging.getLogger(__name__)
 
@@ -297,11 +299,13 @@ class Node:
         max_age_s: float | None = None,
         max_payload_bytes: int = DEFAULT_MAX_PAYLOAD_BYTES,
         queue: BoundedQueue[Received] | None = None,
+        clock_s: Callable[[], float] = time.time,
     ) -> Subscription:
         """Subscribe to `key_expr`; `expected_type=None` accepts any known schema (tools). Several
         subscriptions may share one `queue` (a service that waits on all its inputs at once); then
-        `maxsize` and `policy` are the queue's own."""
-        decoder = MessageDecoder(expected_type, self.counters, max_payload_bytes, max_age_s)
+        `maxsize` and `policy` are the queue's own. `max_age_s` is judged on `clock_s` (the clock of
+        record: `SimTime.now_s` where a sim runs)."""
+        decoder = MessageDecoder(expected_type, self.counters, max_payload_bytes, max_age_s, clock_s)
         monitor = InputMonitor(key_expr, expected_rate_hz, self.thresholds)
         self.health.add_input(monitor)
         if queue is None:
@@ -318,6 +322,7 @@ class Node:
         expected_rate_hz: float = 0.0,
         max_age_s: float | None = None,
         queue: BoundedQueue[Received] | None = None,
+        clock_s: Callable[[], float] = time.time,
         **ids: str,
     ) -> Subscription:
         """Subscribe to a stream; ids left out become `*`. Latest-wins streams keep a short
@@ -332,7 +337,26 @@ class Node:
             expected_rate_hz=expected_rate_hz,
             max_age_s=max_age_s,
             queue=queue,
+            clock_s=clock_s,
         )
+
+    def follow_sim_time(self, sim_time: SimTime) -> None:
+        """Keep `sim_time` on the sim's clock (`sim_clock` stream); without a sim it stays on the wall
+        clock. The callback only parses the small SimClock message: no queue, no lag behind a busy loop."""
+        stream = get_stream("sim_clock")
+        decoder = MessageDecoder(SimClock, self.counters)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                decoded = decoder.decode(sample.payload.to_bytes(), str(sample.encoding))
+                if decoded is not None:
+                    clock: SimClock = decoded.message
+                    sim_time.on_clock(clock.sim_time.ToNanoseconds(), clock.target_speed)
+            except Exception:  # never raise on Zenoh's thread
+                self.counters.inc("rejected/internal")
+                log.exception("sim clock callback failed")
+
+        self._declared.append(self.session.declare_subscriber(stream.pattern(), on_sample))
 
     # --- queryables ------------------------------------------------------------------------------
 

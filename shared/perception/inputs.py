@@ -1,7 +1,7 @@
 """Input health of one agent's sensors and the FULL / DEGRADED status of its output.
 
 Health model (reliability.md b.1, after Autoware / ROS diagnostics): each input has an expected rate
-f. It is MISSING when nothing arrived for `missing_after_periods / f` (3 periods: 200 ms at 15 Hz), so
+f. It is MISSING when nothing arrived for `missing_after_periods / f` (3 periods: 300 ms at 10 Hz), so
 a dead or frozen sensor is noticed well before a Zenoh liveliness lease (10 s) would say so. A frame
 whose sensor stamp is older than `max_age_s` on arrival is STALE: dropped and counted, never fused;
 the input is STALE while only stale frames arrive.
@@ -10,9 +10,10 @@ The output status is DEGRADED as soon as any configured input is not OK and retu
 `recover_frames` consecutive output frames with every input OK (hysteresis: no flapping when a sensor
 stutters); UNAVAILABLE when no input is OK.
 
-Times: `now_s` is a monotonic clock; `wall_ns` / stamps are UNIX-epoch ns (staleness compares the
-sensor stamp with the wall clock, valid when the sim runs in real time; `max_age_s = 0` turns it off
-for replays and lock-step runs).
+Times are on the clock of record (shared/timebase.py: sim time when a sim runs, else the wall clock):
+`now_s` in seconds, `arrival_ns` and stamps in UNIX-epoch ns. Staleness compares the sensor stamp with
+the arrival time on that clock, so a sim slower than real time does not make its frames stale;
+`max_age_s = 0` turns it off for replays and lock-step runs.
 """
 
 from __future__ import annotations
@@ -62,7 +63,7 @@ class SensorMonitor:
     missing_after_periods : float
         Periods without an accepted frame after which an input is MISSING.
     max_age_s : float
-        Frames older than this on arrival (wall clock - sensor stamp) are stale; 0 disables the check.
+        Frames older than this on arrival (arrival time - sensor stamp) are stale; 0 disables the check.
     start_s : float
         Monotonic time the monitor starts; an input that never delivers is MISSING from
         `start_s + missing_after_periods / rate`.
@@ -86,10 +87,10 @@ class SensorMonitor:
     def sensors(self) -> list[str]:
         return list(self._inputs)
 
-    def accept(self, sensor_id: str, stamp_ns: int, now_s: float, wall_ns: int) -> bool:
+    def accept(self, sensor_id: str, stamp_ns: int, now_s: float, arrival_ns: int) -> bool:
         """Record an arrival; False (and counted as stale) when the frame is too old to fuse."""
         inp = self._inputs[sensor_id]
-        if self.max_age_s > 0 and wall_ns - stamp_ns > self.max_age_s * NS_PER_S:
+        if self.max_age_s > 0 and arrival_ns - stamp_ns > self.max_age_s * NS_PER_S:
             inp.stale += 1
             inp.last_stale_s = now_s
             return False

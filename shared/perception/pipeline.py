@@ -1,7 +1,8 @@
 """One agent's perception pipeline: detect, fuse and track one synchronised agent frame (no bus inside).
 
     AgentInputs (images, clouds, radar scans of one tick; absent sensors simply missing)
-      -> 2D detection: all of the agent's images in one batched call
+      -> 2D detection: all of the agent's images in one batched call (with a lidar live, only every
+         `camera_every_n_with_lidar`-th frame: the lidar finds the cars, the camera confirms them)
       -> lidar: merge clouds into the agent frame (full extrinsics), preprocess, 3D detection, to world
       -> radar + camera (Algorithm 1) for each radar and its paired camera
       -> lidar + camera (Algorithm 2 + merge) over the agent's cameras
@@ -146,8 +147,18 @@ class AgentPipeline:
         self.tracker = MultiObjectTracker(settings.tracker)
         self.counts: Counter[str] = Counter()
         self.last_reduction = float("nan")
+        self._lidar_frames = 0  # frames processed with a lidar live (camera cadence)
 
     # --- stages ---------------------------------------------------------------------------------
+
+    def cameras_due(self, lidar_live: bool) -> bool:
+        """Whether the next frame runs the camera detector: always without a live lidar; with one, every
+        `detectors.camera_every_n_with_lidar`-th frame (the MEC skips decoding the images otherwise)."""
+        return not lidar_live or self._lidar_frames % self.cfg.detectors.camera_every_n_with_lidar == 0
+
+    def lidar_live(self, sensor_ids: Collection[str]) -> bool:
+        """True if any of `sensor_ids` is one of this agent's lidars."""
+        return any(c in sensor_ids for c in self.lidar_ids)
 
     def detect_2d(self, images: dict[str, np.ndarray]) -> dict[str, FloatArray]:
         ids = [c for c in self.camera_ids if c in images]
@@ -178,11 +189,16 @@ class AgentPipeline:
         lat: dict[str, float] = {}
         counts: Counter[str] = Counter()
         t0 = time.perf_counter()
-        try:
-            dets2d = self.detect_2d(frame.images)
-        except DetectorInputError:
-            counts["rejected/camera_input"] += 1
-            dets2d = {}
+        lidar_live = self.lidar_live(frame.clouds)
+        dets2d: dict[str, FloatArray] = {}
+        if self.cameras_due(lidar_live):
+            try:
+                dets2d = self.detect_2d(frame.images)
+            except DetectorInputError:
+                counts["rejected/camera_input"] += 1
+        elif frame.images:
+            counts["camera/skipped_with_lidar"] += 1
+        self._lidar_frames += lidar_live
         t1 = time.perf_counter()
         lat["detect_2d"] = t1 - t0
         try:

@@ -34,8 +34,8 @@ def test_groups_name_an_agent_and_a_sensor_kind(scene: Scene) -> None:
 
 def test_newest_due_tick_wins_and_earlier_due_ticks_count_as_skipped(scene: Scene) -> None:
     lidars = parse_group(scene, "agent1-lidars")
-    assert {s.rate_hz for s in lidars} == {15.0}  # at 60 Hz ticks: due on ticks 0, 4, 8, 12, ...
-    due, skipped = newest_due([received(t) for t in (3, 4, 5, 7, 8, 9)], lidars)
-    assert due is not None and due.message.header.tick == 8 and skipped == 1
-    due, skipped = newest_due([received(t) for t in (5, 6, 7)], lidars)
+    assert {s.rate_hz for s in lidars} == {10.0}  # at 60 Hz ticks: due on ticks 0, 6, 12, 18, ...
+    due, skipped = newest_due([received(t) for t in (5, 6, 7, 11, 12, 13)], lidars)
+    assert due is not None and due.message.header.tick == 12 and skipped == 1
+    due, skipped = newest_due([received(t) for t in (7, 8, 9)], lidars)
     assert due is None and skipped == 0

@@ -17,7 +17,7 @@ def monitor(max_age_s: float = 0.2) -> SensorMonitor:
 
 def test_missing_after_three_periods_without_frames() -> None:
     m = monitor()
-    assert m.accept("cam", stamp_ns=10 * NS, now_s=1.0, wall_ns=10 * NS)
+    assert m.accept("cam", stamp_ns=10 * NS, now_s=1.0, arrival_ns=10 * NS)
     assert m.state("cam", 1.0 + 3 / 15) is InputState.OK
     assert m.state("cam", 1.0 + 3 / 15 + 1e-3) is InputState.MISSING
     # Never delivered: missing three periods after the monitor started.
@@ -27,10 +27,10 @@ def test_missing_after_three_periods_without_frames() -> None:
 
 def test_old_frames_are_stale_dropped_and_counted() -> None:
     m = monitor()
-    assert not m.accept("cam", stamp_ns=10 * NS, now_s=1.0, wall_ns=10 * NS + int(0.25 * NS))
+    assert not m.accept("cam", stamp_ns=10 * NS, now_s=1.0, arrival_ns=10 * NS + int(0.25 * NS))
     assert m.counts("cam") == (0, 1)
     assert m.state("cam", 1.0) is InputState.STALE
-    assert m.accept("cam", stamp_ns=11 * NS, now_s=1.1, wall_ns=11 * NS + int(0.05 * NS))
+    assert m.accept("cam", stamp_ns=11 * NS, now_s=1.1, arrival_ns=11 * NS + int(0.05 * NS))
     assert m.state("cam", 1.1) is InputState.OK
     (cam, _lidar) = m.report(1.2)
     assert cam.sensor_id == "cam" and cam.age_s == pytest.approx(0.1)
@@ -38,7 +38,7 @@ def test_old_frames_are_stale_dropped_and_counted() -> None:
 
 def test_staleness_check_can_be_turned_off_for_replays() -> None:
     m = monitor(max_age_s=0.0)
-    assert m.accept("cam", stamp_ns=0, now_s=1.0, wall_ns=100 * NS)
+    assert m.accept("cam", stamp_ns=0, now_s=1.0, arrival_ns=100 * NS)
 
 
 def test_degraded_at_once_full_only_after_recover_frames() -> None:

@@ -1,0 +1,72 @@
+"""Pacing: the sim never runs more than a bounded lag ahead of its slowest consumer. No bus inside.
+
+A live sim on a host that cannot keep up would otherwise outrun the loop: sensors skip ticks, the MECs
+judge their inputs stale and the coordinator its agents. Instead the sim holds a tick back while a
+consumer's newest output (its stamp: the sim time of the data it was made from) lags the tick by more
+than `max_lag_s` of sim time, so the whole loop slows down together and stays correct; the real-time
+factor it reaches is reported.
+
+A consumer that has not reported for `timeout_s` of wall time is dead or hung: it no longer holds the
+sim (a killed MEC must not stop the world). Before its first report a consumer holds nothing (models
+still loading). Times: sim stamps in ns, wall times in monotonic seconds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+NS_PER_S = 1_000_000_000
+
+
+@dataclass
+class _Consumer:
+    stamp_ns: int
+    heard_s: float
+
+
+class Pacer:
+    """Which consumer (if any) holds the sim back.
+
+    Parameters
+    ----------
+    max_lag_s : float
+        Largest lag of a consumer's newest output behind the tick about to be published, s of sim time.
+    timeout_s : float
+        Wall seconds without a report after which a consumer no longer holds the sim.
+    """
+
+    def __init__(self, max_lag_s: float, timeout_s: float) -> None:
+        if max_lag_s <= 0 or timeout_s <= 0:
+            raise ValueError("max_lag_s and timeout_s must be > 0")
+        self.max_lag_ns = round(max_lag_s * NS_PER_S)
+        self.timeout_s = timeout_s
+        self._consumers: dict[str, _Consumer] = {}
+
+    def on_progress(self, consumer: str, stamp_ns: int, now_s: float) -> None:
+        """`consumer` published an output made from data stamped `stamp_ns` (reordered ones count too:
+        only the newest stamp is kept)."""
+        c = self._consumers.get(consumer)
+        if c is None:
+            self._consumers[consumer] = _Consumer(stamp_ns, now_s)
+        else:
+            c.stamp_ns = max(c.stamp_ns, stamp_ns)
+            c.heard_s = now_s
+
+    def holding(self, tick_stamp_ns: int, now_s: float) -> str | None:
+        """The most lagging live consumer if publishing `tick_stamp_ns` would exceed the lag bound."""
+        worst: tuple[int, str] | None = None
+        for name, c in self._consumers.items():
+            if now_s - c.heard_s > self.timeout_s:
+                continue
+            lag = tick_stamp_ns - c.stamp_ns
+            if lag > self.max_lag_ns and (worst is None or lag > worst[0]):
+                worst = (lag, name)
+        return None if worst is None else worst[1]
+
+    def lags_s(self, tick_stamp_ns: int, now_s: float) -> dict[str, float]:
+        """Lag of every live consumer behind `tick_stamp_ns`, s of sim time."""
+        return {
+            name: (tick_stamp_ns - c.stamp_ns) / NS_PER_S
+            for name, c in self._consumers.items()
+            if now_s - c.heard_s <= self.timeout_s
+        }
