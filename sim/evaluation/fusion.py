@@ -200,10 +200,14 @@ def single_modality_measurements(
             lidar_measurement(b[:7], b[7], frozenset({"lidar"}), tuple(pipeline.lidar_ids))
             for b in result.lidar_boxes_world
         ]
-    if result.camera_boxes:
+    camera_boxes = result.camera_boxes
+    if not camera_boxes and inputs.images:
+        # The pipeline's camera cadence skipped the detector on this frame; the baseline runs it.
+        camera_boxes = pipeline.detect_2d(inputs.images)
+    if camera_boxes:
         objs = camera_only.locate(
             pipeline.views,
-            result.camera_boxes,
+            camera_boxes,
             pipeline.surface,
             pipeline.cfg.camera_only,
             pipeline.car_size_m,
