@@ -1,0 +1,53 @@
+"""Pacer: the sim is held while a live consumer lags more than the bound, never by a dead one."""
+
+from __future__ import annotations
+
+import pytest
+
+from sim.pacing import NS_PER_S, Pacer
+
+MS = NS_PER_S // 1000
+T0 = 1_700_000_000 * NS_PER_S
+
+
+def test_nothing_holds_before_any_consumer_reported() -> None:
+    assert Pacer(max_lag_s=0.25, timeout_s=1.0).holding(T0, now_s=0.0) is None
+
+
+def test_holds_while_the_newest_output_lags_more_than_the_bound() -> None:
+    pacer = Pacer(max_lag_s=0.25, timeout_s=1.0)
+    pacer.on_progress("mec1", T0, now_s=10.0)
+    assert pacer.holding(T0 + 250 * MS, now_s=10.1) is None  # exactly the bound: free
+    assert pacer.holding(T0 + 251 * MS, now_s=10.1) == "mec1"
+    pacer.on_progress("mec1", T0 + 100 * MS, now_s=10.2)  # the consumer caught up
+    assert pacer.holding(T0 + 300 * MS, now_s=10.2) is None
+
+
+def test_the_most_lagging_consumer_is_named() -> None:
+    pacer = Pacer(max_lag_s=0.25, timeout_s=1.0)
+    pacer.on_progress("mec1", T0, now_s=10.0)
+    pacer.on_progress("mec2", T0 - 200 * MS, now_s=10.0)
+    assert pacer.holding(T0 + 300 * MS, now_s=10.0) == "mec2"
+    assert pacer.lags_s(T0 + 300 * MS, now_s=10.0) == pytest.approx({"mec1": 0.3, "mec2": 0.5})
+
+
+def test_an_older_output_arriving_late_does_not_move_progress_back() -> None:
+    pacer = Pacer(max_lag_s=0.25, timeout_s=1.0)
+    pacer.on_progress("mec1", T0, now_s=10.0)
+    pacer.on_progress("mec1", T0 - 500 * MS, now_s=10.0)
+    assert pacer.holding(T0 + 200 * MS, now_s=10.0) is None
+
+
+def test_a_silent_consumer_stops_holding_after_the_timeout() -> None:
+    pacer = Pacer(max_lag_s=0.25, timeout_s=1.0)
+    pacer.on_progress("mec1", T0, now_s=10.0)
+    assert pacer.holding(T0 + NS_PER_S, now_s=10.9) == "mec1"
+    assert pacer.holding(T0 + NS_PER_S, now_s=11.1) is None  # killed or hung: the world goes on
+    assert pacer.lags_s(T0 + NS_PER_S, now_s=11.1) == {}
+
+
+def test_rejects_bad_parameters() -> None:
+    with pytest.raises(ValueError):
+        Pacer(max_lag_s=0, timeout_s=1.0)
+    with pytest.raises(ValueError):
+        Pacer(max_lag_s=0.25, timeout_s=0)
