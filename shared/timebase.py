@@ -27,13 +27,13 @@ class SimTime:
     Parameters
     ----------
     max_extrapolation_s : float
-        Longest run-on past the last clock sample while the sim is alive, s of sim time. Choose about
-        two clock periods.
+        Longest run-on past the last clock sample while the sim is alive, s of sim time: one clock
+        period (the sim publishes its clock at 20 Hz), so a held sim is never overrun by more.
     lost_after_s : float
         Wall seconds of silence after which the sim is taken as gone.
     """
 
-    def __init__(self, max_extrapolation_s: float = 0.1, lost_after_s: float = 2.0) -> None:
+    def __init__(self, max_extrapolation_s: float = 0.05, lost_after_s: float = 2.0) -> None:
         if max_extrapolation_s < 0 or lost_after_s <= 0:
             raise ValueError("max_extrapolation_s must be >= 0 and lost_after_s > 0")
         self.max_extrapolation_ns = round(max_extrapolation_s * NS_PER_S)

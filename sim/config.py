@@ -75,12 +75,17 @@ class PacingSettings(_Model):
     """The live sim's pacing to its consumers (sim/pacing.py)."""
 
     enabled: bool = Field(True, description="hold ticks back while a consumer lags (live runs only)")
-    stream: str = Field("objects", description="stream whose outputs pace the sim (stamp = data time)")
+    streams: list[str] = Field(
+        ["objects", "camera_image", "point_cloud", "radar_scan"],
+        description="streams whose outputs pace the sim (stamp = sim time of the data): the MECs and the "
+        "sensor services, every consumer of ground truth",
+    )
     max_lag_s: float = Field(
-        0.25,
+        0.2,
         gt=0,
-        description="largest lag of a consumer's newest output behind the next tick, s of sim time (one "
-        "sensor period plus the loop's latency budget)",
+        description="largest lag of a consumer's newest output behind the next tick, s of sim time: one "
+        "sensor period plus 0.1 s, so a frame is never older than the MECs' 0.2 s freshness limit on "
+        "arrival only because the sim ran ahead",
     )
     consumer_timeout_s: float = Field(
         1.0, gt=0, description="a consumer silent this long (wall s) no longer holds the sim"

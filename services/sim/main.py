@@ -34,7 +34,8 @@ from rmmdet.v1.sim_pb2 import SimClock
 
 from services.sim.plans import PlanClient
 from shared.bus.health import NOMINAL
-from shared.bus.node import Node, processing_stamp
+from shared.bus.node import Node, Received, processing_stamp
+from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.scene.calibration import calibration_set
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
@@ -52,7 +53,7 @@ SCOPE = "sim"
 RTF_WINDOW_S = 2.0  # real-time factor measured over this wall window
 LATE_TOLERANCE_S = 0.25  # behind schedule by more than this: the schedule moves on (no sprint)
 HOLD_POLL_S = 0.002  # while held: how often the consumers' progress is looked at
-PACING_QUEUE = 64  # consumer outputs between two looks (a few agents at sensor rate)
+PACING_QUEUE = 256  # consumer outputs between two looks (18 sensors + 3 MECs at 10 Hz)
 NS = 1_000_000_000
 
 
@@ -78,11 +79,11 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         gt_pub = node.publisher("ground_truth")
         clock_pub = node.publisher("sim_clock")
         calib_pubs = {agent: node.publisher("calibration", agent=agent) for agent in scene.agents}
-        outputs = (
-            node.subscribe_stream(settings.pacing.stream, maxsize=PACING_QUEUE)
-            if live and settings.pacing.enabled
-            else None
-        )
+        outputs = None
+        if live and settings.pacing.enabled:
+            outputs = BoundedQueue[Received](PACING_QUEUE, OverflowPolicy.DROP_OLDEST)
+            for stream in settings.pacing.streams:
+                node.subscribe_stream(stream, queue=outputs)
         plans = (
             PlanClient(node, traffic, settings.plan_request_timeout_s)
             if settings.traffic.route_policy == "plan"
@@ -123,7 +124,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             sensor_rates,
             settings.speed or "max",
             settings.traffic.route_policy,
-            f"to {settings.pacing.stream} within {settings.pacing.max_lag_s} s" if outputs else "off",
+            f"to {settings.pacing.streams} within {settings.pacing.max_lag_s} s" if outputs else "off",
         )
         while not shutdown.requested:
             if plans is not None:  # replies and pushes that arrived, then this tick's requests
