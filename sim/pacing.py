@@ -6,8 +6,9 @@ consumer's newest output (its stamp: the sim time of the data it was made from) 
 than `max_lag_s` of sim time, so the whole loop slows down together and stays correct; the real-time
 factor it reaches is reported.
 
-A consumer that has not reported for `timeout_s` of wall time is dead or hung: it no longer holds the
-sim (a killed MEC must not stop the world). Before its first report a consumer holds nothing (models
+A consumer whose process is gone (`forget`, on its liveliness token vanishing) or that has not reported
+for `timeout_s` of wall time (hung) no longer holds the sim: a killed MEC or sensor service must not
+stop the world. Before its first report a consumer holds nothing (models
 still loading). Times: sim stamps in ns, wall times in monotonic seconds.
 """
 
@@ -51,6 +52,10 @@ class Pacer:
         else:
             c.stamp_ns = max(c.stamp_ns, stamp_ns)
             c.heard_s = now_s
+
+    def forget(self, consumer: str) -> None:
+        """`consumer` is gone (its liveliness token vanished): it holds nothing until it reports again."""
+        self._consumers.pop(consumer, None)
 
     def holding(self, tick_stamp_ns: int, now_s: float) -> str | None:
         """The most lagging live consumer if publishing `tick_stamp_ns` would exceed the lag bound."""

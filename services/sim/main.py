@@ -34,8 +34,10 @@ from rmmdet.v1.sim_pb2 import SimClock
 
 from services.sim.plans import PlanClient
 from shared.bus.health import NOMINAL
+from shared.bus.liveliness import LivelinessMonitor
 from shared.bus.node import Node, Received, processing_stamp
 from shared.bus.queues import BoundedQueue, OverflowPolicy
+from shared.bus.streams import SENSOR_STREAM, get_stream
 from shared.scene.calibration import calibration_set
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
@@ -80,10 +82,17 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         clock_pub = node.publisher("sim_clock")
         calib_pubs = {agent: node.publisher("calibration", agent=agent) for agent in scene.agents}
         outputs = None
+        gone: BoundedQueue[str] = BoundedQueue(PACING_QUEUE, OverflowPolicy.DROP_OLDEST)
         if live and settings.pacing.enabled:
             outputs = BoundedQueue[Received](PACING_QUEUE, OverflowPolicy.DROP_OLDEST)
             for stream in settings.pacing.streams:
                 node.subscribe_stream(stream, queue=outputs)
+            presence = LivelinessMonitor(
+                node.session,
+                get_stream("alive").pattern(),
+                on_change=lambda key, alive: None if alive else gone.put(key),
+            )
+            node.adopt(presence)
         plans = (
             PlanClient(node, traffic, settings.plan_request_timeout_s)
             if settings.traffic.route_policy == "plan"
@@ -104,7 +113,11 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 return
             now = time.monotonic()
             for item in outputs.drain():
-                pacer.on_progress(item.key, item.header.stamp.ToNanoseconds(), now)
+                pacer.on_progress(producer_of(item.key), item.header.stamp.ToNanoseconds(), now)
+            for key in gone.drain():
+                ids = get_stream("alive").ids(key)
+                if ids is not None:
+                    pacer.forget(f"{ids['scope']}/{ids['service']}/{ids['instance']}")
 
         node.health.set_status(status)
         start_wall_ns = time.time_ns()
@@ -189,6 +202,19 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         if plans is not None:
             plans.close()
     return 0
+
+
+def producer_of(key: str) -> str:
+    """The node (`scope/service/instance`, as in its liveliness token) that publishes `key`: a sensor
+    group for sensor data, the agent's MEC for objects; the key itself for anything else."""
+    for kind, stream in SENSOR_STREAM.items():
+        ids = get_stream(stream).ids(key)
+        if ids is not None:
+            return f"{ids['agent']}/sensor/{ids['agent']}-{kind}s"
+    ids = get_stream("objects").ids(key)
+    if ids is not None:
+        return f"{ids['agent']}/mec/{ids['agent']}"
+    return key
 
 
 def hold(

@@ -340,6 +340,10 @@ class Node:
             clock_s=clock_s,
         )
 
+    def adopt(self, entity: Any) -> None:
+        """Undeclare `entity` (anything with `undeclare()`, e.g. a LivelinessMonitor) when the node closes."""
+        self._declared.append(entity)
+
     def follow_sim_time(self, sim_time: SimTime) -> None:
         """Keep `sim_time` on the sim's clock (`sim_clock` stream); without a sim it stays on the wall
         clock. The callback only parses the small SimClock message: no queue, no lag behind a busy loop."""

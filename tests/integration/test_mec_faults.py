@@ -31,16 +31,20 @@ from rmmdet.v1.planning_pb2 import RoutePlan
 
 from shared.bus.node import Node
 from shared.bus.streams import SENSOR_STREAM
+from shared.perception.config import MecSettings
+from shared.scene.scene import Scene
+from sim.config import DEFAULT_SCENE
 from tests.helpers import Router, spawn, stop
 from tests.integration.coordinator_client import MapLog, RouteClient
 
 pytestmark = [pytest.mark.integration, pytest.mark.fault, pytest.mark.timeout(240)]
 
 SCALE = float(os.environ.get("RSP_TIME_SCALE", "1"))
-RATE_HZ = 15.0  # every sensor of the scene
+RATE_HZ = Scene.load(DEFAULT_SCENE).sensors_of("agent1")[0].rate_hz  # every sensor of the scene
 MIN_RATE_FRACTION = 0.9
 MAX_GAP_S = 0.25 * SCALE
-DEGRADED_WITHIN_S = 0.3 * SCALE
+# MISSING after `missing_after_periods` without a frame, named in the next output frame.
+DEGRADED_WITHIN_S = (MecSettings().health.missing_after_periods + 1) / RATE_HZ * SCALE
 FULL_WITHIN_S = 1.0 * SCALE
 STARTUP_S = 60.0
 WINDOW_S = 3.0

@@ -51,3 +51,12 @@ def test_rejects_bad_parameters() -> None:
         Pacer(max_lag_s=0, timeout_s=1.0)
     with pytest.raises(ValueError):
         Pacer(max_lag_s=0.25, timeout_s=0)
+
+
+def test_a_consumer_whose_process_is_gone_is_forgotten_at_once() -> None:
+    pacer = Pacer(max_lag_s=0.25, timeout_s=1.0)
+    pacer.on_progress("agent1/sensor/agent1-cameras", T0, now_s=10.0)
+    assert pacer.holding(T0 + NS_PER_S, now_s=10.1) == "agent1/sensor/agent1-cameras"
+    pacer.forget("agent1/sensor/agent1-cameras")
+    assert pacer.holding(T0 + NS_PER_S, now_s=10.1) is None
+    pacer.forget("never-heard")  # harmless
