@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import math
 import os
 import re
 import subprocess
@@ -416,7 +417,7 @@ def acceptance(r: dict[str, Any]) -> dict[str, bool]:
 
 
 def fmt(v: Any, digits: int = 0) -> str:
-    return "–" if v is None else f"{v:.{digits}f}"
+    return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}f}"
 
 
 def readme_table(runs: list[dict[str, Any]]) -> str:
@@ -436,7 +437,7 @@ def readme_table(runs: list[dict[str, Any]]) -> str:
             + (f" + record {run['args']['record_s']:.0f} s" if run["args"]["record_s"] else "")
             + f" | {fmt(r.get('sim', {}).get('real_time_factor'), 2)} | {r['cpu_cores_total']:.2f}"
             f" | {r['probes']['ok']}/{r['probes']['count']}"
-            f" | {'/'.join(fmt(100 * a['fraction_full'], 1) if 'fraction_full' in a else '–' for a in agents)}"
+            f" | {'/'.join(fmt(100 * a.get('fraction_full', math.nan), 1) for a in agents)}"
             f" | {fmt(100 * coord['fraction_all_live'], 1) if 'fraction_all_live' in coord else '–'}"
             f" | {'/'.join(fmt(a.get('rate_hz_sim'), 1) for a in agents)}"
             f" | {' / '.join(fmt(x.get('sim_p50_ms')) + '/' + fmt(x.get('sim_p95_ms')) for x in lat)}"

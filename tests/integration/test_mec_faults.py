@@ -4,7 +4,8 @@ sensor services, the MEC with its ONNX detectors — and a subscriber on the age
 For each modality in turn (camera, lidar on the roundabout agent; radar on the viaduct agent), the
 sensor service is killed with SIGKILL while objects flow FULL:
 - objects keep flowing: >= 90 % of the sensor rate, no gap over 250 ms;
-- the output is DEGRADED, naming the killed sensor MISSING, within 3 sensor periods + one output frame of the kill (0.4 s at 10 Hz);
+- the output is DEGRADED, naming the killed sensor MISSING, within 3 sensor periods + one output
+  frame of the kill (0.4 s at 10 Hz);
 then the service is restarted: the output is FULL again within 1 s of the sensor's first new frame.
 
 Last, the MEC itself is killed under the real coordinator: its agent turns STALE in the maps and in the
