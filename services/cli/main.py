@@ -207,10 +207,13 @@ def health(
     service: Annotated[str | None, typer.Option(help="only this service")] = None,
     timeout: Annotated[float, typer.Option(help="query timeout, seconds")] = 2.0,
     scene: Annotated[Path, typer.Option(help="scene YAML: which services the loop needs")] = DEFAULT_SCENE,
+    answering: Annotated[
+        bool, typer.Option("--answering", help="judge only the services that run (a partial system)")
+    ] = False,
 ) -> None:
     """Every service's health; exit 0 exactly when the closed loop does its job (services/cli/health.py)."""
     with connect(ctx) as session:
-        verdict = probe(session, Scene.load(scene), timeout, service)
+        verdict = probe(session, None if answering else Scene.load(scene), timeout, service)
     table = Table(title="service health")
     for col in ("service", "instance", "level", "uptime s", "inputs", "rejected", "message"):
         table.add_column(col)

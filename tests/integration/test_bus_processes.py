@@ -187,7 +187,7 @@ def test_cli_health_and_topics_see_the_running_services(router: Router) -> None:
     try:
         events(sub, "ready")
         events(pub, "ready")
-        health = spawn(["-m", "services.cli", "--connect", router.endpoint, "health"])
+        health = spawn(["-m", "services.cli", "--connect", router.endpoint, "health", "--answering"])
         out, _ = health.communicate(timeout=20)
         assert health.returncode == 0, out
         for row in ("router", "testpeer │ pub", "testpeer │ sub"):

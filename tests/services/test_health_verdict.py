@@ -1,0 +1,60 @@
+"""The loop verdict behind `rmmdet health`: OK exactly when every expected service answers NOMINAL."""
+
+from __future__ import annotations
+
+from rmmdet.v1.health_pb2 import HealthLevel, ServiceHealth
+
+from services.cli.health import expected_services, judge
+from shared.scene.scene import Scene
+from sim.config import DEFAULT_SCENE
+
+NOMINAL = HealthLevel.HEALTH_LEVEL_NOMINAL
+DEGRADED = HealthLevel.HEALTH_LEVEL_DEGRADED
+
+
+def report(source: str, level: int = NOMINAL, message: str = "") -> ServiceHealth:
+    _scope, service, instance = source.split("/")
+    r = ServiceHealth(service=service, instance=instance, level=level, message=message)
+    r.header.source_id = source
+    return r
+
+
+def alive_key(source: str) -> str:
+    scope, service, instance = source.split("/")
+    return f"rmmdet/@v1/{scope}/@alive/{service}/{instance}"
+
+
+def test_expected_services_come_from_the_scene() -> None:
+    expected = expected_services(Scene.load(DEFAULT_SCENE))
+    assert "agent2/mec/agent2" in expected and "agent2/sensor/agent2-radars" in expected
+    assert "agent1/sensor/agent1-lidars" in expected and "agent2/sensor/agent2-lidars" not in expected
+    assert len(expected) == 3 + 3 + 6  # router, sim, coordinator; 3 MECs; 6 sensor groups
+
+
+def test_every_expected_service_nominal_is_ok() -> None:
+    expected = expected_services(Scene.load(DEFAULT_SCENE))
+    verdict = judge([report(s) for s in expected], [], [alive_key(s) for s in expected], expected)
+    assert verdict.ok and verdict.problems == []
+
+
+def test_a_degraded_mec_a_missing_service_and_a_silent_one_are_each_named() -> None:
+    expected = expected_services(Scene.load(DEFAULT_SCENE))
+    answering = [s for s in expected if s not in ("agent1/mec/agent1", "cloud/coordinator/cloud")]
+    reports = [
+        report(s, DEGRADED, "degraded; cam_11: stale") if s == "agent3/mec/agent3" else report(s)
+        for s in answering
+    ]
+    alive = [alive_key(s) for s in [*answering, "cloud/coordinator/cloud"]]
+    verdict = judge(reports, [], alive, expected)
+    assert not verdict.ok
+    assert verdict.problems == [
+        "agent3/mec/agent3 DEGRADED: degraded; cam_11: stale",
+        "cloud/coordinator/cloud alive but no health reply",
+        "agent1/mec/agent1 not running",
+    ]
+    assert verdict.summary().startswith("loop NOT OK: agent3/mec/agent3 DEGRADED")
+
+
+def test_nothing_answering_is_not_ok_even_without_expectations() -> None:
+    verdict = judge([], [], [], [])
+    assert not verdict.ok and "no service answered" in verdict.problems[0]
