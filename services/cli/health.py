@@ -16,8 +16,7 @@ import zenoh
 from rmmdet.v1.health_pb2 import HealthLevel, ServiceHealth
 
 from shared.bus.codec import Counters, MessageDecoder
-from shared.bus.liveliness import alive_tokens
-from shared.bus.streams import get_stream
+from shared.bus.liveliness import alive_tokens, source_of_token
 from shared.scene.scene import Scene
 
 HEALTH_KEYS = "rmmdet/@v1/*/@health/**"
@@ -98,12 +97,11 @@ def judge(
             verdict.problems.append(f"{r.header.source_id} {level_name(r.level)}: {r.message}")
     alive_ids = set()
     for key in alive:
-        ids = get_stream("alive").ids(key)
-        if ids is None:
+        source = source_of_token(key)
+        if source is None:
             continue
-        source = f"{ids['scope']}/{ids['service']}/{ids['instance']}"
         alive_ids.add(source)
-        if source not in answered and (service is None or ids["service"] == service):
+        if source not in answered and (service is None or source.split("/")[1] == service):
             verdict.problems.append(f"{source} alive but no health reply")
     for source in expected:
         if source in answered or source in alive_ids:

@@ -9,8 +9,9 @@ all sensors of one tick share its stamp. It also publishes the SimClock (sim tim
 measured real-time factor; other processes judge freshness on it, shared/timebase.py) and each agent's
 CalibrationSet at low rate.
 
-Pacing (sim/pacing.py): a sensor tick is held back while a consumer's newest output (the MECs' object
-lists) lags it by more than `pacing.max_lag_s` of sim time, and a sim that falls behind its schedule
+Pacing (sim/pacing.py): a sensor tick is held back while a consumer's newest output (a sensor
+service's frames or a MEC's object lists) lags it by more than `pacing.max_lag_s` of sim time (a
+consumer whose liveliness token vanishes holds nothing), and a sim that falls behind its schedule
 moves the schedule on instead of sprinting, so on a host that cannot keep real time the whole loop runs
 slower together and stays correct; the real-time factor reached is reported.
 
@@ -34,7 +35,7 @@ from rmmdet.v1.sim_pb2 import SimClock
 
 from services.sim.plans import PlanClient
 from shared.bus.health import NOMINAL
-from shared.bus.liveliness import LivelinessMonitor
+from shared.bus.liveliness import LivelinessMonitor, source_of_token
 from shared.bus.node import Node, Received, processing_stamp
 from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.bus.streams import SENSOR_STREAM, get_stream
@@ -115,9 +116,9 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             for item in outputs.drain():
                 pacer.on_progress(producer_of(item.key), item.header.stamp.ToNanoseconds(), now)
             for key in gone.drain():
-                ids = get_stream("alive").ids(key)
-                if ids is not None:
-                    pacer.forget(f"{ids['scope']}/{ids['service']}/{ids['instance']}")
+                source = source_of_token(key)
+                if source is not None:
+                    pacer.forget(source)
 
         node.health.set_status(status)
         start_wall_ns = time.time_ns()

@@ -14,6 +14,8 @@ from collections.abc import Callable
 
 import zenoh
 
+from shared.bus.streams import get_stream
+
 log = logging.getLogger(__name__)
 
 ChangeFn = Callable[[str, bool], None]
@@ -63,3 +65,10 @@ def alive_tokens(session: zenoh.Session, key_expr: str, timeout_s: float = 2.0) 
     """Snapshot of the live tokens under `key_expr`."""
     replies = session.liveliness().get(key_expr, timeout=timeout_s)
     return sorted(str(r.ok.key_expr) for r in replies if r.ok is not None)
+
+
+def source_of_token(key: str) -> str | None:
+    """The source id (`scope/service/instance`, as `Node.source_id`) whose presence token is `key`;
+    None if `key` is not a presence token."""
+    ids = get_stream("alive").ids(key)
+    return None if ids is None else f"{ids['scope']}/{ids['service']}/{ids['instance']}"
