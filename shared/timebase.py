@@ -19,6 +19,7 @@ import threading
 import time
 
 NS_PER_S = 1_000_000_000
+TICK_HZ_DECIMALS = 6
 
 
 class SimTime:
@@ -42,18 +43,28 @@ class SimTime:
         self._sim_ns: int | None = None  # last sample: sim time ...
         self._wall_ns = 0  # ... and the wall time it was heard
         self._speed = 1.0
+        self._tick_hz: float | None = None
         self.samples = 0
 
-    def on_clock(self, sim_ns: int, speed: float, wall_ns: int | None = None) -> None:
-        """A SimClock sample: sim time `sim_ns` and the sim's target speed (sim s per wall s; 0, as fast
-        as possible, runs on at 1x). A restarted sim may move the clock back: its samples are taken as
-        they come."""
+    def on_clock(self, sim_ns: int, speed: float, wall_ns: int | None = None, step_s: float = 0.0) -> None:
+        """A SimClock sample: sim time `sim_ns`, the sim's target speed (sim s per wall s; 0, as fast
+        as possible, runs on at 1x) and its tick period `step_s` (0: unknown). A restarted sim may move
+        the clock back: its samples are taken as they come."""
         wall = time.time_ns() if wall_ns is None else wall_ns
         with self._lock:
             self._sim_ns = sim_ns
             self._wall_ns = wall
             self._speed = speed if speed > 0 else 1.0
+            if step_s > 0:
+                # Rounded: tick arithmetic (shared.scene.cadence) needs 60.0, not 59.99999999999999.
+                self._tick_hz = round(1.0 / step_s, TICK_HZ_DECIMALS)
             self.samples += 1
+
+    @property
+    def tick_hz(self) -> float | None:
+        """The sim's ticks per simulated second, once a clock sample named it (None: no sim, or unknown)."""
+        with self._lock:
+            return self._tick_hz
 
     @property
     def following(self) -> bool:

@@ -81,11 +81,11 @@ class PacingSettings(_Model):
         "sensor services, every consumer of ground truth",
     )
     max_lag_s: float = Field(
-        0.2,
+        0.1,
         gt=0,
-        description="largest lag of a consumer's newest output behind the next tick, s of sim time: one "
-        "sensor period plus 0.1 s, so a frame is never older than the MECs' 0.2 s freshness limit on "
-        "arrival only because the sim ran ahead",
+        description="largest lag of a consumer's newest output behind the next tick beyond the consumer's "
+        "own output period, s of sim time: with a 0.1 s sensor period a frame is never older than the "
+        "MECs' 0.2 s freshness limit on arrival only because the sim ran ahead",
     )
     consumer_timeout_s: float = Field(
         1.0, gt=0, description="a consumer silent this long (wall s) no longer holds the sim"

@@ -3,8 +3,11 @@
 A live sim on a host that cannot keep up would otherwise outrun the loop: sensors skip ticks, the MECs
 judge their inputs stale and the coordinator its agents. Instead the sim holds a tick back while a
 consumer's newest output (its stamp: the sim time of the data it was made from) lags the tick by more
-than `max_lag_s` of sim time, so the whole loop slows down together and stays correct; the real-time
-factor it reaches is reported.
+than its own output period (the interval between its last two outputs, at most `MAX_PERIOD_S`) plus
+`max_lag_s` of sim time, so the whole loop slows down together and stays correct; the real-time
+factor it reaches is reported. Counting the period in lets a consumer with a slow cadence (cameras
+asked for every 5th frame publish at 2 Hz) run at it without holding the sim, while its processing
+lag is bounded as tightly as a 10 Hz consumer's.
 
 A consumer whose process is gone (`forget`, on its liveliness token vanishing) or that has not reported
 for `timeout_s` of wall time (hung) no longer holds the sim: a killed MEC or sensor service must not
@@ -17,12 +20,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 NS_PER_S = 1_000_000_000
+MAX_PERIOD_S = 1.0  # a gap longer than this (a restarted consumer) is not its cadence
 
 
 @dataclass
 class _Consumer:
     stamp_ns: int
     heard_s: float
+    period_ns: int = 0  # between its last two outputs (0 until known)
 
 
 class Pacer:
@@ -31,7 +36,8 @@ class Pacer:
     Parameters
     ----------
     max_lag_s : float
-        Largest lag of a consumer's newest output behind the tick about to be published, s of sim time.
+        Largest lag of a consumer's newest output behind the tick about to be published beyond the
+        consumer's own output period, s of sim time.
     timeout_s : float
         Wall seconds without a report after which a consumer no longer holds the sim.
     """
@@ -40,6 +46,7 @@ class Pacer:
         if max_lag_s <= 0 or timeout_s <= 0:
             raise ValueError("max_lag_s and timeout_s must be > 0")
         self.max_lag_ns = round(max_lag_s * NS_PER_S)
+        self.max_period_ns = round(MAX_PERIOD_S * NS_PER_S)
         self.timeout_s = timeout_s
         self._consumers: dict[str, _Consumer] = {}
 
@@ -50,7 +57,9 @@ class Pacer:
         if c is None:
             self._consumers[consumer] = _Consumer(stamp_ns, now_s)
         else:
-            c.stamp_ns = max(c.stamp_ns, stamp_ns)
+            if stamp_ns > c.stamp_ns:
+                c.period_ns = min(stamp_ns - c.stamp_ns, self.max_period_ns)
+                c.stamp_ns = stamp_ns
             c.heard_s = now_s
 
     def forget(self, consumer: str) -> None:
@@ -63,7 +72,7 @@ class Pacer:
         for name, c in self._consumers.items():
             if now_s - c.heard_s > self.timeout_s:
                 continue
-            lag = tick_stamp_ns - c.stamp_ns
+            lag = tick_stamp_ns - c.stamp_ns - c.period_ns
             if lag > self.max_lag_ns and (worst is None or lag > worst[0]):
                 worst = (lag, name)
         return None if worst is None else worst[1]

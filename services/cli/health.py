@@ -17,6 +17,7 @@ from rmmdet.v1.health_pb2 import HealthLevel, ServiceHealth
 
 from shared.bus.codec import Counters, MessageDecoder
 from shared.bus.liveliness import alive_tokens, source_of_token
+from shared.bus.streams import sensor_group_source
 from shared.scene.scene import Scene
 
 HEALTH_KEYS = "rmmdet/@v1/*/@health/**"
@@ -33,7 +34,7 @@ def expected_services(scene: Scene) -> list[str]:
     for agent in scene.agents:
         out.append(f"{agent}/mec/{agent}")
         kinds = sorted({s.kind for s in scene.sensors_of(agent)})
-        out += [f"{agent}/sensor/{agent}-{kind}s" for kind in kinds]
+        out += [sensor_group_source(agent, kind) for kind in kinds]
     return out
 
 

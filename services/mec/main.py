@@ -8,6 +8,10 @@ that are alive), decodes them, runs `AgentPipeline` (detectors, radar-camera and
 tracker) and publishes `rmmdet.v1.TrackedObjects` on `rmmdet/@v1/<agent>/objects` with the tick's
 stamp, the FULL / DEGRADED status, the state of every input and per-stage latencies.
 
+While a lidar is live the camera detector runs on every `detectors.camera_every_n_with_lidar`-th frame
+only; under a sim the MEC asks its cameras for just those frames (`capture_demand`, renewed every
+second) and neither waits for nor decodes the others.
+
 A sensor that stops is MISSING after 3 of its periods; output continues from the other inputs, flagged
 DEGRADED with that input named, and returns to FULL after `health.recover_frames` complete frames.
 Frames older than `health.max_age_s` on arrival are dropped and counted as stale. If processing falls
@@ -21,15 +25,18 @@ import logging
 import sys
 import time
 from collections import Counter
-from collections.abc import Mapping
+from collections.abc import Callable, Collection, Mapping
 from pathlib import Path
+from queue import SimpleQueue
 
 import zenoh
+from rmmdet.v1.sensors_pb2 import CaptureDemand
 
 from shared.bus.health import CRITICAL, DEGRADED, NOMINAL
+from shared.bus.liveliness import LivelinessMonitor, source_of_token
 from shared.bus.node import Node, Received, processing_stamp
 from shared.bus.queues import BoundedQueue, OverflowPolicy
-from shared.bus.streams import SENSOR_STREAM
+from shared.bus.streams import SENSOR_STREAM, get_stream, sensor_group_source
 from shared.config import load_settings
 from shared.perception.config import DEFAULT_MEC_CONFIG, MecSettings
 from shared.perception.decode import decode_sensor
@@ -47,20 +54,25 @@ log = logging.getLogger("services.mec")
 
 QUEUE_PER_SENSOR = 4  # latest-wins: a few frames per sensor, oldest dropped
 IDLE_WAIT_S = 0.1
+DEMAND_RENEW_S = 1.0  # capture demand: renewed this often ...
+DEMAND_VALID_S = 3.0  # ... and lapses (cameras back to every frame) if the MEC is gone this long
 ERROR_LOG_EVERY = 100  # log the first pipeline error, then every 100th
 
 
 def decode_frame(
-    frame: JoinedFrame, kinds: Mapping[str, str], counters: Counter[str], cameras: bool = True
+    frame: JoinedFrame,
+    kinds: Mapping[str, str],
+    counters: Counter[str],
+    cameras: Collection[str] | None = None,
 ) -> tuple[AgentInputs, set[str]]:
-    """Decode the joined messages; a frame that does not decode is left out and counted. With
-    `cameras` False the images are not decoded (the pipeline will not look at them this frame).
+    """Decode the joined messages; a frame that does not decode is left out and counted. Only the
+    images of `cameras` (default all) are decoded: the pipeline will not look at the others this frame.
     Returns the inputs and the sensors that delivered a usable (or unneeded) frame."""
     inputs = AgentInputs(stamp_ns=frame.stamp_ns, tick=frame.tick)
     delivered = set()
     for sensor_id, sample in frame.samples.items():
         kind = kinds[sensor_id]
-        if kind == "camera" and not cameras:
+        if kind == "camera" and cameras is not None and sensor_id not in cameras:
             delivered.add(sensor_id)
             continue
         try:
@@ -109,15 +121,35 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         sim_time = SimTime()
         node.follow_sim_time(sim_time)
 
+        camera_ids = frozenset(s.id for s in specs if s.kind == "camera")
+        demand_pub = node.publisher("capture_demand", agent=agent, kind="camera") if camera_ids else None
+        cadence = {"every_n": 1, "sent_s": -DEMAND_RENEW_S}
+
+        def rates_hz() -> dict[str, float]:
+            """Expected input rates: cameras at the cadence asked of them."""
+            return {s.id: s.rate_hz / (cadence["every_n"] if s.id in camera_ids else 1) for s in specs}
+
         def new_monitor() -> SensorMonitor:
             return SensorMonitor(
-                {s.id: s.rate_hz for s in specs},
+                rates_hz(),
                 settings.health.missing_after_periods,
                 settings.health.max_age_s,
                 start_s=sim_time.now_s(),
             )
 
         monitor = new_monitor()
+        # A sensor service that leaves the bus (killed, crashed) takes its sensors with it at once: its
+        # presence token vanishes long before 3 periods of a camera asked for every 5th frame.
+        groups = {
+            sensor_group_source(agent, k): [s.id for s in specs if s.kind == k] for k in set(kinds.values())
+        }
+        gone: SimpleQueue[str] = SimpleQueue()
+        presence = LivelinessMonitor(
+            node.session,
+            get_stream("alive").pattern(scope=agent, service="sensor"),
+            on_change=lambda key, alive: None if alive else gone.put(key),
+        )
+        node.adopt(presence)
         following = sim_time.following
         joiner = TickJoiner(kinds, settings.sync.max_wait_s, settings.sync.max_pending_ticks)
         status = StatusHysteresis(settings.health.recover_frames)
@@ -125,11 +157,40 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         last_status = Status.FULL
         last_tick = -1
 
+        def update_cadence(alive: Collection[str], now: float) -> None:
+            """Under a sim: ask the cameras for the frames the detector will run on (renewed every
+            DEMAND_RENEW_S, at once on a change) and expect them at that rate."""
+            pipeline.tick_hz = sim_time.tick_hz
+            if demand_pub is None or pipeline.tick_hz is None:
+                return
+            every_n = pipeline.camera_every_n(pipeline.lidar_live(alive))
+            changed = every_n != cadence["every_n"]
+            if changed or now - cadence["sent_s"] >= DEMAND_RENEW_S:
+                reason = "lidar live" if every_n > 1 else "no lidar"
+                demand_pub.put(CaptureDemand(every_n=every_n, valid_for_s=DEMAND_VALID_S, reason=reason))
+                cadence["sent_s"] = now
+            if changed:
+                log.info(
+                    "cameras: every %d frame(s) (%s)", every_n, "lidar live" if every_n > 1 else "no lidar"
+                )
+                cadence["every_n"] = every_n
+                for sensor_id, rate_hz in rates_hz().items():
+                    monitor.set_rate(sensor_id, rate_hz)
+
+        def expected(alive: Collection[str]) -> Callable[[int], Collection[str]]:
+            """The inputs a tick waits for: the live ones, less the cameras not due on it."""
+            live = frozenset(alive)
+            lidar_live = pipeline.lidar_live(live)
+            return lambda tick: live - (camera_ids - pipeline.cameras_due(lidar_live, tick))
+
         def health() -> tuple[int, str]:
             now = sim_time.now_s()
             bad = [f"{r.sensor_id}: {r.state.value}" for r in monitor.report(now) if r.state.value != "ok"]
             level = {Status.FULL: NOMINAL, Status.DEGRADED: DEGRADED}.get(status.status, CRITICAL)
-            text = f"{status.status.value}, tick {last_tick}, {counters['frames/published']} frames"
+            text = (
+                f"{status.status.value}, tick {last_tick}, {counters['frames/published']} frames, "
+                f"cameras every {cadence['every_n']} frame(s)"
+            )
             return level, text + (f"; {', '.join(bad)}" if bad else "")
 
         node.health.set_status(health)
@@ -146,6 +207,11 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 following = sim_time.following
                 monitor = new_monitor()
             clock_s = sim_time.now_s()
+            while not gone.empty():
+                for sensor_id in groups.get(source_of_token(gone.get_nowait()) or "", []):
+                    monitor.mark_gone(sensor_id)
+                    log.warning("%s: its sensor service left the bus", sensor_id)
+            update_cadence(monitor.alive(clock_s), now)
             for item in items:
                 sensor_id = item.key.rsplit("/", 1)[-1]
                 if sensor_id not in kinds:
@@ -159,8 +225,9 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                     node.counters.inc("rejected/stale")
                     continue
                 sample = Sample(sensor_id, stamp_ns, item.message, item.header.tick, now)
-                ready += joiner.add(sample, monitor.alive(clock_s), now)
-            ready += joiner.poll(monitor.alive(clock_s), now)
+                ready += joiner.add(sample, expected(monitor.alive(clock_s)), now)
+            alive = monitor.alive(clock_s)
+            ready += joiner.poll(expected(alive), now)
             if not ready:
                 continue
             if len(ready) > 1:
@@ -168,8 +235,8 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 node.counters.inc("frames/skipped", len(ready) - 1)
             frame = ready[-1]
             start_ns = time.time_ns()
-            lidar_live = pipeline.lidar_live(frame.samples)
-            inputs, delivered = decode_frame(frame, kinds, counters, pipeline.cameras_due(lidar_live))
+            due = pipeline.cameras_due(pipeline.lidar_live(frame.samples), frame.tick)
+            inputs, delivered = decode_frame(frame, kinds, counters, due)
             decoded_ns = time.time_ns()
             try:
                 result = pipeline.process(inputs)
@@ -181,7 +248,9 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 continue
             result.latencies_s = {"decode": (decoded_ns - start_ns) / 1e9, **result.latencies_s}
             now = time.monotonic()
-            fused = {s: s in delivered for s in kinds}
+            # A camera not due on this tick is fine while it is alive at its own cadence.
+            waited = expected(alive)(frame.tick)
+            fused = {s: s in delivered or (s in alive and s not in waited) for s in kinds}
             state = status.update(fused)
             if state is not last_status:
                 missing = sorted(s for s, ok in fused.items() if not ok)

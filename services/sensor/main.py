@@ -7,9 +7,12 @@ each sensor on the ticks of its rate (a sensor at rate r fires on the first tick
 so all sensors of a tick share its stamp; a group that falls behind skips to the newest tick
 (latest-wins) and counts the skipped frames. Cameras publish `foxglove.CompressedImage` (JPEG), lidars
 `foxglove.PointCloud`, radars `rmmdet.v1.RadarScan`; the rmmdet header carries the ground truth's
-stamp and tick. Sensor noise is drawn from a generator seeded by (scenario seed, sensor, tick), so a
-rerun with one seed gives identical data whatever the timing. Killing this process stops only its
-group (the fault-injection test "a sensor service dies").
+stamp and tick. A consumer may ask for fewer frames (`rmmdet/@v1/<agent>/capture_demand/<kind>`, e.g.
+the MEC wants every 5th camera frame while a lidar covers its area): the group then captures only the
+frames `shared.scene.cadence.frame_due` names, for as long as the demand is renewed. Sensor noise is
+drawn from a generator seeded by (scenario seed, sensor, tick), so a rerun with one seed gives
+identical data whatever the timing. Killing this process stops only its group
+(the fault-injection test "a sensor service dies").
 """
 
 from __future__ import annotations
@@ -25,23 +28,25 @@ from rmmdet.v1.sim_pb2 import GroundTruth
 
 from shared.bus.health import NOMINAL
 from shared.bus.node import Node, Publisher, Received, processing_stamp
-from shared.bus.streams import SENSOR_STREAM
+from shared.bus.streams import SENSOR_STREAM, sensor_group
+from shared.scene.cadence import CaptureDemands, frame_due
 from shared.scene.model import SensorSpec
 from shared.scene.scene import Scene
 from shared.service import run_service
 from shared.shutdown import GracefulShutdown
 from sim.config import DEFAULT_SCENE
-from sim.sensors.rig import SensorRig, fires
+from sim.sensors.rig import SensorRig
 
 log = logging.getLogger("services.sensor")
 
 GT_QUEUE = 8
+DEMAND_QUEUE = 16  # capture demands: one per consumer per second
 
 
 def parse_group(scene: Scene, group: str) -> list[SensorSpec]:
     agent, _, kinds = group.rpartition("-")
     kind = kinds.rstrip("s")
-    if agent not in scene.agents or kind not in SENSOR_STREAM:
+    if agent not in scene.agents or kind not in SENSOR_STREAM or group != sensor_group(agent, kind):
         raise SystemExit(f"unknown sensor group {group!r}: expected <agent>-<cameras|lidars|radars>")
     sensors = scene.sensors_of(agent, kind)  # type: ignore[arg-type]
     if not sensors:
@@ -49,14 +54,16 @@ def parse_group(scene: Scene, group: str) -> list[SensorSpec]:
     return sensors
 
 
-def newest_due(items: list[Received], specs: list[SensorSpec]) -> tuple[Received | None, int]:
-    """Latest-wins: the newest ground truth on which any of `specs` fires, and how many earlier due
-    ticks it supersedes (skipped frames)."""
+def newest_due(
+    items: list[Received], specs: list[SensorSpec], every_n: int = 1
+) -> tuple[Received | None, int]:
+    """Latest-wins: the newest ground truth on which any of `specs` captures (every `every_n`-th
+    frame), and how many earlier due ticks it supersedes (skipped frames)."""
     due: Received | None = None
     skipped = 0
     for item in items:
         gt: GroundTruth = item.message
-        if any(fires(s.rate_hz, gt.header.tick, gt.tick_hz) for s in specs):
+        if any(frame_due(s.rate_hz, every_n, gt.header.tick, gt.tick_hz) for s in specs):
             if due is not None:
                 skipped += 1
             due = item
@@ -73,7 +80,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 f"--only: {sorted(wanted - {s.id for s in specs})} are not in group {args.group}"
             )
         specs = [s for s in specs if s.id in wanted]
-    agent = specs[0].agent
+    agent, kind = specs[0].agent, specs[0].kind
     t0 = time.perf_counter()
     with (
         SensorRig(scene, specs) as rig,
@@ -87,13 +94,15 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             for spec in specs
         }
         gt_sub = node.subscribe_stream("ground_truth", maxsize=GT_QUEUE)
-        stats = {"frames": 0, "skipped": 0, "last_tick": -1}
+        demand_sub = node.subscribe_stream("capture_demand", agent=agent, kind=kind, maxsize=DEMAND_QUEUE)
+        demands = CaptureDemands()
+        stats = {"frames": 0, "skipped": 0, "last_tick": -1, "every_n": 1}
 
         def status() -> tuple[int, str]:
             return (
                 NOMINAL,
                 f"{len(specs)} sensors, {stats['frames']} frames, tick {stats['last_tick']}, "
-                f"{stats['skipped']} ticks skipped",
+                f"{stats['skipped']} ticks skipped, every {stats['every_n']} frame(s)",
             )
 
         node.health.set_status(status)
@@ -102,14 +111,24 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             received = gt_sub.recv(timeout=0.1)
             if received is None:
                 continue
-            due, skipped = newest_due([received, *gt_sub.drain()], specs)
+            now = time.monotonic()
+            for demand in demand_sub.drain():
+                if not demands.on_demand(
+                    demand.header.source_id, demand.message.every_n, demand.message.valid_for_s, now
+                ):
+                    node.counters.inc("rejected/capture_demand")
+            every_n = demands.every_n(now)
+            if every_n != stats["every_n"]:
+                log.info("capturing every %d frame(s) (was %d)", every_n, stats["every_n"])
+                stats["every_n"] = every_n
+            due, skipped = newest_due([received, *gt_sub.drain()], specs, every_n)
             stats["skipped"] += skipped
             node.counters.inc("frames/skipped_ticks", skipped)
             if due is None or due.message.header.tick <= stats["last_tick"]:
                 continue
             gt: GroundTruth = due.message
             stats["last_tick"] = gt.header.tick
-            for capture in rig.capture(gt):
+            for capture in rig.capture(gt, every_n=every_n):
                 stage = processing_stamp(f"sensor/{capture.spec.kind}", capture.start_ns, capture.end_ns)
                 pub = pubs[capture.spec.id]
                 header = pub.next_header(derived_from=gt.header, frame_id=capture.spec.id)

@@ -38,7 +38,8 @@ from shared.bus.health import NOMINAL
 from shared.bus.liveliness import LivelinessMonitor, source_of_token
 from shared.bus.node import Node, Received, processing_stamp
 from shared.bus.queues import BoundedQueue, OverflowPolicy
-from shared.bus.streams import SENSOR_STREAM, get_stream
+from shared.bus.streams import SENSOR_STREAM, get_stream, sensor_group_source
+from shared.scene.cadence import fires
 from shared.scene.calibration import calibration_set
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
@@ -47,7 +48,6 @@ from shared.shutdown import GracefulShutdown
 from sim.config import DEFAULT_SIM_CONFIG, SimSettings, load_sim_settings
 from sim.ground_truth import ground_truth_message
 from sim.pacing import Pacer
-from sim.sensors.rig import fires
 from sim.traffic import TrafficSim
 
 log = logging.getLogger("services.sim")
@@ -211,7 +211,7 @@ def producer_of(key: str) -> str:
     for kind, stream in SENSOR_STREAM.items():
         ids = get_stream(stream).ids(key)
         if ids is not None:
-            return f"{ids['agent']}/sensor/{ids['agent']}-{kind}s"
+            return sensor_group_source(ids["agent"], kind)
     ids = get_stream("objects").ids(key)
     if ids is not None:
         return f"{ids['agent']}/mec/{ids['agent']}"

@@ -355,7 +355,7 @@ class Node:
                 decoded = decoder.decode(sample.payload.to_bytes(), str(sample.encoding))
                 if decoded is not None:
                     clock: SimClock = decoded.message
-                    sim_time.on_clock(clock.sim_time.ToNanoseconds(), clock.target_speed)
+                    sim_time.on_clock(clock.sim_time.ToNanoseconds(), clock.target_speed, step_s=clock.step_s)
             except Exception:  # never raise on Zenoh's thread
                 self.counters.inc("rejected/internal")
                 log.exception("sim clock callback failed")

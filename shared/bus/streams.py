@@ -26,6 +26,17 @@ STREAMS_YAML = Path(__file__).resolve().parents[2] / "proto" / "streams.yaml"
 SENSOR_STREAM = {"camera": "camera_image", "lidar": "point_cloud", "radar": "radar_scan"}
 ID_PATTERN = re.compile(r"^[a-z0-9][a-z0-9_\-]{0,63}$")
 
+
+def sensor_group(agent: str, kind: str) -> str:
+    """Instance id of the sensor service that renders `agent`'s sensors of `kind` (`agent1-cameras`)."""
+    return f"{agent}-{kind}s"
+
+
+def sensor_group_source(agent: str, kind: str) -> str:
+    """Source id (`scope/service/instance`, as in its presence token) of that sensor service."""
+    return f"{agent}/sensor/{sensor_group(agent, kind)}"
+
+
 StreamClass = Literal["latest-wins", "must-deliver", "health"]
 StreamKind = Literal["pubsub", "queryable", "liveliness"]
 HeaderPlacement = Literal["body", "attachment"]

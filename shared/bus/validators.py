@@ -197,6 +197,18 @@ def _sim_clock(m: Message) -> str | None:
     return None
 
 
+MAX_EVERY_N = 1000  # a capture demand beyond this is a unit mix-up, not a cadence
+
+
+@register_validator("rmmdet.v1.CaptureDemand")
+def _capture_demand(m: Message) -> str | None:
+    if not 1 <= m.every_n <= MAX_EVERY_N:  # type: ignore[attr-defined]
+        return f"every_n={m.every_n} outside [1, {MAX_EVERY_N}]"  # type: ignore[attr-defined]
+    if not m.valid_for_s > 0:  # type: ignore[attr-defined]
+        return "valid_for_s must be > 0"
+    return None
+
+
 @register_validator("foxglove.CompressedImage")
 def _compressed_image(m: Message) -> str | None:
     if m.format not in ("jpeg", "png", "webp"):  # type: ignore[attr-defined]

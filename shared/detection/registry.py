@@ -2,8 +2,10 @@
 
 Camera: `onnx` (the committed model in deploy/models/camera), `oracle` (noisy ground truth).
 Lidar: `pointpillars` (deploy/models/lidar), `cluster` (classical), `oracle` (noisy ground truth).
-Learned models load from `models_dir` (default deploy/models); onnxruntime uses `threads` intra-op
-threads. Imports are lazy: building one detector never loads the others' libraries.
+Learned models load from `models_dir` (default deploy/models) in `precision` fp32 (the export) or int8
+(its static quantization beside it, `shared.detection.quantize`; shared.detection.precision names the
+file); onnxruntime uses `threads` intra-op threads. Imports are lazy: building one detector never
+loads the others' libraries.
 """
 
 from __future__ import annotations
@@ -11,21 +13,37 @@ from __future__ import annotations
 from pathlib import Path
 
 from shared.detection.interface import CameraDetector, LidarDetector
+from shared.detection.precision import model_file
 
 MODELS_DIR = Path(__file__).resolve().parents[2] / "deploy" / "models"
 CAMERA_DETECTORS = ("onnx", "oracle")
 LIDAR_DETECTORS = ("pointpillars", "cluster", "oracle")
 CAMERA_MODEL = Path("camera") / "model.onnx"
 LIDAR_MODEL = Path("lidar") / "pointpillars.onnx"
+QUANTIZE_TOOLS = {
+    CAMERA_MODEL: "shared.detection.camera.quantize",
+    LIDAR_MODEL: "shared.detection.lidar.pointpillars.quantize",
+}
+
+
+def learned_model(models_dir: Path, model: Path, precision: str) -> Path:
+    """The file of `model` (CAMERA_MODEL, LIDAR_MODEL) in `precision` (ValueError if unknown); a
+    missing quantized file raises FileNotFoundError naming the tool that writes it."""
+    path = model_file(models_dir / model, precision)
+    if precision != "fp32" and not path.is_file():
+        raise FileNotFoundError(f"no {precision} model {path}: `python -m {QUANTIZE_TOOLS[model]}` writes it")
+    return path
 
 
 def camera_detector(
-    name: str, threads: int = 2, seed: int = 0, models_dir: Path = MODELS_DIR
+    name: str, threads: int = 2, seed: int = 0, models_dir: Path = MODELS_DIR, precision: str = "fp32"
 ) -> CameraDetector:
     if name == "onnx":
         from shared.detection.camera.onnx_detector import OnnxCameraDetector
 
-        return OnnxCameraDetector(models_dir / CAMERA_MODEL, intra_op_threads=threads)
+        return OnnxCameraDetector(
+            learned_model(models_dir, CAMERA_MODEL, precision), intra_op_threads=threads
+        )
     if name == "oracle":
         from shared.detection.oracle import OracleCameraDetector
 
@@ -34,12 +52,12 @@ def camera_detector(
 
 
 def lidar_detector(
-    name: str, threads: int = 1, seed: int = 0, models_dir: Path = MODELS_DIR
+    name: str, threads: int = 1, seed: int = 0, models_dir: Path = MODELS_DIR, precision: str = "fp32"
 ) -> LidarDetector:
     if name == "pointpillars":
         from shared.detection.lidar.pointpillars.onnx_detector import OnnxPointPillars
 
-        return OnnxPointPillars(models_dir / LIDAR_MODEL, threads=threads)
+        return OnnxPointPillars(learned_model(models_dir, LIDAR_MODEL, precision), threads=threads)
     if name == "cluster":
         from shared.detection.lidar.cluster import ClusterLidarDetector
 

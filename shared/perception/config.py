@@ -11,6 +11,7 @@ from pathlib import Path
 from pydantic import BaseModel, ConfigDict, Field
 
 from shared.config import RmmdetSettings, settings_config
+from shared.detection.precision import Precision
 from shared.perception.camera_only import CameraOnlyConfig
 from shared.perception.lidar_camera import LidarCameraConfig
 from shared.perception.lidar_preprocess import LidarPreprocessConfig
@@ -30,6 +31,12 @@ class DetectorsConfig(_Model):
     lidar: str = Field("pointpillars", description="lidar detector: pointpillars | cluster | oracle")
     camera_threads: int = Field(2, ge=1, description="onnxruntime intra-op threads of the camera model")
     lidar_threads: int = Field(2, ge=1, description="onnxruntime intra-op threads of the lidar model")
+    camera_precision: Precision = Field(
+        "fp32", description="camera model (onnx): fp32 model.onnx | int8 model_int8.onnx (quantized)"
+    )
+    lidar_precision: Precision = Field(
+        "fp32", description="lidar model (pointpillars): fp32 pointpillars.onnx | int8 pointpillars_int8.onnx"
+    )
     camera_min_score: float = Field(0.3, ge=0, le=1, description="2D boxes below this score are not fused")
     lidar_min_score: float = Field(0.3, ge=0, le=1, description="3D boxes below this score are not fused")
     camera_every_n_with_lidar: int = Field(

@@ -44,6 +44,7 @@ class _Input:
     last_stale_s: float | None = None
     accepted: int = 0
     stale: int = 0
+    gone: bool = False  # its producing process left the bus: MISSING until it delivers again
 
 
 @dataclass(frozen=True)
@@ -87,6 +88,12 @@ class SensorMonitor:
     def sensors(self) -> list[str]:
         return list(self._inputs)
 
+    def set_rate(self, sensor_id: str, rate_hz: float) -> None:
+        """The rate `sensor_id` is now expected at (e.g. a camera asked for every n-th frame), Hz."""
+        if rate_hz <= 0:
+            raise ValueError(f"rate must be > 0, got {rate_hz}")
+        self._inputs[sensor_id].rate_hz = rate_hz
+
     def accept(self, sensor_id: str, stamp_ns: int, now_s: float, arrival_ns: int) -> bool:
         """Record an arrival; False (and counted as stale) when the frame is too old to fuse."""
         inp = self._inputs[sensor_id]
@@ -96,10 +103,18 @@ class SensorMonitor:
             return False
         inp.accepted += 1
         inp.last_accepted_s = now_s
+        inp.gone = False
         return True
+
+    def mark_gone(self, sensor_id: str) -> None:
+        """The process producing `sensor_id` is gone (its presence token vanished): MISSING at once,
+        not after `missing_after_periods`, until a frame of it is accepted again."""
+        self._inputs[sensor_id].gone = True
 
     def state(self, sensor_id: str, now_s: float) -> InputState:
         inp = self._inputs[sensor_id]
+        if inp.gone:
+            return InputState.MISSING
         limit_s = self.missing_after_periods / inp.rate_hz
         last = inp.last_accepted_s if inp.last_accepted_s is not None else self.start_s
         if now_s - last <= limit_s:

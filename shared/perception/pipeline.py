@@ -2,7 +2,9 @@
 
     AgentInputs (images, clouds, radar scans of one tick; absent sensors simply missing)
       -> 2D detection: all of the agent's images in one batched call (with a lidar live, only every
-         `camera_every_n_with_lidar`-th frame: the lidar finds the cars, the camera confirms them)
+         `camera_every_n_with_lidar`-th frame: the lidar finds the cars, the camera confirms them;
+         on sim ticks the frames `shared.scene.cadence.frame_due` names, which the MEC also asks the
+         cameras to capture)
       -> lidar: merge clouds into the agent frame (full extrinsics), preprocess, 3D detection, to world
       -> radar + camera (Algorithm 1) for each radar and its paired camera
       -> lidar + camera (Algorithm 2 + merge) over the agent's cameras
@@ -34,6 +36,7 @@ from shared.perception.config import MecSettings
 from shared.perception.lidar_preprocess import agent_frame_transforms, merge_clouds, preprocess
 from shared.perception.radar_camera import RadarTargets
 from shared.perception.views import CameraView, RoadSurface
+from shared.scene.cadence import frame_due
 from shared.scene.scene import Scene
 from shared.tracking.tracker import Measurement, MultiObjectTracker, Track
 
@@ -128,6 +131,7 @@ class AgentPipeline:
         self.cfg = settings
         specs = [s for s in scene.sensors_of(agent_id) if sensor_ids is None or s.id in sensor_ids]
         self.camera_ids = [s.id for s in specs if s.kind == "camera"]
+        self.camera_rates_hz = {s.id: s.rate_hz for s in specs if s.kind == "camera"}
         self.lidar_ids = [s.id for s in specs if s.kind == "lidar"]
         self.radar_specs = [s for s in specs if s.kind == "radar"]
         self.views = {c: CameraView.from_scene(scene, c) for c in self.camera_ids}
@@ -137,24 +141,42 @@ class AgentPipeline:
         det = settings.detectors
         self.camera_detector = cameras
         if self.camera_detector is None and self.camera_ids:
-            self.camera_detector = camera_detector(det.camera, threads=det.camera_threads)
+            self.camera_detector = camera_detector(
+                det.camera, threads=det.camera_threads, precision=det.camera_precision
+            )
         self.lidar_detector = lidar
         if self.lidar_detector is None and self.lidar_ids:
-            self.lidar_detector = lidar_detector(det.lidar, threads=det.lidar_threads)
+            self.lidar_detector = lidar_detector(
+                det.lidar, threads=det.lidar_threads, precision=det.lidar_precision
+            )
         self.origin_m = agent_origin_m(scene, agent_id) if self.lidar_ids else np.zeros(3)
         self.lidar_T = agent_frame_transforms(scene, agent_id) if self.lidar_ids else {}
         self.radar_T = {s.id: np.asarray(scene.T_world_from_sensor(s.id), float) for s in self.radar_specs}
         self.tracker = MultiObjectTracker(settings.tracker)
         self.counts: Counter[str] = Counter()
         self.last_reduction = float("nan")
-        self._lidar_frames = 0  # frames processed with a lidar live (camera cadence)
+        self._lidar_frames = 0  # frames processed with a lidar live (camera cadence without ticks)
+        # The sim's tick rate where frames come from a sim (set by the driver): the camera cadence is
+        # then a function of the tick, shared with the cameras' capture demand.
+        self.tick_hz: float | None = None
 
     # --- stages ---------------------------------------------------------------------------------
 
-    def cameras_due(self, lidar_live: bool) -> bool:
-        """Whether the next frame runs the camera detector: always without a live lidar; with one, every
-        `detectors.camera_every_n_with_lidar`-th frame (the MEC skips decoding the images otherwise)."""
-        return not lidar_live or self._lidar_frames % self.cfg.detectors.camera_every_n_with_lidar == 0
+    def camera_every_n(self, lidar_live: bool) -> int:
+        """Every how many frames the camera detector runs: 1 without a live lidar, else
+        `detectors.camera_every_n_with_lidar`."""
+        return self.cfg.detectors.camera_every_n_with_lidar if lidar_live else 1
+
+    def cameras_due(self, lidar_live: bool, tick: int) -> frozenset[str]:
+        """The cameras whose images the detector runs on in the frame of `tick` (the MEC decodes only
+        those). With `tick_hz` known: the cameras whose frame of that tick `frame_due` names; without
+        (real sensors): all of them on every n-th processed frame, none in between."""
+        n = self.camera_every_n(lidar_live)
+        if self.tick_hz is not None:
+            return frozenset(
+                c for c in self.camera_ids if frame_due(self.camera_rates_hz[c], n, tick, self.tick_hz)
+            )
+        return frozenset(self.camera_ids) if self._lidar_frames % n == 0 else frozenset()
 
     def lidar_live(self, sensor_ids: Collection[str]) -> bool:
         """True if any of `sensor_ids` is one of this agent's lidars."""
@@ -191,12 +213,14 @@ class AgentPipeline:
         t0 = time.perf_counter()
         lidar_live = self.lidar_live(frame.clouds)
         dets2d: dict[str, FloatArray] = {}
-        if self.cameras_due(lidar_live):
+        due = self.cameras_due(lidar_live, frame.tick)
+        images = {c: img for c, img in frame.images.items() if c in due}
+        if images:
             try:
-                dets2d = self.detect_2d(frame.images)
+                dets2d = self.detect_2d(images)
             except DetectorInputError:
                 counts["rejected/camera_input"] += 1
-        elif frame.images:
+        if len(images) < len(frame.images):
             counts["camera/skipped_with_lidar"] += 1
         self._lidar_frames += lidar_live
         t1 = time.perf_counter()

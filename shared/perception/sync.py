@@ -9,7 +9,8 @@ output instead of stalling it.
 frames are joined exactly on the tick. A tick is ready when every sensor that is currently expected
 has delivered it, when `max_wait_s` has passed since its first sample arrived, or when a newer tick is
 ready (ticks are emitted in order). Which sensors are expected is the caller's choice per `poll`/`add`
-call (the MEC passes the inputs its health monitor thinks alive, so a dead camera is not waited for).
+call, a set or a function of the tick (the MEC passes the inputs its health monitor thinks alive, less
+the cameras not due on that tick, so neither a dead camera nor a skipped frame is waited for).
 
 `BoundedWaitCollector` (real, asynchronous sensors): a frame is triggered by each sample of the
 `trigger` sensor; every other sensor contributes its sample nearest to the trigger stamp within
@@ -22,11 +23,14 @@ Times: `now_s` is a monotonic wall clock (arrival), stamps are sensor times in n
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Collection, Mapping
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 NS_PER_S = 1_000_000_000
+
+#: The sensors a tick waits for: one set for every tick, or a function of the tick.
+Expected = Collection[str] | Callable[[int], Collection[str]]
 
 
 @dataclass(frozen=True)
@@ -84,7 +88,7 @@ class TickJoiner:
         self.duplicates = 0
         self.unknown = 0
 
-    def add(self, sample: Sample, expected: Collection[str], now_s: float) -> list[JoinedFrame]:
+    def add(self, sample: Sample, expected: Expected, now_s: float) -> list[JoinedFrame]:
         """Add one sample; returns the frames that became ready (oldest first)."""
         if sample.sensor_id not in self.sensors:
             self.unknown += 1
@@ -102,12 +106,14 @@ class TickJoiner:
         pending.samples[sample.sensor_id] = sample
         return self.poll(expected, now_s)
 
-    def poll(self, expected: Collection[str], now_s: float) -> list[JoinedFrame]:
+    def _wanted(self, expected: Expected, tick: int) -> frozenset[str]:
+        return self.sensors.intersection(expected(tick) if callable(expected) else expected)
+
+    def poll(self, expected: Expected, now_s: float) -> list[JoinedFrame]:
         """Frames ready at `now_s`: complete, timed out, or older than a ready one; oldest first."""
-        wanted = self.sensors.intersection(expected)
         ready_tick = -1
         for tick, p in self._pending.items():
-            complete = wanted.issubset(p.samples)
+            complete = self._wanted(expected, tick).issubset(p.samples)
             if complete or now_s - p.first_arrival_s >= self.max_wait_s:
                 ready_tick = max(ready_tick, tick)
         overflow = len(self._pending) - self.max_pending
@@ -119,7 +125,7 @@ class TickJoiner:
             if tick > ready_tick:
                 break
             p = self._pending.pop(tick)
-            missing = tuple(sorted(wanted.difference(p.samples)))
+            missing = tuple(sorted(self._wanted(expected, tick).difference(p.samples)))
             out.append(JoinedFrame(p.stamp_ns, tick, p.samples, missing, p.first_arrival_s))
             self._last_emitted_tick = tick
         return out

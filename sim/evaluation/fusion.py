@@ -200,10 +200,11 @@ def single_modality_measurements(
             lidar_measurement(b[:7], b[7], frozenset({"lidar"}), tuple(pipeline.lidar_ids))
             for b in result.lidar_boxes_world
         ]
-    camera_boxes = result.camera_boxes
-    if not camera_boxes and inputs.images:
-        # The pipeline's camera cadence skipped the detector on this frame; the baseline runs it.
-        camera_boxes = pipeline.detect_2d(inputs.images)
+    camera_boxes = dict(result.camera_boxes)
+    skipped = {c: img for c, img in inputs.images.items() if c not in camera_boxes}
+    if skipped:
+        # The pipeline's camera cadence skipped the detector on these images; the baseline runs it.
+        camera_boxes.update(pipeline.detect_2d(skipped))
     if camera_boxes:
         objs = camera_only.locate(
             pipeline.views,
@@ -236,6 +237,7 @@ def evaluate_run(
     vehicle_index: dict[str, int] = {}
     sensor_ids = [s.id for s in scene.sensors_of(agent_id)]
     pipeline = AgentPipeline(scene, agent_id, mec, cameras=cameras, lidar=lidar)
+    pipeline.tick_hz = sim_settings.tick_hz  # the camera cadence of the live MEC (on sim ticks)
     single_trackers = {m: MultiObjectTracker(mec.tracker) for m in SINGLE_MODALITIES}
     scope = AgentScope(scene, agent_id, SCOPE_MARGIN_M, SCOPE_MARGIN_Z_M)
     with LockstepSim(scene, sim_settings, sensor_ids=sensor_ids, labels=True) as sim:

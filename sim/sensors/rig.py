@@ -26,6 +26,7 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from google.protobuf.message import Message
 from rmmdet.v1.sim_pb2 import GroundTruth
 
+from shared.scene.cadence import frame_due
 from shared.scene.model import SensorSpec
 from shared.scene.scene import Scene
 from sim.ground_truth import poses_from_ground_truth
@@ -40,11 +41,6 @@ JPEG_QUALITY = 85
 def sensor_rng(seed: int, sensor_id: str, tick: int) -> np.random.Generator:
     """Noise generator for one sensor frame: depends only on (seed, sensor, tick)."""
     return np.random.default_rng([seed, zlib.crc32(sensor_id.encode()), tick])
-
-
-def fires(rate_hz: float, tick: int, tick_hz: float) -> bool:
-    """True on the first tick of each 1/rate period (tick 0 included)."""
-    return tick == 0 or int(tick * rate_hz / tick_hz) != int((tick - 1) * rate_hz / tick_hz)
 
 
 def encode_jpeg(rgb: np.ndarray, quality: int = JPEG_QUALITY) -> bytes:
@@ -188,17 +184,19 @@ class SensorRig:
             self.close()
             raise
 
-    def firing(self, tick: int, tick_hz: float) -> list[SensorSpec]:
-        return [s for s in self.specs if fires(s.rate_hz, tick, tick_hz)]
+    def firing(self, tick: int, tick_hz: float, every_n: int = 1) -> list[SensorSpec]:
+        """The sensors that capture on `tick` when every `every_n`-th frame is wanted (cadence.py)."""
+        return [s for s in self.specs if frame_due(s.rate_hz, every_n, tick, tick_hz)]
 
     def tick_world(self, gt: GroundTruth) -> TickWorld:
         return TickWorld.from_ground_truth(gt, self.vehicles.size_m)
 
     def capture(
-        self, gt: GroundTruth, specs: list[SensorSpec] | None = None, labels: bool = False
+        self, gt: GroundTruth, specs: list[SensorSpec] | None = None, labels: bool = False, every_n: int = 1
     ) -> list[Capture]:
-        """Captures of `specs` (default: the sensors firing on this tick) with the world at `gt`."""
-        due = self.firing(gt.header.tick, gt.tick_hz) if specs is None else specs
+        """Captures of `specs` (default: the sensors firing on this tick, every `every_n`-th frame)
+        with the world at `gt`."""
+        due = self.firing(gt.header.tick, gt.tick_hz, every_n) if specs is None else specs
         if not due:
             return []  # most ticks: nothing fires, so no world is built
         world = self.tick_world(gt)

@@ -1,9 +1,13 @@
 """Lidar detector benchmark: ONNX PointPillars latency per agent frame, and the cost of the grid choice.
 
 1. Detector: `OnnxPointPillars.detect` on real agent frames (input check, numpy pillarisation, one ORT
-   run, decode, rotated NMS), p50 / p95 per frame at 1 and 2 ORT threads, with the stage breakdown.
-   With labelled frames (a dataset split) also the detector's BEV AP@0.7 / @0.5 (40 recall points) on
-   them (labels centred outside the grid are ignored, and reported as a share).
+   run, decode, rotated NMS), p50 / p95 per frame at 1 and 2 ORT threads, with the stage breakdown and
+   the process CPU time (`time.process_time`) per frame. With labelled frames (a dataset split) also
+   the detector's BEV AP@0.7 / @0.5 (40 recall points) on them (labels centred outside the grid are
+   ignored, and reported as a share). Several `--model`s (e.g. the fp32 model and its int8
+   quantization, shared.detection.quantize) are measured in turn on the same frames, and each later
+   one's boxes are compared with the first's (share matched at BEV IoU 0.8, max / p95 deviation of
+   centre and size, yaw and score).
 2. Grid cost: for the chosen configuration and the paper's (0.015 m pillars over x, y in [-12, 12) m,
    a 1600 x 1600 grid) and two neighbours, on the same frame: pillars, pillarisation time, the network
    (PFN + scatter + backbone + head, random weights, same widths) forward in ORT at 1 thread, its
@@ -12,8 +16,9 @@
 
     python -m tests.bench.lidar_detector_bench --model MODEL.onnx --data DATASET_ROOT [--split test]
     python -m tests.bench.lidar_detector_bench --quick        # random-weight model, simulated frames
+    python -m tests.bench.lidar_detector_bench --model M.onnx M_int8.onnx --sim-seed 101 --no-grid-cost
 
-Writes tests/bench/results/lidar_detector.json (lidar_detector_quick.json with --quick).
+Writes tests/bench/results/lidar_detector.json (lidar_detector_quick.json with --quick; or --out).
 """
 
 from __future__ import annotations
@@ -35,6 +40,8 @@ from shared.datasets.layout import DatasetLayout
 from shared.detection.lidar.pointpillars.config import GridConfig, PointPillarsConfig
 from shared.detection.lidar.pointpillars.evaluation import accuracy
 from shared.detection.lidar.pointpillars.onnx_detector import OnnxPointPillars
+from shared.detection.quantize import compare_outputs
+from shared.geometry.boxes import bev_iou_matrix
 from tests.bench.machine import machine_info
 
 log = logging.getLogger("lidar_detector_bench")
@@ -56,6 +63,7 @@ GRID_REPEATS = 10
 PAPER_REPEATS = 3
 SIM_SEED = 7
 SIM_TICKS_PER_FRAME = 30  # 0.5 s of a 60 Hz simulation between frames (lidar sampled at 2 Hz)
+MATCH_IOU = 0.8
 
 
 def pct(values: list[float], q: float) -> float:
@@ -77,7 +85,7 @@ def dataset_frames(root: Path, split: str, limit: int) -> list[dict[str, Any]]:
     return frames
 
 
-def simulated_frames(count: int) -> list[dict[str, Any]]:
+def simulated_frames(count: int, seed: int = SIM_SEED) -> list[dict[str, Any]]:
     """Unlabelled agent frames (agent1 and agent3 alternately) from a short lock-step run."""
     from shared.datasets.layout import agent_origin_m
     from shared.scene.scene import Scene
@@ -91,7 +99,7 @@ def simulated_frames(count: int) -> list[dict[str, Any]]:
     T = {s: np.asarray(scene.T_world_from_sensor(s)) for a in agents for s in lidars[a]}
     frames: list[dict[str, Any]] = []
     ids = [s for a in agents for s in lidars[a]]
-    with LockstepSim(scene, SimSettings(seed=SIM_SEED), sensor_ids=ids) as sim:
+    with LockstepSim(scene, SimSettings(seed=seed), sensor_ids=ids) as sim:
         while len(frames) < count:
             captures: dict[str, Any] = {}
             for _ in range(SIM_TICKS_PER_FRAME):
@@ -113,11 +121,12 @@ def detector_latency(model: Path, frames: list[dict[str, Any]], threads: int) ->
     detector = OnnxPointPillars(model, threads=threads)
     for f in frames[:WARMUP_FRAMES]:
         detector.detect(f["points"])
-    total, pre, net, post, detections = [], [], [], [], []
+    total, cpu, pre, net, post, detections = [], [], [], [], [], []
     for f in frames:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         detector.detect(f["points"])
         total.append((time.perf_counter() - t0) * MS_PER_S)
+        cpu.append((time.process_time() - c0) * MS_PER_S)
         # Stage breakdown in a second pass over the same frame (the stages detect() chains).
         t0 = time.perf_counter()
         pillars = detector.pillarize(f["points"])
@@ -131,15 +140,31 @@ def detector_latency(model: Path, frames: list[dict[str, Any]], threads: int) ->
         post.append((t3 - t2) * MS_PER_S)
         detections.append(boxes)
     stats = {
+        "model": str(model),
         "threads": threads,
         "frames": len(frames),
         "total_ms": {"p50": pct(total, 50), "p95": pct(total, 95)},
+        "cpu_ms": {"p50": pct(cpu, 50), "p95": pct(cpu, 95)},
         "pillarize_ms": {"p50": pct(pre, 50), "p95": pct(pre, 95)},
         "onnxruntime_ms": {"p50": pct(net, 50), "p95": pct(net, 95)},
         "decode_nms_ms": {"p50": pct(post, 50), "p95": pct(post, 95)},
         "points_p50": pct([len(f["points"]) for f in frames], 50),
     }
     return stats, detections
+
+
+def compare_models(reference: list, other: list) -> dict[str, Any]:
+    """Boxes of another model against the reference's on the same frames: deviation of centre and size
+    (m), yaw (rad) and score over the boxes matched at BEV IoU MATCH_IOU."""
+    return compare_outputs(
+        reference,
+        other,
+        lambda a, b: bev_iou_matrix(a[:, :7], b[:, :7]),
+        MATCH_IOU,
+        slice(0, 6),
+        7,
+        angle_col=6,
+    )
 
 
 def detector_accuracy(
@@ -286,15 +311,26 @@ def grid_cost(base: PointPillarsConfig, points: np.ndarray) -> dict[str, Any]:
 
 def print_table(results: dict[str, Any]) -> None:
     print("\nONNX PointPillars per agent frame (pre + ORT + post), ms")
-    print(f"{'threads':>7} {'p50':>7} {'p95':>7} {'pillarize':>10} {'ORT':>7} {'decode+NMS':>11}")
+    print(
+        f"{'model':>24} {'threads':>7} {'p50':>7} {'p95':>7} {'CPU p50':>8} {'pillarize':>10} {'ORT':>7} "
+        f"{'decode+NMS':>11}"
+    )
     for r in results["detector"]:
         print(
-            f"{r['threads']:>7} {r['total_ms']['p50']:7.2f} {r['total_ms']['p95']:7.2f} "
-            f"{r['pillarize_ms']['p50']:10.2f} {r['onnxruntime_ms']['p50']:7.2f} "
-            f"{r['decode_nms_ms']['p50']:11.2f}"
+            f"{Path(r['model']).name:>24} {r['threads']:>7} {r['total_ms']['p50']:7.2f} "
+            f"{r['total_ms']['p95']:7.2f} {r['cpu_ms']['p50']:8.2f} {r['pillarize_ms']['p50']:10.2f} "
+            f"{r['onnxruntime_ms']['p50']:7.2f} {r['decode_nms_ms']['p50']:11.2f}"
         )
-    if "accuracy" in results:
-        a = results["accuracy"]
+    for c in results.get("comparison", []):
+        print(
+            f"{Path(c['model']).name} vs {Path(c['reference']).name}: {100 * c['matched_share']:.1f}% of "
+            f"{c['fp32_detections']} boxes matched at BEV IoU {MATCH_IOU}, {c['int8_unmatched']} extra; "
+            f"centre/size dev max {1000 * c['box_dev_max']:.1f} mm p95 {1000 * c['box_dev_p95']:.1f} mm; "
+            f"yaw dev max {c['angle_dev_max']:.3f} rad; score dev max {c['score_dev_max']:.3f} "
+            f"p95 {c['score_dev_p95']:.3f}"
+        )
+    for model, a in results.get("accuracy", {}).items():
+        print(Path(model).name)
         print(
             f"BEV AP@0.7 {a['bev_ap_07']:.4f}  AP@0.5 {a['bev_ap_05']:.4f}  3D AP@0.7 {a['ap3d_07']:.4f}  "
             f"centre error (BEV@0.7 TPs) median {1000 * a['centre_error_m']:.1f} mm, "
@@ -305,6 +341,8 @@ def print_table(results: dict[str, Any]) -> None:
             "BEV AP@0.7 by distance from the agent origin: "
             + ", ".join(f"{band} {ap:.4f}" for band, ap in a["bev_ap_07_by_band"].items())
         )
+    if "grid_cost" not in results:
+        return
     print("\nGrid cost on one frame (1 ORT thread, random weights)")
     print(
         f"{'config':>20} {'grid':>11} {'pillars':>8} {'pillarize ms':>13} {'network ms':>11} {'GMAC':>7} "
@@ -322,22 +360,32 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--model", type=Path, help="exported ONNX model (config JSON beside it)")
+    parser.add_argument(
+        "--model",
+        type=Path,
+        nargs="+",
+        help="exported ONNX model(s) (config JSON beside each); later ones are compared with the first",
+    )
     parser.add_argument("--data", type=Path, help="dataset root; default: simulate unlabelled frames")
     parser.add_argument("--split", default="test")
     parser.add_argument("--frames", type=int, default=200)
+    parser.add_argument("--sim-seed", type=int, default=SIM_SEED, help="seed of the simulated frames")
     parser.add_argument("--quick", action="store_true", help="few frames, random-weight model if none given")
     parser.add_argument("--no-grid-cost", action="store_true", help="skip part 2")
+    parser.add_argument("--out", type=Path, help="results JSON (default tests/bench/results/...)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     count = min(args.frames, 20) if args.quick else args.frames
 
-    frames = dataset_frames(args.data, args.split, count) if args.data else simulated_frames(count)
+    if args.data:
+        frames = dataset_frames(args.data, args.split, count)
+    else:
+        frames = simulated_frames(count, args.sim_seed)
     if not frames:
         raise SystemExit("no frames")
     with tempfile.TemporaryDirectory() as tmp:
-        model = args.model
-        if model is None:
+        models = args.model
+        if models is None:
             if not args.quick:
                 raise SystemExit("--model is required (or --quick for a random-weight model)")
             import torch
@@ -346,35 +394,42 @@ def main(argv: list[str] | None = None) -> None:
             from shared.detection.lidar.pointpillars.net import PointPillarsNet
 
             torch.manual_seed(0)
-            model = Path(tmp) / "random.onnx"
+            models = [Path(tmp) / "random.onnx"]
             config = PointPillarsConfig()
-            export_onnx(PointPillarsNet(config), config, model, frames[0]["points"])
-        config = OnnxPointPillars(model).config
+            export_onnx(PointPillarsNet(config), config, models[0], frames[0]["points"])
+        config = OnnxPointPillars(models[0]).config
         results: dict[str, Any] = {
             "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
             "machine": machine_info(),
-            "model": str(model) if args.model else "random weights (--quick)",
+            "model": [str(m) for m in models] if args.model else "random weights (--quick)",
             "frames_source": f"{args.data} split {args.split}"
             if args.data
-            else f"simulated, seed {SIM_SEED}",
+            else f"simulated, seed {args.sim_seed}",
             "config": config.model_dump(mode="json"),
             "detector": [],
         }
-        detections = None
-        for threads in THREADS:
-            stats, dets = detector_latency(model, frames, threads)
-            results["detector"].append(stats)
-            detections = detections or dets
-            log.info("threads %d: %s", threads, stats)
-        if args.data and detections is not None and "boxes" in frames[0]:
-            results["accuracy"] = detector_accuracy(config, frames, detections)
+        detections: dict[Path, list] = {}
+        for model in models:
+            for threads in THREADS:
+                stats, dets = detector_latency(model, frames, threads)
+                results["detector"].append(stats)
+                detections.setdefault(model, dets)
+                log.info("%s threads %d: %s", model.name, threads, stats)
+        reference = detections[models[0]]
+        results["comparison"] = [
+            {"reference": str(models[0]), "model": str(m), **compare_models(reference, detections[m])}
+            for m in models[1:]
+        ]
+        if args.data and "boxes" in frames[0]:
+            results["accuracy"] = {str(m): detector_accuracy(config, frames, detections[m]) for m in models}
         if not args.no_grid_cost:
             median_frame = sorted(frames, key=lambda f: len(f["points"]))[len(frames) // 2]
             results["grid_cost"] = grid_cost(config, median_frame["points"])
-    if "grid_cost" in results:
-        print_table(results)
+    print_table(results)
     RESULTS.mkdir(parents=True, exist_ok=True)
-    out = RESULTS / ("lidar_detector_quick.json" if args.quick else "lidar_detector.json")
+    default = RESULTS / ("lidar_detector_quick.json" if args.quick else "lidar_detector.json")
+    out = args.out or default
+    out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(results, indent=2) + "\n")
     log.info("wrote %s", out)
 

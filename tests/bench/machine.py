@@ -1,4 +1,5 @@
-"""Machine description stored with every benchmark result (CPU, cores, load, library versions)."""
+"""Machine description stored with every benchmark result (CPU, its vector / int8 instruction sets,
+cores, load, library versions)."""
 
 from __future__ import annotations
 
@@ -8,25 +9,45 @@ import platform
 from pathlib import Path
 from typing import Any
 
+# The CPU flags that decide which onnxruntime kernels run (fp32 SIMD width, int8 dot products).
+VECTOR_FLAGS = (
+    "avx",
+    "avx2",
+    "fma",
+    "f16c",
+    "avx512f",
+    "avx512bw",
+    "avx512vl",
+    "avx512_vnni",
+    "avx_vnni",
+    "avx512_bf16",
+    "amx_int8",
+    "amx_bf16",
+)
+
 
 def machine_info() -> dict[str, Any]:
     cpu_model = platform.processor()
     try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu_model = line.split(":", 1)[1].strip()
-                break
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
     except OSError:
-        pass
+        lines = []
+    model = next((line for line in lines if line.startswith("model name")), None)
+    if model is not None:
+        cpu_model = model.split(":", 1)[1].strip()
+    present = next((set(line.split(":", 1)[1].split()) for line in lines if line.startswith("flags")), set())
+    flags = [f for f in VECTOR_FLAGS if f in present]
     info: dict[str, Any] = {
         "platform": platform.platform(),
         "machine": platform.machine(),
         "cpu_model": cpu_model,
+        "cpu_vector_flags": flags,
         "cpu_count": os.cpu_count(),
         "cpu_affinity_count": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
         "python": platform.python_version(),
         "zenoh": importlib.metadata.version("eclipse-zenoh"),
         "protobuf": importlib.metadata.version("protobuf"),
+        "onnxruntime": importlib.metadata.version("onnxruntime"),
     }
     if hasattr(os, "getloadavg"):
         info["loadavg_at_start"] = os.getloadavg()

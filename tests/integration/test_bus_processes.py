@@ -111,6 +111,10 @@ def test_killed_client_is_seen_leaving_and_others_keep_working(router: Router) -
             events(victim, "ready")
             events(survivor, "ready")
             victim_key = get_stream("alive").key(scope="agent1", service="testpeer", instance="victim")
+            # The victim's token reaches this session through the router, maybe after its "ready".
+            deadline = time.monotonic() + 5.0
+            while not alive.is_alive(victim_key) and time.monotonic() < deadline:
+                time.sleep(0.02)
             assert alive.is_alive(victim_key)
             t0 = time.monotonic()
             victim.send_signal(signal.SIGKILL)

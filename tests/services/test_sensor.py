@@ -39,3 +39,12 @@ def test_newest_due_tick_wins_and_earlier_due_ticks_count_as_skipped(scene: Scen
     assert due is not None and due.message.header.tick == 12 and skipped == 1
     due, skipped = newest_due([received(t) for t in (7, 8, 9)], lidars)
     assert due is None and skipped == 0
+
+
+def test_a_capture_demand_thins_the_due_ticks(scene: Scene) -> None:
+    cameras = parse_group(scene, "agent1-cameras")
+    # Every 5th frame at 10 Hz on 60 Hz ticks: ticks 0, 30, 60, ...; 6 .. 24 are no longer due.
+    due, skipped = newest_due([received(t) for t in (6, 12, 18, 24)], cameras, every_n=5)
+    assert due is None and skipped == 0
+    due, skipped = newest_due([received(t) for t in (24, 30, 36)], cameras, every_n=5)
+    assert due is not None and due.message.header.tick == 30 and skipped == 0

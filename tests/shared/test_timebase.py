@@ -71,3 +71,12 @@ def test_rejects_bad_parameters() -> None:
         SimTime(max_extrapolation_s=-1)
     with pytest.raises(ValueError):
         SimTime(lost_after_s=0)
+
+
+def test_tick_rate_is_learnt_from_the_clock_step() -> None:
+    clock = SimTime()
+    assert clock.tick_hz is None  # no sim: no ticks
+    clock.on_clock(T0, speed=1.0, wall_ns=T0)
+    assert clock.tick_hz is None  # a clock sample without its step names no rate
+    clock.on_clock(T0, speed=1.0, wall_ns=T0, step_s=1.0 / 60.0)
+    assert clock.tick_hz == 60.0  # exactly: tick arithmetic floors tick * rate / tick_hz

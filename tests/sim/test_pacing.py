@@ -60,3 +60,20 @@ def test_a_consumer_whose_process_is_gone_is_forgotten_at_once() -> None:
     pacer.forget("agent1/sensor/agent1-cameras")
     assert pacer.holding(T0 + NS_PER_S, now_s=10.1) is None
     pacer.forget("never-heard")  # harmless
+
+
+def test_a_consumer_with_a_slow_cadence_may_lag_by_its_own_period() -> None:
+    # Cameras asked for every 5th frame publish every 0.5 s: just before their next frame they lag by
+    # 0.5 s without being late; only a lag beyond period + bound holds the sim.
+    pacer = Pacer(max_lag_s=0.1, timeout_s=1.0)
+    pacer.on_progress("agent1/sensor/agent1-cameras", T0, now_s=10.0)
+    pacer.on_progress("agent1/sensor/agent1-cameras", T0 + 500 * MS, now_s=10.5)
+    assert pacer.holding(T0 + 1100 * MS, now_s=10.6) is None  # 0.6 s = period + bound
+    assert pacer.holding(T0 + 1101 * MS, now_s=10.6) == "agent1/sensor/agent1-cameras"
+
+
+def test_a_long_gap_is_not_taken_for_a_cadence() -> None:
+    pacer = Pacer(max_lag_s=0.1, timeout_s=1.0)
+    pacer.on_progress("mec1", T0, now_s=10.0)
+    pacer.on_progress("mec1", T0 + 30 * NS_PER_S, now_s=10.5)  # restarted after 30 s of sim time
+    assert pacer.holding(T0 + 31_200 * MS, now_s=10.6) == "mec1"  # period capped at 1 s

@@ -18,12 +18,13 @@ from shared.bus.codec import encode
 from shared.bus.streams import SENSOR_STREAM, get_stream
 from shared.perception.decode import point_cloud_to_array as from_point_cloud
 from shared.recording import Record, RecordingWriter, decode_record, read_records
+from shared.scene.cadence import fires
 from shared.scene.scene import Scene
 from sim.config import SimSettings
 from sim.lockstep import LockstepSim, Tick
 from sim.sensors.camera import CameraFrame
 from sim.sensors.lidar import LidarScan
-from sim.sensors.rig import fires, sensor_rng
+from sim.sensors.rig import sensor_rng
 
 TICK_HZ = 60.0
 RUN_TICKS = 24  # 0.4 s: every sensor fires several times

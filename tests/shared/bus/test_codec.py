@@ -67,7 +67,9 @@ def _scalar(field: FieldDescriptor):
         return field.enum_type.values[-1].number
     if field.name.endswith("_count"):
         return 3  # grid 3 x 3 = the 9 repeated cells
-    return next(_counter) % 1000  # distinct ids; small enough for Timestamp nanos
+    # Distinct, increasing ids (a processing stage's end stays after its start), below 1e9: valid
+    # Timestamp nanos. (A modulus of 1000 wrapped as message types were added and broke that order.)
+    return next(_counter) % 999_999_999
 
 
 MESSAGE_TYPES = all_rmmdet_message_types()

@@ -57,3 +57,22 @@ def test_stutter_does_not_flap_and_no_input_is_unavailable() -> None:
     states = [h.update({"cam": ok, "lidar": True}) for ok in pattern]
     assert states[1:] == [Status.DEGRADED] * 5 and h.transitions == 1
     assert h.update({"cam": False, "lidar": False}) is Status.UNAVAILABLE
+
+
+def test_an_input_asked_for_fewer_frames_is_judged_at_its_new_rate() -> None:
+    m = monitor()
+    m.accept("cam", stamp_ns=10 * NS, now_s=1.0, arrival_ns=10 * NS)
+    m.set_rate("cam", 3.0)  # every 5th frame of 15 Hz
+    assert m.state("cam", 1.0 + 0.9) is InputState.OK  # 3 periods of 1/3 s
+    assert m.state("cam", 1.0 + 1.01) is InputState.MISSING
+    with pytest.raises(ValueError):
+        m.set_rate("cam", 0.0)
+
+
+def test_an_input_whose_process_is_gone_is_missing_at_once_until_it_delivers() -> None:
+    m = monitor()
+    m.accept("cam", stamp_ns=10 * NS, now_s=1.0, arrival_ns=10 * NS)
+    m.mark_gone("cam")
+    assert m.state("cam", 1.01) is InputState.MISSING and m.alive(1.01) == []
+    m.accept("cam", stamp_ns=11 * NS, now_s=2.0, arrival_ns=11 * NS)  # restarted
+    assert m.state("cam", 2.01) is InputState.OK

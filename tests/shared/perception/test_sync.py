@@ -102,3 +102,19 @@ def test_invalid_settings_are_rejected() -> None:
         TickJoiner(SENSORS, max_wait_s=0)
     with pytest.raises(ValueError):
         BoundedWaitCollector("lidar", {"lidar": 0.1}, tolerance_s=0.1)
+
+
+def test_expected_sensors_may_depend_on_the_tick() -> None:
+    # The camera is due on even ticks only (a capture demand): odd ticks do not wait for it.
+    j = TickJoiner(SENSORS, max_wait_s=0.05)
+
+    def expected(tick: int) -> set[str]:
+        return set(SENSORS) if tick % 2 == 0 else {"lidar", "radar"}
+
+    j.add(s("lidar", 3), expected, 0.0)
+    (frame,) = j.add(s("radar", 3), expected, 0.001)
+    assert frame.tick == 3 and frame.missing == ()
+    j.add(s("lidar", 4), expected, 0.1)
+    assert j.add(s("radar", 4), expected, 0.101) == []  # waits for the camera on tick 4
+    (frame,) = j.poll(expected, 0.16)
+    assert frame.missing == ("cam",)

@@ -18,6 +18,7 @@ from shared.detection.interface import LIDAR_COLUMNS, check_points, empty_lidar_
 from shared.detection.lidar.pointpillars.coding import BOX_COLUMNS, decode, rotated_nms
 from shared.detection.lidar.pointpillars.config import PointPillarsConfig
 from shared.detection.lidar.pointpillars.pillars import Pillars, flat_coords, pillarize
+from shared.detection.precision import fp32_file
 
 INPUT_NAMES = ("features", "num_points", "coords")
 OUTPUT_NAMES = ("peak_scores", "regression")
@@ -26,8 +27,9 @@ SCORE_COLUMN = BOX_COLUMNS
 
 
 def config_path_for(model_path: Path) -> Path:
-    """The config JSON written next to an exported model: `<model>.json`."""
-    return Path(model_path).with_suffix(".json")
+    """The config JSON written next to an exported model: `<model>.json`; a quantized copy
+    (`<model>_int8.onnx`, shared.detection.precision) shares its fp32 model's."""
+    return fp32_file(Path(model_path)).with_suffix(".json")
 
 
 def make_session(model_path: Path, threads: int) -> ort.InferenceSession:
@@ -56,14 +58,17 @@ class OnnxPointPillars:
     def pillarize(self, points: np.ndarray) -> Pillars:
         return pillarize(points, self.config.grid)
 
-    def infer(self, pillars: Pillars) -> tuple[np.ndarray, np.ndarray]:
-        """ORT run on non-empty pillars: peak scores (H, W), regression (9, H, W) of the head grid."""
-        feeds = {
+    def feeds(self, pillars: Pillars) -> dict[str, np.ndarray]:
+        """The network's inputs (INPUT_NAMES) for non-empty pillars."""
+        return {
             "features": pillars.features,
             "num_points": pillars.num_points.astype(np.int64),
             "coords": flat_coords(pillars.coords, self.config.grid),
         }
-        peaks, regression = self.session.run(list(OUTPUT_NAMES), feeds)
+
+    def infer(self, pillars: Pillars) -> tuple[np.ndarray, np.ndarray]:
+        """ORT run on non-empty pillars: peak scores (H, W), regression (9, H, W) of the head grid."""
+        peaks, regression = self.session.run(list(OUTPUT_NAMES), self.feeds(pillars))
         return peaks[0, 0], regression[0]
 
     def postprocess(self, peaks: np.ndarray, regression: np.ndarray) -> np.ndarray:

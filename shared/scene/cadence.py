@@ -1,0 +1,56 @@
+"""Which simulation ticks a sensor captures on: its rate, and the capture demand of its consumers.
+
+A sensor at `rate_hz` fires on the first tick of each 1/rate period (`fires`), so every sensor of one
+rate fires on the same ticks and an agent's frames join tick-exactly. A consumer may ask for only every
+n-th of those frames (`rmmdet.v1.CaptureDemand`, the software counterpart of a camera trigger line):
+the sensor then captures where `frame_due` holds, which the consumer computes the same way to know
+which frames to wait for. `CaptureDemands` is the sensor's side: the demands it has heard, each valid
+until its `valid_for_s` runs out; the smallest `every_n` of the valid ones wins (a consumer that needs
+every frame is never starved by one that needs fewer), and with none the sensor captures every frame.
+
+    >>> [t for t in range(0, 61) if frame_due(10.0, 5, t, 60.0)]
+    [0, 30, 60]
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+def fires(rate_hz: float, tick: int, tick_hz: float) -> bool:
+    """True on the first tick of each 1/rate period (tick 0 included)."""
+    return tick == 0 or int(tick * rate_hz / tick_hz) != int((tick - 1) * rate_hz / tick_hz)
+
+
+def frame_due(rate_hz: float, every_n: int, tick: int, tick_hz: float) -> bool:
+    """True if a sensor at `rate_hz` captures on `tick` when only every `every_n`-th frame is wanted:
+    the ticks on which its frame index floor(tick * rate_hz / tick_hz) reaches a multiple of n."""
+    if every_n < 1:
+        raise ValueError(f"every_n must be >= 1, got {every_n}")
+    return fires(rate_hz / every_n, tick, tick_hz)
+
+
+@dataclass
+class _Demand:
+    every_n: int
+    until_s: float
+
+
+class CaptureDemands:
+    """The capture demands a sensor group has heard, by consumer. Times: monotonic wall seconds."""
+
+    def __init__(self) -> None:
+        self._demands: dict[str, _Demand] = {}
+
+    def on_demand(self, consumer: str, every_n: int, valid_for_s: float, now_s: float) -> bool:
+        """Record `consumer`'s demand; False (ignored) if it is malformed."""
+        if every_n < 1 or not valid_for_s > 0:
+            return False
+        self._demands[consumer] = _Demand(every_n, now_s + valid_for_s)
+        return True
+
+    def every_n(self, now_s: float) -> int:
+        """Smallest `every_n` of the demands still valid at `now_s`; 1 (every frame) with none."""
+        for name in [n for n, d in self._demands.items() if d.until_s < now_s]:
+            del self._demands[name]
+        return min((d.every_n for d in self._demands.values()), default=1)
