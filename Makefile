@@ -73,7 +73,9 @@ test-integration: install
 test-fault: install
 	$(BIN)/python -m pytest -m "fault and not slow" $(PYTEST_ARGS)
 
-bench: install ## benchmarks (bus latency/throughput, sim step/sensor cost/real-time factor) -> tests/bench/results/*.json
+bench: install ## benchmarks: the whole system as `make up` runs it (10 min), then bus, sim, detectors, MEC, coordinator -> tests/bench/results/*.json
+	$(MAKE) down
+	$(BIN)/python -m tests.bench.system_bench --readme $(SYSTEM_BENCH_ARGS)
 	$(BIN)/python -m tests.bench.bus_bench $(BENCH_ARGS)
 	$(BIN)/python -m tests.bench.sim_bench $(BENCH_ARGS)
 	$(BIN)/python -m tests.bench.camera_detector_bench --model $(MODELS_DIR)/camera/model.onnx $(BENCH_DATA)
