@@ -39,7 +39,7 @@ from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.bus.streams import SENSOR_STREAM, get_stream, sensor_group_source
 from shared.config import load_settings
 from shared.perception.config import DEFAULT_MEC_CONFIG, MecSettings
-from shared.perception.decode import decode_sensor
+from shared.perception.decode import FrameDecoder, decode_sensor
 from shared.perception.inputs import SensorMonitor, Status, StatusHysteresis
 from shared.perception.output import tracked_objects_message
 from shared.perception.pipeline import AgentInputs, AgentPipeline
@@ -64,6 +64,7 @@ def decode_frame(
     kinds: Mapping[str, str],
     counters: Counter[str],
     cameras: Collection[str] | None = None,
+    decoder: FrameDecoder | None = None,
 ) -> tuple[AgentInputs, set[str]]:
     """Decode the joined messages; a frame that does not decode is left out and counted. Only the
     images of `cameras` (default all) are decoded: the pipeline will not look at the others this frame.
@@ -76,7 +77,10 @@ def decode_frame(
             delivered.add(sensor_id)
             continue
         try:
-            inputs.add(kind, sensor_id, decode_sensor(kind, sample.data))
+            data = (
+                decoder.decode(kind, sensor_id, sample.data) if decoder else decode_sensor(kind, sample.data)
+            )
+            inputs.add(kind, sensor_id, data)
             delivered.add(sensor_id)
         except ValueError as err:
             counters[f"rejected/{kind}_decode"] += 1
@@ -151,6 +155,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         )
         node.adopt(presence)
         following = sim_time.following
+        decoder = FrameDecoder()
         joiner = TickJoiner(kinds, settings.sync.max_wait_s, settings.sync.max_pending_ticks)
         status = StatusHysteresis(settings.health.recover_frames)
         counters: Counter[str] = Counter()
@@ -236,7 +241,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             frame = ready[-1]
             start_ns = time.time_ns()
             due = pipeline.cameras_due(pipeline.lidar_live(frame.samples), frame.tick)
-            inputs, delivered = decode_frame(frame, kinds, counters, due)
+            inputs, delivered = decode_frame(frame, kinds, counters, due, decoder)
             decoded_ns = time.time_ns()
             try:
                 result = pipeline.process(inputs)

@@ -159,6 +159,7 @@ class AgentPipeline:
         # The sim's tick rate where frames come from a sim (set by the driver): the camera cadence is
         # then a function of the tick, shared with the cameras' capture demand.
         self.tick_hz: float | None = None
+        self._2d_cache: dict[str, tuple[np.ndarray, FloatArray]] = {}  # camera -> (image, its boxes)
 
     # --- stages ---------------------------------------------------------------------------------
 
@@ -183,12 +184,27 @@ class AgentPipeline:
         return any(c in sensor_ids for c in self.lidar_ids)
 
     def detect_2d(self, images: dict[str, np.ndarray]) -> dict[str, FloatArray]:
+        """2D boxes per camera, one batched detector call. A read-only image that is the very array
+        this camera's boxes were last computed on (`FrameDecoder` hands a repeated frame back
+        unchanged) reuses those boxes."""
         ids = [c for c in self.camera_ids if c in images]
         if not ids or self.camera_detector is None:
             return {}
-        out = self.camera_detector.detect([images[c] for c in ids])
-        min_score = self.cfg.detectors.camera_min_score
-        return {c: np.asarray(d[d[:, 4] >= min_score], float) for c, d in zip(ids, out, strict=True)}
+        out: dict[str, FloatArray] = {}
+        run = []
+        for c in ids:
+            cached = self._2d_cache.get(c)
+            if cached is not None and cached[0] is images[c] and not images[c].flags.writeable:
+                out[c] = cached[1]
+                self.counts["camera/repeated_frame"] += 1
+            else:
+                run.append(c)
+        if run:
+            min_score = self.cfg.detectors.camera_min_score
+            for c, d in zip(run, self.camera_detector.detect([images[c] for c in run]), strict=True):
+                out[c] = np.asarray(d[d[:, 4] >= min_score], float)
+                self._2d_cache[c] = (images[c], out[c])
+        return {c: out[c] for c in ids}
 
     def detect_3d(self, clouds: dict[str, np.ndarray]) -> FloatArray:
         """(M, 9) world-frame boxes `[x, y, z, dx, dy, dz, yaw, score, class]` of the agent's lidars."""

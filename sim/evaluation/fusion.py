@@ -37,7 +37,7 @@ from shared.metrics.fusion import FusionAccumulator
 from shared.metrics.tracking import TrackingAccumulator
 from shared.perception import camera_only
 from shared.perception.config import MecSettings
-from shared.perception.decode import decode_sensor
+from shared.perception.decode import FrameDecoder
 from shared.perception.output import DEFAULT_SIZE_M
 from shared.perception.pipeline import (
     AgentInputs,
@@ -135,11 +135,11 @@ def observable(gt: Any, captures: list[Capture], scope: AgentScope) -> FrameTrut
     return FrameTruth(scored, ignore)
 
 
-def to_inputs(tick_stamp_ns: int, tick: int, captures: list[Capture]) -> AgentInputs:
-    """Decode the tick's bus messages the way the MEC does."""
+def to_inputs(tick_stamp_ns: int, tick: int, captures: list[Capture], decoder: FrameDecoder) -> AgentInputs:
+    """Decode the tick's bus messages the way the MEC does (one `decoder` per run)."""
     inputs = AgentInputs(stamp_ns=tick_stamp_ns, tick=tick)
     for c in captures:
-        inputs.add(c.spec.kind, c.spec.id, decode_sensor(c.spec.kind, c.message))
+        inputs.add(c.spec.kind, c.spec.id, decoder.decode(c.spec.kind, c.spec.id, c.message))
     return inputs
 
 
@@ -238,6 +238,7 @@ def evaluate_run(
     sensor_ids = [s.id for s in scene.sensors_of(agent_id)]
     pipeline = AgentPipeline(scene, agent_id, mec, cameras=cameras, lidar=lidar)
     pipeline.tick_hz = sim_settings.tick_hz  # the camera cadence of the live MEC (on sim ticks)
+    decoder = FrameDecoder()
     single_trackers = {m: MultiObjectTracker(mec.tracker) for m in SINGLE_MODALITIES}
     scope = AgentScope(scene, agent_id, SCOPE_MARGIN_M, SCOPE_MARGIN_Z_M)
     with LockstepSim(scene, sim_settings, sensor_ids=sensor_ids, labels=True) as sim:
@@ -250,7 +251,7 @@ def evaluate_run(
                 continue
             gt = tick.ground_truth
             stamp_ns = gt.header.stamp.ToNanoseconds()
-            inputs = to_inputs(stamp_ns, gt.header.tick, tick.captures)
+            inputs = to_inputs(stamp_ns, gt.header.tick, tick.captures, decoder)
             result = pipeline.process(inputs)
             singles = single_modality_measurements(result, pipeline, inputs)
             for m, tracker in single_trackers.items():

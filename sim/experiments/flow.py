@@ -328,6 +328,7 @@ def run_full_perception(
     """Closed loop through rendered sensors and the MEC pipelines (ONNX detectors, fusion, tracking):
     each agent's tracks become its object list exactly as the MEC publishes and the coordinator reads
     them (TrackedObjects message -> `agent_objects`)."""
+    from shared.perception.decode import FrameDecoder
     from shared.perception.inputs import Status
     from shared.perception.output import tracked_objects_message
     from shared.perception.pipeline import AgentPipeline
@@ -339,6 +340,9 @@ def run_full_perception(
     t0 = time.perf_counter()
     settings = sim.model_copy(update={"seed": run.seed, "traffic": traffic_settings(sim, run.vehicles)})
     pipelines = {a: AgentPipeline(scene, a, mec) for a in scene.agents}
+    decoders = {a: FrameDecoder() for a in scene.agents}
+    for pipeline in pipelines.values():
+        pipeline.tick_hz = sim.tick_hz  # the live MEC's camera cadence (on sim ticks)
     kinds = {s.id: s.kind for s in scene.spec.sensors}
     latest = {a: AgentObjects.empty(a) for a in scene.agents}
     min_existence = coordinator.maps.min_existence_probability
@@ -356,7 +360,7 @@ def run_full_perception(
             stamp_ns = tick.ground_truth.header.stamp.ToNanoseconds()
             for agent, captures in by_agent.items():
                 result = pipelines[agent].process(
-                    to_inputs(stamp_ns, tick.ground_truth.header.tick, captures)
+                    to_inputs(stamp_ns, tick.ground_truth.header.tick, captures, decoders[agent])
                 )
                 msg = tracked_objects_message(result, agent, Status.FULL, [], kinds)
                 latest[agent] = agent_objects(agent, msg, min_existence)

@@ -1,12 +1,16 @@
-"""The MEC's camera cadence: with a lidar live the camera detector runs on every n-th frame only; on
-sim ticks those are the frames `frame_due` names (the ones the MEC asks its cameras to capture)."""
+"""The MEC's camera work: with a lidar live the camera detector runs on every n-th frame only (on sim
+ticks the frames `frame_due` names, the ones the MEC asks its cameras to capture), and a frame that
+repeats its camera's previous one is neither decoded nor detected again."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 
 from shared.perception.config import MecSettings
+from shared.perception.decode import FrameDecoder
 from shared.perception.pipeline import AgentInputs, AgentPipeline
 from shared.scene.scene import Scene
 from sim.config import DEFAULT_SCENE
@@ -85,3 +89,31 @@ def test_without_ticks_every_nth_processed_frame_runs_the_detector(scene: Scene)
     for _ in range(2 * n):
         pipe.process(frame(scene, 0, lidar=True))
     assert len(cams.calls) == 2
+
+
+def jpeg(value: int) -> CompressedImage:
+    ok, buf = cv2.imencode(".jpg", np.full((48, 64, 3), value, np.uint8))
+    assert ok
+    return CompressedImage(format="jpeg", data=bytes(buf))
+
+
+def test_a_repeated_camera_frame_is_decoded_once_and_its_boxes_reused(scene: Scene) -> None:
+    decoder = FrameDecoder()
+    first = decoder.decode("camera", "cam_11", jpeg(40))
+    again = decoder.decode("camera", "cam_11", jpeg(40))
+    assert again is first and not first.flags.writeable and decoder.repeats == 1
+    other = decoder.decode("camera", "cam_12", jpeg(40))  # another camera: its own history
+    changed = decoder.decode("camera", "cam_11", jpeg(200))
+    assert other is not first and changed is not first and decoder.repeats == 1
+
+    cams = CountingCameras()
+    pipe = pipeline(scene, cams)
+    assert set(pipe.detect_2d({"cam_11": first, "cam_12": other})) == {"cam_11", "cam_12"}
+    assert set(pipe.detect_2d({"cam_11": again, "cam_12": other})) == {"cam_11", "cam_12"}
+    pipe.detect_2d({"cam_11": changed})
+    assert cams.calls == [2, 1]  # the repeat ran nothing; the changed frame ran alone
+    assert pipe.counts["camera/repeated_frame"] == 2
+    writable = np.zeros((48, 64, 3), np.uint8)  # not from a FrameDecoder: never taken as a repeat
+    pipe.detect_2d({"cam_13": writable})
+    pipe.detect_2d({"cam_13": writable})
+    assert cams.calls == [2, 1, 1, 1]
