@@ -39,7 +39,7 @@ from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.bus.streams import SENSOR_STREAM, get_stream, sensor_group_source
 from shared.config import load_settings
 from shared.perception.config import DEFAULT_MEC_CONFIG, MecSettings
-from shared.perception.decode import FrameDecoder, decode_sensor
+from shared.perception.decode import FrameDecoder
 from shared.perception.inputs import SensorMonitor, Status, StatusHysteresis
 from shared.perception.output import tracked_objects_message
 from shared.perception.pipeline import AgentInputs, AgentPipeline
@@ -63,8 +63,8 @@ def decode_frame(
     frame: JoinedFrame,
     kinds: Mapping[str, str],
     counters: Counter[str],
+    decoder: FrameDecoder,
     cameras: Collection[str] | None = None,
-    decoder: FrameDecoder | None = None,
 ) -> tuple[AgentInputs, set[str]]:
     """Decode the joined messages; a frame that does not decode is left out and counted. Only the
     images of `cameras` (default all) are decoded: the pipeline will not look at the others this frame.
@@ -77,10 +77,7 @@ def decode_frame(
             delivered.add(sensor_id)
             continue
         try:
-            data = (
-                decoder.decode(kind, sensor_id, sample.data) if decoder else decode_sensor(kind, sample.data)
-            )
-            inputs.add(kind, sensor_id, data)
+            inputs.add(kind, sensor_id, decoder.decode(kind, sensor_id, sample.data))
             delivered.add(sensor_id)
         except ValueError as err:
             counters[f"rejected/{kind}_decode"] += 1
@@ -170,14 +167,12 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 return
             every_n = pipeline.camera_every_n(pipeline.lidar_live(alive))
             changed = every_n != cadence["every_n"]
+            reason = "lidar live" if every_n > 1 else "no lidar"
             if changed or now - cadence["sent_s"] >= DEMAND_RENEW_S:
-                reason = "lidar live" if every_n > 1 else "no lidar"
                 demand_pub.put(CaptureDemand(every_n=every_n, valid_for_s=DEMAND_VALID_S, reason=reason))
                 cadence["sent_s"] = now
             if changed:
-                log.info(
-                    "cameras: every %d frame(s) (%s)", every_n, "lidar live" if every_n > 1 else "no lidar"
-                )
+                log.info("cameras: every %d frame(s) (%s)", every_n, reason)
                 cadence["every_n"] = every_n
                 for sensor_id, rate_hz in rates_hz().items():
                     monitor.set_rate(sensor_id, rate_hz)
@@ -241,7 +236,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             frame = ready[-1]
             start_ns = time.time_ns()
             due = pipeline.cameras_due(pipeline.lidar_live(frame.samples), frame.tick)
-            inputs, delivered = decode_frame(frame, kinds, counters, due, decoder)
+            inputs, delivered = decode_frame(frame, kinds, counters, decoder, due)
             decoded_ns = time.time_ns()
             try:
                 result = pipeline.process(inputs)
