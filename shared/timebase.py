@@ -67,6 +67,13 @@ class SimTime:
             return self._tick_hz
 
     @property
+    def speed(self) -> float:
+        """Sim seconds per wall second the clock runs at (1.0 without a sim): converts a wait on this
+        clock into a wall-clock timeout."""
+        with self._lock:
+            return self._speed
+
+    @property
     def following(self) -> bool:
         """True once a sim clock has been heard (sim time is the clock of record)."""
         with self._lock:

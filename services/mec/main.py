@@ -3,10 +3,10 @@
     python -m services.mec --instance agent1
 
 Subscribes to every sensor of the agent (`rmmdet/@v1/<agent>/sensor/<kind>/<id>`) into one queue,
-joins the frames of one sim tick (`TickJoiner`: waits at most `sync.max_wait_s`, and only for inputs
-that are alive), decodes them, runs `AgentPipeline` (detectors, radar-camera and lidar-camera fusion,
-tracker) and publishes `rmmdet.v1.TrackedObjects` on `rmmdet/@v1/<agent>/objects` with the tick's
-stamp, the FULL / DEGRADED status, the state of every input and per-stage latencies.
+joins the frames of one sim tick (`TickJoiner`: waits at most `sync.max_wait_s` of sim time, and only
+for inputs that are alive and due), decodes them, runs `AgentPipeline` (detectors, radar-camera and
+lidar-camera fusion, tracker) and publishes `rmmdet.v1.TrackedObjects` on `rmmdet/@v1/<agent>/objects`
+with the tick's stamp, the FULL / DEGRADED status, the state of every input and per-stage latencies.
 
 While a lidar is live the camera detector runs on every `detectors.camera_every_n_with_lidar`-th frame
 only; under a sim the MEC asks its cameras for just those frames (`capture_demand`, renewed every
@@ -153,7 +153,11 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         node.adopt(presence)
         following = sim_time.following
         decoder = FrameDecoder()
-        joiner = TickJoiner(kinds, settings.sync.max_wait_s, settings.sync.max_pending_ticks)
+
+        def new_joiner() -> TickJoiner:
+            return TickJoiner(kinds, settings.sync.max_wait_s, settings.sync.max_pending_ticks)
+
+        joiner = new_joiner()
         status = StatusHysteresis(settings.health.recover_frames)
         counters: Counter[str] = Counter()
         last_status = Status.FULL
@@ -196,9 +200,14 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         node.health.set_status(health)
         last_log = time.monotonic()
         while not shutdown.requested:
+            # The join waits on the clock of record: a sim held back by a slow consumer holds the
+            # wait too, so an input late only because the host is busy is not dropped.
             deadline = joiner.next_deadline_s()
-            now = time.monotonic()
-            wait = IDLE_WAIT_S if deadline is None else min(IDLE_WAIT_S, max(0.0, deadline - now))
+            clock_s = sim_time.now_s()
+            if deadline is None:
+                wait = IDLE_WAIT_S
+            else:
+                wait = min(IDLE_WAIT_S, max(0.0, (deadline - clock_s) / sim_time.speed))
             received = queue.get(timeout=wait)
             items = ([received] if received is not None else []) + queue.drain()
             ready: list[JoinedFrame] = []
@@ -206,6 +215,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             if sim_time.following != following:
                 following = sim_time.following
                 monitor = new_monitor()
+                joiner = new_joiner()  # its pending ticks were timed on the other clock
             clock_s = sim_time.now_s()
             while not gone.empty():
                 for sensor_id in groups.get(source_of_token(gone.get_nowait()) or "", []):
@@ -224,10 +234,10 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                     counters[f"stale/{sensor_id}"] += 1
                     node.counters.inc("rejected/stale")
                     continue
-                sample = Sample(sensor_id, stamp_ns, item.message, item.header.tick, now)
-                ready += joiner.add(sample, expected(monitor.alive(clock_s)), now)
+                sample = Sample(sensor_id, stamp_ns, item.message, item.header.tick, clock_s)
+                ready += joiner.add(sample, expected(monitor.alive(clock_s)), clock_s)
             alive = monitor.alive(clock_s)
-            ready += joiner.poll(expected(alive), now)
+            ready += joiner.poll(expected(alive), clock_s)
             if not ready:
                 continue
             if len(ready) > 1:
@@ -271,7 +281,11 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                     counters["frames/published"],
                     state.value,
                     len(result.tracks),
-                    dict(counters + pipeline.counts),
+                    dict(
+                        counters
+                        + pipeline.counts
+                        + Counter({f"late/{k}": v for k, v in joiner.late_by_sensor.items()})
+                    ),
                 )
                 last_log = now
     return 0

@@ -9,10 +9,10 @@ so all sensors of a tick share its stamp; a group that falls behind skips to the
 `foxglove.PointCloud`, radars `rmmdet.v1.RadarScan`; the rmmdet header carries the ground truth's
 stamp and tick. A consumer may ask for fewer frames (`rmmdet/@v1/<agent>/capture_demand/<kind>`, e.g.
 the MEC wants every 5th camera frame while a lidar covers its area): the group then captures only the
-frames `shared.scene.cadence.frame_due` names, for as long as the demand is renewed. Sensor noise is
-drawn from a generator seeded by (scenario seed, sensor, tick), so a rerun with one seed gives
-identical data whatever the timing. Killing this process stops only its group
-(the fault-injection test "a sensor service dies").
+frames `Scene.captures_on` names (staggered: one camera per frame, not all on one), for as long as
+the demand is renewed. Sensor noise is drawn from a generator seeded by (scenario seed, sensor,
+tick), so a rerun with one seed gives identical data whatever the timing. Killing this process stops
+only its group (the fault-injection test "a sensor service dies").
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from rmmdet.v1.sim_pb2 import GroundTruth
 from shared.bus.health import NOMINAL
 from shared.bus.node import Node, Publisher, Received, processing_stamp
 from shared.bus.streams import SENSOR_STREAM, sensor_group
-from shared.scene.cadence import CaptureDemands, frame_due
+from shared.scene.cadence import CaptureDemands
 from shared.scene.model import SensorSpec
 from shared.scene.scene import Scene
 from shared.service import run_service
@@ -55,7 +55,7 @@ def parse_group(scene: Scene, group: str) -> list[SensorSpec]:
 
 
 def newest_due(
-    items: list[Received], specs: list[SensorSpec], every_n: int = 1
+    items: list[Received], scene: Scene, specs: list[SensorSpec], every_n: int = 1
 ) -> tuple[Received | None, int]:
     """Latest-wins: the newest ground truth on which any of `specs` captures (every `every_n`-th
     frame), and how many earlier due ticks it supersedes (skipped frames)."""
@@ -63,7 +63,7 @@ def newest_due(
     skipped = 0
     for item in items:
         gt: GroundTruth = item.message
-        if any(frame_due(s.rate_hz, every_n, gt.header.tick, gt.tick_hz) for s in specs):
+        if any(scene.captures_on(s, gt.header.tick, gt.tick_hz, every_n) for s in specs):
             if due is not None:
                 skipped += 1
             due = item
@@ -121,7 +121,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             if every_n != stats["every_n"]:
                 log.info("capturing every %d frame(s) (was %d)", every_n, stats["every_n"])
                 stats["every_n"] = every_n
-            due, skipped = newest_due([received, *gt_sub.drain()], specs, every_n)
+            due, skipped = newest_due([received, *gt_sub.drain()], scene, specs, every_n)
             stats["skipped"] += skipped
             node.counters.inc("frames/skipped_ticks", skipped)
             if due is None or due.message.header.tick <= stats["last_tick"]:

@@ -54,7 +54,10 @@ class DetectorsConfig(_Model):
 
 class SyncConfig(_Model):
     max_wait_s: float = Field(
-        0.1, gt=0, description="longest wait for an agent frame's expected sensors after its first sample"
+        0.1,
+        gt=0,
+        description="longest wait for an agent frame's expected sensors after its first sample, s of the "
+        "clock of record (sim time under a sim)",
     )
     max_pending_ticks: int = Field(4, ge=1, description="ticks held at once by the joiner")
 

@@ -3,8 +3,8 @@
     AgentInputs (images, clouds, radar scans of one tick; absent sensors simply missing)
       -> 2D detection: all of the agent's images in one batched call (with a lidar live, only every
          `camera_every_n_with_lidar`-th frame: the lidar finds the cars, the camera confirms them;
-         on sim ticks the frames `shared.scene.cadence.frame_due` names, which the MEC also asks the
-         cameras to capture)
+         on sim ticks the frames `Scene.captures_on` names, one camera after another, which the MEC
+         also asks the cameras to capture)
       -> lidar: merge clouds into the agent frame (full extrinsics), preprocess, 3D detection, to world
       -> radar + camera (Algorithm 1) for each radar and its paired camera
       -> lidar + camera (Algorithm 2 + merge) over the agent's cameras
@@ -36,7 +36,6 @@ from shared.perception.config import MecSettings
 from shared.perception.lidar_preprocess import agent_frame_transforms, merge_clouds, preprocess
 from shared.perception.radar_camera import RadarTargets
 from shared.perception.views import CameraView, RoadSurface
-from shared.scene.cadence import frame_due
 from shared.scene.scene import Scene
 from shared.tracking.tracker import Measurement, MultiObjectTracker, Track
 
@@ -131,7 +130,6 @@ class AgentPipeline:
         self.cfg = settings
         specs = [s for s in scene.sensors_of(agent_id) if sensor_ids is None or s.id in sensor_ids]
         self.camera_ids = [s.id for s in specs if s.kind == "camera"]
-        self.camera_rates_hz = {s.id: s.rate_hz for s in specs if s.kind == "camera"}
         self.lidar_ids = [s.id for s in specs if s.kind == "lidar"]
         self.radar_specs = [s for s in specs if s.kind == "radar"]
         self.views = {c: CameraView.from_scene(scene, c) for c in self.camera_ids}
@@ -170,13 +168,13 @@ class AgentPipeline:
 
     def cameras_due(self, lidar_live: bool, tick: int) -> frozenset[str]:
         """The cameras whose images the detector runs on in the frame of `tick` (the MEC decodes only
-        those). With `tick_hz` known: the cameras whose frame of that tick `frame_due` names; without
-        (real sensors): all of them on every n-th processed frame, none in between."""
+        those). With `tick_hz` known: the cameras that capture on that tick (`Scene.captures_on`,
+        staggered over the n frames); without (real sensors): all of them on every n-th processed
+        frame, none in between."""
         n = self.camera_every_n(lidar_live)
         if self.tick_hz is not None:
-            return frozenset(
-                c for c in self.camera_ids if frame_due(self.camera_rates_hz[c], n, tick, self.tick_hz)
-            )
+            hz, scene = self.tick_hz, self.scene
+            return frozenset(c for c in self.camera_ids if scene.captures_on(scene.sensor(c), tick, hz, n))
         return frozenset(self.camera_ids) if self._lidar_frames % n == 0 else frozenset()
 
     def lidar_live(self, sensor_ids: Collection[str]) -> bool:

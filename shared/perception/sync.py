@@ -17,12 +17,13 @@ the cameras not due on that tick, so neither a dead camera nor a skipped frame i
 `tolerance_s`. The frame waits for a sensor at most that sensor's own timeout after the trigger
 arrived, then goes out without it.
 
-Times: `now_s` is a monotonic wall clock (arrival), stamps are sensor times in ns.
+Times: `now_s` is any monotonic clock in seconds (the MEC passes the clock of record: sim time under a
+sim, so a held sim holds the wait), stamps are sensor times in ns.
 """
 
 from __future__ import annotations
 
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -85,6 +86,7 @@ class TickJoiner:
         self._pending: dict[int, _Pending] = {}
         self._last_emitted_tick = -1
         self.late = 0  # samples of a tick already emitted (counted, dropped)
+        self.late_by_sensor: Counter[str] = Counter()  # ... and whose they were
         self.duplicates = 0
         self.unknown = 0
 
@@ -95,6 +97,7 @@ class TickJoiner:
             return []
         if sample.tick <= self._last_emitted_tick:
             self.late += 1
+            self.late_by_sensor[sample.sensor_id] += 1
             return []
         pending = self._pending.get(sample.tick)
         if pending is None:
@@ -131,7 +134,7 @@ class TickJoiner:
         return out
 
     def next_deadline_s(self) -> float | None:
-        """Monotonic time at which the oldest pending tick times out (None if nothing pending)."""
+        """Time (on the `now_s` clock) at which the oldest pending tick times out (None if none pending)."""
         if not self._pending:
             return None
         return min(p.first_arrival_s for p in self._pending.values()) + self.max_wait_s

@@ -4,12 +4,19 @@ A sensor at `rate_hz` fires on the first tick of each 1/rate period (`fires`), s
 rate fires on the same ticks and an agent's frames join tick-exactly. A consumer may ask for only every
 n-th of those frames (`rmmdet.v1.CaptureDemand`, the software counterpart of a camera trigger line):
 the sensor then captures where `frame_due` holds, which the consumer computes the same way to know
-which frames to wait for. `CaptureDemands` is the sensor's side: the demands it has heard, each valid
-until its `valid_for_s` runs out; the smallest `every_n` of the valid ones wins (a consumer that needs
-every frame is never starved by one that needs fewer), and with none the sensor captures every frame.
+which frames to wait for. Sensors thinned so are staggered by their `phase` (the scene gives each
+sensor its index among its agent's sensors of its kind): with 4 cameras asked for every 5th frame, one
+camera captures per frame instead of all four on one frame, so neither the rendering nor the MEC's
+detector work comes in bursts that miss the join and the latency budget.
+
+`CaptureDemands` is the sensor's side: the demands it has heard, each valid until its `valid_for_s`
+runs out; the smallest `every_n` of the valid ones wins (a consumer that needs every frame is never
+starved by one that needs fewer), and with none the sensor captures every frame.
 
     >>> [t for t in range(0, 61) if frame_due(10.0, 5, t, 60.0)]
     [0, 30, 60]
+    >>> [t for t in range(0, 61) if frame_due(10.0, 5, t, 60.0, phase=1)]
+    [6, 36]
 """
 
 from __future__ import annotations
@@ -22,12 +29,12 @@ def fires(rate_hz: float, tick: int, tick_hz: float) -> bool:
     return tick == 0 or int(tick * rate_hz / tick_hz) != int((tick - 1) * rate_hz / tick_hz)
 
 
-def frame_due(rate_hz: float, every_n: int, tick: int, tick_hz: float) -> bool:
+def frame_due(rate_hz: float, every_n: int, tick: int, tick_hz: float, phase: int = 0) -> bool:
     """True if a sensor at `rate_hz` captures on `tick` when only every `every_n`-th frame is wanted:
-    the ticks on which its frame index floor(tick * rate_hz / tick_hz) reaches a multiple of n."""
+    the ticks on which it fires and its frame index floor(tick * rate_hz / tick_hz) is `phase` modulo n."""
     if every_n < 1:
         raise ValueError(f"every_n must be >= 1, got {every_n}")
-    return fires(rate_hz / every_n, tick, tick_hz)
+    return fires(rate_hz, tick, tick_hz) and (int(tick * rate_hz / tick_hz) - phase) % every_n == 0
 
 
 @dataclass

@@ -22,6 +22,7 @@ from shared.geometry.transforms import (
     matrix_from_pose,
     matrix_from_xyz_rpy,
 )
+from shared.scene.cadence import frame_due
 from shared.scene.lanes import centreline
 from shared.scene.model import (
     AgentSpec,
@@ -47,6 +48,11 @@ class Scene:
         self.lanes: dict[str, LaneSpec] = {lane.id: lane for lane in spec.lanes}
         self.junctions: dict[str, JunctionSpec] = {j.id: j for j in spec.junctions}
         self.areas: dict[str, AreaSpec] = {a.id: a for a in spec.areas}
+        # A sensor's index among its agent's sensors of its kind, in scene order (cadence.py).
+        self._capture_phase = {
+            s.id: [o.id for o in spec.sensors if (o.agent, o.kind) == (s.agent, s.kind)].index(s.id)
+            for s in spec.sensors
+        }
         self._area_footprints = [shapely.Polygon(a.polygon_m) for a in spec.areas]
         for footprint in self._area_footprints:
             shapely.prepare(footprint)
@@ -64,6 +70,12 @@ class Scene:
         return self.spec.scene_id
 
     # --- sensors ---------------------------------------------------------------------------------
+
+    def captures_on(self, spec: SensorSpec, tick: int, tick_hz: float, every_n: int = 1) -> bool:
+        """True if sensor `spec` (at its `rate_hz`, which a dataset run may override) captures on
+        `tick` while every `every_n`-th of its frames is wanted; an agent's sensors of one kind are
+        staggered over the n frames (`cadence.frame_due`)."""
+        return frame_due(spec.rate_hz, every_n, tick, tick_hz, self._capture_phase[spec.id])
 
     def sensor(self, sensor_id: str) -> SensorSpec:
         try:

@@ -26,7 +26,6 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from google.protobuf.message import Message
 from rmmdet.v1.sim_pb2 import GroundTruth
 
-from shared.scene.cadence import frame_due
 from shared.scene.model import SensorSpec
 from shared.scene.scene import Scene
 from sim.ground_truth import poses_from_ground_truth
@@ -186,7 +185,7 @@ class SensorRig:
 
     def firing(self, tick: int, tick_hz: float, every_n: int = 1) -> list[SensorSpec]:
         """The sensors that capture on `tick` when every `every_n`-th frame is wanted (cadence.py)."""
-        return [s for s in self.specs if frame_due(s.rate_hz, every_n, tick, tick_hz)]
+        return [s for s in self.specs if self.scene.captures_on(s, tick, tick_hz, every_n)]
 
     def tick_world(self, gt: GroundTruth) -> TickWorld:
         return TickWorld.from_ground_truth(gt, self.vehicles.size_m)

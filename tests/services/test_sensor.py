@@ -35,16 +35,20 @@ def test_groups_name_an_agent_and_a_sensor_kind(scene: Scene) -> None:
 def test_newest_due_tick_wins_and_earlier_due_ticks_count_as_skipped(scene: Scene) -> None:
     lidars = parse_group(scene, "agent1-lidars")
     assert {s.rate_hz for s in lidars} == {10.0}  # at 60 Hz ticks: due on ticks 0, 6, 12, 18, ...
-    due, skipped = newest_due([received(t) for t in (5, 6, 7, 11, 12, 13)], lidars)
+    due, skipped = newest_due([received(t) for t in (5, 6, 7, 11, 12, 13)], scene, lidars)
     assert due is not None and due.message.header.tick == 12 and skipped == 1
-    due, skipped = newest_due([received(t) for t in (7, 8, 9)], lidars)
+    due, skipped = newest_due([received(t) for t in (7, 8, 9)], scene, lidars)
     assert due is None and skipped == 0
 
 
 def test_a_capture_demand_thins_the_due_ticks(scene: Scene) -> None:
     cameras = parse_group(scene, "agent1-cameras")
-    # Every 5th frame at 10 Hz on 60 Hz ticks: ticks 0, 30, 60, ...; 6 .. 24 are no longer due.
-    due, skipped = newest_due([received(t) for t in (6, 12, 18, 24)], cameras, every_n=5)
+    # Every 5th frame at 10 Hz on 60 Hz ticks, the 4 cameras staggered: camera i on frame i of each 5
+    # (ticks 6 i, 30 + 6 i, ...); frame 4 (tick 24, 54, ...) is no camera's.
+    due, skipped = newest_due([received(t) for t in (24, 25, 26)], scene, cameras, every_n=5)
     assert due is None and skipped == 0
-    due, skipped = newest_due([received(t) for t in (24, 30, 36)], cameras, every_n=5)
-    assert due is not None and due.message.header.tick == 30 and skipped == 0
+    due, skipped = newest_due([received(t) for t in (6, 12, 24, 25)], scene, cameras, every_n=5)
+    assert due is not None and due.message.header.tick == 12 and skipped == 1
+    first_only = cameras[:1]
+    due, skipped = newest_due([received(t) for t in (6, 12, 18, 24)], scene, first_only, every_n=5)
+    assert due is None and skipped == 0

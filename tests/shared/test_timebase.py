@@ -39,8 +39,10 @@ def test_extrapolation_uses_the_target_speed() -> None:
     clock = SimTime(max_extrapolation_s=0.1, lost_after_s=2.0)
     clock.on_clock(T0, speed=2.0, wall_ns=T0)
     assert clock.now_ns(T0 + 20_000_000) == T0 + 40_000_000  # 20 ms of wall = 40 ms of sim at 2x
+    assert clock.speed == 2.0  # a wait of 40 ms on this clock is a 20 ms wall timeout
     clock.on_clock(T0, speed=0.0, wall_ns=T0)  # as fast as possible: run on at 1x
     assert clock.now_ns(T0 + 20_000_000) == T0 + 20_000_000
+    assert clock.speed == 1.0 and SimTime().speed == 1.0
 
 
 def test_a_sim_silent_past_the_lost_time_lets_the_clock_run_on_the_wall() -> None:

@@ -41,6 +41,17 @@ def test_timeout_emits_partial_frame_naming_the_missing_sensor() -> None:
     assert frame.missing == ("radar",)
     # The radar's late sample of an emitted tick is dropped and counted, never joined.
     assert j.add(s("radar", 4), SENSORS, 1.06) == [] and j.late == 1
+    assert j.late_by_sensor == {"radar": 1}
+
+
+def test_a_clock_that_stands_still_holds_the_wait() -> None:
+    # The MEC times the join on sim time: while a paced sim is held, an input late only because the
+    # host is busy is still waited for; once the sim moves past the wait, the frame goes without it.
+    j = TickJoiner(SENSORS, max_wait_s=0.1)
+    j.add(s("lidar", 4), SENSORS, 50.0)
+    assert j.poll(SENSORS, 50.099) == []  # sim time stopped just short of the bound (wall time ran on)
+    (frame,) = j.add(s("cam", 4), SENSORS, 50.099) + j.poll(SENSORS, 50.1)
+    assert frame.missing == ("radar",)
 
 
 def test_newer_complete_tick_flushes_older_ticks_in_order() -> None:

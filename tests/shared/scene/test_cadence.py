@@ -5,6 +5,8 @@ from __future__ import annotations
 import pytest
 
 from shared.scene.cadence import CaptureDemands, fires, frame_due
+from shared.scene.scene import Scene
+from sim.config import DEFAULT_SCENE
 
 TICK_HZ = 60.0
 
@@ -17,6 +19,37 @@ def test_every_nth_frame_falls_on_ticks_where_the_sensor_fires() -> None:
 
 def test_every_fifth_frame_at_10_hz_is_every_half_second() -> None:
     assert [t for t in range(121) if frame_due(10.0, 5, t, TICK_HZ)] == [0, 30, 60, 90, 120]
+
+
+def test_phases_stagger_the_sensors_over_the_n_frames() -> None:
+    fired = [t for t in range(600) if fires(10.0, t, TICK_HZ)]
+    for every_n in (1, 3, 5):
+        by_phase = [
+            [t for t in range(600) if frame_due(10.0, every_n, t, TICK_HZ, phase)] for phase in range(every_n)
+        ]
+        # Each fired frame belongs to exactly one phase; phase p takes frames p, p + n, ...
+        assert sorted(t for ticks in by_phase for t in ticks) == fired
+        assert all(ticks == fired[p::every_n] for p, ticks in enumerate(by_phase))
+    # A phase beyond n wraps around: with n = 1 every phase captures every frame.
+    assert [t for t in range(60) if frame_due(10.0, 1, t, TICK_HZ, phase=3)] == fired[:10]
+    assert [t for t in range(61) if frame_due(10.0, 5, t, TICK_HZ, phase=6)] == [6, 36]
+
+
+def test_scene_sensors_of_one_agent_and_kind_take_consecutive_phases() -> None:
+    scene = Scene.load(DEFAULT_SCENE)
+    cameras = scene.sensors_of("agent1", "camera")
+    assert len(cameras) == 4
+    # Every 5th frame: camera i on frames i, i + 5, ...; frame 4 of each 5 has no camera.
+    due = [{c.id for c in cameras if scene.captures_on(c, k * 6, TICK_HZ, 5)} for k in range(10)]
+    assert due == [{c.id} for c in cameras] + [set()] + [{c.id} for c in cameras] + [set()]
+    # Every frame: all of them.
+    assert all(scene.captures_on(c, 6, TICK_HZ) for c in cameras)
+    # Lidars are numbered among lidars, not after the cameras.
+    lidars = scene.sensors_of("agent1", "lidar")
+    assert [scene.captures_on(lid, 0, TICK_HZ, 2) for lid in lidars] == [True, False]
+    # The spec's own rate counts (a dataset run samples cameras at 1 Hz).
+    slow = cameras[0].model_copy(update={"rate_hz": 1.0})
+    assert [t for t in range(121) if scene.captures_on(slow, t, TICK_HZ)] == [0, 60, 120]
 
 
 def test_every_n_below_one_is_rejected() -> None:
