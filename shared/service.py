@@ -7,7 +7,6 @@ call directly — and its `__main__` is `sys.exit(run_service(...))`.
 from __future__ import annotations
 
 import argparse
-import gc
 import logging
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -41,11 +40,6 @@ def run_service(
     args = parser.parse_args(argv)
     setup_logging(service, args.instance)
     conf = config_from_args(args)
-    # What is imported by now lives as long as the process: park it where the collector never looks.
-    # Otherwise every full collection re-walks ~120k import-time objects (60 ms in an MEC), and a
-    # service allocating protobuf messages at 10-50 Hz runs one about twice a second: measured (py-spy)
-    # as half of an MEC's CPU.
-    gc.freeze()
     with GracefulShutdown() as shutdown:
         rc = main(conf, args, shutdown)
     log.info("exit %s", rc or 0)
