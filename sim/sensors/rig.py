@@ -118,11 +118,17 @@ class CameraSensor:
         self.renderer = CameraRenderer(scene, spec.id, static, vehicles, lighting)
         self.noise_std = spec.camera.image_noise_std
         self._empty_jpeg = encode_jpeg(self.renderer.background)
+        self._last_jpeg: tuple[np.ndarray, bytes] | None = None  # (noise-free image, its JPEG)
 
     def capture(self, world: TickWorld, labels: bool) -> Capture:
         frame = self.renderer.render(world.poses, world.corners_w, labels=labels)
         if not frame.rois and self.noise_std <= 0:
             data = self._empty_jpeg  # nothing moving in view: the cached static frame
+        elif self.noise_std <= 0:
+            # The renderer hands a repeated view back as the very same array: encode it once.
+            if self._last_jpeg is None or self._last_jpeg[0] is not frame.rgb:
+                self._last_jpeg = (frame.rgb, encode_jpeg(frame.rgb))
+            data = self._last_jpeg[1]
         else:
             rgb = add_noise(frame.rgb, self.noise_std, sensor_rng(world.seed, self.spec.id, world.tick))
             frame = CameraFrame(rgb, frame.visible_px, frame.visible_boxes, frame.rois)

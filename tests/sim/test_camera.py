@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -72,3 +74,29 @@ def test_frame_without_vehicles_in_view_is_the_background(scene: Scene, worlds) 
     cam = CameraRenderer(scene, "cam_11", static, vehicles)
     frame = cam.render(far)
     assert frame.rois == [] and frame.rgb is cam.background
+
+
+def test_a_repeated_view_is_not_rendered_again(scene: Scene, worlds) -> None:
+    static, vehicles, _ = worlds
+    poses = _poses(scene)
+    vehicles.update(poses)
+    cam = CameraRenderer(scene, "cam_11", static, vehicles)
+    first = cam.render(poses, labels=False)
+    assert first.rois and cam.reused == 0
+    # Exactly the same poses in view: the same frame back, read-only, and what a render would give.
+    again = cam.render(poses, labels=False)
+    assert again is first and cam.reused == 1 and not again.rgb.flags.writeable
+    fresh = CameraRenderer(scene, "cam_11", static, vehicles).render(poses, labels=False)
+    assert np.array_equal(fresh.rgb, first.rgb)
+    # Labels asked for: rendered (the cached frame has none).
+    assert cam.render(poses, labels=True).visible_px and cam.reused == 1
+    # A vehicle in view moves by 1 mm: rendered again.
+    moved = [replace(poses[0], center_m=(poses[0].center_m[0] + 0.001, *poses[0].center_m[1:])), *poses[1:]]
+    vehicles.update(moved)
+    assert cam.render(moved, labels=False) is not first and cam.reused == 1
+    # A vehicle out of view moves: nothing in view changed.
+    out_of_view = VehiclePose("v09", (3.35, -4.0, 0.105), 1.57)
+    vehicles.update([*moved, out_of_view])
+    frame = cam.render([*moved, out_of_view], labels=False)
+    vehicles.update([*moved, replace(out_of_view, yaw_rad=0.0)])
+    assert cam.render([*moved, replace(out_of_view, yaw_rad=0.0)], labels=False) is frame
