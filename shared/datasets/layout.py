@@ -2,7 +2,7 @@
 
     <root>/manifest.json                 generator settings, seeds of each split, frame counts
     <root>/camera/data.yaml              YOLO: path, train, val, test, names {0: car}
-    <root>/camera/images/<split>/<stem>.jpg    640x480 JPEG (quality as on the bus)
+    <root>/camera/images/<split>/<stem>.jpg    JPEG at the scene camera size (quality as on the bus)
     <root>/camera/labels/<split>/<stem>.txt    YOLO: "0 cx cy w h", normalised to [0, 1]
     <root>/camera/voc/<split>/<stem>.xml       Pascal VOC (1-based inclusive pixel corners)
     <root>/camera/meta/<split>/<stem>.json     {"boxes": [[x0, y0, x1, y1]...], "ignore": [[...]...],
@@ -18,7 +18,8 @@
 Splits are by seed (a seed's frames all go to one split). Camera stems are
 `s<seed>_t<tick>_<camera>`, lidar stems `s<seed>_t<tick>_<agent>`.
 
-Camera labels: every vehicle with at least `MIN_VISIBLE_PX` visible pixels; its box is the tight box
+Camera labels: every vehicle with at least `min_visible_px` visible pixels (a fixed fraction of the
+image: 60 px of a 640x480 image, 29 of 448x336); its box is the tight box
 of its visible pixels (pixel corners, x1/y1 exclusive). Vehicles with fewer visible pixels go to
 `ignore` (evaluation neither rewards nor penalises detections on them).
 
@@ -37,10 +38,17 @@ import numpy as np
 from shared.scene.scene import Scene
 
 SPLITS = ("train", "val", "test")
-MIN_VISIBLE_PX = 60
+MIN_VISIBLE_FRACTION = 60 / (640 * 480)  # of the image's pixels: a car is "seen" from this many on
 MIN_LIDAR_POINTS = 5
 CAMERA_IMAGE_EXT = ".jpg"
 CLASS_NAME = "car"
+
+
+def min_visible_px(width_px: int, height_px: int) -> int:
+    """Fewest visible pixels of a labelled (seen, not glimpsed) vehicle in a width x height image."""
+    return round(MIN_VISIBLE_FRACTION * width_px * height_px)
+
+
 KITTI_CLASS = "Car"
 
 

@@ -45,11 +45,11 @@ class RoiSizeConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     alpha_width_px_m: float = Field(
-        185.0, gt=0, description="width scale, px m (about 1.1 x fx x car length 0.33 m at fx 505 px)"
+        130.0, gt=0, description="width scale, px m (about 1.1 x fx x car length 0.33 m at fx 353 px)"
     )
     beta_width_px: float = Field(0.0, description="width offset, px")
     alpha_height_px_m: float = Field(
-        140.0, gt=0, description="height scale, px m (car height 0.21 m seen from pitched cameras)"
+        98.0, gt=0, description="height scale, px m (car height 0.21 m seen from pitched cameras, fx 353 px)"
     )
     beta_height_px: float = Field(0.0, description="height offset, px")
 
@@ -65,7 +65,7 @@ class RadarCameraConfig(BaseModel):
         pattern="^(radar|weighted)$",
         description="matched position: radar (paper) or the covariance-weighted radar + camera mean",
     )
-    camera_pixel_std_px: float = Field(2.0, gt=0, description="camera box-centre noise, px")
+    camera_pixel_std_px: float = Field(1.4, gt=0, description="camera box-centre noise, px (at fx 353 px)")
     camera_depth_std_fraction: float = Field(
         0.08, gt=0, description="camera depth-along-ray noise as a fraction of the range (ground-plane fit)"
     )

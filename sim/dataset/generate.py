@@ -41,12 +41,13 @@ from shared.datasets.layout import (
     CLASS_NAME,
     KITTI_CLASS,
     MIN_LIDAR_POINTS,
-    MIN_VISIBLE_PX,
+    MIN_VISIBLE_FRACTION,
     SPLITS,
     DatasetLayout,
     agent_origin_m,
     camera_stem,
     lidar_stem,
+    min_visible_px,
 )
 from shared.scene.scene import Scene
 from sim.config import REPO_ROOT, load_sim_settings
@@ -99,10 +100,11 @@ def seed_variation(cfg: DatasetSettings, seed: int) -> dict[str, Any]:
 
 
 def camera_labels(frame: CameraFrame) -> tuple[list[str], np.ndarray, np.ndarray, list[int]]:
-    """Labelled vehicle ids and boxes (visible pixels >= MIN_VISIBLE_PX), ignored boxes, pixel counts."""
+    """Labelled vehicle ids and boxes (visible pixels >= `min_visible_px`), ignored boxes, pixel counts."""
     ids, boxes, ignore, pixels = [], [], [], []
+    least_px = min_visible_px(frame.rgb.shape[1], frame.rgb.shape[0])
     for vid in sorted(frame.visible_boxes):
-        if frame.visible_px[vid] >= MIN_VISIBLE_PX:
+        if frame.visible_px[vid] >= least_px:
             ids.append(vid)
             boxes.append(frame.visible_boxes[vid])
             pixels.append(frame.visible_px[vid])
@@ -308,7 +310,7 @@ def finish(cfg: DatasetSettings, layout: DatasetLayout) -> dict[str, Any]:
     yolo.write_data_yaml(layout.camera / "data.yaml", [CLASS_NAME], SPLITS)
     manifest = {
         "settings": json.loads(cfg.model_dump_json()),
-        "min_visible_px": MIN_VISIBLE_PX,
+        "min_visible_fraction": MIN_VISIBLE_FRACTION,
         "min_lidar_points": MIN_LIDAR_POINTS,
         "per_seed": {f"{r['split']}_{r['seed']}": r["settings"] for r in results},
         **summary,

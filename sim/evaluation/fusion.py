@@ -12,7 +12,7 @@ rates; every tick's frames go through the bus codecs (JPEG, point cloud, radar s
 - `tracked_<modality>`: the same tracker fed one modality alone, so "fusion vs the best single
   modality" compares like with like.
 
-Ground truth: vehicles the agent can observe (>= MIN_LIDAR_POINTS lidar points, or >= MIN_VISIBLE_PX
+Ground truth: vehicles the agent can observe (>= MIN_LIDAR_POINTS lidar points, or >= min_visible_px
 pixels in one of its cameras, or a radar return) are scored; vehicles glimpsed below those limits are
 ignore regions (neither missed nor a false positive when detected). The paper's metrics (pose error,
 AOS, BEV IoU, heat maps on its 0.125 m grid) come from `shared.metrics.fusion`, MOTA / IDF1 from
@@ -31,7 +31,7 @@ import numpy as np
 import shapely
 from numpy.typing import NDArray
 
-from shared.datasets.layout import MIN_LIDAR_POINTS, MIN_VISIBLE_PX
+from shared.datasets.layout import MIN_LIDAR_POINTS, min_visible_px
 from shared.detection.interface import CameraDetector, LidarDetector
 from shared.metrics.fusion import FusionAccumulator
 from shared.metrics.tracking import TrackingAccumulator
@@ -117,8 +117,9 @@ def observable(gt: Any, captures: list[Capture], scope: AgentScope) -> FrameTrut
     lidar_points: Counter[str] = Counter()
     for c in captures:
         if isinstance(c.data, CameraFrame):
+            least_px = min_visible_px(c.data.rgb.shape[1], c.data.rgb.shape[0])
             for vid, px in c.data.visible_px.items():
-                (seen if px >= MIN_VISIBLE_PX else glimpsed).add(vid)
+                (seen if px >= least_px else glimpsed).add(vid)
         elif isinstance(c.data, LidarScan):
             ids, counts = np.unique(c.data.vehicle_ids[c.data.vehicle_ids != ""], return_counts=True)
             lidar_points.update(dict(zip(ids.tolist(), counts.tolist(), strict=True)))

@@ -276,10 +276,12 @@ def test_fast_projection_paths_equal_the_validated_geometry(cam: CameraView) -> 
     rng = np.random.default_rng(3)
     boxes = np.stack([car(x, y, yaw) for x, y, yaw in rng.uniform([-1.5, 0.5, -3], [0.5, 3.5, 3], (50, 3))])
     fast, fast_visible, _ = cam.image_boxes(boxes)
-    ref, ref_visible = box3d_to_image_box(box3d_corners(boxes), cam.T_optical_from_world, cam.K, 640, 480)
+    ref, ref_visible = box3d_to_image_box(
+        box3d_corners(boxes), cam.T_optical_from_world, cam.K, cam.width_px, cam.height_px
+    )
     np.testing.assert_array_equal(fast_visible, ref_visible)
     np.testing.assert_allclose(fast[fast_visible], ref[ref_visible], atol=1e-9)
-    uv = rng.uniform([0, 0], [640, 480], (50, 2))
+    uv = rng.uniform([0, 0], [cam.width_px, cam.height_px], (50, 2))
     z = rng.uniform(0.0, 0.3, 50)
     fast_pts = cam.to_plane(uv, z)
     for p, q, h in zip(fast_pts, uv, z, strict=True):

@@ -10,10 +10,11 @@ import pytest
 from shared.datasets import kitti, openpcdet, voc, yolo
 from shared.datasets.layout import MIN_LIDAR_POINTS, SPLITS, DatasetLayout
 from shared.geometry.boxes import box3d_corners
+from shared.scene.scene import Scene
+from sim.config import DEFAULT_SCENE
 from sim.dataset.config import DatasetSettings, SplitSeeds
 from sim.dataset.generate import generate, marker_path
 
-W, H = 640, 480
 BOX_TOLERANCE_M = 0.03  # lidar noise + the body parts sit inside the box
 
 
@@ -46,9 +47,11 @@ def test_every_split_has_images_labels_and_lidar_frames(dataset: DatasetLayout) 
 
 
 def test_yolo_voc_and_meta_boxes_agree(dataset: DatasetLayout) -> None:
+    model = Scene.load(DEFAULT_SCENE).sensors_of(kind="camera")[0].camera
+    assert model is not None
     for split in SPLITS:
         for stem in dataset.camera_stems(split):
-            boxes, _ = yolo.read_yolo(dataset.yolo_label(split, stem), W, H)
+            boxes, _ = yolo.read_yolo(dataset.yolo_label(split, stem), model.width_px, model.height_px)
             meta = json.loads(dataset.camera_meta(split, stem).read_text())
             assert np.allclose(boxes, np.asarray(meta["boxes"]).reshape(-1, 4), atol=1e-6)
             assert np.allclose(voc.read_voc(dataset.voc_label(split, stem)).boxes_px, boxes, atol=1e-6)
