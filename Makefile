@@ -104,7 +104,7 @@ eval: install ## evaluate every detector on the held-out split -> deploy/models/
 	$(BIN)/rmmdet eval detectors --data $(DATASET) --split test --out $(MODELS_DIR)/metrics.json
 
 eval-fusion: install ## MEC fusion + tracking vs sim ground truth on the held-out seeds (~15 min) -> docs/eval/fusion
-	$(BIN)/rmmdet eval fusion --workers 2 --out docs/eval/fusion
+	$(BIN)/rmmdet eval fusion --workers 2 --out docs/eval/fusion --readme
 
 experiments: install ## the paper's flow experiment: 5 policies x 10/20/40 vehicles x 5 seeds + one full-perception run (~16 min) -> docs/eval/flow
 	$(BIN)/rmmdet experiments flow --out docs/eval/flow

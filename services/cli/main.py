@@ -523,13 +523,16 @@ def eval_fusion(
     config: Annotated[Path | None, typer.Option(help="MEC settings YAML")] = None,
     noise: Annotated[bool, typer.Option(help="also run the paper's Kalman noise experiment")] = True,
     out: Annotated[Path, typer.Option(help="folder for results JSON and plots")] = Path("docs/eval/fusion"),
+    readme: Annotated[bool, typer.Option(help="rewrite the README's fusion table")] = False,
 ) -> None:
     """The MEC pipeline against simulation ground truth on held-out seeds: pose error, AOS, BEV IoU,
     heat maps (0.125 m grid), AP-BEV, precision / recall with false positives, MOTA / IDF1, pre- and
     post-fusion and per single modality; plus the Kalman noise experiment (radar noise variance 0,
     0.05, 0.1 m²: raw vs filtered RMSE)."""
     from shared.config import load_settings
+    from shared.machine import git_commit, machine_info
     from shared.perception.config import DEFAULT_MEC_CONFIG, MecSettings
+    from shared.readme import replace_section
     from sim.dataset.config import DEFAULT_DATASET_CONFIG, DatasetSettings
     from sim.dataset.generate import seed_variation
     from sim.evaluation import fusion as fe
@@ -552,6 +555,8 @@ def eval_fusion(
         "duration_s": duration_s,
         "warmup_s": warmup_s,
         "wall_s": round(time.perf_counter() - t0, 1),
+        "commit": git_commit(),
+        "machine": machine_info(),
     }
     for name, ev in evaluations.items():
         summary = fe.summarise(ev)
@@ -572,26 +577,12 @@ def eval_fusion(
         kalman_noise.plot(runs, out / "kalman_noise.png")
     (out / "results.json").write_text(json.dumps(results, indent=2, default=float) + "\n")
     table = Table(title=f"fusion on seeds {seeds}, {results['all']['frames']} agent frames")  # type: ignore[index]
-    for col in ("agent", "output", "pose p50 / p95 m", "AOS", "BEV IoU", "AP-BEV@0.7", "P / R", "MOTA"):
+    for col in fe.TABLE_COLUMNS:
         table.add_column(col)
-    for name in [*agents, "all"]:
-        summary = results[name]
-        assert isinstance(summary, dict)
-        for output in ("lidar", "radar", "camera", "fused", "tracked"):
-            row = summary.get(output)
-            if not isinstance(row, dict) or row.get("pose_error_p50_m") is None:
-                continue
-            mota = row.get("tracking", {}).get("mota")
-            table.add_row(
-                name,
-                output,
-                f"{row['pose_error_p50_m']:.3f} / {row['pose_error_p95_m']:.3f}",
-                f"{row['aos_mean']:.3f}" if row["aos_mean"] is not None else "-",
-                f"{row['bev_iou_mean']:.3f}",
-                f"{row['ap_bev_0.7']:.3f}",
-                f"{row['precision']:.3f} / {row['recall']:.3f}",
-                f"{mota:.3f}" if mota is not None else "-",
-            )
+    for row in fe.table_rows(results, agents):
+        table.add_row(*row)
+    if readme:
+        replace_section("eval-fusion", fe.markdown_table(results, agents))
     console.print(table)
     console.print(f"results: {out / 'results.json'}")
 

@@ -458,3 +458,55 @@ def write_heat_maps(ev: AgentEvaluation, scene: Scene, out_dir: Any, name: str =
         save_heat_map_png(maps[key], x_range, y_range, path, f"{name}: {title}", vmin, vmax)
         written.append(str(path))
     return written
+
+
+#: Outputs in the order they are reported: before fusion, fused, then tracked.
+REPORTED_OUTPUTS = (
+    "lidar",
+    "radar",
+    "camera",
+    "fused",
+    "tracked_lidar",
+    "tracked_radar",
+    "tracked_camera",
+    "tracked",
+)
+TABLE_COLUMNS = ("agent", "output", "pose p50 / p95 m", "AOS", "BEV IoU", "AP-BEV@0.7", "P / R", "MOTA")
+
+
+def table_rows(results: dict[str, Any], agents: list[str]) -> list[list[str]]:
+    """One row per (agent or "all", output) that was scored: the columns of `TABLE_COLUMNS`."""
+    rows = []
+    for name in [*agents, "all"]:
+        summary = results[name]
+        for output in REPORTED_OUTPUTS:
+            row = summary.get(output)
+            if not isinstance(row, dict) or row.get("pose_error_p50_m") is None:
+                continue
+            mota = row.get("tracking", {}).get("mota")
+            rows.append(
+                [
+                    name,
+                    output,
+                    f"{row['pose_error_p50_m']:.3f} / {row['pose_error_p95_m']:.3f}",
+                    f"{row['aos_mean']:.3f}" if row["aos_mean"] is not None else "-",
+                    f"{row['bev_iou_mean']:.3f}",
+                    f"{row['ap_bev_0.7']:.3f}",
+                    f"{row['precision']:.3f} / {row['recall']:.3f}",
+                    f"{mota:.3f}" if mota is not None else "-",
+                ]
+            )
+    return rows
+
+
+def markdown_table(results: dict[str, Any], agents: list[str]) -> str:
+    """The README's fusion table: what was run, where, and one line per scored output."""
+    head = (
+        f"Seeds {results['seeds']} x {results['duration_s']:g} s after {results['warmup_s']:g} s, "
+        f"{results['all']['frames']} agent frames, {results['wall_s']:g} s wall; commit "
+        f"{results.get('commit', '?')}, {results.get('machine', {}).get('cpu_model', '?')} "
+        f"({', '.join(results.get('machine', {}).get('cpu_vector_flags', []))})."
+    )
+    lines = [head, "", "| " + " | ".join(TABLE_COLUMNS) + " |", "|" + "---|" * len(TABLE_COLUMNS)]
+    lines += ["| " + " | ".join(row) + " |" for row in table_rows(results, agents)]
+    return "\n".join(lines)

@@ -87,8 +87,8 @@ from shared.bus.node import Node, Publisher, Subscription
 from shared.bus.streams import get_stream
 from shared.bus.zenoh_config import CONFIG_ENV, DEFAULT_CLIENT_CONFIG, zenoh_config
 from shared.logging_setup import setup_logging
+from shared.machine import machine_info
 from shared.shutdown import GracefulShutdown
-from tests.bench.machine import machine_info
 
 log = logging.getLogger("tests.bench.bus_bench")
 

@@ -37,8 +37,8 @@ from shared.detection.camera.onnx_detector import OnnxCameraDetector, measure_la
 from shared.detection.evaluate import camera_samples
 from shared.detection.quantize import compare_outputs
 from shared.geometry.boxes import iou2d_matrix
+from shared.machine import machine_info
 from shared.metrics.detection import APResult, evaluate_coco
-from tests.bench.machine import machine_info
 
 log = logging.getLogger("camera_detector_bench")
 

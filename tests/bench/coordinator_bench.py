@@ -31,11 +31,11 @@ from rmmdet.v1.planning_pb2 import RoutePlan, RouteRequest
 
 from services.coordinator.core import CoordinatorCore
 from shared.bus.node import Node
+from shared.machine import machine_info
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.traffic.config import DEFAULT_COORDINATOR_CONFIG, load_coordinator_settings
 from shared.traffic.messages import agent_objects
-from tests.bench.machine import machine_info
 from tests.helpers import spawn, start_router, stop
 from tests.integration.coordinator_client import RouteClient
 from tests.integration.fake_mec import AgentCars

@@ -42,7 +42,7 @@ from shared.detection.lidar.pointpillars.evaluation import accuracy
 from shared.detection.lidar.pointpillars.onnx_detector import OnnxPointPillars
 from shared.detection.quantize import compare_outputs
 from shared.geometry.boxes import bev_iou_matrix
-from tests.bench.machine import machine_info
+from shared.machine import machine_info
 
 log = logging.getLogger("lidar_detector_bench")
 

@@ -29,6 +29,7 @@ import numpy as np
 from shared.bus.node import Node
 from shared.bus.streams import SENSOR_STREAM
 from shared.config import load_settings
+from shared.machine import machine_info
 from shared.perception import lidar_camera
 from shared.perception.config import DEFAULT_MEC_CONFIG, MecSettings
 from shared.perception.pipeline import lidar_measurement
@@ -37,7 +38,6 @@ from shared.scene.scene import Scene
 from shared.tracking.tracker import MultiObjectTracker
 from sim.config import DEFAULT_SCENE, load_sim_settings
 from sim.lockstep import LockstepSim
-from tests.bench.machine import machine_info
 from tests.helpers import spawn, start_router, stop
 
 log = logging.getLogger("mec_bench")

@@ -37,12 +37,12 @@ import psutil
 
 from shared.bus.node import Node, Received
 from shared.bus.streams import SENSOR_STREAM
+from shared.machine import machine_info
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from sim.config import SimSettings, load_sim_settings
 from sim.lockstep import LockstepSim
 from sim.traffic import TrafficSim
-from tests.bench.machine import machine_info
 from tests.helpers import spawn, start_router, stop
 
 log = logging.getLogger("sim_bench")

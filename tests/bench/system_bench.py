@@ -53,13 +53,12 @@ from shared.bus.codec import Counters, MessageDecoder
 from shared.bus.session import open_session
 from shared.bus.streams import get_stream
 from shared.bus.zenoh_config import DEFAULT_CLIENT_CONFIG, REPO_ROOT, zenoh_config
+from shared.machine import git_commit, machine_info
+from shared.readme import replace_section
 from shared.scene.scene import Scene
 from sim.config import DEFAULT_SCENE
-from tests.bench.machine import machine_info
 
 RESULTS = REPO_ROOT / "tests" / "bench" / "results" / "system.json"
-README = REPO_ROOT / "README.md"
-README_BEGIN, README_END = "<!-- system-bench:begin -->", "<!-- system-bench:end -->"
 SUPERVISOR_CONF = REPO_ROOT / "deploy" / "local" / "supervisord.conf"
 PROBE_EVERY_S = 10.0
 NS = 1_000_000_000
@@ -72,14 +71,6 @@ def cpu_flags() -> list[str]:
             flags = set(line.split(":", 1)[1].split())
             return [f for f in VECTOR_FLAGS if f in flags]
     return []
-
-
-def commit() -> str:
-    out = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=REPO_ROOT
-    )
-    dirty = subprocess.run(["git", "status", "--porcelain"], capture_output=True, text=True, cwd=REPO_ROOT)
-    return out.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
 
 
 def supervised_pids() -> dict[str, int]:
@@ -460,15 +451,6 @@ def readme_table(runs: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def update_readme(table: str) -> None:
-    text = README.read_text()
-    if README_BEGIN not in text:
-        raise SystemExit(f"README has no {README_BEGIN} marker")
-    head, rest = text.split(README_BEGIN, 1)
-    _, tail = rest.split(README_END, 1)
-    README.write_text(f"{head}{README_BEGIN}\n{table}\n{README_END}{tail}")
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -485,7 +467,7 @@ def main(argv: list[str] | None = None) -> int:
     passed = acceptance(result)
     entry = {
         "label": args.label,
-        "commit": commit(),
+        "commit": git_commit(),
         "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
         "args": {
             "minutes": args.minutes,
@@ -506,7 +488,7 @@ def main(argv: list[str] | None = None) -> int:
     print(table)
     print(json.dumps(passed, indent=1))
     if args.readme:
-        update_readme(table)
+        replace_section("system-bench", table)
     return 0
 
 

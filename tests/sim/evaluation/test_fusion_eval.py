@@ -61,3 +61,45 @@ def test_noise_experiment_adds_the_noise_it_claims(scene: Scene) -> None:
     assert clean["raw_samples"] == noisy["raw_samples"] > 0
     # 0.1 m² per axis adds about sqrt(0.2) = 0.45 m of 2-D RMS error on top of the clean error.
     assert noisy["raw_rmse_m"] ** 2 - clean["raw_rmse_m"] ** 2 == pytest.approx(0.2, rel=0.3)
+
+
+def test_the_readme_table_lists_every_scored_output_and_where_it_ran() -> None:
+    from sim.evaluation.fusion import markdown_table
+
+    def scored(ap: float, mota: float | None = None) -> dict:
+        row = {
+            "pose_error_p50_m": 0.01,
+            "pose_error_p95_m": 0.03,
+            "aos_mean": 0.99,
+            "bev_iou_mean": 0.9,
+            "ap_bev_0.7": ap,
+            "precision": 1.0,
+            "recall": 0.98,
+        }
+        return row | ({"tracking": {"mota": mota}} if mota is not None else {})
+
+    results = {
+        "seeds": [201],
+        "duration_s": 60.0,
+        "warmup_s": 3.0,
+        "wall_s": 12.5,
+        "commit": "abc1234",
+        "machine": {"cpu_model": "AMD EPYC", "cpu_vector_flags": ["avx2"]},
+        "agent1": {
+            "frames": 10,
+            "lidar": scored(0.9),
+            "tracked": scored(0.95, 0.99),
+            "camera": {"num_gt": 0},
+        },
+        "all": {"frames": 10, "tracked": scored(0.95, 0.99)},
+    }
+    text = markdown_table(results, ["agent1"])
+    assert (
+        "Seeds [201] x 60 s after 3 s, 10 agent frames, 12.5 s wall; commit abc1234, AMD EPYC (avx2)" in text
+    )
+    rows = [line for line in text.splitlines() if line.startswith("| agent1") or line.startswith("| all")]
+    assert rows == [
+        "| agent1 | lidar | 0.010 / 0.030 | 0.990 | 0.900 | 0.900 | 1.000 / 0.980 | - |",
+        "| agent1 | tracked | 0.010 / 0.030 | 0.990 | 0.900 | 0.950 | 1.000 / 0.980 | 0.990 |",
+        "| all | tracked | 0.010 / 0.030 | 0.990 | 0.900 | 0.950 | 1.000 / 0.980 | 0.990 |",
+    ]

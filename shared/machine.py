@@ -1,11 +1,12 @@
-"""Machine description stored with every benchmark result (CPU, its vector / int8 instruction sets,
-cores, load, library versions)."""
+"""Where a result was measured: the machine (CPU, its vector / int8 instruction sets, cores, load,
+library versions) and the commit, stored with every benchmark and evaluation result."""
 
 from __future__ import annotations
 
 import importlib.metadata
 import os
 import platform
+import subprocess
 from pathlib import Path
 from typing import Any
 
@@ -52,3 +53,20 @@ def machine_info() -> dict[str, Any]:
     if hasattr(os, "getloadavg"):
         info["loadavg_at_start"] = os.getloadavg()
     return info
+
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def git_commit(repo: Path = REPO) -> str:
+    """Short commit of `repo`, "+dirty" with uncommitted changes; "unknown" outside a git checkout."""
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=repo
+        )
+        dirty = subprocess.run(["git", "status", "--porcelain"], capture_output=True, text=True, cwd=repo)
+    except OSError:
+        return "unknown"
+    if head.returncode != 0:
+        return "unknown"
+    return head.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
