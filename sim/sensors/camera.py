@@ -220,8 +220,7 @@ class CameraRenderer:
 
         A frame depends only on the poses of the vehicles in view (static scene, lighting and colours
         are fixed), so when they are exactly those of the previous call the previous frame is returned
-        as it is (read-only, not rendered again): vehicles queueing at a junction or parked in view
-        make up a large share of a live camera's frames."""
+        as it is (read-only, not rendered again), e.g. while the cars in view queue at a junction."""
         rects = self.vehicle_rects(poses, corners_w)
         rois = merge_rects(list(rects.values()))
         if not rois:
