@@ -12,6 +12,7 @@ from typing import Any
 
 # The CPU flags that decide which onnxruntime kernels run (fp32 SIMD width, int8 dot products).
 VECTOR_FLAGS = (
+    "sse4_2",
     "avx",
     "avx2",
     "fma",
@@ -22,6 +23,7 @@ VECTOR_FLAGS = (
     "avx512_vnni",
     "avx_vnni",
     "avx512_bf16",
+    "amx_tile",
     "amx_int8",
     "amx_bf16",
 )

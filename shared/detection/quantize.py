@@ -39,6 +39,8 @@ from onnxruntime.quantization import (
 )
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
+from shared.detection.precision import model_file
+
 if TYPE_CHECKING:
     from sim.sensors.rig import Capture
 
@@ -101,6 +103,50 @@ def quantize_model(
         )
     log.info("wrote %s (%d calibration inputs)", out_path, len(feeds))
     return out_path
+
+
+def quantize_calibrated(
+    fp32_path: Path,
+    out_path: Path | None,
+    calibration: Callable[[], Sequence[Feeds]],
+    op_types: Sequence[str],
+    nodes_to_exclude: Sequence[str],
+    unit: str,
+) -> Path:
+    """`quantize_model` on the inputs `calibration()` renders, written to `out_path` (default beside the
+    model, `<stem>_int8.onnx`); logs how long rendering (`unit`: images, frames) and calibration took."""
+    t0 = time.perf_counter()
+    feeds = calibration()
+    t1 = time.perf_counter()
+    path = quantize_model(
+        fp32_path, out_path or model_file(fp32_path, "int8"), feeds, op_types, nodes_to_exclude
+    )
+    log.info(
+        "%d %s rendered in %.0f s, calibrated in %.0f s", len(feeds), unit, t1 - t0, time.perf_counter() - t1
+    )
+    return path
+
+
+def quantize_cli(
+    argv: list[str] | None,
+    description: str,
+    program: str,
+    default_model: Path,
+    quantize: Callable[[Path, Path | None], Path],
+) -> None:
+    """The per-model tools' command line: `--model` (the fp32 export), `--out` (the int8 file)."""
+    import argparse
+
+    from shared.logging_setup import setup_logging
+
+    parser = argparse.ArgumentParser(
+        description=description, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--model", type=Path, default=default_model, help="fp32 model (.onnx)")
+    parser.add_argument("--out", type=Path, help="int8 model (default: <stem>_int8.onnx beside --model)")
+    args = parser.parse_args(argv)
+    setup_logging(program)
+    quantize(args.model, args.out)
 
 
 def check_training_seeds(seeds: Iterable[int]) -> list[int]:

@@ -15,9 +15,6 @@ Select it at run time with `detectors.camera_precision: int8` (shared/perception
 
 from __future__ import annotations
 
-import argparse
-import logging
-import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -25,11 +22,8 @@ import numpy as np
 
 from shared.detection.camera.config import CONFIG_FILE, ONNX_INPUT, CameraDetectorConfig
 from shared.detection.camera.geometry import letterbox_image
-from shared.detection.precision import model_file
-from shared.detection.quantize import Feeds, quantize_model, render_training_captures
+from shared.detection.quantize import Feeds, quantize_calibrated, quantize_cli, render_training_captures
 from shared.detection.registry import CAMERA_MODEL, MODELS_DIR
-
-log = logging.getLogger(__name__)
 
 # Relu too: the QDQ pair then sits after it and its range starts at 0 (measured on tuning-seed images
 # against Conv only: same speed, box deviation from fp32 p95 1.6 px instead of 2.5 px).
@@ -67,27 +61,11 @@ def calibration_feeds(
 def quantize_camera(model: Path, out: Path | None = None) -> Path:
     """Write the int8 model of `model` (default beside it, `model_int8.onnx`); returns its path."""
     cfg = CameraDetectorConfig.load(model.parent / CONFIG_FILE)
-    t0 = time.perf_counter()
-    feeds = calibration_feeds(cfg)
-    t1 = time.perf_counter()
-    path = quantize_model(model, out or model_file(model, "int8"), feeds, OP_TYPES, KEEP_FLOAT)
-    log.info(
-        "%d images rendered in %.0f s, calibrated in %.0f s", len(feeds), t1 - t0, time.perf_counter() - t1
-    )
-    return path
+    return quantize_calibrated(model, out, lambda: calibration_feeds(cfg), OP_TYPES, KEEP_FLOAT, "images")
 
 
 def main(argv: list[str] | None = None) -> None:
-    from shared.logging_setup import setup_logging
-
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument("--model", type=Path, default=MODELS_DIR / CAMERA_MODEL, help="fp32 model.onnx")
-    parser.add_argument("--out", type=Path, help="int8 model (default: model_int8.onnx beside --model)")
-    args = parser.parse_args(argv)
-    setup_logging("camera-quantize")
-    quantize_camera(args.model, args.out)
+    quantize_cli(argv, __doc__ or "", "camera-quantize", MODELS_DIR / CAMERA_MODEL, quantize_camera)
 
 
 if __name__ == "__main__":

@@ -16,18 +16,12 @@ Select it at run time with `detectors.lidar_precision: int8` (shared/perception/
 
 from __future__ import annotations
 
-import argparse
-import logging
-import time
 from collections.abc import Sequence
 from pathlib import Path
 
 from shared.detection.lidar.pointpillars.onnx_detector import OnnxPointPillars
-from shared.detection.precision import model_file
-from shared.detection.quantize import Feeds, quantize_model, render_training_captures
+from shared.detection.quantize import Feeds, quantize_calibrated, quantize_cli, render_training_captures
 from shared.detection.registry import LIDAR_MODEL, MODELS_DIR
-
-log = logging.getLogger(__name__)
 
 # The 2D network's ops; Relu and Concat too, so that the activations stay uint8 between the convolutions.
 OP_TYPES = ("Conv", "ConvTranspose", "Relu", "Concat")
@@ -72,27 +66,16 @@ def calibration_feeds(
 
 def quantize_pointpillars(model: Path, out: Path | None = None) -> Path:
     """Write the int8 model of `model` (default beside it, `<stem>_int8.onnx`); returns its path."""
-    t0 = time.perf_counter()
-    feeds = calibration_feeds(OnnxPointPillars(model))
-    t1 = time.perf_counter()
-    path = quantize_model(model, out or model_file(model, "int8"), feeds, OP_TYPES, KEEP_FLOAT)
-    log.info(
-        "%d frames rendered in %.0f s, calibrated in %.0f s", len(feeds), t1 - t0, time.perf_counter() - t1
+    detector = OnnxPointPillars(model)
+    return quantize_calibrated(
+        model, out, lambda: calibration_feeds(detector), OP_TYPES, KEEP_FLOAT, "frames"
     )
-    return path
 
 
 def main(argv: list[str] | None = None) -> None:
-    from shared.logging_setup import setup_logging
-
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    quantize_cli(
+        argv, __doc__ or "", "pointpillars-quantize", MODELS_DIR / LIDAR_MODEL, quantize_pointpillars
     )
-    parser.add_argument("--model", type=Path, default=MODELS_DIR / LIDAR_MODEL, help="fp32 pointpillars.onnx")
-    parser.add_argument("--out", type=Path, help="int8 model (default: <stem>_int8.onnx beside --model)")
-    args = parser.parse_args(argv)
-    setup_logging("pointpillars-quantize")
-    quantize_pointpillars(args.model, args.out)
 
 
 if __name__ == "__main__":
