@@ -3,11 +3,12 @@
 A live sim on a host that cannot keep up would otherwise outrun the loop: sensors skip ticks, the MECs
 judge their inputs stale and the coordinator its agents. Instead the sim holds a tick back while a
 consumer's newest output (its stamp: the sim time of the data it was made from) lags the tick by more
-than its own output period (the interval between its last two outputs, at most `MAX_PERIOD_S`) plus
-`max_lag_s` of sim time, so the whole loop slows down together and stays correct; the real-time
-factor it reaches is reported. Counting the period in lets a consumer with a slow cadence (cameras
-asked for every 5th frame publish at 2 Hz) run at it without holding the sim, while its processing
-lag is bounded as tightly as a 10 Hz consumer's.
+than its own output period (the longest interval between its last `PERIOD_WINDOW` outputs, each at
+most `MAX_PERIOD_S`) plus `max_lag_s` of sim time, so the whole loop slows down together and stays
+correct; the real-time factor it reaches is reported. Counting the period in lets a consumer with a
+slow or uneven cadence run at it without holding the sim: a lidar agent's cameras taking turns on
+every 10th frame publish on 4 consecutive frames, then on none for 6 (gaps 0.1, 0.1, 0.1, 0.7 s),
+and must not hold the tick of their next turn; a 10 Hz consumer's lag stays bounded to 0.2 s.
 
 A consumer whose process is gone (`forget`, on its liveliness token vanishing) or that has not reported
 for `timeout_s` of wall time (hung) no longer holds the sim: a killed MEC or sensor service must not
@@ -17,17 +18,24 @@ still loading). Times: sim stamps in ns, wall times in monotonic seconds.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections import deque
+from dataclasses import dataclass, field
 
 NS_PER_S = 1_000_000_000
 MAX_PERIOD_S = 1.0  # a gap longer than this (a restarted consumer) is not its cadence
+PERIOD_WINDOW = 8  # outputs whose gaps make up a consumer's period: one full round of cameras taking turns
 
 
 @dataclass
 class _Consumer:
     stamp_ns: int
     heard_s: float
-    period_ns: int = 0  # between its last two outputs (0 until known)
+    gaps_ns: deque[int] = field(default_factory=lambda: deque(maxlen=PERIOD_WINDOW))
+
+    @property
+    def period_ns(self) -> int:
+        """Longest recent gap between two outputs (0 until known)."""
+        return max(self.gaps_ns, default=0)
 
 
 class Pacer:
@@ -58,7 +66,7 @@ class Pacer:
             self._consumers[consumer] = _Consumer(stamp_ns, now_s)
         else:
             if stamp_ns > c.stamp_ns:
-                c.period_ns = min(stamp_ns - c.stamp_ns, self.max_period_ns)
+                c.gaps_ns.append(min(stamp_ns - c.stamp_ns, self.max_period_ns))
                 c.stamp_ns = stamp_ns
             c.heard_s = now_s
 

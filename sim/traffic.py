@@ -250,10 +250,15 @@ class TrafficSim:
         boxes = np.array(
             [[v.x, v.y, v.z, self.length_m, self.width_m, self.height_m, v.yaw] for v in self.vehicles]
         )
-        iou = bev_iou_matrix(boxes, boxes)
+        # Broad phase: two footprints can only overlap with their centres closer than a full diagonal,
+        # so the exact rotated-box test runs on those few pairs, not on every pair every check.
+        d = boxes[:, None, :3] - boxes[None, :, :3]
+        near = (np.hypot(d[..., 0], d[..., 1]) < math.hypot(self.length_m, self.width_m)) & (
+            np.abs(d[..., 2]) < LEVEL_SEPARATION_M
+        )
         pairs = []
-        for i, j in zip(*np.nonzero(np.triu(iou, k=1) > 0), strict=True):
-            if abs(boxes[i, 2] - boxes[j, 2]) < LEVEL_SEPARATION_M:
+        for i, j in zip(*np.nonzero(np.triu(near, k=1)), strict=True):
+            if bev_iou_matrix(boxes[i : i + 1], boxes[j : j + 1])[0, 0] > 0:
                 pairs.append((self.vehicles[i].id, self.vehicles[j].id))
         return pairs
 

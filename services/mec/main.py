@@ -140,7 +140,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
 
         monitor = new_monitor()
         # A sensor service that leaves the bus (killed, crashed) takes its sensors with it at once: its
-        # presence token vanishes long before 3 periods of a camera asked for every 5th frame.
+        # presence token vanishes long before 3 periods (3 s) of a camera asked for every 10th frame.
         groups = {
             sensor_group_source(agent, k): [s.id for s in specs if s.kind == k] for k in set(kinds.values())
         }

@@ -8,7 +8,7 @@ so all sensors of a tick share its stamp; a group that falls behind skips to the
 (latest-wins) and counts the skipped frames. Cameras publish `foxglove.CompressedImage` (JPEG), lidars
 `foxglove.PointCloud`, radars `rmmdet.v1.RadarScan`; the rmmdet header carries the ground truth's
 stamp and tick. A consumer may ask for fewer frames (`rmmdet/@v1/<agent>/capture_demand/<kind>`, e.g.
-the MEC wants every 5th camera frame while a lidar covers its area): the group then captures only the
+the MEC wants every 10th camera frame while a lidar covers its area): the group then captures only the
 frames `Scene.captures_on` names (staggered: one camera per frame, not all on one), for as long as
 the demand is renewed. Sensor noise is drawn from a generator seeded by (scenario seed, sensor,
 tick), so a rerun with one seed gives identical data whatever the timing. Killing this process stops
@@ -128,7 +128,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 continue
             gt: GroundTruth = due.message
             stats["last_tick"] = gt.header.tick
-            for capture in rig.capture(gt, every_n=every_n):
+            for capture in rig.captures(gt, every_n=every_n):  # each published as soon as made
                 stage = processing_stamp(f"sensor/{capture.spec.kind}", capture.start_ns, capture.end_ns)
                 pub = pubs[capture.spec.id]
                 header = pub.next_header(derived_from=gt.header, frame_id=capture.spec.id)

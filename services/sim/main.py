@@ -82,6 +82,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         gt_pub = node.publisher("ground_truth")
         clock_pub = node.publisher("sim_clock")
         calib_pubs = {agent: node.publisher("calibration", agent=agent) for agent in scene.agents}
+        calib_sets = {agent: calibration_set(scene, agent) for agent in scene.agents}  # the scene is fixed
         outputs = None
         gone: BoundedQueue[str] = BoundedQueue(PACING_QUEUE, OverflowPolicy.DROP_OLDEST)
         if live and settings.pacing.enabled:
@@ -186,7 +187,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             if traffic.time_s >= next_calib:
                 next_calib += 1.0 / settings.calibration_publish_hz
                 for agent, pub in calib_pubs.items():
-                    pub.put(calibration_set(scene, agent), stamp_ns=stamp_ns, tick=traffic.tick)
+                    pub.put(calib_sets[agent], stamp_ns=stamp_ns, tick=traffic.tick)
             if now - last_log >= args.report_interval_s:
                 log.info(
                     "sim %.1f s, real-time factor %.2f, held %.1f s by consumers, %d junction arrivals, "

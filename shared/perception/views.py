@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from shared.geometry.boxes import box3d_corners
 from shared.geometry.camera import box3d_to_image_box, pixel_to_world_on_plane, project_points
@@ -26,6 +27,8 @@ FloatArray = NDArray[np.float64]
 CENTRE_FIT_ITERATIONS = 3
 # Lane centrelines are resampled at this spacing for the surface lookup, metres.
 SURFACE_SAMPLE_STEP_M = 0.05
+# Slack on k-d tree search radii so rounding never drops a sample at the exact limit, metres.
+NEAR_M = 1e-6
 
 
 def _box_centres(boxes_xyxy: FloatArray) -> FloatArray:
@@ -197,6 +200,11 @@ class RoadSurface:
         self.points_m = np.concatenate(samples)
         self.heading_rad = np.concatenate(headings)  # direction of travel of the lane at each sample
         self.half_width_m = half_width_m
+        self._tree = cKDTree(self.points_m[:, :2])  # xy lookups: per radar target, every frame
+        # Box any lane hit lies in: the samples' xy extent grown by the half width, their z range.
+        reach_xy = np.array([self.half_width_m, self.half_width_m, 0.0])
+        self._reach_lo = self.points_m.min(axis=0) - reach_xy
+        self._reach_hi = self.points_m.max(axis=0) + reach_xy
 
     def nearest_sample(self, xy_m: FloatArray, z_range_m: FloatArray | None = None) -> NDArray[np.int64]:
         """Index of the nearest lane sample within `half_width_m` of each (N, 2) point; -1 off-road.
@@ -206,16 +214,22 @@ class RoadSurface:
         it (nor one on the deck under it). A point with no sample of its level keeps the nearest one.
         """
         xy = np.asarray(xy_m, float).reshape(-1, 2)
-        d2 = ((xy[:, None, :] - self.points_m[None, :, :2]) ** 2).sum(-1)
-        rows = np.arange(len(xy))
-        nearest = d2.argmin(axis=1)
-        if z_range_m is not None:
-            z_range = np.asarray(z_range_m, float).reshape(-1, 2)
-            z = self.points_m[None, :, 2]
-            level = (z >= z_range[:, :1]) & (z <= z_range[:, 1:]) & (d2 <= self.half_width_m**2)
-            on_level = np.where(level, d2, np.inf).argmin(axis=1)
-            nearest = np.where(level.any(axis=1), on_level, nearest)
-        nearest[d2[rows, nearest] > self.half_width_m**2] = -1
+        nearest = np.full(len(xy), -1, dtype=np.int64)
+        if len(xy) == 0:
+            return nearest
+        z_range = None if z_range_m is None else np.asarray(z_range_m, float).reshape(-1, 2)
+        # The samples within reach of each point (a few dozen of the ~6000), from the k-d tree.
+        for i, cand in enumerate(self._tree.query_ball_point(xy, self.half_width_m)):
+            if not cand:
+                continue
+            idx = np.asarray(cand, dtype=np.int64)
+            pts = self.points_m[idx]
+            d2 = ((pts[:, :2] - xy[i]) ** 2).sum(axis=1)
+            if z_range is not None:
+                level = (pts[:, 2] >= z_range[i, 0]) & (pts[:, 2] <= z_range[i, 1])
+                if level.any():
+                    idx, d2 = idx[level], d2[level]
+            nearest[i] = idx[np.argmin(d2)]
         return nearest
 
     def lane_heading(self, xy_m: FloatArray, z_range_m: FloatArray | None = None) -> FloatArray:
@@ -240,15 +254,35 @@ class RoadSurface:
         """
         rays = np.asarray(rays_world, float).reshape(-1, 3)
         o = np.asarray(origin_m, float)
-        levels = self.points_m[:, 2] + height_above_m  # (S,)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = (levels[None, :] - o[2]) / rays[:, 2:3]  # (N, S)
-            hit_xy = o[None, None, :2] + t[..., None] * rays[:, None, :2]
-            d2 = ((hit_xy - self.points_m[None, :, :2]) ** 2).sum(-1)
-            ok = (t > 0) & (d2 <= self.half_width_m**2)
-        t = np.where(ok, t, np.inf)
-        best = t.argmin(axis=1)
-        t_best = t[np.arange(len(rays)), best]
-        out = o[None, :] + t_best[:, None] * rays
-        out[~np.isfinite(t_best)] = np.nan
+        out = np.full((len(rays), 3), np.nan)
+        z = self.points_m[:, 2]
+        # Every crossing lies where the ray is between the lowest and the highest plane and within
+        # `half_width_m` of the samples' xy extent: only samples within reach of that stretch of the
+        # ray can be hit (k-d tree), a few hundred of the ~6000.
+        lift = np.array([0.0, 0.0, height_above_m])
+        lo, hi = self._reach_lo + lift, self._reach_hi + lift
+        with np.errstate(all="ignore"):  # rays (nearly) parallel to a slab divide by ~0
+            slabs = np.sort(np.stack([(lo - o) / rays, (hi - o) / rays], axis=-1), axis=-1)  # (N, 3, 2)
+            parallel = rays == 0  # parallel to a slab: inside it all along, or never
+            slabs[parallel] = [-np.inf, np.inf]
+            t_in = np.maximum(slabs[:, :, 0].max(axis=1), 0.0)
+            t_out = slabs[:, :, 1].min(axis=1)
+            ok = (
+                np.isfinite(rays).all(axis=1)
+                & ~parallel[:, 2]
+                & ~(parallel & ((o < lo) | (o > hi))).any(axis=1)
+                & (t_in <= t_out)
+            )
+            rows = np.flatnonzero(ok)
+            ends = o[None, None, :2] + np.stack([t_in, t_out], axis=1)[rows, :, None] * rays[rows, None, :2]
+            reach = np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1) / 2 + self.half_width_m + NEAR_M
+            near = self._tree.query_ball_point(ends.mean(axis=1), reach) if len(rows) else []
+            for i, cand in zip(rows, near, strict=True):
+                idx = np.asarray(cand, np.int64)
+                ray = rays[i]
+                t = (z[idx] + height_above_m - o[2]) / ray[2]
+                d2 = ((o[:2] + t[:, None] * ray[:2] - self.points_m[idx, :2]) ** 2).sum(-1)
+                t = np.where((t > 0) & (d2 <= self.half_width_m**2), t, np.inf)
+                if len(t) and np.isfinite(t_best := t.min()):
+                    out[i] = o + t_best * ray
         return out

@@ -5,9 +5,9 @@ rate fires on the same ticks and an agent's frames join tick-exactly. A consumer
 n-th of those frames (`rmmdet.v1.CaptureDemand`, the software counterpart of a camera trigger line):
 the sensor then captures where `frame_due` holds, which the consumer computes the same way to know
 which frames to wait for. Sensors thinned so are staggered by their `phase` (the scene gives each
-sensor its index among its agent's sensors of its kind): with 4 cameras asked for every 5th frame, one
-camera captures per frame instead of all four on one frame, so neither the rendering nor the MEC's
-detector work comes in bursts that miss the join and the latency budget.
+sensor its index among its agent's sensors of its kind): with 4 cameras asked for every 10th frame,
+one camera captures on each of 4 frames in 10 instead of all four on one frame, so neither the
+rendering nor the MEC's detector work comes in bursts that miss the join and the latency budget.
 
 `CaptureDemands` is the sensor's side: the demands it has heard, each valid until its `valid_for_s`
 runs out; the smallest `every_n` of the valid ones wins (a consumer that needs every frame is never

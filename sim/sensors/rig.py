@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import time
 import zlib
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from typing import Protocol
 
@@ -201,17 +202,22 @@ class SensorRig:
     ) -> list[Capture]:
         """Captures of `specs` (default: the sensors firing on this tick, every `every_n`-th frame)
         with the world at `gt`."""
+        return list(self.captures(gt, specs, labels, every_n))
+
+    def captures(
+        self, gt: GroundTruth, specs: list[SensorSpec] | None = None, labels: bool = False, every_n: int = 1
+    ) -> Iterator[Capture]:
+        """`capture`, one sensor at a time: a live service publishes each frame as soon as it is made,
+        so its consumer can start on the first camera while the next one renders."""
         due = self.firing(gt.header.tick, gt.tick_hz, every_n) if specs is None else specs
         if not due:
-            return []  # most ticks: nothing fires, so no world is built
+            return  # most ticks: nothing fires, so no world is built
         world = self.tick_world(gt)
         self.vehicles.update(world.poses)
-        captures = []
         for spec in due:
             start_ns = time.time_ns()
             capture = self.sensors[spec.id].capture(world, labels)
-            captures.append(replace(capture, start_ns=start_ns, end_ns=time.time_ns()))
-        return captures
+            yield replace(capture, start_ns=start_ns, end_ns=time.time_ns())
 
     def close(self) -> None:
         self.vehicles.close()

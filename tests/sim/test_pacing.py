@@ -72,6 +72,26 @@ def test_a_consumer_with_a_slow_cadence_may_lag_by_its_own_period() -> None:
     assert pacer.holding(T0 + 1101 * MS, now_s=10.6) == "agent1/sensor/agent1-cameras"
 
 
+def test_cameras_taking_turns_do_not_hold_the_tick_of_their_next_turn() -> None:
+    # 4 cameras on every 10th frame of 10 Hz: outputs on 4 consecutive frames, then none for 6.
+    pacer = Pacer(max_lag_s=0.1, timeout_s=1.0)
+    group = "agent1/sensor/agent1-cameras"
+    now = 10.0
+    for cycle in range(3):
+        for k in range(4):
+            stamp = T0 + (cycle * 1000 + k * 100) * MS
+            pacer.on_progress(group, stamp, now_s=now)
+            now += 0.1
+        last = T0 + (cycle * 1000 + 300) * MS
+        if cycle == 0:
+            continue  # the first round has not shown the long gap yet
+        # The ticks up to the next turn (0.7 s later) and the bound beyond it never hold the sim ...
+        for tick_ms in range(100, 801, 100):
+            assert pacer.holding(last + tick_ms * MS, now_s=now) is None, (cycle, tick_ms)
+        # ... a group that misses its turn by more than the bound does.
+        assert pacer.holding(last + 801 * MS, now_s=now) == group
+
+
 def test_a_long_gap_is_not_taken_for_a_cadence() -> None:
     pacer = Pacer(max_lag_s=0.1, timeout_s=1.0)
     pacer.on_progress("mec1", T0, now_s=10.0)

@@ -56,6 +56,20 @@ def test_a_vehicle_completes_a_loop_of_the_network(scene: Scene, network: RoadNe
     assert sum(sim.arrivals.values()) >= len(visited) - 1
 
 
+def test_overlap_monitor_finds_touching_bodies_on_one_level_only(scene: Scene, network: RoadNetwork) -> None:
+    sim = TrafficSim(scene, network, TrafficSettings(vehicles=3), seed=5, tick_hz=TICK_HZ)
+    a, b, c = sim.vehicles
+    a.x, a.y, a.z, a.yaw = 0.0, 0.0, 0.0, 0.0
+    b.x, b.y, b.z, b.yaw = 0.30, 0.0, 0.0, 0.0  # 3 cm of bumper overlap (length 0.33 m)
+    c.x, c.y, c.z, c.yaw = 0.0, 0.0, 0.4, 1.0  # right above a, on the deck
+    assert sim.overlapping_pairs() == [(a.id, b.id)]
+    b.x, b.y, b.yaw = 0.2, 0.22, np.pi / 2  # rotated: its corner reaches into a's footprint
+    assert sim.overlapping_pairs() == [(a.id, b.id)]
+    b.x = 0.34  # clear of a by a centimetre
+    b.y, b.yaw = 0.0, 0.0
+    assert sim.overlapping_pairs() == []
+
+
 def test_no_collisions_over_30_vehicle_minutes(scene: Scene, network: RoadNetwork) -> None:
     sim = TrafficSim(scene, network, TrafficSettings(vehicles=10), seed=11, tick_hz=TICK_HZ)
     ticks = int(3 * 60 * TICK_HZ)  # 10 vehicles x 3 min

@@ -68,12 +68,12 @@ def test_on_sim_ticks_the_detector_runs_where_the_demanded_frames_fall(scene: Sc
         before = len(cams.calls)
         pipe.process(frame(scene, tick, lidar=True))
         ran.append(cams.calls[-1] if len(cams.calls) > before else 0)
-    # The 4 cameras are staggered: one image per frame on frames 0 .. 3 of each n, none on frame 4.
-    assert len(pipe.camera_ids) == 4 and n == 5
+    # The 4 cameras are staggered: one image per frame on frames 0 .. 3 of each n, none on the rest.
+    assert len(pipe.camera_ids) == 4 and n >= 5
     assert ran == [1 if (t // TICKS_PER_FRAME) % n < 4 else 0 for t in ticks]
     for k, camera in enumerate(pipe.camera_ids):
         assert pipe.cameras_due(True, (n + k) * TICKS_PER_FRAME) == {camera}
-    assert pipe.cameras_due(True, (n + 4) * TICKS_PER_FRAME) == frozenset()
+    assert all(pipe.cameras_due(True, (n + k) * TICKS_PER_FRAME) == frozenset() for k in range(4, n))
 
 
 def test_without_a_lidar_every_frame_runs_the_detector(scene: Scene) -> None:
