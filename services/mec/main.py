@@ -26,9 +26,11 @@ import sys
 import time
 from collections import Counter
 from collections.abc import Callable, Collection, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from queue import SimpleQueue
 
+import numpy as np
 import zenoh
 from rmmdet.v1.sensors_pb2 import CaptureDemand
 
@@ -59,21 +61,37 @@ DEMAND_VALID_S = 3.0  # ... and lapses (cameras back to every frame) if the MEC 
 ERROR_LOG_EVERY = 100  # log the first pipeline error, then every 100th
 
 
+@dataclass(frozen=True)
+class Ahead:
+    """A camera image decoded and detected on arrival, before its tick's frame was complete."""
+
+    stamp_ns: int
+    image: np.ndarray
+    seconds: float  # decode + detection
+
+
 def decode_frame(
     frame: JoinedFrame,
     kinds: Mapping[str, str],
     counters: Counter[str],
     decoder: FrameDecoder,
     cameras: Collection[str] | None = None,
+    ahead: Mapping[str, Ahead] | None = None,
 ) -> tuple[AgentInputs, set[str]]:
     """Decode the joined messages; a frame that does not decode is left out and counted. Only the
-    images of `cameras` (default all) are decoded: the pipeline will not look at the others this frame.
+    images of `cameras` (default all) are decoded: the pipeline will not look at the others this frame;
+    an image already decoded on arrival (`ahead`, same stamp) is taken as it is.
     Returns the inputs and the sensors that delivered a usable (or unneeded) frame."""
     inputs = AgentInputs(stamp_ns=frame.stamp_ns, tick=frame.tick)
     delivered = set()
     for sensor_id, sample in frame.samples.items():
         kind = kinds[sensor_id]
         if kind == "camera" and cameras is not None and sensor_id not in cameras:
+            delivered.add(sensor_id)
+            continue
+        early = (ahead or {}).get(sensor_id)
+        if early is not None and early.stamp_ns == sample.stamp_ns:
+            inputs.add(kind, sensor_id, early.image)
             delivered.add(sensor_id)
             continue
         try:
@@ -158,6 +176,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             return TickJoiner(kinds, settings.sync.max_wait_s, settings.sync.max_pending_ticks)
 
         joiner = new_joiner()
+        ahead: dict[str, Ahead] = {}  # camera -> its newest image, decoded and detected on arrival
         status = StatusHysteresis(settings.health.recover_frames)
         counters: Counter[str] = Counter()
         last_status = Status.FULL
@@ -222,6 +241,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                     monitor.mark_gone(sensor_id)
                     log.warning("%s: its sensor service left the bus", sensor_id)
             update_cadence(monitor.alive(clock_s), now)
+            newest_images: dict[str, Sample] = {}
             for item in items:
                 sensor_id = item.key.rsplit("/", 1)[-1]
                 if sensor_id not in kinds:
@@ -236,7 +256,21 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                     continue
                 sample = Sample(sensor_id, stamp_ns, item.message, item.header.tick, clock_s)
                 ready += joiner.add(sample, expected(monitor.alive(clock_s)), clock_s)
+                if sensor_id in camera_ids:
+                    newest_images[sensor_id] = sample
             alive = monitor.alive(clock_s)
+            # A camera group publishes its images one after another: detect each as it comes instead
+            # of all of them after the last one, so the frame is done soon after it is complete.
+            lidar_live = pipeline.lidar_live(alive)
+            for sensor_id, sample in newest_images.items():
+                if sensor_id in pipeline.cameras_due(lidar_live, sample.tick):
+                    t_ahead = time.perf_counter()
+                    try:
+                        image = decoder.image(sensor_id, sample.data)
+                    except ValueError:
+                        continue  # rejected and counted when its frame is decoded
+                    pipeline.detect_ahead(sensor_id, image)
+                    ahead[sensor_id] = Ahead(sample.stamp_ns, image, time.perf_counter() - t_ahead)
             ready += joiner.poll(expected(alive), clock_s)
             if not ready:
                 continue
@@ -246,7 +280,10 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             frame = ready[-1]
             start_ns = time.time_ns()
             due = pipeline.cameras_due(pipeline.lidar_live(frame.samples), frame.tick)
-            inputs, delivered = decode_frame(frame, kinds, counters, decoder, due)
+            inputs, delivered = decode_frame(frame, kinds, counters, decoder, due, ahead)
+            ahead_s = sum(
+                a.seconds for c, a in ahead.items() if c in frame.samples and a.stamp_ns == frame.stamp_ns
+            )
             decoded_ns = time.time_ns()
             try:
                 result = pipeline.process(inputs)
@@ -256,7 +293,11 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 if counters["errors/pipeline"] == 1 or counters["errors/pipeline"] % ERROR_LOG_EVERY == 0:
                     log.exception("frame %d failed (%d so far)", frame.tick, counters["errors/pipeline"])
                 continue
-            result.latencies_s = {"decode": (decoded_ns - start_ns) / 1e9, **result.latencies_s}
+            result.latencies_s = {
+                "detect_2d_ahead": ahead_s,
+                "decode": (decoded_ns - start_ns) / 1e9,
+                **result.latencies_s,
+            }
             now = time.monotonic()
             # A camera not due on this tick is fine while it is alive at its own cadence.
             waited = expected(alive)(frame.tick)

@@ -90,12 +90,15 @@ class FrameDecoder:
     def decode(self, kind: str, sensor_id: str, msg: object) -> np.ndarray | RadarTargets:
         if kind != "camera":
             return decode_sensor(kind, msg)
-        data = msg.data  # type: ignore[attr-defined]
+        return self.image(sensor_id, msg)  # type: ignore[arg-type]
+
+    def image(self, sensor_id: str, msg: CompressedImage) -> np.ndarray:
+        """A camera's image, read-only; the very array of its previous frame if the bytes repeat."""
         last = self._last.get(sensor_id)
-        if last is not None and last[0] == data:
+        if last is not None and last[0] == msg.data:
             self.repeats += 1
             return last[1]
-        image = image_to_array(msg)  # type: ignore[arg-type]
+        image = image_to_array(msg)
         image.setflags(write=False)  # shared with the pipeline's detection cache: never modified
-        self._last[sensor_id] = (data, image)
+        self._last[sensor_id] = (msg.data, image)
         return image

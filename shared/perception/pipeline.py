@@ -158,6 +158,7 @@ class AgentPipeline:
         # then a function of the tick, shared with the cameras' capture demand.
         self.tick_hz: float | None = None
         self._2d_cache: dict[str, tuple[np.ndarray, FloatArray]] = {}  # camera -> (image, its boxes)
+        self._ahead: set[str] = set()  # cameras whose cached boxes were detected ahead of their frame
 
     # --- stages ---------------------------------------------------------------------------------
 
@@ -192,17 +193,38 @@ class AgentPipeline:
         run = []
         for c in ids:
             cached = self._2d_cache.get(c)
-            if cached is not None and cached[0] is images[c] and not images[c].flags.writeable:
+            if cached is not None and cached[0] is images[c] and c in self._ahead:
+                out[c] = cached[1]  # detected ahead (`detect_ahead`) on this very image
+            elif cached is not None and cached[0] is images[c] and not images[c].flags.writeable:
                 out[c] = cached[1]
                 self.counts["camera/repeated_frame"] += 1
             else:
                 run.append(c)
+            self._ahead.discard(c)
         if run:
-            min_score = self.cfg.detectors.camera_min_score
-            for c, d in zip(run, self.camera_detector.detect([images[c] for c in run]), strict=True):
-                out[c] = np.asarray(d[d[:, 4] >= min_score], float)
-                self._2d_cache[c] = (images[c], out[c])
+            self._detect(run, [images[c] for c in run])
+            out.update((c, self._2d_cache[c][1]) for c in run)
         return {c: out[c] for c in ids}
+
+    def detect_ahead(self, camera_id: str, image: np.ndarray) -> bool:
+        """Detect one camera's image as soon as it arrives, while the agent's other sensors of that tick
+        are still on their way; `detect_2d` on the joined frame then reuses the boxes (the image must be
+        the very same array). Work moves off the frame's critical path; it is not saved. A repeated
+        frame (see `detect_2d`) is left for `detect_2d`. Returns whether the detector ran."""
+        if self.camera_detector is None or camera_id not in self.camera_ids:
+            return False
+        cached = self._2d_cache.get(camera_id)
+        if cached is not None and cached[0] is image and not image.flags.writeable:
+            return False
+        self._detect([camera_id], [image])
+        self._ahead.add(camera_id)
+        return True
+
+    def _detect(self, cameras: list[str], images: list[np.ndarray]) -> None:
+        """One batched detector call; the boxes above the score threshold cached per camera."""
+        min_score = self.cfg.detectors.camera_min_score
+        for c, img, d in zip(cameras, images, self.camera_detector.detect(images), strict=True):  # type: ignore[union-attr]
+            self._2d_cache[c] = (img, np.asarray(d[d[:, 4] >= min_score], float))
 
     def detect_3d(self, clouds: dict[str, np.ndarray]) -> FloatArray:
         """(M, 9) world-frame boxes `[x, y, z, dx, dy, dz, yaw, score, class]` of the agent's lidars."""

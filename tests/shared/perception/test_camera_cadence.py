@@ -120,3 +120,26 @@ def test_a_repeated_camera_frame_is_decoded_once_and_its_boxes_reused(scene: Sce
     pipe.detect_2d({"cam_13": writable})
     pipe.detect_2d({"cam_13": writable})
     assert cams.calls == [2, 1, 1, 1]
+
+
+def test_an_image_detected_on_arrival_is_not_detected_again_with_its_frame(scene: Scene) -> None:
+    decoder = FrameDecoder()
+    cams = CountingCameras()
+    pipe = pipeline(scene, cams)
+    first = decoder.image("cam_11", jpeg(40))
+    assert pipe.detect_ahead("cam_11", first)
+    other = decoder.image("cam_12", jpeg(90))
+    assert set(pipe.detect_2d({"cam_11": first, "cam_12": other})) == {"cam_11", "cam_12"}
+    assert cams.calls == [1, 1]  # cam_11 ahead; only cam_12 with the frame
+    assert pipe.counts["camera/repeated_frame"] == 0  # ahead is not a repeat
+    # The same bytes again: a repeat, neither detected ahead nor with the frame.
+    again = decoder.image("cam_11", jpeg(40))
+    assert again is first and not pipe.detect_ahead("cam_11", again)
+    pipe.detect_2d({"cam_11": again})
+    assert cams.calls == [1, 1] and pipe.counts["camera/repeated_frame"] == 1
+    # Detected ahead on one image, joined with another (a newer frame): that one is detected.
+    changed = decoder.image("cam_11", jpeg(200))
+    assert pipe.detect_ahead("cam_11", changed)
+    pipe.detect_2d({"cam_11": decoder.image("cam_11", jpeg(120))})
+    assert cams.calls == [1, 1, 1, 1]
+    assert not pipe.detect_ahead("cam_99", changed)  # not this agent's camera
