@@ -2,7 +2,8 @@
 
     python -m services.sim [--settings deploy/sim/sim.yaml] [--speed 1.0] [--vehicles 10] [--seed 0]
 
-Ticks run at 60 Hz of simulated time. On every tick on which a scene sensor fires (10 Hz) it publishes
+Ticks run at 60 Hz of simulated time. On every tick on which a scene sensor fires (10 Hz per agent, the
+agents on their own phases: 30 Hz) it publishes
 `rmmdet/@v1/sim/ground_truth` stamped with the sim time (start wall time + simulated seconds: the
 clock of record, equal to wall time while the sim keeps real time); sensor services render from it, so
 all sensors of one tick share its stamp. It also publishes the SimClock (sim time, target speed and the
@@ -39,7 +40,6 @@ from shared.bus.liveliness import LivelinessMonitor, source_of_token
 from shared.bus.node import Node, Received, processing_stamp
 from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.bus.streams import SENSOR_STREAM, get_stream, sensor_group_source
-from shared.scene.cadence import fires
 from shared.scene.calibration import calibration_set
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
@@ -147,7 +147,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             t0 = time.time_ns()
             traffic.step()
             stamp_ns = start_wall_ns + round(traffic.time_s * NS)
-            sensor_tick = any(fires(r, traffic.tick, settings.tick_hz) for r in sensor_rates)
+            sensor_tick = scene.any_captures_on(traffic.tick, settings.tick_hz)
             if live:  # publish a tick at its stamp, not before (latencies stay >= 0)
                 wait = anchor_mono + traffic.time_s / settings.speed - time.monotonic()
                 if wait < -LATE_TOLERANCE_S:  # the host cannot keep up: slow down, do not sprint

@@ -29,12 +29,16 @@ def fires(rate_hz: float, tick: int, tick_hz: float) -> bool:
     return tick == 0 or int(tick * rate_hz / tick_hz) != int((tick - 1) * rate_hz / tick_hz)
 
 
-def frame_due(rate_hz: float, every_n: int, tick: int, tick_hz: float, phase: int = 0) -> bool:
+def frame_due(
+    rate_hz: float, every_n: int, tick: int, tick_hz: float, phase: int = 0, tick_offset: int = 0
+) -> bool:
     """True if a sensor at `rate_hz` captures on `tick` when only every `every_n`-th frame is wanted:
-    the ticks on which it fires and its frame index floor(tick * rate_hz / tick_hz) is `phase` modulo n."""
+    the ticks on which it fires and its frame index floor(tick * rate_hz / tick_hz) is `phase` modulo n.
+    A sensor `tick_offset` ticks late does all that on `tick - tick_offset` (nothing before it)."""
     if every_n < 1:
         raise ValueError(f"every_n must be >= 1, got {every_n}")
-    return fires(rate_hz, tick, tick_hz) and (int(tick * rate_hz / tick_hz) - phase) % every_n == 0
+    t = tick - tick_offset
+    return t >= 0 and fires(rate_hz, t, tick_hz) and (int(t * rate_hz / tick_hz) - phase) % every_n == 0
 
 
 @dataclass

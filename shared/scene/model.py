@@ -162,6 +162,12 @@ class AgentSpec(_Strict):
     id: Id
     name: str
     areas: list[Id] = Field(description="areas this agent's sensors cover")
+    sensor_phase_ticks: int = Field(
+        0,
+        ge=0,
+        description="this agent's sensors fire this many sim ticks after the scene's sensor ticks; "
+        "agents on different phases do not render, send and detect all at the same instant",
+    )
 
 
 class RoadSpec(_Strict):

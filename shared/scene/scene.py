@@ -74,8 +74,14 @@ class Scene:
     def captures_on(self, spec: SensorSpec, tick: int, tick_hz: float, every_n: int = 1) -> bool:
         """True if sensor `spec` (at its `rate_hz`, which a dataset run may override) captures on
         `tick` while every `every_n`-th of its frames is wanted; an agent's sensors of one kind are
-        staggered over the n frames (`cadence.frame_due`)."""
-        return frame_due(spec.rate_hz, every_n, tick, tick_hz, self._capture_phase[spec.id])
+        staggered over the n frames, and each agent's sensors run its `sensor_phase_ticks` late
+        (`cadence.frame_due`)."""
+        offset = self.agents[spec.agent].sensor_phase_ticks
+        return frame_due(spec.rate_hz, every_n, tick, tick_hz, self._capture_phase[spec.id], offset)
+
+    def any_captures_on(self, tick: int, tick_hz: float) -> bool:
+        """True if some sensor of the scene captures on `tick` (at full cadence)."""
+        return any(self.captures_on(s, tick, tick_hz) for s in self.spec.sensors)
 
     def sensor(self, sensor_id: str) -> SensorSpec:
         try:

@@ -260,8 +260,12 @@ def frames(scene: Scene) -> list[list[Capture]]:
     return out
 
 
-def agent_scans(captures: list[Capture], agent: str) -> list[Capture]:
-    return [c for c in captures if c.spec.id in AGENT_LIDARS[agent]]
+def agent_frames(frames: list[list[Capture]], agent: str) -> list[list[Capture]]:
+    """The agent's lidar captures of each tick its lidars fired on (agents fire on their own phases)."""
+    out = [[c for c in captures if c.spec.id in AGENT_LIDARS[agent]] for captures in frames]
+    out = [scans for scans in out if scans]
+    assert out, f"no {agent} lidar frames"
+    return out
 
 
 def sensor_cloud(capture: Capture) -> np.ndarray:
@@ -276,8 +280,7 @@ def test_agent_frame_merge_is_the_training_cloud(
 ) -> None:
     T = agent_frame_transforms(scene, agent)
     assert sorted(T) == sorted(AGENT_LIDARS[agent])
-    for captures in frames:
-        scans = agent_scans(captures, agent)
+    for scans in agent_frames(frames, agent):
         ours = merge_clouds([(T[c.spec.id], sensor_cloud(c)) for c in scans])
         theirs, _ = merge_agent_scans(scene, scans, agent_origin_m(scene, agent))
         # The generator adds the sensor position then subtracts the origin: where they cancel (a lidar
@@ -293,8 +296,7 @@ def test_agent1_frames_lose_table_and_deck_but_keep_vehicle_points(
 ) -> None:
     T = agent_frame_transforms(scene, "agent1")
     vehicle_in = vehicle_kept = deck_in = deck_kept = 0
-    for captures in frames:
-        scans = agent_scans(captures, "agent1")
+    for scans in agent_frames(frames, "agent1"):
         cloud = merge_clouds([(T[c.spec.id], sensor_cloud(c)) for c in scans])
         vehicle = np.concatenate([c.data.vehicle_ids for c in scans if isinstance(c.data, LidarScan)]) != ""
         result = preprocess(cloud)

@@ -52,6 +52,26 @@ def test_scene_sensors_of_one_agent_and_kind_take_consecutive_phases() -> None:
     assert [t for t in range(121) if scene.captures_on(slow, t, TICK_HZ)] == [0, 60, 120]
 
 
+def test_a_late_sensor_fires_on_the_same_cadence_shifted() -> None:
+    assert [t for t in range(25) if frame_due(10.0, 1, t, TICK_HZ, tick_offset=2)] == [2, 8, 14, 20]
+    assert [t for t in range(70) if frame_due(10.0, 5, t, TICK_HZ, phase=1, tick_offset=4)] == [10, 40]
+    assert not frame_due(10.0, 1, 0, TICK_HZ, tick_offset=2)  # nothing before its first tick
+
+
+def test_agents_fire_on_their_own_phases_and_together_cover_the_sensor_ticks() -> None:
+    scene = Scene.load(DEFAULT_SCENE)
+    fired = {
+        a: sorted({t for t in range(60) for s in scene.sensors_of(a) if scene.captures_on(s, t, TICK_HZ)})
+        for a in scene.agents
+    }
+    offsets = {a: scene.agents[a].sensor_phase_ticks for a in scene.agents}
+    assert len(set(offsets.values())) == len(offsets)  # no two agents on one tick
+    for agent, ticks in fired.items():
+        assert ticks == list(range(offsets[agent], 60, 6))  # all its sensors on one tick, at 10 Hz
+    sensor_ticks = [t for t in range(60) if scene.any_captures_on(t, TICK_HZ)]
+    assert sensor_ticks == sorted(t for ticks in fired.values() for t in ticks)
+
+
 def test_every_n_below_one_is_rejected() -> None:
     with pytest.raises(ValueError):
         frame_due(10.0, 0, 6, TICK_HZ)
