@@ -10,9 +10,9 @@ all sensors of one tick share its stamp. It also publishes the SimClock (sim tim
 measured real-time factor; other processes judge freshness on it, shared/timebase.py) and each agent's
 CalibrationSet at low rate.
 
-Pacing (sim/pacing.py): a sensor tick is held back while a consumer's newest output (a sensor
-service's frames or a MEC's object lists) lags it by more than `pacing.max_lag_s` of sim time (a
-consumer whose liveliness token vanishes holds nothing), and a sim that falls behind its schedule
+Pacing (sim/pacing.py): a sensor tick is held back while a consumer of the agents it feeds (their
+sensor services' frames or their MEC's object lists) lags it by more than its period + `pacing.max_lag_s`
+of sim time (a consumer whose liveliness token vanishes holds nothing), and a sim that falls behind its schedule
 moves the schedule on instead of sprinting, so on a host that cannot keep real time the whole loop runs
 slower together and stays correct; the real-time factor reached is reported.
 
@@ -27,7 +27,8 @@ import argparse
 import logging
 import sys
 import time
-from collections.abc import Callable
+from collections import Counter
+from collections.abc import Callable, Collection
 from pathlib import Path
 from typing import Any
 
@@ -100,7 +101,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             if settings.traffic.route_policy == "plan"
             else None
         )
-        state = {"rtf": 0.0, "held_s": 0.0, "paced_by": ""}
+        state: dict[str, Any] = {"rtf": 0.0, "held_s": 0.0, "paced_by": "", "held_by": Counter()}
 
         def status() -> tuple[int, str]:
             held = f", held {state['held_s']:.1f} s by lagging consumers" if state["held_s"] else ""
@@ -147,7 +148,8 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             t0 = time.time_ns()
             traffic.step()
             stamp_ns = start_wall_ns + round(traffic.time_s * NS)
-            sensor_tick = scene.any_captures_on(traffic.tick, settings.tick_hz)
+            feeds = scene.agents_capturing_on(traffic.tick, settings.tick_hz)
+            sensor_tick = bool(feeds)
             if live:  # publish a tick at its stamp, not before (latencies stay >= 0)
                 wait = anchor_mono + traffic.time_s / settings.speed - time.monotonic()
                 if wait < -LATE_TOLERANCE_S:  # the host cannot keep up: slow down, do not sprint
@@ -156,7 +158,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 if wait > 0 and shutdown.wait(wait):
                     break
                 if sensor_tick and outputs is not None:
-                    held_s = hold(pacer, take_progress, stamp_ns, shutdown, state)
+                    held_s = hold(pacer, take_progress, stamp_ns, shutdown, state, feeds)
                     anchor_mono += held_s
             if sensor_tick:  # the sensors fire only on these ticks: nobody else needs ground truth
                 msg = ground_truth_message(traffic, scene, settings.seed, settings.tick_hz)
@@ -190,11 +192,12 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                     pub.put(calib_sets[agent], stamp_ns=stamp_ns, tick=traffic.tick)
             if now - last_log >= args.report_interval_s:
                 log.info(
-                    "sim %.1f s, real-time factor %.2f, held %.1f s by consumers, %d junction arrivals, "
+                    "sim %.1f s, real-time factor %.2f, held %.1f s by consumers %s, %d junction arrivals, "
                     "%d trips, %d detours%s",
                     traffic.time_s,
                     state["rtf"],
                     state["held_s"],
+                    {k: round(v, 1) for k, v in state["held_by"].most_common(3)},
                     sum(traffic.arrivals.values()),
                     len(traffic.trips),
                     traffic.detours,
@@ -225,14 +228,18 @@ def hold(
     stamp_ns: int,
     shutdown: GracefulShutdown,
     state: dict[str, Any],
+    agents: Collection[str],
 ) -> float:
-    """Wait while a consumer lags more than the pacer allows; returns the wall seconds held."""
+    """Wait while a consumer of `agents` (those the tick feeds) lags more than the pacer allows;
+    returns the wall seconds held."""
     start = time.monotonic()
     take_progress()
-    while (lagging := pacer.holding(stamp_ns, time.monotonic())) is not None:
+    while (lagging := pacer.holding(stamp_ns, time.monotonic(), agents)) is not None:
         state["paced_by"] = lagging
+        t = time.monotonic()
         if shutdown.wait(HOLD_POLL_S):
             break
+        state["held_by"][lagging] += time.monotonic() - t  # who holds the sim, for the periodic log
         take_progress()
     state["paced_by"] = ""
     held = time.monotonic() - start

@@ -79,9 +79,9 @@ class Scene:
         offset = self.agents[spec.agent].sensor_phase_ticks
         return frame_due(spec.rate_hz, every_n, tick, tick_hz, self._capture_phase[spec.id], offset)
 
-    def any_captures_on(self, tick: int, tick_hz: float) -> bool:
-        """True if some sensor of the scene captures on `tick` (at full cadence)."""
-        return any(self.captures_on(s, tick, tick_hz) for s in self.spec.sensors)
+    def agents_capturing_on(self, tick: int, tick_hz: float) -> frozenset[str]:
+        """The agents some sensor of which captures on `tick` (at full cadence)."""
+        return frozenset(s.agent for s in self.spec.sensors if self.captures_on(s, tick, tick_hz))
 
     def sensor(self, sensor_id: str) -> SensorSpec:
         try:
