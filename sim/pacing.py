@@ -10,10 +10,6 @@ slow or uneven cadence run at it without holding the sim: a lidar agent's camera
 every 10th frame publish on 4 consecutive frames, then on none for 6 (gaps 0.1, 0.1, 0.1, 0.7 s),
 and must not hold the tick of their next turn; a 10 Hz consumer's lag stays bounded to 0.2 s.
 
-Agents whose sensors fire on different ticks (scene `sensor_phase_ticks`) are paced on their own
-ticks: a tick is held only for the consumers of the agents it feeds, so a consumer is judged at its
-own cadence, not at every other agent's tick in between.
-
 A consumer whose process is gone (`forget`, on its liveliness token vanishing) or that has not reported
 for `timeout_s` of wall time (hung) no longer holds the sim: a killed MEC or sensor service must not
 stop the world. Before its first report a consumer holds nothing (models
@@ -23,7 +19,6 @@ still loading). Times: sim stamps in ns, wall times in monotonic seconds.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Collection
 from dataclasses import dataclass, field
 
 NS_PER_S = 1_000_000_000
@@ -79,15 +74,11 @@ class Pacer:
         """`consumer` is gone (its liveliness token vanished): it holds nothing until it reports again."""
         self._consumers.pop(consumer, None)
 
-    def holding(self, tick_stamp_ns: int, now_s: float, scopes: Collection[str] | None = None) -> str | None:
-        """The most lagging live consumer if publishing `tick_stamp_ns` would exceed the lag bound.
-        `scopes`: only consumers of these (the agents whose sensors the tick feeds, by the first part
-        of a consumer's `scope/service/instance` name) can hold it; default all."""
+    def holding(self, tick_stamp_ns: int, now_s: float) -> str | None:
+        """The most lagging live consumer if publishing `tick_stamp_ns` would exceed the lag bound."""
         worst: tuple[int, str] | None = None
         for name, c in self._consumers.items():
             if now_s - c.heard_s > self.timeout_s:
-                continue
-            if scopes is not None and name.split("/", 1)[0] not in scopes:
                 continue
             lag = tick_stamp_ns - c.stamp_ns - c.period_ns
             if lag > self.max_lag_ns and (worst is None or lag > worst[0]):

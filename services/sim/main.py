@@ -10,9 +10,9 @@ all sensors of one tick share its stamp. It also publishes the SimClock (sim tim
 measured real-time factor; other processes judge freshness on it, shared/timebase.py) and each agent's
 CalibrationSet at low rate.
 
-Pacing (sim/pacing.py): a sensor tick is held back while a consumer of the agents it feeds (their
-sensor services' frames or their MEC's object lists) lags it by more than its period + `pacing.max_lag_s`
-of sim time (a consumer whose liveliness token vanishes holds nothing), and a sim that falls behind its schedule
+Pacing (sim/pacing.py): a sensor tick is held back while a consumer's newest output (a sensor
+service's frames or a MEC's object lists) lags it by more than its period + `pacing.max_lag_s` of sim
+time (a consumer whose liveliness token vanishes holds nothing), and a sim that falls behind its schedule
 moves the schedule on instead of sprinting, so on a host that cannot keep real time the whole loop runs
 slower together and stays correct; the real-time factor reached is reported.
 
@@ -28,7 +28,7 @@ import logging
 import sys
 import time
 from collections import Counter
-from collections.abc import Callable, Collection
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -148,8 +148,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             t0 = time.time_ns()
             traffic.step()
             stamp_ns = start_wall_ns + round(traffic.time_s * NS)
-            feeds = scene.agents_capturing_on(traffic.tick, settings.tick_hz)
-            sensor_tick = bool(feeds)
+            sensor_tick = bool(scene.agents_capturing_on(traffic.tick, settings.tick_hz))
             if live:  # publish a tick at its stamp, not before (latencies stay >= 0)
                 wait = anchor_mono + traffic.time_s / settings.speed - time.monotonic()
                 if wait < -LATE_TOLERANCE_S:  # the host cannot keep up: slow down, do not sprint
@@ -158,7 +157,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 if wait > 0 and shutdown.wait(wait):
                     break
                 if sensor_tick and outputs is not None:
-                    held_s = hold(pacer, take_progress, stamp_ns, shutdown, state, feeds)
+                    held_s = hold(pacer, take_progress, stamp_ns, shutdown, state)
                     anchor_mono += held_s
             if sensor_tick:  # the sensors fire only on these ticks: nobody else needs ground truth
                 msg = ground_truth_message(traffic, scene, settings.seed, settings.tick_hz)
@@ -228,13 +227,11 @@ def hold(
     stamp_ns: int,
     shutdown: GracefulShutdown,
     state: dict[str, Any],
-    agents: Collection[str],
 ) -> float:
-    """Wait while a consumer of `agents` (those the tick feeds) lags more than the pacer allows;
-    returns the wall seconds held."""
+    """Wait while a consumer lags more than the pacer allows; returns the wall seconds held."""
     start = time.monotonic()
     take_progress()
-    while (lagging := pacer.holding(stamp_ns, time.monotonic(), agents)) is not None:
+    while (lagging := pacer.holding(stamp_ns, time.monotonic())) is not None:
         state["paced_by"] = lagging
         t = time.monotonic()
         if shutdown.wait(HOLD_POLL_S):

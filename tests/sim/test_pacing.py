@@ -97,13 +97,3 @@ def test_a_long_gap_is_not_taken_for_a_cadence() -> None:
     pacer.on_progress("mec1", T0, now_s=10.0)
     pacer.on_progress("mec1", T0 + 30 * NS_PER_S, now_s=10.5)  # restarted after 30 s of sim time
     assert pacer.holding(T0 + 31_200 * MS, now_s=10.6) == "mec1"  # period capped at 1 s
-
-
-def test_a_tick_is_held_only_for_the_agents_it_feeds() -> None:
-    pacer = Pacer(max_lag_s=0.1, timeout_s=1.0)
-    pacer.on_progress("agent3/mec/agent3", T0, now_s=10.0)
-    pacer.on_progress("agent3/mec/agent3", T0 + 100 * MS, now_s=10.1)
-    late = T0 + 300 * MS + 1  # beyond period + bound for agent3's MEC
-    assert pacer.holding(late, now_s=10.2, scopes={"agent1"}) is None  # agent1's tick: not agent3's work
-    assert pacer.holding(late, now_s=10.2, scopes={"agent1", "agent3"}) == "agent3/mec/agent3"
-    assert pacer.holding(late, now_s=10.2) == "agent3/mec/agent3"  # no scopes: every consumer counts
