@@ -3,8 +3,9 @@
     python -m services.sensor --group agent1-cameras     # group id = <agent>-<kind>s
 
 Subscribes to `rmmdet/@v1/sim/ground_truth`, keeps the vehicle world at that tick's poses and fires
-each sensor on the ticks of its rate (a sensor at rate r fires on the first tick of each 1/r period),
-so all sensors of a tick share its stamp; a group that falls behind skips to the newest tick
+each sensor on the ticks of its rate (a sensor at rate r fires on the first tick of each 1/r period,
+its agent's `sensor_phase_ticks` later), so all sensors of a tick share its stamp; each capture is
+published as soon as it is made; a group that falls behind skips to the newest tick
 (latest-wins) and counts the skipped frames. Cameras publish `foxglove.CompressedImage` (JPEG), lidars
 `foxglove.PointCloud`, radars `rmmdet.v1.RadarScan`; the rmmdet header carries the ground truth's
 stamp and tick. A consumer may ask for fewer frames (`rmmdet/@v1/<agent>/capture_demand/<kind>`, e.g.

@@ -2,8 +2,9 @@
 
 The sensor service wraps one rig per sensor group (one process per group, so a group can be killed
 alone); lock-step runs (datasets, experiments, the sim bench) hold one rig with every sensor of the
-scene in-process. A sensor at rate r fires on the first tick of each 1/r period, so every sensor that
-fires on a tick sees that tick's world and carries its stamp. Noise is drawn from a generator seeded by
+scene in-process. A sensor at rate r fires on the first tick of each 1/r period (its agent's
+`sensor_phase_ticks` later: `Scene.captures_on`), so every sensor that fires on a tick sees that tick's
+world and carries its stamp. Noise is drawn from a generator seeded by
 (scenario seed, sensor id, tick): the same seed gives the same data whatever the timing or the split of
 sensors into processes.
 
