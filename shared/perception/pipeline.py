@@ -210,13 +210,17 @@ class AgentPipeline:
         """Detect one camera's image as soon as it arrives, while the agent's other sensors of that tick
         are still on their way; `detect_2d` on the joined frame then reuses the boxes (the image must be
         the very same array). Work moves off the frame's critical path; it is not saved. A repeated
-        frame (see `detect_2d`) is left for `detect_2d`. Returns whether the detector ran."""
+        frame (see `detect_2d`), or one the detector rejects, is left for `detect_2d` (which counts
+        the rejection with its frame). Returns whether boxes were made."""
         if self.camera_detector is None or camera_id not in self.camera_ids:
             return False
         cached = self._2d_cache.get(camera_id)
         if cached is not None and cached[0] is image and not image.flags.writeable:
             return False
-        self._detect([camera_id], [image])
+        try:
+            self._detect([camera_id], [image])
+        except DetectorInputError:
+            return False
         self._ahead.add(camera_id)
         return True
 

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 
+from shared.detection.interface import DetectorInputError
 from shared.perception.config import MecSettings
 from shared.perception.decode import FrameDecoder
 from shared.perception.pipeline import AgentInputs, AgentPipeline
@@ -143,3 +144,18 @@ def test_an_image_detected_on_arrival_is_not_detected_again_with_its_frame(scene
     pipe.detect_2d({"cam_11": decoder.image("cam_11", jpeg(120))})
     assert cams.calls == [1, 1, 1, 1]
     assert not pipe.detect_ahead("cam_99", changed)  # not this agent's camera
+
+
+class RejectingCameras(CountingCameras):
+    def detect(self, images: list[np.ndarray]) -> list[np.ndarray]:
+        super().detect(images)
+        raise DetectorInputError("not an image")
+
+
+def test_an_image_the_detector_rejects_ahead_is_left_for_its_frame(scene: Scene) -> None:
+    cams = RejectingCameras()
+    pipe = pipeline(scene, cams)
+    image = FrameDecoder().image("cam_11", jpeg(40))
+    assert not pipe.detect_ahead("cam_11", image)  # no exception out of the MEC's receive loop
+    result = pipe.process(frame(scene, 0, lidar=False))
+    assert result.counts["rejected/camera_input"] == 1 and len(cams.calls) == 2
