@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -14,12 +13,7 @@ from sim.config import DEFAULT_SCENE
 HALF_WIDTH_M = 0.2
 
 
-@pytest.fixture(scope="module")
-def surface() -> RoadSurface:
-    return RoadSurface(Scene.load(DEFAULT_SCENE), HALF_WIDTH_M)
-
-
-_SURFACE = RoadSurface(Scene.load(DEFAULT_SCENE), HALF_WIDTH_M)  # hypothesis: no function fixtures
+_SURFACE = RoadSurface(Scene.load(DEFAULT_SCENE), HALF_WIDTH_M)  # one for all tests (hypothesis: no fixtures)
 
 
 def brute_nearest(s: RoadSurface, xy: np.ndarray, z_range: np.ndarray | None) -> np.ndarray:
@@ -83,7 +77,8 @@ def test_first_hit_matches_brute_force(
     )
 
 
-def test_degenerate_rays_and_empty_queries(surface: RoadSurface) -> None:
+def test_degenerate_rays_and_empty_queries() -> None:
+    surface = _SURFACE
     o = np.array([0.0, 1.5, 0.45])
     out = surface.first_hit(o, np.array([[1.0, 0.0, 0.0], [np.nan, 0.0, -1.0], [0.0, 0.0, 1.0]]), 0.1)
     assert np.isnan(out).all()  # level, NaN and upward (above the deck) rays meet no lane
