@@ -90,7 +90,7 @@ MODELS_DIR := deploy/models
 BENCH_DATA = $(if $(wildcard $(DATASET)/manifest.json),--data $(DATASET) --split test,)
 
 models: install ## regenerate the default dataset, train + export both detectors (CPU ~1 h), evaluate; results in deploy/models
-	$(BIN)/python -m sim.dataset.generate --out $(DATASET) --workers 2 --no-progress
+	$(BIN)/python -m studies.dataset.generate --out $(DATASET) --workers 2 --no-progress
 	cp $(DATASET)/manifest.json $(MODELS_DIR)/dataset_manifest.json
 	$(BIN)/python -m shared.detection.camera.train --data $(DATASET) --out $(MODEL_RUNS)/camera --threads 2
 	mkdir -p $(MODELS_DIR)/camera && cp $(MODEL_RUNS)/camera/model.onnx $(MODEL_RUNS)/camera/config.json $(MODELS_DIR)/camera/
@@ -107,7 +107,7 @@ eval-fusion: install ## MEC fusion + tracking vs sim ground truth on the held-ou
 	$(BIN)/rmmdet eval fusion --workers 2 --out docs/eval/fusion --readme
 
 experiments: install ## the paper's flow experiment: 5 policies x 10/20/40 vehicles x 5 seeds + one full-perception run (~16 min) -> docs/eval/flow
-	$(BIN)/rmmdet experiments flow --out docs/eval/flow
+	$(BIN)/rmmdet experiments flow --out docs/eval/flow --readme
 
 lint: install ## ruff
 	$(BIN)/ruff check .

@@ -13,11 +13,12 @@ Unknown keys are errors (a typo must not silently fall back to a default).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, TypeVar
 
 import yaml
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 ENV_PREFIX = "RMMDET_"
@@ -48,6 +49,7 @@ class ConfigError(ValueError):
 
 
 S = TypeVar("S", bound=BaseSettings)
+M = TypeVar("M", bound=BaseModel)
 
 
 def read_yaml(path: Path) -> dict[str, Any]:
@@ -64,10 +66,33 @@ def read_yaml(path: Path) -> dict[str, Any]:
     return data
 
 
+def deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    """`base` with `override` merged in, section by section: a nested mapping in `override` updates the
+    same section of `base` key by key instead of replacing it (`{"detectors": {"camera": "oracle"}}`
+    changes the camera detector and keeps the section's other settings). Neither input is modified."""
+    out = dict(base)
+    for key, value in override.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = deep_merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def with_overrides(model: M, overrides: Mapping[str, Any]) -> M:
+    """A copy of `model` with `overrides` deep-merged in (`deep_merge`) and validated like a file:
+    `with_overrides(mec, {"detectors": {"camera_threads": 1}})`. The one way settings are overridden
+    in code; environment variables are not read again."""
+    try:
+        return type(model).model_validate(deep_merge(model.model_dump(), dict(overrides)))
+    except ValidationError as err:
+        raise ConfigError(f"{type(model).__name__}: {err}") from None
+
+
 def load_settings(cls: type[S], yaml_path: Path | None = None, **overrides: Any) -> S:
-    """Settings of type `cls` from `yaml_path` (optional) plus keyword overrides, then env vars."""
-    data = read_yaml(yaml_path) if yaml_path is not None else {}
-    data.update(overrides)
+    """Settings of type `cls` from `yaml_path` (optional) with keyword overrides deep-merged in
+    (`deep_merge`), then env vars."""
+    data = deep_merge(read_yaml(yaml_path) if yaml_path is not None else {}, overrides)
     try:
         return cls(**data)
     except ValidationError as err:

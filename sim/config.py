@@ -7,14 +7,13 @@ with `__` (e.g. `RMMDET_SIM_TRAFFIC__VEHICLES=20`).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from shared.config import RmmdetSettings, load_settings, settings_config
+from shared.config import RmmdetSettings, deep_merge, load_settings, settings_config
+from shared.paths import DEFAULT_SCENE, REPO_ROOT
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_SCENE = REPO_ROOT / "deploy" / "scenes" / "sand_table.yaml"
 DEFAULT_SIM_CONFIG = REPO_ROOT / "deploy" / "sim" / "sim.yaml"
 
 RoutePolicy = Literal["random", "shortest", "plan"]
@@ -124,11 +123,8 @@ def load_sim_settings(
     """Sim settings from `path` with top-level `overrides` (e.g. seed=3); `vehicles` replaces only the
     traffic's vehicle count, validated like the YAML value. A relative scene path is taken from the repo
     root, so the result does not depend on the working directory."""
-    settings = load_settings(SimSettings, path, **overrides)
-    if vehicles is not None:
-        settings.traffic = TrafficSettings.model_validate(
-            {**settings.traffic.model_dump(), "vehicles": vehicles}
-        )
+    nested: dict[str, Any] = {"traffic": {"vehicles": vehicles}} if vehicles is not None else {}
+    settings = load_settings(SimSettings, path, **deep_merge(overrides, nested))
     if not settings.scene.is_absolute():
         settings.scene = REPO_ROOT / settings.scene
     return settings

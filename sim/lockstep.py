@@ -18,16 +18,16 @@ from typing import Any
 
 from rmmdet.v1.sim_pb2 import GroundTruth
 
+from shared.config import with_overrides
 from shared.scene.model import SensorSpec
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
+from shared.timebase import NS_PER_S
 from sim.config import SimSettings
 from sim.ground_truth import ground_truth_message
 from sim.sensors.camera import Lighting
 from sim.sensors.rig import Capture, SensorRig
 from sim.traffic import TrafficSim
-
-NS_PER_S = 1_000_000_000
 
 
 def override(
@@ -38,9 +38,8 @@ def override(
     if rate_hz and spec.kind in rate_hz:
         update["rate_hz"] = rate_hz[spec.kind]
     if model_overrides and spec.kind in model_overrides:
-        model = getattr(spec, spec.kind)
-        update[spec.kind] = type(model).model_validate({**model.model_dump(), **model_overrides[spec.kind]})
-    return spec.model_copy(update=update) if update else spec
+        update[spec.kind] = model_overrides[spec.kind]
+    return with_overrides(spec, update) if update else spec
 
 
 @dataclass(frozen=True)
@@ -76,10 +75,7 @@ class LockstepSim:
             scene, RoadNetwork(scene), settings.traffic, settings.seed, settings.tick_hz
         )
         specs = list(scene.spec.sensors) if sensor_ids is None else [scene.sensor(s) for s in sensor_ids]
-        overrides = rate_hz or {}
-        specs = [
-            s.model_copy(update={"rate_hz": overrides[s.kind]}) if s.kind in overrides else s for s in specs
-        ]
+        specs = [override(s, rate_hz, None) for s in specs]
         self.rig = SensorRig(scene, specs)
 
     def ground_truth(self) -> GroundTruth:

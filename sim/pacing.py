@@ -21,7 +21,8 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass, field
 
-NS_PER_S = 1_000_000_000
+from shared.timebase import NS_PER_S
+
 MAX_PERIOD_S = 1.0  # a gap longer than this (a restarted consumer) is not its cadence
 PERIOD_WINDOW = 8  # outputs whose gaps make up a consumer's period: one full round of cameras taking turns
 

@@ -10,7 +10,8 @@ import sys
 import time
 from pathlib import Path
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+from shared.paths import REPO_ROOT as REPO_ROOT  # re-exported: the tests take it from here
+
 DATA_DIR = Path(__file__).resolve().parent / "data"
 TEST_SCENE = DATA_DIR / "test_scene.yaml"
 

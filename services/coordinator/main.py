@@ -36,7 +36,6 @@ import zenoh
 from rmmdet.v1.common_pb2 import ErrorCode, ErrorResponse, Header
 from rmmdet.v1.planning_pb2 import RouteAck, RouteRequest, RouteResponse
 
-from services.coordinator.core import CoordinatorCore, RequestRejected
 from shared.bus.codec import MessageDecoder, Rejected, RejectReason, encode
 from shared.bus.health import DEGRADED, NOMINAL
 from shared.bus.liveliness import LivelinessMonitor
@@ -48,6 +47,7 @@ from shared.service import run_service
 from shared.shutdown import GracefulShutdown
 from shared.timebase import SimTime
 from shared.traffic.config import DEFAULT_COORDINATOR_CONFIG, CoordinatorSettings, load_coordinator_settings
+from shared.traffic.core import CoordinatorCore, RequestRejected
 from shared.traffic.coverage import AgentState
 from shared.traffic.messages import agent_objects
 from shared.traffic.plans import Ack

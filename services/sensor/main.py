@@ -30,12 +30,12 @@ from rmmdet.v1.sim_pb2 import GroundTruth
 from shared.bus.health import NOMINAL
 from shared.bus.node import Node, Publisher, Received, processing_stamp
 from shared.bus.streams import SENSOR_STREAM, sensor_group
+from shared.paths import DEFAULT_SCENE
 from shared.scene.cadence import CaptureDemands
 from shared.scene.model import SensorSpec
 from shared.scene.scene import Scene
 from shared.service import run_service
 from shared.shutdown import GracefulShutdown
-from sim.config import DEFAULT_SCENE
 from sim.sensors.rig import SensorRig
 
 log = logging.getLogger("services.sensor")

@@ -46,6 +46,7 @@ from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.service import run_service
 from shared.shutdown import GracefulShutdown
+from shared.timebase import NS_PER_S
 from sim.config import DEFAULT_SIM_CONFIG, SimSettings, load_sim_settings
 from sim.ground_truth import ground_truth_message
 from sim.pacing import Pacer
@@ -58,7 +59,6 @@ RTF_WINDOW_S = 2.0  # real-time factor measured over this wall window
 LATE_TOLERANCE_S = 0.25  # behind schedule by more than this: the schedule moves on (no sprint)
 HOLD_POLL_S = 0.002  # while held: how often the consumers' progress is looked at
 PACING_QUEUE = 256  # consumer outputs between two looks (18 sensors + 3 MECs at 10 Hz)
-NS = 1_000_000_000
 
 
 def load(args: argparse.Namespace) -> SimSettings:
@@ -144,10 +144,10 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         )
         while not shutdown.requested:
             if plans is not None:  # replies and pushes that arrived, then this tick's requests
-                plans.tick(start_wall_ns + round(traffic.time_s * NS))
+                plans.tick(start_wall_ns + round(traffic.time_s * NS_PER_S))
             t0 = time.time_ns()
             traffic.step()
-            stamp_ns = start_wall_ns + round(traffic.time_s * NS)
+            stamp_ns = start_wall_ns + round(traffic.time_s * NS_PER_S)
             sensor_tick = bool(scene.agents_capturing_on(traffic.tick, settings.tick_hz))
             if live:  # publish a tick at its stamp, not before (latencies stay >= 0)
                 wait = anchor_mono + traffic.time_s / settings.speed - time.monotonic()

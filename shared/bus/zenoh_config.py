@@ -18,7 +18,8 @@ from pathlib import Path
 
 import zenoh
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
+from shared.paths import REPO_ROOT
+
 ZENOH_CONFIG_DIR = REPO_ROOT / "deploy" / "zenoh"
 DEFAULT_CLIENT_CONFIG = ZENOH_CONFIG_DIR / "client.json5"
 DEFAULT_ROUTER_CONFIG = ZENOH_CONFIG_DIR / "router.json5"

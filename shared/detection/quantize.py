@@ -40,6 +40,7 @@ from onnxruntime.quantization import (
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
 from shared.detection.precision import model_file
+from shared.paths import DEFAULT_SCENE
 
 if TYPE_CHECKING:
     from sim.sensors.rig import Capture
@@ -153,7 +154,7 @@ def check_training_seeds(seeds: Iterable[int]) -> list[int]:
     """`seeds` if all are in the dataset's train split, else ValueError (no tuning or test seed may
     calibrate a model that is then evaluated on them)."""
     from shared.config import load_settings
-    from sim.dataset.config import DEFAULT_DATASET_CONFIG, DatasetSettings
+    from studies.dataset.config import DEFAULT_DATASET_CONFIG, DatasetSettings
 
     seeds = list(seeds)
     train = set(load_settings(DatasetSettings, DEFAULT_DATASET_CONFIG).seeds.train)
@@ -169,10 +170,10 @@ def render_training_captures(
     """(seed, captures) of every tick on which one of `sensor_ids` fires, all sampled at `rate_hz`,
     for `seconds` after `warmup_s` of traffic (sensors off) on each training seed in turn."""
     from shared.scene.scene import Scene
-    from sim.config import DEFAULT_SCENE, load_sim_settings
-    from sim.dataset.config import DatasetSettings
-    from sim.dataset.generate import seed_variation
+    from sim.config import load_sim_settings
     from sim.lockstep import LockstepSim
+    from studies.dataset.config import DatasetSettings
+    from studies.dataset.generate import seed_variation
 
     scene = Scene.load(DEFAULT_SCENE)
     kinds = {scene.sensor(s).kind for s in sensor_ids}

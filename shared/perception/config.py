@@ -6,19 +6,17 @@ has a default and says its unit. The scene file stays the single source of senso
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from pydantic import BaseModel, ConfigDict, Field
 
 from shared.config import RmmdetSettings, settings_config
 from shared.detection.precision import Precision
+from shared.paths import REPO_ROOT
 from shared.perception.camera_only import CameraOnlyConfig
 from shared.perception.lidar_camera import LidarCameraConfig
 from shared.perception.lidar_preprocess import LidarPreprocessConfig
 from shared.perception.radar_camera import RadarCameraConfig
 from shared.tracking.tracker import TrackerConfig
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_MEC_CONFIG = REPO_ROOT / "deploy" / "mec" / "mec.yaml"
 
 
@@ -55,6 +53,21 @@ class DetectorsConfig(_Model):
 
 
 class SyncConfig(_Model):
+    collector: str = Field(
+        "tick",
+        pattern="^(tick|bounded_wait)$",
+        description="how an agent frame is joined: tick (simulated sensors: exact join on the sim tick) | "
+        "bounded_wait (asynchronous real sensors: frames triggered by `trigger`, the others joined by "
+        "nearest stamp within `tolerance_s`, each waited for at most `max_wait_s`)",
+    )
+    trigger: str | None = Field(
+        None,
+        description="bounded_wait: sensor whose frames start an agent frame (default first lidar, "
+        "else radar, else camera)",
+    )
+    tolerance_s: float = Field(
+        0.05, gt=0, description="bounded_wait: largest |stamp - trigger stamp| of a joined frame, s"
+    )
     max_wait_s: float = Field(
         0.2,
         gt=0,

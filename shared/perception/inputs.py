@@ -22,7 +22,7 @@ import enum
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-NS_PER_S = 1_000_000_000
+from shared.timebase import NS_PER_S
 
 
 class InputState(enum.Enum):

@@ -143,11 +143,6 @@ def _aspect(boxes_xyxy: FloatArray) -> FloatArray:
     return (b[:, 2] - b[:, 0]) / np.maximum(b[:, 3] - b[:, 1], 1e-9)
 
 
-def _centre(boxes_xyxy: FloatArray) -> FloatArray:
-    b = np.asarray(boxes_xyxy, float).reshape(-1, 4)
-    return np.column_stack([(b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2])
-
-
 def merge_boxes(
     boxes3d: FloatArray, boxes2d: FloatArray, view: CameraView, cfg: LidarCameraConfig
 ) -> tuple[FloatArray, NDArray[np.bool_]]:

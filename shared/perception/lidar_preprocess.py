@@ -40,7 +40,7 @@ Limits: the slab is symmetric about the plane found, so when that plane is the d
 lowest ~2.5 cm of a vehicle on the deck or a ramp go with it (1.2 % of agent1's vehicle points over
 172 frames, all on the viaduct); deck parts seen as sparse, far rings may form clusters smaller than
 ``deck_min_extent_m`` and stay. The PointPillars model was trained on merged clouds without any of
-these stages (`sim.dataset.generate`): give it `merge_clouds` output unless it is retrained on
+these stages (`studies.dataset.generate`): give it `merge_clouds` output unless it is retrained on
 `preprocess` output.
 """
 
@@ -226,7 +226,7 @@ def agent_frame_transforms(scene: Scene, agent_id: str) -> dict[str, FloatArray]
 
     The agent frame has world axes and its origin at `shared.datasets.layout.agent_origin_m` (mean lidar
     xy, table height), so ``T_agent_from_sensor = translate(-origin) @ T_world_from_sensor``: merging
-    with these gives the clouds `sim.dataset.generate.merge_agent_scans` wrote for training, bit for bit
+    with these gives the clouds `studies.dataset.generate.merge_agent_scans` wrote for training, bit for bit
     except where the generator's ``(p + t_sensor) - origin`` cancels (a lidar at the origin): there a
     coordinate near 0 keeps a ~1e-16 m residue that the combined translation here does not have.
 

@@ -37,11 +37,10 @@ from shared.perception.lidar_preprocess import agent_frame_transforms, merge_clo
 from shared.perception.radar_camera import RadarTargets
 from shared.perception.views import CameraView, RoadSurface
 from shared.scene.scene import Scene
+from shared.timebase import NS_PER_S
 from shared.tracking.tracker import Measurement, MultiObjectTracker, Track
 
 FloatArray = NDArray[np.float64]
-NS_PER_S = 1_000_000_000
-
 CAMERA, LIDAR, RADAR = "camera", "lidar", "radar"
 # Per-axis position noise of a lidar box centre (PointPillars on the table), m.
 LIDAR_POSITION_STD_M = 0.02

@@ -28,7 +28,7 @@ from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-NS_PER_S = 1_000_000_000
+from shared.timebase import NS_PER_S
 
 #: The sensors a tick waits for: one set for every tick, or a function of the tick.
 Expected = Collection[str] | Callable[[int], Collection[str]]

@@ -14,11 +14,10 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 
 from shared.recording.record import Record
+from shared.timebase import NS_PER_S
 
 #: `speed` value meaning "no pacing".
 AS_FAST_AS_POSSIBLE = 0.0
-NS_PER_S = 1e9
-
 Clock = Callable[[], float]  # seconds, monotonic
 Wait = Callable[[float], bool]  # sleep up to the given seconds; True = stop requested
 

@@ -13,10 +13,9 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from shared.config import RmmdetSettings, load_settings, settings_config
+from shared.paths import DEFAULT_SCENE, REPO_ROOT
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_COORDINATOR_CONFIG = REPO_ROOT / "deploy" / "coordinator" / "coordinator.yaml"
-DEFAULT_SCENE = REPO_ROOT / "deploy" / "scenes" / "sand_table.yaml"
 
 PolicyName = Literal["random", "paper_rule", "shortest", "dynamic_ground_truth", "balanced"]
 POLICIES: tuple[PolicyName, ...] = ("random", "paper_rule", "shortest", "dynamic_ground_truth", "balanced")

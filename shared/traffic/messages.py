@@ -24,7 +24,6 @@ STATE_ENUM = {
     State.STALE: AgentState.AGENT_STATE_STALE,
     State.LOST: AgentState.AGENT_STATE_LOST,
 }
-NS_PER_S = 1_000_000_000
 POSITION_AXES = 3
 
 

@@ -88,11 +88,11 @@ from shared.bus.streams import get_stream
 from shared.bus.zenoh_config import CONFIG_ENV, DEFAULT_CLIENT_CONFIG, zenoh_config
 from shared.logging_setup import setup_logging
 from shared.machine import machine_info
+from shared.paths import REPO_ROOT
 from shared.shutdown import GracefulShutdown
 
 log = logging.getLogger("tests.bench.bus_bench")
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_OUTPUT = Path(__file__).resolve().parent / "results" / "bus.json"
 QUICK_OUTPUT = DEFAULT_OUTPUT.with_name("bus_quick.json")  # smoke runs never overwrite the real results
 

@@ -39,6 +39,7 @@ from shared.detection.quantize import compare_outputs
 from shared.geometry.boxes import iou2d_matrix
 from shared.machine import machine_info
 from shared.metrics.detection import APResult, evaluate_coco
+from shared.paths import DEFAULT_SCENE
 
 log = logging.getLogger("camera_detector_bench")
 
@@ -116,10 +117,10 @@ def simulated_images(seed: int = SIM_SEED) -> list[np.ndarray]:
     """Every camera's JPEG-decoded images (as the MEC gets them) from a short lock-step run of `seed`."""
     from shared.perception.decode import image_to_array
     from shared.scene.scene import Scene
-    from sim.config import DEFAULT_SCENE, load_sim_settings
-    from sim.dataset.config import DatasetSettings
-    from sim.dataset.generate import seed_variation
+    from sim.config import load_sim_settings
     from sim.lockstep import LockstepSim
+    from studies.dataset.config import DatasetSettings
+    from studies.dataset.generate import seed_variation
 
     scene = Scene.load(DEFAULT_SCENE)
     cameras = [s.id for s in scene.sensors_of(kind="camera")]

@@ -1,6 +1,6 @@
 """Coordinator benchmarks: map + plan cost in-process, and object list -> plan latency over the bus.
 
-1. In-process (`services.coordinator.core`, no bus): 50 vehicles seen by the 3 agents (cars on every
+1. In-process (`shared.traffic.core`, no bus): 50 vehicles seen by the 3 agents (cars on every
    agent's lanes; lanes in two agents' views are reported twice and merged). Per cycle: ingest the
    3 object lists, merge + map update, then one route request (each of the 50 vehicles in turn, so
    49 other plans load the planner). p50 / p95 of map update, plan and whole cycle; also one replan
@@ -29,12 +29,13 @@ from typing import Any
 import numpy as np
 from rmmdet.v1.planning_pb2 import RoutePlan, RouteRequest
 
-from services.coordinator.core import CoordinatorCore
 from shared.bus.node import Node
 from shared.machine import machine_info
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
+from shared.timebase import NS_PER_S
 from shared.traffic.config import DEFAULT_COORDINATOR_CONFIG, load_coordinator_settings
+from shared.traffic.core import CoordinatorCore
 from shared.traffic.messages import agent_objects
 from tests.helpers import spawn, start_router, stop
 from tests.integration.coordinator_client import RouteClient
@@ -44,7 +45,6 @@ log = logging.getLogger("coordinator_bench")
 
 RESULTS = Path(__file__).resolve().parent / "results"
 MS_PER_S = 1e3
-NS_PER_S = 1_000_000_000
 WARMUP = 20
 LIST_HZ = 15.0  # the MECs' object rate
 BENCH_AGENT = "agent1"

@@ -43,6 +43,7 @@ from shared.detection.lidar.pointpillars.onnx_detector import OnnxPointPillars
 from shared.detection.quantize import compare_outputs
 from shared.geometry.boxes import bev_iou_matrix
 from shared.machine import machine_info
+from shared.paths import DEFAULT_SCENE
 
 log = logging.getLogger("lidar_detector_bench")
 
@@ -89,7 +90,7 @@ def simulated_frames(count: int, seed: int = SIM_SEED) -> list[dict[str, Any]]:
     """Unlabelled agent frames (agent1 and agent3 alternately) from a short lock-step run."""
     from shared.datasets.layout import agent_origin_m
     from shared.scene.scene import Scene
-    from sim.config import DEFAULT_SCENE, SimSettings
+    from sim.config import SimSettings
     from sim.lockstep import LockstepSim
 
     scene = Scene.load(DEFAULT_SCENE)

@@ -30,13 +30,15 @@ from shared.bus.node import Node
 from shared.bus.streams import SENSOR_STREAM
 from shared.config import load_settings
 from shared.machine import machine_info
+from shared.paths import DEFAULT_SCENE
 from shared.perception import lidar_camera
 from shared.perception.config import DEFAULT_MEC_CONFIG, MecSettings
 from shared.perception.pipeline import lidar_measurement
 from shared.perception.views import CameraView
 from shared.scene.scene import Scene
+from shared.timebase import NS_PER_S
 from shared.tracking.tracker import MultiObjectTracker
-from sim.config import DEFAULT_SCENE, load_sim_settings
+from sim.config import load_sim_settings
 from sim.lockstep import LockstepSim
 from tests.helpers import spawn, start_router, stop
 
@@ -44,7 +46,6 @@ log = logging.getLogger("mec_bench")
 
 RESULTS = Path(__file__).resolve().parent / "results"
 MS_PER_S = 1e3
-NS_PER_S = 1_000_000_000
 FUSION_FRAMES = 2000
 WARMUP_FRAMES = 50
 FRAME_HZ = 15.0

@@ -59,17 +59,17 @@ from services.cli.health import level_name, probe
 from shared.bus.codec import Counters, MessageDecoder
 from shared.bus.session import open_session
 from shared.bus.streams import get_stream
-from shared.bus.zenoh_config import DEFAULT_CLIENT_CONFIG, REPO_ROOT, zenoh_config
+from shared.bus.zenoh_config import DEFAULT_CLIENT_CONFIG, zenoh_config
 from shared.machine import git_commit, machine_info
+from shared.paths import DEFAULT_SCENE, REPO_ROOT
 from shared.readme import replace_section
 from shared.scene.scene import Scene
-from sim.config import DEFAULT_SCENE
+from shared.timebase import NS_PER_S
 
 RESULTS = REPO_ROOT / "tests" / "bench" / "results" / "system.json"
 SUPERVISOR_CONF = REPO_ROOT / "deploy" / "local" / "supervisord.conf"
 PROBE_EVERY_S = 10.0
 OTHER_LOAD_WARN_CORES = 0.1  # other work on the host beyond this makes the run no measurement of the system
-NS = 1_000_000_000
 
 
 def supervised_pids() -> dict[str, int]:
@@ -254,8 +254,8 @@ def analyse(tap: Tap, t0_wall_ns: int, t1_wall_ns: int) -> dict[str, Any]:
     out: dict[str, Any] = {}
     if len(inside) < 2:
         return {"error": "no sim clock heard"}
-    sim_s = (inside[-1][1] - inside[0][1]) / NS
-    wall_s = (inside[-1][0] - inside[0][0]) / NS
+    sim_s = (inside[-1][1] - inside[0][1]) / NS_PER_S
+    wall_s = (inside[-1][0] - inside[0][0]) / NS_PER_S
     out["sim"] = {"sim_s": sim_s, "wall_s": wall_s, "real_time_factor": sim_s / wall_s}
     agents: dict[str, Any] = {}
     for agent, rows in sorted(objects.items()):
@@ -372,7 +372,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             sampler.sample()
             print(f"  {probes[-1]['t_s']:6.0f} s  {verdict.summary()[:160]}", flush=True)
         t1 = time.time_ns()
-        wall_s = (t1 - t0) / NS
+        wall_s = (t1 - t0) / NS_PER_S
         cpu = sampler.cpu_seconds()
         host_s, own_s = host_busy_s() - host0, own_cpu_s() - own0
         for sub in subs:

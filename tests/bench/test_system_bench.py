@@ -5,7 +5,8 @@ from __future__ import annotations
 from rmmdet.v1.perception_pb2 import PerceptionStatus
 from rmmdet.v1.traffic_pb2 import AgentState
 
-from tests.bench.system_bench import NS, Tap, analyse, plan_latency
+from shared.timebase import NS_PER_S as NS
+from tests.bench.system_bench import Tap, analyse, plan_latency
 
 MS = 1_000_000
 FULL = PerceptionStatus.PERCEPTION_STATUS_FULL

@@ -21,17 +21,17 @@ import zenoh
 from rmmdet.v1.perception_pb2 import PerceptionStatus, TrackedObjects
 
 from shared.bus.node import Node
+from shared.paths import DEFAULT_SCENE
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.service import run_service
 from shared.shutdown import GracefulShutdown
-from sim.config import DEFAULT_SCENE
+from shared.timebase import NS_PER_S
 
 SPEED_MPS = 0.3
 POSITION_VAR_M2 = 0.01
 EXISTENCE = 0.9
 READY_TIMEOUT_S = 30.0
-NS_PER_S = 1_000_000_000
 
 
 class AgentCars:

@@ -35,9 +35,9 @@ from rmmdet.v1.planning_pb2 import RoutePlan
 
 from shared.bus.node import Node
 from shared.bus.streams import SENSOR_STREAM
+from shared.paths import DEFAULT_SCENE
 from shared.perception.config import MecSettings
 from shared.scene.scene import Scene
-from sim.config import DEFAULT_SCENE
 from tests.helpers import Router, spawn, stop
 from tests.integration.coordinator_client import MapLog, RouteClient
 

@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 import pytest
 
 from shared.bus.node import Node
+from shared.paths import DEFAULT_SCENE
 from shared.scene.scene import Scene
-from sim.config import DEFAULT_SCENE
 from tests.helpers import Router, spawn, stop
 
 pytestmark = [pytest.mark.integration, pytest.mark.fault, pytest.mark.timeout(120)]

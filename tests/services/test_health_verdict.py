@@ -5,8 +5,8 @@ from __future__ import annotations
 from rmmdet.v1.health_pb2 import HealthLevel, ServiceHealth
 
 from services.cli.health import expected_services, judge
+from shared.paths import DEFAULT_SCENE
 from shared.scene.scene import Scene
-from sim.config import DEFAULT_SCENE
 
 NOMINAL = HealthLevel.HEALTH_LEVEL_NOMINAL
 DEGRADED = HealthLevel.HEALTH_LEVEL_DEGRADED

@@ -8,8 +8,8 @@ from rmmdet.v1.sim_pb2 import GroundTruth
 
 from services.sensor.main import newest_due, parse_group
 from shared.bus.node import Received
+from shared.paths import DEFAULT_SCENE
 from shared.scene.scene import Scene
-from sim.config import DEFAULT_SCENE
 
 
 @pytest.fixture(scope="module")

@@ -9,8 +9,8 @@ from collections.abc import Iterator
 
 import pytest
 
+from shared.paths import DEFAULT_SCENE
 from shared.scene.scene import Scene
-from sim.config import DEFAULT_SCENE
 from sim.world import FullWorld, StaticWorld, VehicleWorld
 
 

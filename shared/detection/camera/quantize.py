@@ -44,9 +44,9 @@ def calibration_feeds(
     rate_hz: float = CALIB_RATE_HZ,
 ) -> list[Feeds]:
     """One (1, H, W, 3) uint8 letterboxed input per rendered camera image of the training seeds."""
+    from shared.paths import DEFAULT_SCENE
     from shared.perception.decode import image_to_array
     from shared.scene.scene import Scene
-    from sim.config import DEFAULT_SCENE
 
     cameras = [s.id for s in Scene.load(DEFAULT_SCENE).sensors_of(kind="camera")]
     feeds: list[Feeds] = []

@@ -34,6 +34,7 @@ import torch
 from torch import nn
 from torch.utils.data import DataLoader
 
+from shared.config import with_overrides
 from shared.detection.camera.config import (
     CHECKPOINT_FILE,
     CONFIG_FILE,
@@ -351,8 +352,7 @@ def config_from_args(args: argparse.Namespace) -> CameraDetectorConfig:
     """The `--config` file (or the defaults) with the training options given on the command line."""
     cfg = CameraDetectorConfig.load(args.config) if args.config else CameraDetectorConfig()
     overrides = {k: getattr(args, k) for k in TRAIN_OVERRIDES if getattr(args, k) is not None}
-    train_cfg = cfg.train.model_copy(update=overrides)
-    return CameraDetectorConfig.model_validate({**cfg.model_dump(), "train": train_cfg.model_dump()})
+    return with_overrides(cfg, {"train": overrides})
 
 
 def main(argv: list[str] | None = None) -> None:

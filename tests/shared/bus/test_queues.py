@@ -42,10 +42,14 @@ def test_close_wakes_waiters_and_refuses_puts() -> None:
     result: list[int | None] = []
     waiter = threading.Thread(target=lambda: result.append(q.get()))
     waiter.start()
-    time.sleep(0.05)
+    # Close only once the waiter is blocked inside get(): a close before it would pass vacuously.
+    deadline = time.monotonic() + 10.0
+    while not q._cond._waiters and time.monotonic() < deadline:  # type: ignore[attr-defined]
+        time.sleep(0.001)
+    assert q._cond._waiters, "the waiter never blocked in get()"  # type: ignore[attr-defined]
     q.close()
-    waiter.join(2.0)
-    assert result == [None]
+    waiter.join(10.0)
+    assert not waiter.is_alive() and result == [None]
     assert not q.put(1)
 
 

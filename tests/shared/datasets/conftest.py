@@ -2,8 +2,8 @@ from __future__ import annotations
 
 import pytest
 
+from shared.paths import DEFAULT_SCENE
 from shared.scene.scene import Scene
-from sim.config import DEFAULT_SCENE
 
 
 @pytest.fixture(scope="module")

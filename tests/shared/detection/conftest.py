@@ -7,6 +7,8 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
+from shared.paths import DEFAULT_SCENE
+
 RENDER_AGENT = "agent1"  # four cameras and two lidars
 RENDER_SEED = 101  # a tuning seed: not one the int8 models were calibrated on
 RENDER_VEHICLES = 16
@@ -26,7 +28,7 @@ def agent_frame() -> AgentFrame:
     from shared.perception.decode import image_to_array, point_cloud_to_array
     from shared.perception.lidar_preprocess import agent_frame_transforms, merge_clouds
     from shared.scene.scene import Scene
-    from sim.config import DEFAULT_SCENE, load_sim_settings
+    from sim.config import load_sim_settings
     from sim.lockstep import LockstepSim
 
     scene = Scene.load(DEFAULT_SCENE)

@@ -14,8 +14,8 @@ from shared.detection.oracle import (
     OracleLidarDetector,
 )
 from shared.detection.registry import camera_detector, lidar_detector
-from sim.dataset.config import DatasetSettings, SplitSeeds
-from sim.dataset.generate import generate
+from studies.dataset.config import DatasetSettings, SplitSeeds
+from studies.dataset.generate import generate
 
 
 @pytest.fixture(scope="module")

@@ -10,11 +10,11 @@ import pytest
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 
 from shared.detection.interface import DetectorInputError
+from shared.paths import DEFAULT_SCENE
 from shared.perception.config import MecSettings
 from shared.perception.decode import FrameDecoder
 from shared.perception.pipeline import AgentInputs, AgentPipeline
 from shared.scene.scene import Scene
-from sim.config import DEFAULT_SCENE
 
 TICK_HZ = 60.0
 TICKS_PER_FRAME = 6  # 10 Hz sensors

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from shared.geometry.transforms import matrix_from_xyz_rpy
+from shared.paths import DEFAULT_SCENE
 from shared.perception import camera_only, lidar_camera, radar_camera
 from shared.perception.radar_camera import RadarTargets, RoiSizeConfig
 from shared.perception.views import CameraView, RoadSurface
 from shared.scene.scene import Scene
-from sim.config import DEFAULT_SCENE
 
 CAR = (0.33, 0.22, 0.21)
 

@@ -5,8 +5,7 @@ from __future__ import annotations
 import pytest
 
 from shared.perception.inputs import InputState, SensorMonitor, Status, StatusHysteresis
-
-NS = 1_000_000_000
+from shared.timebase import NS_PER_S
 
 
 def monitor(max_age_s: float = 0.2) -> SensorMonitor:
@@ -17,7 +16,7 @@ def monitor(max_age_s: float = 0.2) -> SensorMonitor:
 
 def test_missing_after_three_periods_without_frames() -> None:
     m = monitor()
-    assert m.accept("cam", stamp_ns=10 * NS, now_s=1.0, arrival_ns=10 * NS)
+    assert m.accept("cam", stamp_ns=10 * NS_PER_S, now_s=1.0, arrival_ns=10 * NS_PER_S)
     assert m.state("cam", 1.0 + 3 / 15) is InputState.OK
     assert m.state("cam", 1.0 + 3 / 15 + 1e-3) is InputState.MISSING
     # Never delivered: missing three periods after the monitor started.
@@ -27,10 +26,12 @@ def test_missing_after_three_periods_without_frames() -> None:
 
 def test_old_frames_are_stale_dropped_and_counted() -> None:
     m = monitor()
-    assert not m.accept("cam", stamp_ns=10 * NS, now_s=1.0, arrival_ns=10 * NS + int(0.25 * NS))
+    assert not m.accept(
+        "cam", stamp_ns=10 * NS_PER_S, now_s=1.0, arrival_ns=10 * NS_PER_S + int(0.25 * NS_PER_S)
+    )
     assert m.counts("cam") == (0, 1)
     assert m.state("cam", 1.0) is InputState.STALE
-    assert m.accept("cam", stamp_ns=11 * NS, now_s=1.1, arrival_ns=11 * NS + int(0.05 * NS))
+    assert m.accept("cam", stamp_ns=11 * NS_PER_S, now_s=1.1, arrival_ns=11 * NS_PER_S + int(0.05 * NS_PER_S))
     assert m.state("cam", 1.1) is InputState.OK
     (cam, _lidar) = m.report(1.2)
     assert cam.sensor_id == "cam" and cam.age_s == pytest.approx(0.1)
@@ -38,7 +39,7 @@ def test_old_frames_are_stale_dropped_and_counted() -> None:
 
 def test_staleness_check_can_be_turned_off_for_replays() -> None:
     m = monitor(max_age_s=0.0)
-    assert m.accept("cam", stamp_ns=0, now_s=1.0, arrival_ns=100 * NS)
+    assert m.accept("cam", stamp_ns=0, now_s=1.0, arrival_ns=100 * NS_PER_S)
 
 
 def test_degraded_at_once_full_only_after_recover_frames() -> None:
@@ -61,7 +62,7 @@ def test_stutter_does_not_flap_and_no_input_is_unavailable() -> None:
 
 def test_an_input_asked_for_fewer_frames_is_judged_at_its_new_rate() -> None:
     m = monitor()
-    m.accept("cam", stamp_ns=10 * NS, now_s=1.0, arrival_ns=10 * NS)
+    m.accept("cam", stamp_ns=10 * NS_PER_S, now_s=1.0, arrival_ns=10 * NS_PER_S)
     m.set_rate("cam", 3.0)  # every 5th frame of 15 Hz
     assert m.state("cam", 1.0 + 0.9) is InputState.OK  # 3 periods of 1/3 s
     assert m.state("cam", 1.0 + 1.01) is InputState.MISSING
@@ -71,8 +72,8 @@ def test_an_input_asked_for_fewer_frames_is_judged_at_its_new_rate() -> None:
 
 def test_an_input_whose_process_is_gone_is_missing_at_once_until_it_delivers() -> None:
     m = monitor()
-    m.accept("cam", stamp_ns=10 * NS, now_s=1.0, arrival_ns=10 * NS)
+    m.accept("cam", stamp_ns=10 * NS_PER_S, now_s=1.0, arrival_ns=10 * NS_PER_S)
     m.mark_gone("cam")
     assert m.state("cam", 1.01) is InputState.MISSING and m.alive(1.01) == []
-    m.accept("cam", stamp_ns=11 * NS, now_s=2.0, arrival_ns=11 * NS)  # restarted
+    m.accept("cam", stamp_ns=11 * NS_PER_S, now_s=2.0, arrival_ns=11 * NS_PER_S)  # restarted
     assert m.state("cam", 2.01) is InputState.OK

@@ -11,6 +11,7 @@ from pydantic import ValidationError
 
 from shared.datasets.layout import agent_origin_m
 from shared.geometry.transforms import matrix_from_xyz_rpy, transform_points
+from shared.paths import DEFAULT_SCENE
 from shared.perception.lidar_preprocess import (
     NON_FINITE,
     STAGES,
@@ -20,11 +21,11 @@ from shared.perception.lidar_preprocess import (
     preprocess,
 )
 from shared.scene.scene import Scene
-from sim.config import DEFAULT_SCENE, SimSettings
-from sim.dataset.generate import merge_agent_scans
+from sim.config import SimSettings
 from sim.lockstep import LockstepSim
 from sim.sensors.lidar import INTENSITY_STRUCTURE, INTENSITY_TABLE, LidarScan
 from sim.sensors.rig import Capture
+from studies.dataset.generate import merge_agent_scans
 
 AGENT_LIDARS = {"agent1": ("lidar_11", "lidar_12"), "agent3": ("lidar_41",)}
 SIM_SEED = 5

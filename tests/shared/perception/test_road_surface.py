@@ -6,9 +6,9 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from shared.paths import DEFAULT_SCENE
 from shared.perception.views import RoadSurface
 from shared.scene.scene import Scene
-from sim.config import DEFAULT_SCENE
 
 HALF_WIDTH_M = 0.2
 

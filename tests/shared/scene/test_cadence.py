@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
+from shared.paths import DEFAULT_SCENE
 from shared.scene.cadence import CaptureDemands, fires, frame_due
 from shared.scene.scene import Scene
-from sim.config import DEFAULT_SCENE
 
 TICK_HZ = 60.0
 

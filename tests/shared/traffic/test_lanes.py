@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from shared.paths import DEFAULT_SCENE
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
-from shared.traffic.config import DEFAULT_SCENE, MapConfig
+from shared.traffic.config import MapConfig
 from shared.traffic.lanes import OFF_LANE, LaneLocator
 
 SPEED_MPS = 0.3

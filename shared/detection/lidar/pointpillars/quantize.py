@@ -42,10 +42,10 @@ def calibration_feeds(
     rate_hz: float = CALIB_RATE_HZ,
 ) -> list[Feeds]:
     """The network inputs of every lidar agent's merged cloud per rendered frame of the training seeds."""
+    from shared.paths import DEFAULT_SCENE
     from shared.perception.decode import point_cloud_to_array
     from shared.perception.lidar_preprocess import agent_frame_transforms, merge_clouds
     from shared.scene.scene import Scene
-    from sim.config import DEFAULT_SCENE
 
     scene = Scene.load(DEFAULT_SCENE)
     agents = sorted({s.agent for s in scene.sensors_of(kind="lidar")})

@@ -23,6 +23,7 @@ import torch
 import torch.nn.functional as F  # noqa: N812 (torch convention)
 from torch.utils.data import DataLoader
 
+from shared.config import with_overrides
 from shared.detection.lidar.pointpillars.coding import (
     REG_COS2,
     REG_DIRECTION,
@@ -292,7 +293,7 @@ def main(argv: list[str] | None = None) -> None:
 
     config = PointPillarsConfig.load(args.config) if args.config else PointPillarsConfig()
     if args.epochs is not None:
-        config = config.model_copy(update={"train": config.train.model_copy(update={"epochs": args.epochs})})
+        config = with_overrides(config, {"train": {"epochs": args.epochs}})
     torch.set_num_threads(config.train.num_threads)
     t0 = time.perf_counter()
     train_frames = read_split(args.data, args.train_split, args.max_frames)

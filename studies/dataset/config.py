@@ -13,7 +13,8 @@ from pathlib import Path
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from shared.config import RmmdetSettings, settings_config
-from sim.config import DEFAULT_SIM_CONFIG, REPO_ROOT
+from shared.paths import REPO_ROOT
+from sim.config import DEFAULT_SIM_CONFIG
 
 DEFAULT_DATASET_CONFIG = REPO_ROOT / "deploy" / "datasets" / "default.yaml"
 DEFAULT_DATA_ROOT = REPO_ROOT / "data" / "datasets"

@@ -25,18 +25,22 @@ import logging
 import time
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import shapely
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from numpy.typing import NDArray
 
+from shared.config import with_overrides
 from shared.datasets.layout import MIN_LIDAR_POINTS, min_visible_px
 from shared.detection.interface import CameraDetector, LidarDetector
 from shared.metrics.fusion import FusionAccumulator
 from shared.metrics.tracking import TrackingAccumulator
+from shared.paths import DEFAULT_SCENE
 from shared.perception import camera_only
 from shared.perception.config import MecSettings
+from shared.perception.core import MecCore, MecOutput
 from shared.perception.decode import FrameDecoder
 from shared.perception.output import DEFAULT_SIZE_M
 from shared.perception.pipeline import (
@@ -48,6 +52,7 @@ from shared.perception.pipeline import (
     merge_across_sensors,
 )
 from shared.scene.scene import Scene
+from shared.timebase import NS_PER_S
 from shared.tracking.tracker import Measurement, MultiObjectTracker, Track
 from sim.config import SimSettings
 from sim.lockstep import LockstepSim
@@ -58,7 +63,6 @@ from sim.sensors.rig import Capture
 log = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
-NS_PER_S = 1_000_000_000
 SINGLE_MODALITIES = ("lidar", "camera", "radar")
 # Ground truth this close outside the agent's areas is an ignore region; predictions beyond are dropped.
 SCOPE_MARGIN_M = 0.3
@@ -136,12 +140,15 @@ def observable(gt: Any, captures: list[Capture], scope: AgentScope) -> FrameTrut
     return FrameTruth(scored, ignore)
 
 
-def to_inputs(tick_stamp_ns: int, tick: int, captures: list[Capture], decoder: FrameDecoder) -> AgentInputs:
-    """Decode the tick's bus messages the way the MEC does (one `decoder` per run)."""
-    inputs = AgentInputs(stamp_ns=tick_stamp_ns, tick=tick)
+def feed_tick(core: MecCore, tick_stamp_ns: int, tick: int, captures: list[Capture]) -> MecOutput | None:
+    """One lock-step tick's captures through the MEC's core, as the live MEC receives them: the bus
+    messages in on the clock of record (the tick's stamp; nothing is late or stale in lock step), then
+    the frame joined, decoded, processed and published with its status. None if no frame was ready."""
+    now_s = tick_stamp_ns / NS_PER_S
+    core.cadence(now_s)
     for c in captures:
-        inputs.add(c.spec.kind, c.spec.id, decoder.decode(c.spec.kind, c.spec.id, c.message))
-    return inputs
+        core.receive(c.spec.id, tick_stamp_ns, tick, c.message, now_s, tick_stamp_ns)
+    return core.step(now_s)
 
 
 def measurement_box(m: Measurement) -> tuple[FloatArray, bool]:
@@ -191,10 +198,11 @@ class AgentEvaluation:
 
 
 def single_modality_measurements(
-    result: AgentResult, pipeline: AgentPipeline, inputs: AgentInputs
+    result: AgentResult, pipeline: AgentPipeline, inputs: AgentInputs, images: dict[str, np.ndarray]
 ) -> dict[str, list[Measurement]]:
     """What each modality alone would give the tracker this frame (radar: its targets without any
-    camera, one measurement per car across the radars)."""
+    camera, one measurement per car across the radars). `images`: every camera image of the frame,
+    the ones the MEC did not decode (camera cadence) included: a camera-only system sees them all."""
     out: dict[str, list[Measurement]] = {}
     if pipeline.lidar_ids:
         out["lidar"] = [
@@ -202,7 +210,7 @@ def single_modality_measurements(
             for b in result.lidar_boxes_world
         ]
     camera_boxes = dict(result.camera_boxes)
-    skipped = {c: img for c, img in inputs.images.items() if c not in camera_boxes}
+    skipped = {c: img for c, img in images.items() if c not in camera_boxes}
     if skipped:
         # The pipeline's camera cadence skipped the detector on these images; the baseline runs it.
         camera_boxes.update(pipeline.detect_2d(skipped))
@@ -237,9 +245,10 @@ def evaluate_run(
     ev = AgentEvaluation()
     vehicle_index: dict[str, int] = {}
     sensor_ids = [s.id for s in scene.sensors_of(agent_id)]
-    pipeline = AgentPipeline(scene, agent_id, mec, cameras=cameras, lidar=lidar)
-    pipeline.tick_hz = sim_settings.tick_hz  # the camera cadence of the live MEC (on sim ticks)
-    decoder = FrameDecoder()
+    core = MecCore(scene, agent_id, mec, cameras=cameras, lidar=lidar)
+    core.tick_hz = sim_settings.tick_hz  # the camera cadence of the live MEC (on sim ticks)
+    pipeline = core.pipeline
+    baseline_decoder = FrameDecoder()  # the images the MEC skips, for the camera-only baseline
     single_trackers = {m: MultiObjectTracker(mec.tracker) for m in SINGLE_MODALITIES}
     scope = AgentScope(scene, agent_id, SCOPE_MARGIN_M, SCOPE_MARGIN_Z_M)
     with LockstepSim(scene, sim_settings, sensor_ids=sensor_ids, labels=True) as sim:
@@ -252,9 +261,20 @@ def evaluate_run(
                 continue
             gt = tick.ground_truth
             stamp_ns = gt.header.stamp.ToNanoseconds()
-            inputs = to_inputs(stamp_ns, gt.header.tick, tick.captures, decoder)
-            result = pipeline.process(inputs)
-            singles = single_modality_measurements(result, pipeline, inputs)
+            out = feed_tick(core, stamp_ns, gt.header.tick, tick.captures)
+            if out is None or out.frame.tick != gt.header.tick:
+                # Every sensor of an agent captures on the agent's ticks: a lock-step frame is complete
+                # at once. Anything else is a bug of the join, not a frame to score late.
+                raise RuntimeError(f"{agent_id}: tick {gt.header.tick} not joined at once")
+            result, inputs = out.result, out.inputs
+            images = {
+                c.spec.id: inputs.images[c.spec.id]
+                if c.spec.id in inputs.images
+                else baseline_decoder.image(c.spec.id, cast(CompressedImage, c.message))
+                for c in tick.captures
+                if c.spec.kind == "camera"
+            }
+            singles = single_modality_measurements(result, pipeline, inputs, images)
             for m, tracker in single_trackers.items():
                 if m in singles:
                     tracker.step(stamp_ns / NS_PER_S, singles[m])
@@ -264,7 +284,7 @@ def evaluate_run(
             single_tracks = {m: t.confirmed() for m, t in single_trackers.items() if m in singles}
             ids = {v: vehicle_index.setdefault(v, len(vehicle_index)) for v in truth.boxes}
             _score_frame(ev, scope, truth, ids, result, singles, single_tracks)
-    ev.counts.update(pipeline.counts)
+    ev.counts.update(core.counts())
     return ev
 
 
@@ -334,9 +354,9 @@ def timed(fn: Any, *args: Any, **kwargs: Any) -> tuple[Any, float]:
 def _run_worker(job: tuple[str, int, float, float, str]) -> tuple[str, int, AgentEvaluation, float]:
     """One (agent, seed) run in a worker process (spawned: PyBullet and onnxruntime are per process)."""
     agent, seed, duration_s, warmup_s, mec_json = job
-    from sim.config import DEFAULT_SCENE, load_sim_settings
-    from sim.dataset.config import DatasetSettings
-    from sim.dataset.generate import seed_variation
+    from sim.config import load_sim_settings
+    from studies.dataset.config import DatasetSettings
+    from studies.dataset.generate import seed_variation
 
     scene = Scene.load(DEFAULT_SCENE)
     mec = MecSettings.model_validate_json(mec_json)
@@ -357,8 +377,7 @@ def evaluate(
     if workers > 1:
         # One onnxruntime thread per model and process: spinning ORT threads of parallel workers
         # oversubscribe the cores and run many times slower.
-        one = {"camera_threads": 1, "lidar_threads": 1}
-        mec = mec.model_copy(update={"detectors": mec.detectors.model_copy(update=one)})
+        mec = with_overrides(mec, {"detectors": {"camera_threads": 1, "lidar_threads": 1}})
     jobs = [(a, s, duration_s, warmup_s, mec.model_dump_json()) for a in agents for s in seeds]
     per_agent: dict[str, AgentEvaluation] = {a: AgentEvaluation() for a in agents}
     if workers <= 1:

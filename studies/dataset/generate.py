@@ -1,7 +1,7 @@
 """Generate an auto-labelled dataset: the simulation runs lock-step over many seeds and writes camera
 images with 2D boxes and agent lidar frames with 3D boxes in the layout of shared/datasets/layout.py.
 
-    python -m sim.dataset.generate --out data/datasets/default [--config deploy/datasets/default.yaml]
+    python -m studies.dataset.generate --out data/datasets/default [--config deploy/datasets/default.yaml]
                                    [--workers 2]
     rmmdet dataset generate ...   (the same)
 
@@ -29,9 +29,10 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from rmmdet.v1.sim_pb2 import GroundTruth
 from tqdm import tqdm
 
@@ -49,15 +50,16 @@ from shared.datasets.layout import (
     lidar_stem,
     min_visible_px,
 )
+from shared.paths import REPO_ROOT
 from shared.scene.scene import Scene
-from sim.config import REPO_ROOT, load_sim_settings
-from sim.dataset.config import DEFAULT_DATASET_CONFIG, DatasetSettings
+from sim.config import load_sim_settings
 from sim.lockstep import LockstepSim
 from sim.sensors.camera import CameraFrame, Lighting
 from sim.sensors.lidar import LidarScan
 from sim.sensors.rig import Capture
+from studies.dataset.config import DEFAULT_DATASET_CONFIG, DatasetSettings
 
-log = logging.getLogger("sim.dataset")
+log = logging.getLogger("studies.dataset")
 
 APPEARANCE_STREAM = 0x4150  # separates the appearance generator from the traffic's
 COLOUR_MIN, COLOUR_MAX = 0.05, 0.95
@@ -175,7 +177,7 @@ class SeedWriter:
         ids, boxes, ignore, pixels = camera_labels(frame)
         image_path = self.layout.camera_image(split, stem)
         image_path.parent.mkdir(parents=True, exist_ok=True)
-        image_path.write_bytes(capture.message.data)
+        image_path.write_bytes(cast(CompressedImage, capture.message).data)
         yolo.write_yolo(self.layout.yolo_label(split, stem), boxes, width, height)
         voc.write_voc(
             self.layout.voc_label(split, stem),
@@ -232,7 +234,7 @@ def generate_seed(cfg: DatasetSettings, layout: DatasetLayout, split: str, seed:
     lidars = [s.id for s in scene.sensors_of(kind="lidar")] if cfg.lidar_sample_hz > 0 else []
     rates = {"camera": cfg.camera_sample_hz, "lidar": cfg.lidar_sample_hz}
     lighting = Lighting(
-        direction=tuple(var["light_direction"]),  # type: ignore[arg-type]
+        direction=tuple(var["light_direction"]),
         ambient=var["light_ambient"],
         diffuse=var["light_diffuse"],
     )

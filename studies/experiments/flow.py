@@ -20,22 +20,26 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from rmmdet.v1.planning_pb2 import RoutePlan, RouteRequest
 
+from shared.config import with_overrides
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
+from shared.timebase import NS_PER_S
 from shared.traffic.config import CoordinatorSettings, PolicyName
+from shared.traffic.core import CoordinatorCore, RequestRejected
 from shared.traffic.lanes import OFF_LANE
-from shared.traffic.maps import AgentObjects, TableGrid, TrafficMapBuilder, TrafficSnapshot, merge_agents
-from shared.traffic.planner import LaneConditions, RoutePlanner
+from shared.traffic.maps import AgentObjects, TableGrid, TrafficSnapshot
 from sim.config import SimSettings, TrafficSettings
-from sim.experiments.config import FlowExperimentSettings, OraclePerception
 from sim.traffic import TrafficSim
+from studies.experiments.config import FlowExperimentSettings, OraclePerception
 
 log = logging.getLogger(__name__)
 
@@ -153,45 +157,55 @@ class HeatGrid:
 
 
 class Scheduler:
-    """The coordinator's decision loop, in-process: maps from an object source, plans on request."""
+    """The production coordinator (`CoordinatorCore`) in lock step, with the vehicles as its plan
+    clients the way the sim's vehicles are live (services/sim/plans.py): a vehicle asks once per lane
+    and acknowledges every plan it is given; after every map update the core re-checks the active
+    plans and the ones it pushes are delivered and acknowledged too. Only the bus is left out."""
 
     def __init__(
         self,
         scene: Scene,
-        network: RoadNetwork,
         coordinator: CoordinatorSettings,
         policy: PolicyName,
         seed: int,
         source: ObjectSource | None,
-        live_agents: list[str] | None,
+        max_vehicles: int,
     ) -> None:
-        planner_cfg = coordinator.planner.model_copy(update={"seed": seed})
-        self.planner = RoutePlanner(scene, network, planner_cfg)
-        self.builder = TrafficMapBuilder(scene, network, coordinator.maps)
+        settings = with_overrides(coordinator, {"planner": {"seed": seed, "policy": policy}})
+        self.core = CoordinatorCore(
+            scene, settings, max_vehicles, ground_truth=source is ground_truth_objects
+        )
         self.policy = policy
         self.source = source
-        self.live_agents = live_agents
-        self.cond = LaneConditions()
-        self.plans = 0
+        self.plans = 0  # plans served on request
+        self.pushed = 0  # plans pushed after a map update (replanning, coverage changes)
+        self.counts: Counter[str] = Counter()  # rejections, acknowledgements
         self.map_errors: list[float] = []  # per map update: sum over observed lanes of |perceived - true|
         self.map_truth: list[float] = []  # and the true number of vehicles on those lanes
 
     def update_maps(self, traffic: TrafficSim, objects: list[AgentObjects] | None = None) -> None:
-        """Rebuild the maps from `objects` (default: this scheduler's source; none: no maps)."""
+        """Feed `objects` (default: this scheduler's source; none: no maps), rebuild the maps, then
+        deliver the plans the core pushes on them."""
         if objects is None:
             if self.source is None:
                 return
             objects = self.source(traffic)
-        cfg = self.builder.cfg
-        vehicles = merge_agents(objects, cfg.dedup_gate_m, cfg.level_separation_m)
-        snap = self.builder.update(vehicles, traffic.time_s, self.live_agents)
-        self.cond = LaneConditions.from_snapshot(snap)
+        now_s = traffic.time_s
+        stamp_ns = round(now_s * NS_PER_S)
+        for o in objects:
+            if not self.core.on_objects(o.agent_id, o, stamp_ns, now_s):
+                self.counts["rejected/unknown_agent"] += 1
+        snap = self.core.update_map(now_s)
         self._score_maps(traffic, snap)
+        self.core.replan(now_s, stamp_ns)
+        for plan, _stamp_ns, _first in self.core.due(now_s):
+            self.pushed += 1
+            self._deliver(traffic, plan)
 
     def _score_maps(self, traffic: TrafficSim, snap: TrafficSnapshot) -> None:
         """Perceived vs true vehicles per observed lane (how good the maps the planner uses are)."""
         pos, vel = vehicle_state(traffic)
-        true_lane = self.builder.locator.locate(pos, vel)
+        true_lane = self.core.builder.locator.locate(pos, vel)
         on = true_lane != OFF_LANE
         truth = np.bincount(true_lane[on], minlength=len(snap.lane_ids))
         observed = snap.lane_observed
@@ -199,39 +213,59 @@ class Scheduler:
         self.map_truth.append(float(truth[observed].sum()))
 
     def serve(self, traffic: TrafficSim) -> None:
-        """Plan for every vehicle that asks now (once per lane, like the bus clients)."""
+        """Every vehicle that asks now (once per lane) sends its request and applies the plan."""
+        now_s = traffic.time_s
         for v in traffic.vehicles:
             if not traffic.needs_plan(v):
                 continue
-            v.planned_lane = v.lane_id
-            route = self.planner.plan(v.id, v.lane_id, traffic.routing_destination(v), self.cond, self.policy)
-            self.planner.commit(v.id, route)
-            version = v.plan_version + 1
-            traffic.set_plan(v.id, route.lanes, version, plan_id=str(version))
+            v.planned_lane = v.lane_id  # one request per lane, answered or not
+            req = RouteRequest(
+                vehicle_id=v.id,
+                current_lane_id=v.lane_id,
+                lane_progress_m=max(0.0, v.s),
+                destination_junction_id=traffic.routing_destination(v),
+                current_plan_version=v.plan_version,
+            )
+            try:
+                plan, _stamp_ns = self.core.serve(req, now_s, round(now_s * NS_PER_S))
+            except RequestRejected as err:
+                self.counts[f"plans/{err.reason}"] += 1
+                continue
             self.plans += 1
+            self._deliver(traffic, plan)
+
+    def _deliver(self, traffic: TrafficSim, plan: RoutePlan) -> None:
+        """The vehicle applies the plan and acknowledges it with its decision (never stale in lock step:
+        a plan is applied the tick it is made)."""
+        status = traffic.set_plan(plan.vehicle_id, list(plan.lane_ids), int(plan.version), plan.plan_id)
+        self.core.on_ack(plan.vehicle_id, plan.plan_id, int(plan.version), status)
+        self.counts[f"acks/{status.name.lower()}"] += 1
+
+
+def traffic_overrides(vehicles: int) -> dict[str, Any]:
+    """The experiment's traffic: `vehicles` cars, every one connected and following its plans."""
+    return {"vehicles": vehicles, "route_policy": "plan", "connected_fraction": 1.0}
 
 
 def traffic_settings(sim: SimSettings, vehicles: int) -> TrafficSettings:
-    return TrafficSettings.model_validate(
-        {**sim.traffic.model_dump(), "vehicles": vehicles, "route_policy": "plan", "connected_fraction": 1.0}
-    )
+    return with_overrides(sim.traffic, traffic_overrides(vehicles))
 
 
 def make_scheduler(
     scene: Scene,
-    network: RoadNetwork,
     coordinator: CoordinatorSettings,
     exp: FlowExperimentSettings,
     policy: PolicyName,
     seed: int,
+    vehicles: int,
 ) -> Scheduler:
     kind = MAP_POLICIES.get(policy)
+    source: ObjectSource | None = None
     if kind == "perceived":
-        oracle = OracleAgents(scene, exp.oracle, seed)
-        return Scheduler(scene, network, coordinator, policy, seed, oracle, list(scene.agents))
-    if kind == GROUND_TRUTH:
-        return Scheduler(scene, network, coordinator, policy, seed, ground_truth_objects, None)
-    return Scheduler(scene, network, coordinator, policy, seed, None, None)
+        source = OracleAgents(scene, exp.oracle, seed)
+    elif kind == GROUND_TRUTH:
+        source = ground_truth_objects
+    return Scheduler(scene, coordinator, policy, seed, source, vehicles)
 
 
 def run_flow(
@@ -247,7 +281,7 @@ def run_flow(
     t0 = time.perf_counter()
     network = RoadNetwork(scene)
     traffic = TrafficSim(scene, network, traffic_settings(sim, vehicles), seed, sim.tick_hz)
-    scheduler = make_scheduler(scene, network, coordinator, exp, policy, seed)
+    scheduler = make_scheduler(scene, coordinator, exp, policy, seed, vehicles)
     return _drive(scene, sim, exp, traffic, scheduler, policy, vehicles, seed, exp.duration_s, t0)
 
 
@@ -295,11 +329,15 @@ def _drive(
         trip_times_s=[t.end_s - t.start_s for t in traffic.trips],
         mean_speed_mps=speed_total / max(speed_n, 1),
         detours=traffic.detours,
-        plans=scheduler.plans,
+        plans=scheduler.plans + scheduler.pushed,
         speed_sum=grid.speed_sum,
         speed_samples=grid.samples,
         wall_s=time.perf_counter() - t0,
-        extra=map_quality(scheduler),
+        extra={
+            **map_quality(scheduler),
+            "plans_pushed": scheduler.pushed,
+            "plan_counts": dict(scheduler.counts),
+        },
     )
 
 
@@ -328,27 +366,22 @@ def run_full_perception(
     """Closed loop through rendered sensors and the MEC pipelines (ONNX detectors, fusion, tracking):
     each agent's tracks become its object list exactly as the MEC publishes and the coordinator reads
     them (TrackedObjects message -> `agent_objects`)."""
-    from shared.perception.decode import FrameDecoder
-    from shared.perception.inputs import Status
-    from shared.perception.output import tracked_objects_message
-    from shared.perception.pipeline import AgentPipeline
+    from shared.perception.core import MecCore
     from shared.traffic.messages import agent_objects
-    from sim.evaluation.fusion import to_inputs
     from sim.lockstep import LockstepSim
+    from studies.evaluation.fusion import feed_tick
 
     run = exp.full_perception
     t0 = time.perf_counter()
-    settings = sim.model_copy(update={"seed": run.seed, "traffic": traffic_settings(sim, run.vehicles)})
-    pipelines = {a: AgentPipeline(scene, a, mec) for a in scene.agents}
-    decoders = {a: FrameDecoder() for a in scene.agents}
-    for pipeline in pipelines.values():
-        pipeline.tick_hz = sim.tick_hz  # the live MEC's camera cadence (on sim ticks)
-    kinds = {s.id: s.kind for s in scene.spec.sensors}
+    settings = with_overrides(sim, {"seed": run.seed, "traffic": traffic_overrides(run.vehicles)})
+    cores = {a: MecCore(scene, a, mec) for a in scene.agents}
+    for core in cores.values():
+        core.tick_hz = sim.tick_hz  # the live MEC's camera cadence (on sim ticks)
     latest = {a: AgentObjects.empty(a) for a in scene.agents}
     min_existence = coordinator.maps.min_existence_probability
     with LockstepSim(scene, settings) as world:
         traffic = world.traffic
-        scheduler = Scheduler(scene, traffic.net, coordinator, run.policy, run.seed, None, list(scene.agents))
+        scheduler = Scheduler(scene, coordinator, run.policy, run.seed, None, run.vehicles)
 
         def step() -> list[AgentObjects] | None:
             tick = world.step()
@@ -359,11 +392,9 @@ def run_full_perception(
                 by_agent.setdefault(capture.spec.agent, []).append(capture)
             stamp_ns = tick.ground_truth.header.stamp.ToNanoseconds()
             for agent, captures in by_agent.items():
-                result = pipelines[agent].process(
-                    to_inputs(stamp_ns, tick.ground_truth.header.tick, captures, decoders[agent])
-                )
-                msg = tracked_objects_message(result, agent, Status.FULL, [], kinds)
-                latest[agent] = agent_objects(agent, msg, min_existence)
+                out = feed_tick(cores[agent], stamp_ns, tick.ground_truth.header.tick, captures)
+                if out is not None:
+                    latest[agent] = agent_objects(agent, out.message, min_existence)
             return list(latest.values())
 
         result = _drive(

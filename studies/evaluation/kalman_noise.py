@@ -31,13 +31,13 @@ from shared.perception.radar_camera import (
 )
 from shared.perception.views import RoadSurface
 from shared.scene.scene import Scene
+from shared.timebase import NS_PER_S
 from shared.tracking.tracker import Measurement, MultiObjectTracker, TrackerConfig
 from sim.config import load_sim_settings
 from sim.lockstep import LockstepSim
 from sim.sensors.radar import SimRadarTarget
 
 FloatArray = NDArray[np.float64]
-NS_PER_S = 1_000_000_000
 PAPER_VARIANCES_M2 = (0.0, 0.05, 0.1)
 CHI2_2DOF_999 = 13.8  # 99.9 % gate of a 2-D Gaussian
 MOTION_MODELS = ("identity", "constant_velocity")

@@ -7,10 +7,10 @@ from pathlib import Path
 from pydantic import BaseModel, ConfigDict, Field
 
 from shared.config import RmmdetSettings, load_settings, settings_config
+from shared.paths import REPO_ROOT
 from shared.traffic.config import DEFAULT_COORDINATOR_CONFIG, POLICIES, PolicyName
 from sim.config import DEFAULT_SIM_CONFIG
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_FLOW_CONFIG = REPO_ROOT / "deploy" / "experiments" / "flow.yaml"
 
 
@@ -32,8 +32,8 @@ class FullPerceptionRun(_Section):
     """One closed-loop run with the real chain: rendered sensors -> MEC pipelines -> maps -> plans."""
 
     enabled: bool = Field(True, description="run it (minutes: every sensor is rendered)")
-    vehicles: int = Field(10, ge=1)
-    seed: int = Field(301, ge=0)
+    vehicles: int = Field(10, ge=1, description="fleet size")
+    seed: int = Field(301, ge=0, description="scenario seed")
     duration_s: float = Field(60.0, gt=0, description="simulated seconds")
     policy: PolicyName = Field("balanced", description="policy planned on the perceived maps")
 

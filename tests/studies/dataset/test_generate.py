@@ -10,10 +10,10 @@ import pytest
 from shared.datasets import kitti, openpcdet, voc, yolo
 from shared.datasets.layout import MIN_LIDAR_POINTS, SPLITS, DatasetLayout
 from shared.geometry.boxes import box3d_corners
+from shared.paths import DEFAULT_SCENE
 from shared.scene.scene import Scene
-from sim.config import DEFAULT_SCENE
-from sim.dataset.config import DatasetSettings, SplitSeeds
-from sim.dataset.generate import generate, marker_path
+from studies.dataset.config import DatasetSettings, SplitSeeds
+from studies.dataset.generate import generate, marker_path
 
 BOX_TOLERANCE_M = 0.03  # lidar noise + the body parts sit inside the box
 
@@ -102,7 +102,7 @@ def test_split_seeds_must_be_disjoint() -> None:
 
 
 def test_seed_variation_is_reproducible_and_varies() -> None:
-    from sim.dataset.generate import seed_variation
+    from studies.dataset.generate import seed_variation
 
     cfg = settings()
     assert seed_variation(cfg, 5) == seed_variation(cfg, 5)

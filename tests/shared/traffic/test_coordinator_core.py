@@ -8,19 +8,19 @@ from rmmdet.v1.common_pb2 import ErrorCode
 from rmmdet.v1.planning_pb2 import RouteRequest
 from rmmdet.v1.traffic_pb2 import AgentState as PbState
 
-from services.coordinator.core import CoordinatorCore, RequestRejected
 from services.coordinator.main import agent_of_key, mec_of_token, vehicle_of_ack_key
+from shared.paths import DEFAULT_SCENE
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
+from shared.timebase import NS_PER_S
 from shared.traffic.config import CoordinatorSettings
+from shared.traffic.core import CoordinatorCore, RequestRejected
 from shared.traffic.coverage import AgentState
 from shared.traffic.messages import agent_objects
 from shared.traffic.plans import Ack
-from sim.config import DEFAULT_SCENE
 from tests.integration.fake_mec import AgentCars
 
-NS = 1_000_000_000
-WALL0_NS = 1_700_000_000 * NS
+WALL0_NS = 1_700_000_000 * NS_PER_S
 CARS = 3
 
 
@@ -42,7 +42,7 @@ def make_core(scene: Scene, max_vehicles: int = 16) -> CoordinatorCore:
 def feed(core: CoordinatorCore, cars: dict[str, AgentCars], now_s: float, agents=None) -> None:
     for agent in agents or core.agents:
         msg = cars[agent].message(now_s)
-        core.on_objects(agent, agent_objects(agent, msg), WALL0_NS + round(now_s * NS), now_s)
+        core.on_objects(agent, agent_objects(agent, msg), WALL0_NS + round(now_s * NS_PER_S), now_s)
 
 
 def request(vid: str = "v01", lane: str = "l0", dest: str = "j3", version: int = 0) -> RouteRequest:
@@ -70,7 +70,7 @@ def test_maps_hold_only_live_agents(scene: Scene, cars: dict[str, AgentCars]) ->
     coverage = {c.agent_id: c.state for c in msg.coverage}
     live, stale = PbState.AGENT_STATE_LIVE, PbState.AGENT_STATE_STALE
     assert coverage == {"agent1": stale, "agent2": live, "agent3": live}
-    assert stamp_ns == WALL0_NS + round(1.2 * NS)
+    assert stamp_ns == WALL0_NS + round(1.2 * NS_PER_S)
     # Back, but its data is old: data age alone keeps it STALE (a hung MEC keeps its token) ...
     core.on_presence("agent1", True)
     assert core.states(2.0)["agent1"] is AgentState.STALE
@@ -86,7 +86,7 @@ def test_unknown_agent_and_reordered_lists(scene: Scene, cars: dict[str, AgentCa
     msg = cars["agent1"].message(0.0)
     assert not core.on_objects("agent9", agent_objects("agent9", msg), WALL0_NS, 0.0)
     assert not core.on_presence("agent9", True)
-    assert core.on_objects("agent1", agent_objects("agent1", msg), WALL0_NS + NS, 0.0)
+    assert core.on_objects("agent1", agent_objects("agent1", msg), WALL0_NS + NS_PER_S, 0.0)
     empty = agent_objects("agent1", cars["agent1"].message(0.0).__class__())
     assert core.on_objects("agent1", empty, WALL0_NS, 0.1)  # older stamp: ignored, newer list kept
     assert core.update_map(0.1).lane_count.sum() == CARS
@@ -101,8 +101,8 @@ def test_serve_plans_with_coverage_and_versions(scene: Scene, cars: dict[str, Ag
     assert core.net.lane_end_junction(plan.lane_ids[-1]) == "j3"
     assert list(plan.coverage.missing_agents) == ["agent2"]
     assert sorted(plan.coverage.live_agents) == ["agent1", "agent3"]
-    assert plan.valid_until.ToNanoseconds() == WALL0_NS + round(core.settings.planner.plan_ttl_s * NS)
-    assert stamp_ns == WALL0_NS + NS
+    assert plan.valid_until.ToNanoseconds() == WALL0_NS + round(core.settings.planner.plan_ttl_s * NS_PER_S)
+    assert stamp_ns == WALL0_NS + NS_PER_S
     assert core.serve(request(), 1.1, WALL0_NS)[0].version == 2
     # A restarted coordinator continues above the version the vehicle follows.
     assert core.serve(request("v02", version=41), 1.2, WALL0_NS)[0].version == 42
@@ -114,7 +114,7 @@ def test_serve_uses_lists_that_arrived_after_the_last_map(scene: Scene, cars: di
     feed(core, cars, 0.5)
     assert core.dirty
     plan, stamp_ns = core.serve(request(), 0.5, WALL0_NS)
-    assert stamp_ns == WALL0_NS + round(0.5 * NS) and not core.dirty
+    assert stamp_ns == WALL0_NS + round(0.5 * NS_PER_S) and not core.dirty
     assert list(plan.coverage.missing_agents) == []
 
 

@@ -27,6 +27,7 @@ from rmmdet.v1.traffic_pb2 import TrafficMap
 from shared.bus.streams import validate_id
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
+from shared.timebase import NS_PER_S
 from shared.traffic import messages
 from shared.traffic.config import CoordinatorSettings
 from shared.traffic.coverage import AgentState, CoverageTracker
@@ -34,7 +35,7 @@ from shared.traffic.maps import AgentObjects, TrafficMapBuilder, TrafficSnapshot
 from shared.traffic.planner import ONE_JUNCTION_POLICIES, LaneConditions, NoRouteError, Route, RoutePlanner
 from shared.traffic.plans import Ack, IssuedPlan, PlanBook
 
-NS_PER_S = 1_000_000_000
+GROUND_TRUTH = "ground_truth"  # the oracle object source of studies (every lane observed)
 #: Acknowledgements after which the vehicle no longer follows the plan (its lanes are no load).
 ENDED = (Ack.REJECTED_INVALID, Ack.REJECTED_STALE, Ack.COMPLETED)
 
@@ -60,10 +61,26 @@ class _Active:
 
 
 class CoordinatorCore:
-    def __init__(self, scene: Scene, settings: CoordinatorSettings, max_vehicles: int) -> None:
+    """The coordinator's decision loop (the service's and the flow experiment's).
+
+    Parameters
+    ----------
+    scene, settings
+        The table and the coordinator settings (`planner.policy` is the policy served).
+    max_vehicles : int
+        Vehicles served at once; requests of further ones are rejected.
+    ground_truth : bool
+        Studies only: one object source, `GROUND_TRUTH`, that sees every lane (the oracle maps of the
+        `dynamic_ground_truth` baseline) instead of the scene's agents and their areas.
+    """
+
+    def __init__(
+        self, scene: Scene, settings: CoordinatorSettings, max_vehicles: int, ground_truth: bool = False
+    ) -> None:
         self.settings = settings
         self.max_vehicles = max_vehicles
-        self.agents = list(scene.agents)
+        self.ground_truth = ground_truth
+        self.agents = [GROUND_TRUTH] if ground_truth else list(scene.agents)
         network = RoadNetwork(scene)
         self.net = network
         self.coverage = CoverageTracker(self.agents, settings.coverage)
@@ -117,7 +134,7 @@ class CoordinatorCore:
         held = [a for a in live if a in self._objects]
         gate_m, level_m = self.settings.maps.dedup_gate_m, self.settings.maps.level_separation_m
         vehicles = merge_agents([self._objects[a] for a in held], gate_m, level_m)
-        snap = self.builder.update(vehicles, now_s, live)
+        snap = self.builder.update(vehicles, now_s, None if self.ground_truth else live)
         self.snapshot = snap
         self._cond = LaneConditions.from_snapshot(snap)
         self._missing = frozenset(a for a in self.agents if a not in live)

@@ -10,10 +10,10 @@ import pytest
 from shared.scene.scene import Scene
 from shared.traffic.config import CoordinatorSettings
 from sim.config import load_sim_settings
-from sim.experiments import report
-from sim.experiments.config import FlowExperimentSettings, OraclePerception
-from sim.experiments.flow import OracleAgents, RunResult, Scheduler, run_flow, traffic_settings
 from sim.traffic import TrafficSim
+from studies.experiments import report
+from studies.experiments.config import FlowExperimentSettings, OraclePerception
+from studies.experiments.flow import OracleAgents, RunResult, Scheduler, run_flow, traffic_settings
 
 DURATION_S = 20.0
 
@@ -28,20 +28,27 @@ def setup() -> tuple[Scene, object, CoordinatorSettings, FlowExperimentSettings]
 def test_every_policy_plans_and_moves_traffic(setup, policy) -> None:  # type: ignore[no-untyped-def]
     scene, sim, coord, exp = setup
     result = run_flow(scene, sim, coord, exp, policy, vehicles=8, seed=7)
-    assert result.plans > 0
+    counts = result.extra["plan_counts"]
+    # Every request is served and every plan applied: the vehicles acknowledge each one as accepted.
+    assert not [k for k in counts if k.startswith(("plans/", "rejected/"))], counts
+    assert counts.get("acks/accepted", 0) == result.plans >= 8
+    if policy in ("random", "shortest", "paper_rule"):
+        assert result.extra["plans_pushed"] == 0  # one-junction or map-free policies are never re-planned
     assert result.total_flow > 0
     assert set(result.arrivals) == {j.number for j in scene.spec.junctions}
     assert 0.0 < result.mean_speed_mps <= sim.traffic.max_speed_mps + 1e-9
     assert result.speed_samples.sum() > 0
     if policy in ("paper_rule", "balanced", "dynamic_ground_truth"):
         assert result.extra["map_updates"] == round(DURATION_S / exp.map_period_s)
+    if policy == "dynamic_ground_truth":  # maps of exact positions on every lane: no count error
+        assert result.extra["lane_count_abs_error_per_update"] == 0.0
 
 
 def test_vehicles_follow_their_plans(setup) -> None:  # type: ignore[no-untyped-def]
     """Every lane a vehicle enters is the one its latest plan named (shortest: whole routes)."""
     scene, sim, coord, _exp = setup
     traffic = TrafficSim(scene, _net(scene), traffic_settings(sim, 6), 3, sim.tick_hz)
-    scheduler = Scheduler(scene, traffic.net, coord, "shortest", 3, None, None)
+    scheduler = Scheduler(scene, coord, "shortest", 3, None, len(traffic.vehicles))
     expected: dict[str, str] = {}
     version = {v.id: v.plan_version for v in traffic.vehicles}
     entered = followed = 0
@@ -115,3 +122,23 @@ def _net(scene: Scene):  # type: ignore[no-untyped-def]
     from shared.scene.road_network import RoadNetwork
 
     return RoadNetwork(scene)
+
+
+def test_readme_section_reports_every_row_and_the_checks() -> None:
+    ci = {"mean": 10.0, "ci95": 1.0}
+    row = {m: ci for m in report.METRICS} | {"flow_per_junction": {"1": 4.0, "2": 6.0}}
+    agg = {
+        "10": {"random": row, "balanced": row | {"total_flow": {"mean": 12.0, "ci95": 0.5}}},
+        "20": {"balanced": row},
+    }
+    results = {
+        "aggregate": agg,
+        "acceptance": report.acceptance(agg),
+        "settings": {"seeds": [1, 2], "duration_s": 30.0, "workers": 2},
+        "wall_s": 5.0,
+        "commit": "abc",
+    }
+    text = report.readme_section(results, [1, 2])
+    assert "| 10 | **`balanced`** | 12 ± 0 |" in text and "| 20 | **`balanced`** |" in text
+    assert "| random (before) | 4 | 6 | 10 |" in text
+    assert "flow gain vs random 10 vehicles: +20.0 %" in text

@@ -21,8 +21,8 @@ from scipy import stats
 from shared.scene.scene import Scene
 from shared.traffic.config import CoordinatorSettings, PolicyName
 from sim.config import SimSettings
-from sim.experiments.config import FlowExperimentSettings
-from sim.experiments.flow import RunResult, run_flow
+from studies.experiments.config import FlowExperimentSettings
+from studies.experiments.flow import RunResult, run_flow
 
 log = logging.getLogger(__name__)
 
@@ -188,3 +188,63 @@ def write_heat_maps(results: list[RunResult], scene: Scene, cell_m: float, out_d
         fig.savefig(path, dpi=110)
         written.append(path.name)
     return written
+
+
+def readme_section(results: dict[str, Any], junction_numbers: list[int]) -> str:
+    """The README's flow tables and headline figures, from `results` (what `run_flow_study` wrote):
+    every fleet and policy, the smallest fleet's flow per junction (random against scheduled), the
+    checks of `acceptance` and the full-perception run."""
+    agg, checks = results["aggregate"], results["acceptance"]
+    settings = results["settings"]
+    fmt = {"total_flow": "{:.0f}", "trips": "{:.0f}", "mean_speed_mps": "{:.3f}"}
+    lines = [
+        f"Seeds {settings['seeds']} × {settings['duration_s']:g} simulated s per run, "
+        f"{results['wall_s']:g} s wall with {settings['workers']} workers; "
+        f"commit {results.get('commit', '?')}.",
+        "",
+        "| Vehicles | Policy | Total flow | Trips | Travel time mean (s) | Travel time p95 (s) "
+        "| Mean speed (m/s) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for n, row in agg.items():
+        for policy, r in row.items():
+            name = f"**`{policy}`**" if policy == SCHEDULED else f"`{policy}`"
+            cells = [
+                f"{fmt.get(m, '{:.1f}').format(r[m]['mean'])} ± {fmt.get(m, '{:.1f}').format(r[m]['ci95'])}"
+                for m in METRICS
+            ]
+            lines.append(f"| {n} | {name} | " + " | ".join(cells) + " |")
+    small = min(agg, key=int)
+    lines += [
+        "",
+        f"Per junction with {small} vehicles (the paper's Table II: 624 → 668, +7.1 %):",
+        "",
+        "| Policy | " + " | ".join(str(j) for j in junction_numbers) + " | Total |",
+        "|---|" + "---|" * (len(junction_numbers) + 1),
+    ]
+    for policy, label in (("random", "random (before)"), (SCHEDULED, f"{SCHEDULED} (scheduled)")):
+        if policy in agg[small]:
+            per = [agg[small][policy]["flow_per_junction"][str(j)] for j in junction_numbers]
+            lines.append(f"| {label} | " + " | ".join(f"{v:.0f}" for v in per) + f" | {sum(per):.0f} |")
+    lines.append("")
+    for key, value in checks.items():
+        if key.startswith("flow_gain"):
+            lines.append(f"- {key.replace('_', ' ')}: {100 * value:+.1f} %")
+        else:
+            lines.append(f"- {key.replace('_', ' ')}: {value:+.1f} s")
+    for n, row in agg.items():
+        if SCHEDULED in row and "lane_count_relative_error" in row[SCHEDULED]:
+            err = row[SCHEDULED]["lane_count_relative_error"]
+            lines.append(
+                f"- {n} vehicles: the oracle maps' lane counts off by {100 * err['mean']:.0f} % (balanced)"
+            )
+    full = results.get("full_perception")
+    if full:
+        lines.append(
+            f"- full perception ({full['vehicles']} vehicles, seed {full['seed']}, "
+            f"{full['duration_s']:g} s): flow {full['total_flow']}, {full['trips']} trips, mean travel time "
+            f"{full['travel_time_mean_s']:.1f} s, mean speed {full['mean_speed_mps']:.3f} m/s, "
+            f"{full['plans']} plans ({full.get('plans_pushed', 0)} pushed), lane counts off by "
+            f"{100 * full.get('lane_count_relative_error', float('nan')):.1f} %, {full['wall_s']:g} s wall"
+        )
+    return "\n".join(lines)
