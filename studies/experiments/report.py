@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import re
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -206,8 +207,9 @@ def readme_section(results: dict[str, Any], junction_numbers: list[int]) -> str:
         "| Mean speed (m/s) |",
         "|---|---|---|---|---|---|---|",
     ]
+    order = {p: i for i, p in enumerate(settings.get("policies", []))}  # as configured: baselines first
     for n, row in agg.items():
-        for policy, r in row.items():
+        for policy, r in sorted(row.items(), key=lambda kv: order.get(kv[0], len(order))):
             name = f"**`{policy}`**" if policy == SCHEDULED else f"`{policy}`"
             cells = [
                 f"{fmt.get(m, '{:.1f}').format(r[m]['mean'])} ± {fmt.get(m, '{:.1f}').format(r[m]['ci95'])}"
@@ -228,10 +230,13 @@ def readme_section(results: dict[str, Any], junction_numbers: list[int]) -> str:
             lines.append(f"| {label} | " + " | ".join(f"{v:.0f}" for v in per) + f" | {sum(per):.0f} |")
     lines.append("")
     for key, value in checks.items():
-        if key.startswith("flow_gain"):
-            lines.append(f"- {key.replace('_', ' ')}: {100 * value:+.1f} %")
-        else:
-            lines.append(f"- {key.replace('_', ' ')}: {value:+.1f} s")
+        gain = re.fullmatch(r"flow_gain_vs_random_(\d+)_vehicles", key)
+        tt = re.fullmatch(r"travel_time_(\d+)_vehicles_(\w+)_minus_(\w+)_s", key)
+        if gain:
+            pct = 100 * value
+            lines.append(f"- {gain[1]} vehicles: `{SCHEDULED}` flow against random turns {pct:+.1f} %")
+        elif tt:
+            lines.append(f"- {tt[1]} vehicles: `{tt[2]}` mean travel time minus `{tt[3]}`'s: {value:+.1f} s")
     for n, row in agg.items():
         if SCHEDULED in row and "lane_count_relative_error" in row[SCHEDULED]:
             err = row[SCHEDULED]["lane_count_relative_error"]

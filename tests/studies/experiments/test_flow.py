@@ -134,11 +134,12 @@ def test_readme_section_reports_every_row_and_the_checks() -> None:
     results = {
         "aggregate": agg,
         "acceptance": report.acceptance(agg),
-        "settings": {"seeds": [1, 2], "duration_s": 30.0, "workers": 2},
+        "settings": {"seeds": [1, 2], "duration_s": 30.0, "workers": 2, "policies": ["random", "balanced"]},
         "wall_s": 5.0,
         "commit": "abc",
     }
     text = report.readme_section(results, [1, 2])
     assert "| 10 | **`balanced`** | 12 ± 0 |" in text and "| 20 | **`balanced`** |" in text
     assert "| random (before) | 4 | 6 | 10 |" in text
-    assert "flow gain vs random 10 vehicles: +20.0 %" in text
+    assert "10 vehicles: `balanced` flow against random turns +20.0 %" in text
+    assert text.index("| 10 | `random`") < text.index("| 10 | **`balanced`**")  # configured order
