@@ -21,6 +21,12 @@ Vec3 = tuple[float, float, float]
 SensorKindName = Literal["camera", "lidar", "radar"]
 
 
+#: Vehicles further apart in height than this are on different road levels (viaduct deck / table):
+#: they neither collide nor are they one vehicle seen twice. The deck is 0.4 m above the table; the
+#: ramps climb 0.4 m over 2 m, so two cars a car length apart on a ramp differ by ~0.07 m.
+LEVEL_SEPARATION_M = 0.1
+
+
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
