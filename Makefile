@@ -92,11 +92,11 @@ BENCH_DATA = $(if $(wildcard $(DATASET)/manifest.json),--data $(DATASET) --split
 models: install ## regenerate the default dataset, train + export both detectors (CPU ~1 h), evaluate; results in deploy/models
 	$(BIN)/python -m studies.dataset.generate --out $(DATASET) --workers 2 --no-progress
 	cp $(DATASET)/manifest.json $(MODELS_DIR)/dataset_manifest.json
-	$(BIN)/python -m shared.detection.camera.train --data $(DATASET) --out $(MODEL_RUNS)/camera --threads 2
+	$(BIN)/python -m training.camera.train --data $(DATASET) --out $(MODEL_RUNS)/camera --threads 2
 	mkdir -p $(MODELS_DIR)/camera && cp $(MODEL_RUNS)/camera/model.onnx $(MODEL_RUNS)/camera/config.json $(MODELS_DIR)/camera/
 	-cp $(MODEL_RUNS)/camera/history.json $(MODEL_RUNS)/camera/train.log $(MODELS_DIR)/camera/ 2>/dev/null
-	$(BIN)/python -m shared.detection.lidar.pointpillars.train --data $(DATASET) --out $(MODEL_RUNS)/pointpillars
-	$(BIN)/python -m shared.detection.lidar.pointpillars.export --checkpoint $(MODEL_RUNS)/pointpillars/model.pt --out $(MODELS_DIR)/lidar/pointpillars.onnx
+	$(BIN)/python -m training.pointpillars.train --data $(DATASET) --out $(MODEL_RUNS)/pointpillars
+	$(BIN)/python -m training.pointpillars.export --checkpoint $(MODEL_RUNS)/pointpillars/model.pt --out $(MODELS_DIR)/lidar/pointpillars.onnx
 	-cp $(MODEL_RUNS)/pointpillars/history.json $(MODEL_RUNS)/pointpillars/train.log $(MODELS_DIR)/lidar/ 2>/dev/null
 	$(MAKE) eval
 

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from shared.geometry.boxes import bev_iou_matrix
+from shared.scene.model import LEVEL_SEPARATION_M
 from shared.scene.road_network import Path, RoadNetwork
 from shared.scene.scene import Scene
 from shared.traffic.plans import Ack, vehicle_decision
@@ -42,7 +43,6 @@ PALETTE_RGBA: tuple[tuple[float, float, float, float], ...] = (
 )
 SPAWN_ATTEMPTS = 200
 SPAWN_SPACING_FACTOR = 2.0  # x vehicle length between spawned vehicles
-LEVEL_SEPARATION_M = 0.1  # vehicles further apart in z are on different levels (deck / ground)
 
 
 @dataclass

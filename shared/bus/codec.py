@@ -298,8 +298,3 @@ class MessageDecoder:
         except DecodeError as err:
             raise Rejected(RejectReason.HEADER, f"bad header attachment: {err}") from None
         return header
-
-
-# Range checks for the message types whose values have physical limits. Import-time registration
-# keeps the rules next to the codec that enforces them.
-from shared.bus import validators as _validators  # noqa: E402,F401

@@ -39,10 +39,10 @@ from shared.detection.interface import (
     empty_camera_detections,
     empty_lidar_detections,
 )
+from shared.scene.scene import vehicle_size_m as scene_vehicle_size_m
 
 CAR_CLASS_ID = 0
 # Default vehicle size (AWS Deepracer, 1:18): length, width, height, metres.
-CAR_SIZE_M = (0.33, 0.22, 0.21)
 BOX3D_COLUMNS = 7
 BOX2D_COLUMNS = 4
 
@@ -89,7 +89,9 @@ class OracleLidarConfig(_Config):
         (-3.0, -3.0, 3.0, 3.0), description="x_min, y_min, x_max, y_max of false-positive centres, m"
     )
     fp_size_m: tuple[float, float, float] = Field(
-        CAR_SIZE_M, description="dx, dy, dz of false positives, m (they stand on the table, z = dz / 2)"
+        default_factory=scene_vehicle_size_m,
+        description="dx, dy, dz of false positives, m (default: the scene's vehicle; they stand on the "
+        "table, z = dz / 2)",
     )
     tp_score: ScoreModel = Field(ScoreModel(), description="scores of detected true boxes")
     fp_score: ScoreModel = Field(ScoreModel(mean=0.5, std=0.15), description="scores of false positives")

@@ -1,5 +1,5 @@
 """Numeric precision of a learned detector's ONNX file: `fp32` (the export) or `int8` (its static
-quantization, `shared.detection.quantize`), written beside it as `<stem>_int8.onnx`.
+quantization, `training.quantize`), written beside it as `<stem>_int8.onnx`.
 
 Light on purpose (no onnxruntime): the registry, the configuration and the detectors import it.
 """

@@ -3,7 +3,7 @@
 Camera: `onnx` (the committed model in deploy/models/camera), `oracle` (noisy ground truth).
 Lidar: `pointpillars` (deploy/models/lidar), `cluster` (classical), `oracle` (noisy ground truth).
 Learned models load from `models_dir` (default deploy/models) in `precision` fp32 (the export) or int8
-(its static quantization beside it, `shared.detection.quantize`; shared.detection.precision names the
+(its static quantization beside it, `training.quantize`; shared.detection.precision names the
 file); onnxruntime uses `threads` intra-op threads. Imports are lazy: building one detector never
 loads the others' libraries.
 """
@@ -21,8 +21,8 @@ LIDAR_DETECTORS = ("pointpillars", "cluster", "oracle")
 CAMERA_MODEL = Path("camera") / "model.onnx"
 LIDAR_MODEL = Path("lidar") / "pointpillars.onnx"
 QUANTIZE_TOOLS = {
-    CAMERA_MODEL: "shared.detection.camera.quantize",
-    LIDAR_MODEL: "shared.detection.lidar.pointpillars.quantize",
+    CAMERA_MODEL: "training.camera.quantize",
+    LIDAR_MODEL: "training.pointpillars.quantize",
 }
 
 

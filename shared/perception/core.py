@@ -309,7 +309,7 @@ class MecCore:
             log.warning("status %s -> %s (missing: %s)", before.value, state.value, missing or "none")
         self.counters[f"status/{state.value}"] += 1
         message = tracked_objects_message(
-            result, self.agent_id, state, self.monitor.report(now_s), self.kinds
+            result, self.agent_id, state, self.monitor.report(now_s), self.kinds, self.pipeline.car_size_m
         )
         self.counters["frames/published"] += 1
         self.last_tick = frame.tick

@@ -27,19 +27,19 @@ TRACK_STATE = {
     TrackState.CONFIRMED: pb.TRACK_STATE_CONFIRMED,
     TrackState.COASTING: pb.TRACK_STATE_COASTING,
 }
-# Box size reported for a track no sensor has sized (radar-only): the sand table's car, m.
-DEFAULT_SIZE_M = (0.33, 0.22, 0.21)
 # Yaw variance reported when the heading is unknown (uniform over a half turn), rad^2.
 UNKNOWN_YAW_VARIANCE_RAD2 = (np.pi**2) / 12
 
 
-def track_to_message(track: Track, out: pb.TrackedObject) -> None:
+def track_to_message(track: Track, out: pb.TrackedObject, default_size_m: tuple[float, float, float]) -> None:
+    """`track` into `out`; a track no sensor has sized (radar only) gets `default_size_m` (the scene's
+    car: length, width, height, m)."""
     out.track_id = track.track_id
     out.existence_probability = float(np.clip(track.existence_probability, 0.0, 1.0))
     out.classification.add(label=pb.OBJECT_CLASS_CAR, probability=1.0)
     pos = track.position_m
     out.box.center_m.x, out.box.center_m.y, out.box.center_m.z = float(pos[0]), float(pos[1]), track.z_m
-    size = track.size_m if track.size_m is not None else DEFAULT_SIZE_M
+    size = track.size_m if track.size_m is not None else default_size_m
     out.box.size_m.x, out.box.size_m.y, out.box.size_m.z = (float(v) for v in size)
     if track.yaw_rad is None:
         out.orientation_availability = pb.ORIENTATION_AVAILABILITY_UNAVAILABLE
@@ -71,6 +71,7 @@ def tracked_objects_message(
     status: Status,
     inputs: Sequence[InputReport],
     kinds: Mapping[str, str],
+    default_size_m: tuple[float, float, float],
 ) -> pb.TrackedObjects:
     msg = pb.TrackedObjects(agent_id=agent_id, status=STATUS[status])
     for r in inputs:
@@ -83,5 +84,5 @@ def tracked_objects_message(
     for stage, seconds in result.latencies_s.items():
         msg.stage_latencies.add(stage=stage, duration_s=seconds)
     for track in result.tracks:
-        track_to_message(track, msg.objects.add())
+        track_to_message(track, msg.objects.add(), default_size_m)
     return msg

@@ -38,10 +38,9 @@ from shared.perception.radar_camera import RadarTargets
 from shared.perception.views import CameraView, RoadSurface
 from shared.scene.scene import Scene
 from shared.timebase import NS_PER_S
-from shared.tracking.tracker import Measurement, MultiObjectTracker, Track
+from shared.tracking.tracker import CAMERA, LIDAR, RADAR, Measurement, MultiObjectTracker, Track
 
 FloatArray = NDArray[np.float64]
-CAMERA, LIDAR, RADAR = "camera", "lidar", "radar"
 # Per-axis position noise of a lidar box centre (PointPillars on the table), m.
 LIDAR_POSITION_STD_M = 0.02
 
@@ -378,113 +377,30 @@ class AgentPipeline:
         used_2d: dict[str, set[int]] | None = None,
         counts: Counter[str] | None = None,
     ) -> list[list[Measurement]]:
-        """Algorithm 1 per radar and its paired camera: one measurement list per radar. Camera boxes
-        matched here are added to `used_2d`; without `dets2d` the lists are pure radar (the evaluation's
-        radar-only baseline)."""
+        """Algorithm 1 (`radar_camera.radar_measurements`) per radar and its paired camera: one
+        measurement list per radar that delivered targets."""
         dets2d = {} if dets2d is None else dets2d
         used_2d = {c: set() for c in dets2d} if used_2d is None else used_2d
         counts = Counter() if counts is None else counts
-        rc = self.cfg.radar_camera
         per_radar: list[list[Measurement]] = []
-        length, width, height = self.car_size_m
         for spec in self.radar_specs:
             targets = frame.radar.get(spec.id)
             if targets is None or len(targets) == 0:
                 continue
-            assert spec.radar is not None
-            targets = targets.subset(targets.rcs_dbsm >= rc.min_rcs_dbsm)
-            counts["radar/targets"] += len(targets)
-            radar_xy = self.radar_T[spec.id][:2, 3]
-            reflection = radar_camera.targets_to_world(targets, self.radar_T[spec.id])
-            world = radar_camera.reflection_to_centre(
-                reflection, self.radar_T[spec.id][:3, 3], rc.centre_offset_m
-            )
-            level = (
-                None
-                if rc.level_tolerance_m is None
-                else radar_camera.level_ranges(reflection[:, 2], height, rc.level_tolerance_m)
-            )
-            surface_z = self.surface.heights_near(world[:, :2], level)
-            on_road = np.isfinite(surface_z)
-            counts["radar/off_road"] += int((~on_road).sum())
-            targets, world, surface_z = targets.subset(on_road), world[on_road], surface_z[on_road]
-            reflection = reflection[on_road]
-            level = None if level is None else level[on_road]
-            world[:, 2] = surface_z + rc.object_height_m / 2
-            lane_yaw = self.surface.lane_heading(world[:, :2], level)  # cars follow their lane
-            if rc.centre_from_lane_heading:
-                world[:, :2] = radar_camera.centres_from_reflections(
-                    reflection[:, :2], lane_yaw, (length, width), radar_xy, rc.centre_offset_m
+            per_radar.append(
+                radar_camera.radar_measurements(
+                    spec,
+                    targets,
+                    self.radar_T[spec.id],
+                    self.cfg.radar_camera,
+                    self.surface,
+                    self.views,
+                    self.car_size_m,
+                    dets2d,
+                    used_2d,
+                    counts,
                 )
-            cov_r = radar_camera.radar_position_cov(
-                world[:, :2],
-                radar_xy,
-                targets.range_m,
-                max(spec.radar.range_noise_std_m, 1e-3),
-                max(spec.radar.azimuth_noise_std_rad, 1e-4),
             )
-            cov_r = cov_r + np.eye(2) * rc.reflection_std_m**2
-            xy, cov = world[:, :2].copy(), cov_r.copy()
-            modalities = [frozenset({RADAR})] * len(targets)
-            sensors: list[tuple[str, ...]] = [(spec.id,)] * len(targets)
-            cam = spec.paired_camera
-            matched = np.zeros(len(targets), bool)
-            if cam is not None and cam in dets2d and len(dets2d[cam]):
-                view = self.views[cam]
-                uv, depth = view.project(world)
-                rois = radar_camera.roi_boxes(uv, depth, rc.roi)
-                free = [j for j in range(len(dets2d[cam])) if j not in used_2d[cam]]
-                m = radar_camera.match_rois(rois, dets2d[cam][free, :4], rc.min_iou)
-                counts["radar_camera/matched"] += len(m.radar_index)
-                for k, jf in zip(m.radar_index, m.camera_index, strict=True):
-                    j = free[jf]
-                    used_2d[cam].add(j)
-                    matched[k] = True
-                    modalities[k] = frozenset({RADAR, CAMERA})
-                    sensors[k] = (spec.id, cam)
-                    if rc.position == "weighted":
-                        car = np.array([*world[k], length, width, height, np.nan_to_num(lane_yaw[k])])
-                        fitted = view.fit_centre(car, dets2d[cam][j, :4])
-                        p_cam = np.array([np.nan, np.nan]) if fitted is None else fitted
-                        if np.isfinite(p_cam).all():
-                            cov_c = radar_camera.camera_position_cov(
-                                p_cam[None, :2],
-                                view.center_m[:2],
-                                rc.camera_pixel_std_px,
-                                float(view.K[0, 0]),
-                                rc.camera_depth_std_fraction,
-                            )
-                            fxy, fcov = radar_camera.fuse_positions(
-                                xy[k : k + 1], cov[k : k + 1], p_cam[None, :2], cov_c
-                            )
-                            xy[k], cov[k] = fxy[0], fcov[0]
-            if rc.lane_lateral_std_m is not None:
-                lane = self.surface.nearest_sample(xy, level)
-                on_lane = lane >= 0
-                lane_yaw_now = np.where(on_lane, self.surface.heading_rad[lane], np.nan)
-                xy, cov = radar_camera.constrain_to_lane(
-                    xy, cov, self.surface.points_m[lane, :2], lane_yaw_now, rc.lane_lateral_std_m
-                )
-            out: list[Measurement] = []
-            per_radar.append(out)
-            for k in range(len(targets)):
-                if not matched[k] and not rc.keep_unmatched_radar:
-                    continue
-                rate_var = max(spec.radar.range_rate_noise_std_mps, 1e-3) ** 2
-                out.append(
-                    Measurement(
-                        position_m=xy[k],
-                        position_cov_m2=cov[k],
-                        z_m=float(world[k, 2]),
-                        size_m=np.array([length, width, height]),
-                        yaw_rad=float(lane_yaw[k]) if np.isfinite(lane_yaw[k]) else None,
-                        yaw_mod_pi=False,
-                        range_rate=(radar_xy.copy(), float(targets.range_rate_mps[k]), rate_var),
-                        modalities=modalities[k],
-                        score=1.0 if matched[k] else 0.5,
-                        sensor_ids=sensors[k],
-                    )
-                )
         return per_radar
 
 

@@ -22,7 +22,10 @@ face seen end-on reflects depends on a few degrees of yaw the lane heading does 
 
 from __future__ import annotations
 
+from collections import Counter
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,6 +34,11 @@ from scipy.optimize import linear_sum_assignment
 
 from shared.geometry.boxes import iou2d_matrix
 from shared.geometry.transforms import polar_to_cartesian, transform_points
+from shared.tracking.tracker import CAMERA, RADAR, Measurement
+
+if TYPE_CHECKING:
+    from shared.perception.views import CameraView, RoadSurface
+    from shared.scene.model import SensorSpec
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -311,3 +319,110 @@ def constrain_to_lane(
     rhs = np.einsum("kij,kj->ki", info, xy[ok]) + np.einsum("kij,kj->ki", info_lane, lane_xy_m[ok])
     xy[ok] = np.einsum("kij,kj->ki", cov[ok], rhs)
     return xy, cov
+
+
+def radar_measurements(
+    spec: SensorSpec,
+    targets: RadarTargets,
+    T_world_from_radar: FloatArray,
+    cfg: RadarCameraConfig,
+    surface: RoadSurface,
+    views: Mapping[str, CameraView],
+    car_size_m: tuple[float, float, float],
+    dets2d: Mapping[str, FloatArray],
+    used_2d: dict[str, set[int]],
+    counts: Counter[str],
+) -> list[Measurement]:
+    """Algorithm 1 for one radar scan and its paired camera: steps 1-4 of the module docstring, then
+    the positions fused and constrained to the lane; one measurement per kept target. Camera boxes
+    matched here are added to `used_2d`; with no boxes in `dets2d` the list is pure radar (the
+    evaluation's radar-only baseline). Units: m, rad, s; `spec.radar` is the radar's noise model."""
+    assert spec.radar is not None
+    length, width, height = car_size_m
+    targets = targets.subset(targets.rcs_dbsm >= cfg.min_rcs_dbsm)
+    counts["radar/targets"] += len(targets)
+    radar_xy = T_world_from_radar[:2, 3]
+    reflection = targets_to_world(targets, T_world_from_radar)
+    world = reflection_to_centre(reflection, T_world_from_radar[:3, 3], cfg.centre_offset_m)
+    level = (
+        None
+        if cfg.level_tolerance_m is None
+        else level_ranges(reflection[:, 2], height, cfg.level_tolerance_m)
+    )
+    surface_z = surface.heights_near(world[:, :2], level)
+    on_road = np.isfinite(surface_z)
+    counts["radar/off_road"] += int((~on_road).sum())
+    targets, world, surface_z = targets.subset(on_road), world[on_road], surface_z[on_road]
+    reflection = reflection[on_road]
+    level = None if level is None else level[on_road]
+    world[:, 2] = surface_z + cfg.object_height_m / 2
+    lane_yaw = surface.lane_heading(world[:, :2], level)  # cars follow their lane
+    if cfg.centre_from_lane_heading:
+        world[:, :2] = centres_from_reflections(
+            reflection[:, :2], lane_yaw, (length, width), radar_xy, cfg.centre_offset_m
+        )
+    cov_r = radar_position_cov(
+        world[:, :2],
+        radar_xy,
+        targets.range_m,
+        max(spec.radar.range_noise_std_m, 1e-3),
+        max(spec.radar.azimuth_noise_std_rad, 1e-4),
+    )
+    cov_r = cov_r + np.eye(2) * cfg.reflection_std_m**2
+    xy, cov = world[:, :2].copy(), cov_r.copy()
+    modalities = [frozenset({RADAR})] * len(targets)
+    sensors: list[tuple[str, ...]] = [(spec.id,)] * len(targets)
+    cam = spec.paired_camera
+    matched = np.zeros(len(targets), bool)
+    if cam is not None and cam in dets2d and len(dets2d[cam]):
+        view = views[cam]
+        uv, depth = view.project(world)
+        rois = roi_boxes(uv, depth, cfg.roi)
+        free = [j for j in range(len(dets2d[cam])) if j not in used_2d[cam]]
+        m = match_rois(rois, dets2d[cam][free, :4], cfg.min_iou)
+        counts["radar_camera/matched"] += len(m.radar_index)
+        for k, jf in zip(m.radar_index, m.camera_index, strict=True):
+            j = free[jf]
+            used_2d[cam].add(j)
+            matched[k] = True
+            modalities[k] = frozenset({RADAR, CAMERA})
+            sensors[k] = (spec.id, cam)
+            if cfg.position == "weighted":
+                car = np.array([*world[k], length, width, height, np.nan_to_num(lane_yaw[k])])
+                fitted = view.fit_centre(car, dets2d[cam][j, :4])
+                p_cam = np.array([np.nan, np.nan]) if fitted is None else fitted
+                if np.isfinite(p_cam).all():
+                    cov_c = camera_position_cov(
+                        p_cam[None, :2],
+                        view.center_m[:2],
+                        cfg.camera_pixel_std_px,
+                        float(view.K[0, 0]),
+                        cfg.camera_depth_std_fraction,
+                    )
+                    fxy, fcov = fuse_positions(xy[k : k + 1], cov[k : k + 1], p_cam[None, :2], cov_c)
+                    xy[k], cov[k] = fxy[0], fcov[0]
+    if cfg.lane_lateral_std_m is not None:
+        lane = surface.nearest_sample(xy, level)
+        on_lane = lane >= 0
+        lane_yaw_now = np.where(on_lane, surface.heading_rad[lane], np.nan)
+        xy, cov = constrain_to_lane(xy, cov, surface.points_m[lane, :2], lane_yaw_now, cfg.lane_lateral_std_m)
+    out: list[Measurement] = []
+    for k in range(len(targets)):
+        if not matched[k] and not cfg.keep_unmatched_radar:
+            continue
+        rate_var = max(spec.radar.range_rate_noise_std_mps, 1e-3) ** 2
+        out.append(
+            Measurement(
+                position_m=xy[k],
+                position_cov_m2=cov[k],
+                z_m=float(world[k, 2]),
+                size_m=np.array([length, width, height]),
+                yaw_rad=float(lane_yaw[k]) if np.isfinite(lane_yaw[k]) else None,
+                yaw_mod_pi=False,
+                range_rate=(radar_xy.copy(), float(targets.range_rate_mps[k]), rate_var),
+                modalities=modalities[k],
+                score=1.0 if matched[k] else 0.5,
+                sensor_ids=sensors[k],
+            )
+        )
+    return out

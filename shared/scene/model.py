@@ -21,6 +21,12 @@ Vec3 = tuple[float, float, float]
 SensorKindName = Literal["camera", "lidar", "radar"]
 
 
+#: Vehicles further apart in height than this are on different road levels (viaduct deck / table):
+#: they neither collide nor are they one vehicle seen twice. The deck is 0.4 m above the table; the
+#: ramps climb 0.4 m over 2 m, so two cars a car length apart on a ramp differ by ~0.07 m.
+LEVEL_SEPARATION_M = 0.1
+
+
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -182,13 +188,19 @@ class RoadSpec(_Strict):
 
 
 class VehicleSpec(_Strict):
-    """Body of every vehicle (AWS Deepracer, 1:18)."""
+    """Body of every vehicle (AWS Deepracer, 1:18). No defaults: the scene file is the one home of the
+    vehicle's size (`vehicle_size_m` reads it for the modules that have no scene at hand)."""
 
-    length_m: float = Field(0.33, gt=0)
-    width_m: float = Field(0.22, gt=0)
-    height_m: float = Field(0.21, gt=0)
-    wheelbase_m: float = Field(0.164, gt=0)
-    max_steer_rad: float = Field(0.785, gt=0, lt=1.57)
+    length_m: float = Field(gt=0)
+    width_m: float = Field(gt=0)
+    height_m: float = Field(gt=0)
+    wheelbase_m: float = Field(gt=0)
+    max_steer_rad: float = Field(gt=0, lt=1.57)
+
+    @property
+    def size_m(self) -> tuple[float, float, float]:
+        """(length, width, height), m."""
+        return (self.length_m, self.width_m, self.height_m)
 
 
 class StaticObjectSpec(_Strict):
@@ -214,7 +226,7 @@ class SceneSpec(_Strict):
     description: str = ""
     table: TableSpec
     road: RoadSpec = RoadSpec()
-    vehicle: VehicleSpec = VehicleSpec()
+    vehicle: VehicleSpec
     static_objects: list[StaticObjectSpec] = Field(default_factory=list)
     junctions: list[JunctionSpec] = Field(default_factory=list)
     lanes: list[LaneSpec] = Field(default_factory=list)

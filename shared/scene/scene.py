@@ -22,6 +22,7 @@ from shared.geometry.transforms import (
     matrix_from_pose,
     matrix_from_xyz_rpy,
 )
+from shared.paths import DEFAULT_SCENE
 from shared.scene.cadence import frame_due
 from shared.scene.lanes import centreline
 from shared.scene.model import (
@@ -32,6 +33,7 @@ from shared.scene.model import (
     SceneSpec,
     SensorKindName,
     SensorSpec,
+    VehicleSpec,
 )
 
 FloatArray = np.ndarray
@@ -179,3 +181,14 @@ class Scene:
             inside &= (pts[:, 2] >= area.z_min_m) & (pts[:, 2] <= area.z_max_m)
             out[inside] = k
         return out
+
+
+@functools.cache
+def vehicle_size_m(path: Path = DEFAULT_SCENE) -> tuple[float, float, float]:
+    """(length, width, height) of the vehicles of the scene file `path`, m: the default size prior of the
+    modules that are built without a scene (detector configs)."""
+    data = read_yaml(path).get("vehicle")
+    try:
+        return VehicleSpec.model_validate(data).size_m
+    except ValidationError as err:
+        raise ConfigError(f"{path}: invalid vehicle: {err}") from None

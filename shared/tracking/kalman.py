@@ -34,11 +34,22 @@ from numpy.typing import ArrayLike, NDArray
 
 FloatArray = NDArray[np.float64]
 
+# Named indices of the state x = [x, y, vx, vy].
+X, Y, VX, VY = 0, 1, 2, 3
+POS = slice(X, Y + 1)  # position, m
+VEL = slice(VX, VY + 1)  # velocity, m/s
+
 __all__ = [
+    "POS",
     "POSITION_H",
+    "VEL",
+    "VX",
+    "VY",
     "KalmanUpdate",
     "MotionKind",
     "MotionModel",
+    "X",
+    "Y",
     "predict",
     "process_noise",
     "range_rate_jacobian",
@@ -316,7 +327,7 @@ def range_rate_jacobian(
     ok = r >= min_range_m
     r_safe = np.where(ok, r, 1.0)
     u = d / r_safe[:, None] * ok[:, None]
-    v = xa[:, 2:4]
+    v = xa[:, VEL]
     h = np.einsum("ki,ki->k", u, v)
     H = np.empty((xa.shape[0], 1, 4))
     H[:, 0, :2] = (v - h[:, None] * u) / r_safe[:, None] * ok[:, None]

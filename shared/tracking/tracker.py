@@ -42,7 +42,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from scipy.optimize import linear_sum_assignment
 
 from shared.tracking import kalman
-from shared.tracking.kalman import FloatArray, MotionKind, MotionModel
+from shared.tracking.kalman import POS, VX, VY, FloatArray, MotionKind, MotionModel
 
 __all__ = [
     "MODALITIES",
@@ -54,7 +54,8 @@ __all__ = [
     "TrackerConfig",
 ]
 
-MODALITIES: frozenset[str] = frozenset({"camera", "lidar", "radar"})
+CAMERA, LIDAR, RADAR = "camera", "lidar", "radar"  # sensor kinds, as the scene names them
+MODALITIES: frozenset[str] = frozenset({CAMERA, LIDAR, RADAR})
 
 
 class TrackerConfig(BaseModel):
@@ -268,7 +269,7 @@ class Track:
     @property
     def position_m(self) -> FloatArray:
         """(2,) world x, y, m."""
-        return self.x[:2]
+        return self.x[POS]
 
     @property
     def velocity_mps(self) -> FloatArray:
@@ -277,7 +278,7 @@ class Track:
 
     @property
     def speed_mps(self) -> float:
-        return math.hypot(float(self.x[2]), float(self.x[3]))
+        return math.hypot(float(self.x[VX]), float(self.x[VY]))
 
     @property
     def position_cov_m2(self) -> FloatArray:
@@ -315,6 +316,9 @@ _SIZE = slice(2, 5)
 _AXIS2 = slice(5, 7)
 _HEAD = slice(7, 9)
 _N_ATTRS = 9
+_COS, _SIN = 0, 1  # within _AXIS2 and _HEAD
+# A measured range rate: the radar's x, y (m), the rate (m/s) and its variance (m²/s²).
+_RR_SENSOR, _RR_RATE, _RR_VAR = slice(0, 2), 2, 3
 
 _EMPTY_FRAME = _Frame(
     np.zeros((0, 2)),
@@ -528,18 +532,18 @@ class MultiObjectTracker:
         score = _stack([m.score for m in ms], (), shape_ok)
 
         has_rr = np.array([m.range_rate is not None for m in ms], dtype=bool)
-        rr = np.zeros((n, 4))  # sensor x, y, range rate, variance
-        rr[:, 3] = 1.0
+        rr = np.zeros((n, 4))  # columns _RR_SENSOR (x, y), _RR_RATE, _RR_VAR
+        rr[:, _RR_VAR] = 1.0
         for i in np.flatnonzero(has_rr).tolist():
             try:
                 sensor, rate, var = ms[i].range_rate  # type: ignore[misc]
                 sensor_xy = np.asarray(sensor, dtype=np.float64)
-                rr[i, 2:] = float(rate), float(var)
+                rr[i, _RR_RATE], rr[i, _RR_VAR] = float(rate), float(var)
             except (TypeError, ValueError):
                 shape_ok[i] = False
                 continue
             if sensor_xy.shape == (2,):
-                rr[i, :2] = sensor_xy
+                rr[i, _RR_SENSOR] = sensor_xy
             else:
                 shape_ok[i] = False
 
@@ -572,7 +576,7 @@ class MultiObjectTracker:
                 ("bad_covariance", symmetric & (c00 > 0.0) & (c11 > 0.0) & (c00 * c11 - c01 * c10 > 0.0)),
                 ("score_out_of_range", (score >= 0.0) & (score <= 1.0)),
                 ("bad_size", (size > 0.0).all(axis=1)),
-                ("bad_range_rate", rr[:, 3] > 0.0),
+                ("bad_range_rate", rr[:, _RR_VAR] > 0.0),
             )
         ok = checks[0][1].copy()
         for _, passed in checks[1:]:
@@ -591,10 +595,8 @@ class MultiObjectTracker:
         attrs[:, _SCORE] = score
         attrs[:, _SIZE] = size
         yaw = np.where(np.isfinite(yaw), yaw, 0.0)  # rejected rows: keep cos/sin quiet
-        attrs[:, 5] = np.cos(2.0 * yaw)
-        attrs[:, 6] = np.sin(2.0 * yaw)
-        attrs[:, 7] = np.cos(yaw)
-        attrs[:, 8] = np.sin(yaw)
+        attrs[:, _AXIS2] = np.column_stack([np.cos(2.0 * yaw), np.sin(2.0 * yaw)])
+        attrs[:, _HEAD] = np.column_stack([np.cos(yaw), np.sin(yaw)])
         if not has_size.all():
             attrs[~has_size, _SIZE] = np.nan
         if not has_yaw.all():
@@ -609,7 +611,9 @@ class MultiObjectTracker:
             modalities = [modalities[i] for i in keep]
             sensor_ids = [sensor_ids[i] for i in keep]
             pos, cov, attrs, rr = pos[idx], cov[idx], attrs[idx], rr[idx]
-        return _Frame(pos, cov, attrs, rr[:, :2], rr[:, 2], rr[:, 3], modalities, sensor_ids)
+        return _Frame(
+            pos, cov, attrs, rr[:, _RR_SENSOR], rr[:, _RR_RATE], rr[:, _RR_VAR], modalities, sensor_ids
+        )
 
     def _associate(self, frame: _Frame) -> tuple[NDInt, NDInt]:
         """Global nearest neighbour: Hungarian on gated costs; returns matched (track, measurement) rows."""
@@ -617,7 +621,7 @@ class MultiObjectTracker:
         empty = np.zeros(0, np.int64)
         if len(t) == 0 or frame.pos.shape[0] == 0:
             return empty, empty
-        diff = frame.pos[None, :, :] - t.x[:, None, :2]  # (N, M, 2)
+        diff = frame.pos[None, :, :] - t.x[:, None, POS]  # (N, M, 2)
         cost = np.hypot(diff[..., 0], diff[..., 1])
         feasible = cost <= self.config.gate_m
         if self.config.gate_mahalanobis is not None:
@@ -714,7 +718,7 @@ class MultiObjectTracker:
         P = np.zeros((k, 4, 4))
         P[:, :2, :2] = frame.cov[idx]
         if self._model.kind == "constant_velocity":
-            P[:, 2, 2] = P[:, 3, 3] = cfg.initial_velocity_std_mps**2
+            P[:, VX, VX] = P[:, VY, VY] = cfg.initial_velocity_std_mps**2
         # A radar birth starts from the measured radial velocity (shrunk towards 0 by the prior).
         new.x, new.P = self._range_rate_update(x, P, idx, frame)
         new.hits = np.ones(k, np.int64)
@@ -735,20 +739,20 @@ class MultiObjectTracker:
         if len(t) == 0:
             return
         cfg = self.config
-        vx, vy = t.x[:, 2], t.x[:, 3]
+        vx, vy = t.x[:, VX], t.x[:, VY]
         speed = np.hypot(vx, vy)
-        speed_std = np.sqrt(np.maximum(0.5 * (t.P[:, 2, 2] + t.P[:, 3, 3]), 0.0))
+        speed_std = np.sqrt(np.maximum(0.5 * (t.P[:, VX, VX] + t.P[:, VY, VY]), 0.0))
         moving = speed > np.maximum(
             cfg.heading_from_velocity_min_mps, cfg.heading_min_speed_sigmas * speed_std
         )
         head, axis2 = t.attrs[:, _HEAD], t.attrs[:, _AXIS2]
         ref = np.where(
-            ~np.isnan(head[:, 0]),
-            np.arctan2(head[:, 1], head[:, 0]),
+            ~np.isnan(head[:, _COS]),
+            np.arctan2(head[:, _SIN], head[:, _COS]),
             np.where(moving, np.arctan2(vy, vx), np.where(t.sign_known, t.yaw, np.nan)),
         )
         has_ref = ~np.isnan(ref)
-        axis = 0.5 * np.arctan2(axis2[:, 1], axis2[:, 0])  # (-pi/2, pi/2]; NaN if never measured
+        axis = 0.5 * np.arctan2(axis2[:, _SIN], axis2[:, _COS])  # (-pi/2, pi/2]; NaN if never measured
         flip = np.abs(_wrap(np.where(has_ref, ref, 0.0) - axis)) > 0.5 * np.pi
         t.yaw = np.where(np.isnan(axis), ref, _wrap(axis + np.pi * (flip & has_ref)))
         t.sign_known = has_ref

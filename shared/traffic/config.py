@@ -14,6 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from shared.config import RmmdetSettings, load_settings, settings_config
 from shared.paths import DEFAULT_SCENE, REPO_ROOT
+from shared.scene.model import LEVEL_SEPARATION_M
 
 DEFAULT_COORDINATOR_CONFIG = REPO_ROOT / "deploy" / "coordinator" / "coordinator.yaml"
 
@@ -37,7 +38,9 @@ class MapConfig(_Section):
         0.3, gt=0, description="objects of two agents closer than this (same level) are one vehicle"
     )
     level_separation_m: float = Field(
-        0.1, gt=0, description="objects further apart in z are on different levels (deck / ground)"
+        LEVEL_SEPARATION_M,
+        gt=0,
+        description="objects further apart in z are on different levels (deck / ground)",
     )
     lane_match_max_m: float = Field(
         0.3, gt=0, description="an object further than this from every lane centreline is off-lane"

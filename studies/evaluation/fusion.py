@@ -42,7 +42,6 @@ from shared.perception import camera_only
 from shared.perception.config import MecSettings
 from shared.perception.core import MecCore, MecOutput
 from shared.perception.decode import FrameDecoder
-from shared.perception.output import DEFAULT_SIZE_M
 from shared.perception.pipeline import (
     AgentInputs,
     AgentPipeline,
@@ -151,14 +150,14 @@ def feed_tick(core: MecCore, tick_stamp_ns: int, tick: int, captures: list[Captu
     return core.step(now_s)
 
 
-def measurement_box(m: Measurement) -> tuple[FloatArray, bool]:
-    size = m.size_m if m.size_m is not None else DEFAULT_SIZE_M
+def measurement_box(m: Measurement, default_size_m: tuple[float, float, float]) -> tuple[FloatArray, bool]:
+    size = m.size_m if m.size_m is not None else default_size_m
     yaw = m.yaw_rad if m.yaw_rad is not None else 0.0
     return np.array([m.position_m[0], m.position_m[1], m.z_m, *size, yaw]), m.yaw_rad is not None
 
 
-def track_box(t: Track) -> tuple[FloatArray, bool]:
-    size = t.size_m if t.size_m is not None else DEFAULT_SIZE_M
+def track_box(t: Track, default_size_m: tuple[float, float, float]) -> tuple[FloatArray, bool]:
+    size = t.size_m if t.size_m is not None else default_size_m
     yaw = t.yaw_rad if t.yaw_rad is not None else 0.0
     p = t.position_m
     return np.array([p[0], p[1], t.z_m, *size, yaw]), t.yaw_rad is not None
@@ -283,7 +282,7 @@ def evaluate_run(
             truth = observable(gt, tick.captures, scope)
             single_tracks = {m: t.confirmed() for m, t in single_trackers.items() if m in singles}
             ids = {v: vehicle_index.setdefault(v, len(vehicle_index)) for v in truth.boxes}
-            _score_frame(ev, scope, truth, ids, result, singles, single_tracks)
+            _score_frame(ev, scope, truth, ids, result, singles, single_tracks, pipeline.car_size_m)
     ev.counts.update(core.counts())
     return ev
 
@@ -296,6 +295,7 @@ def _score_frame(
     result: AgentResult,
     singles: dict[str, list[Measurement]],
     single_tracks: dict[str, list[Track]],
+    car_size_m: tuple[float, float, float],
 ) -> None:
     ev.frames += 1
     gt_ids = list(truth.boxes)
@@ -305,13 +305,13 @@ def _score_frame(
         ev.latencies_s.setdefault(stage, []).append(seconds)
     sets: dict[str, tuple[list[tuple[FloatArray, bool]], list[float], list[int] | None]] = {}
     for name, rows in {**singles, "fused": result.measurements}.items():
-        sets[name] = ([measurement_box(m) for m in rows], [m.score for m in rows], None)
+        sets[name] = ([measurement_box(m, car_size_m) for m in rows], [m.score for m in rows], None)
     for name, tracks in {
         "tracked": result.tracks,
         **{f"tracked_{m}": t for m, t in single_tracks.items()},
     }.items():
         sets[name] = (
-            [track_box(t) for t in tracks],
+            [track_box(t, car_size_m) for t in tracks],
             [t.existence_probability for t in tracks],
             [t.track_id for t in tracks],
         )

@@ -5,7 +5,7 @@ images, batch 1, 4 and 5 (an agent's cameras), 1 and 2 intra-op threads; p50 / p
 per image, and the process CPU time (`time.process_time`) p50 per call and per image. Images are the
 dataset's (when `--data` is given) or rendered by the lock-step simulation on a tuning seed (`--sim`)
 so that post-processing sees real detections, else random noise. Several `--model`s (e.g. the fp32
-model and its int8 quantization, shared.detection.quantize) are measured in turn on the same images,
+model and its int8 quantization, training.quantize) are measured in turn on the same images,
 and each later one's detections are compared with the first's (share of boxes matched at IoU 0.8,
 max / p95 box and score deviation) at the model's score threshold and at the MEC's fusion threshold.
 AP@0.5: every image of `--split` through the detector (score threshold lowered to 0.05), COCO AP
@@ -35,11 +35,11 @@ from shared.datasets.layout import DatasetLayout
 from shared.detection.camera.config import CONFIG_FILE, CameraDetectorConfig
 from shared.detection.camera.onnx_detector import OnnxCameraDetector, measure_latency
 from shared.detection.evaluate import camera_samples
-from shared.detection.quantize import compare_outputs
 from shared.geometry.boxes import iou2d_matrix
 from shared.machine import machine_info
 from shared.metrics.detection import APResult, evaluate_coco
 from shared.paths import DEFAULT_SCENE
+from training.quantize import compare_outputs
 
 log = logging.getLogger("camera_detector_bench")
 

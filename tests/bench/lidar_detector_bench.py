@@ -5,7 +5,7 @@
    the process CPU time (`time.process_time`) per frame. With labelled frames (a dataset split) also
    the detector's BEV AP@0.7 / @0.5 (40 recall points) on them (labels centred outside the grid are
    ignored, and reported as a share). Several `--model`s (e.g. the fp32 model and its int8
-   quantization, shared.detection.quantize) are measured in turn on the same frames, and each later
+   quantization, training.quantize) are measured in turn on the same frames, and each later
    one's boxes are compared with the first's (share matched at BEV IoU 0.8, max / p95 deviation of
    centre and size, yaw and score).
 2. Grid cost: for the chosen configuration and the paper's (0.015 m pillars over x, y in [-12, 12) m,
@@ -38,12 +38,12 @@ import numpy as np
 
 from shared.datasets.layout import DatasetLayout
 from shared.detection.lidar.pointpillars.config import GridConfig, PointPillarsConfig
-from shared.detection.lidar.pointpillars.evaluation import accuracy
 from shared.detection.lidar.pointpillars.onnx_detector import OnnxPointPillars
-from shared.detection.quantize import compare_outputs
 from shared.geometry.boxes import bev_iou_matrix
 from shared.machine import machine_info
 from shared.paths import DEFAULT_SCENE
+from training.pointpillars.evaluation import accuracy
+from training.quantize import compare_outputs
 
 log = logging.getLogger("lidar_detector_bench")
 
@@ -75,7 +75,7 @@ def pct(values: list[float], q: float) -> float:
 
 
 def dataset_frames(root: Path, split: str, limit: int) -> list[dict[str, Any]]:
-    from shared.detection.lidar.pointpillars.data import read_frame
+    from training.pointpillars.data import read_frame
 
     layout = DatasetLayout(root)
     stems = layout.lidar_stems(split)[:limit]
@@ -206,7 +206,7 @@ def conv_macs(config: PointPillarsConfig) -> float:
     """Multiply-accumulates of the 2D network (backbone + head) per frame, from the layer shapes."""
     import torch
 
-    from shared.detection.lidar.pointpillars.net import PointPillarsNet
+    from training.pointpillars.net import PointPillarsNet
 
     net = PointPillarsNet(config).eval()
     macs = 0.0
@@ -272,8 +272,8 @@ def grid_cost(base: PointPillarsConfig, points: np.ndarray) -> dict[str, Any]:
     """Part 2: per grid variant, export a random-weight model here, measure it in a fresh subprocess."""
     import torch
 
-    from shared.detection.lidar.pointpillars.export import export_onnx
-    from shared.detection.lidar.pointpillars.net import PointPillarsNet
+    from training.pointpillars.export import export_onnx
+    from training.pointpillars.net import PointPillarsNet
 
     torch.set_num_threads(1)
     out: dict[str, Any] = {}
@@ -391,8 +391,8 @@ def main(argv: list[str] | None = None) -> None:
                 raise SystemExit("--model is required (or --quick for a random-weight model)")
             import torch
 
-            from shared.detection.lidar.pointpillars.export import export_onnx
-            from shared.detection.lidar.pointpillars.net import PointPillarsNet
+            from training.pointpillars.export import export_onnx
+            from training.pointpillars.net import PointPillarsNet
 
             torch.manual_seed(0)
             models = [Path(tmp) / "random.onnx"]

@@ -42,13 +42,13 @@ from scipy.spatial import cKDTree
 from shared.detection.interface import check_points, empty_lidar_detections
 from shared.detection.lidar.box_fit import BoxFitParams, FittedBox, fit_vehicle_box
 from shared.detection.lidar.ground import above_table, fit_horizontal_plane, split_at_slab
+from shared.scene.scene import vehicle_size_m as scene_vehicle_size_m
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 CAR_CLASS_ID = 0
 # AWS Deepracer (1:18): length, width, height, metres.
-CAR_SIZE_M = (0.33, 0.22, 0.21)
 # Guards the line-of-sight direction of a point at the sensor's own position, metres.
 _MIN_RANGE_M = 1e-6
 
@@ -101,7 +101,10 @@ class ClusterLidarConfig(BaseModel):
     )
     min_points: int = Field(5, ge=1, description="fewest points of a vehicle cluster")
     # vehicle prior and filters
-    vehicle_size_m: tuple[float, float, float] = Field(CAR_SIZE_M, description="length, width, height prior")
+    vehicle_size_m: tuple[float, float, float] = Field(
+        default_factory=scene_vehicle_size_m,
+        description="length, width, height prior, m (default: the scene's vehicle)",
+    )
     min_extent_m: float = Field(0.08, ge=0.0, description="longest BEV side must reach this (rejects poles)")
     max_length_m: float = Field(0.45, gt=0.0, description="longest BEV side of a vehicle cluster")
     max_width_m: float = Field(0.32, gt=0.0, description="shorter BEV side of a vehicle cluster")

@@ -17,11 +17,11 @@ from pydantic import ValidationError
 
 from shared.detection.lidar.pointpillars.onnx_detector import config_path_for
 from shared.detection.precision import PRECISIONS, fp32_file, model_file
-from shared.detection.quantize import check_training_seeds, compare_outputs, quantize_model
 from shared.detection.registry import CAMERA_MODEL, LIDAR_MODEL, camera_detector, lidar_detector
 from shared.geometry.boxes import iou2d_matrix
 from shared.perception.config import DetectorsConfig, MecSettings
 from tests.helpers import REPO_ROOT
+from training.quantize import check_training_seeds, compare_outputs, quantize_model
 
 
 def test_model_file_names() -> None:
@@ -38,9 +38,9 @@ def test_model_file_names() -> None:
 def test_registry_refuses_unknown_and_missing_models(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="unknown precision"):
         camera_detector("onnx", precision="fp16")
-    with pytest.raises(FileNotFoundError, match=r"shared\.detection\.camera\.quantize"):
+    with pytest.raises(FileNotFoundError, match=r"training\.camera\.quantize"):
         camera_detector("onnx", models_dir=tmp_path, precision="int8")
-    with pytest.raises(FileNotFoundError, match=r"shared\.detection\.lidar\.pointpillars\.quantize"):
+    with pytest.raises(FileNotFoundError, match=r"training\.pointpillars\.quantize"):
         lidar_detector("pointpillars", models_dir=tmp_path, precision="int8")
     # Ground-truth detectors have no model file: the precision does not concern them.
     assert lidar_detector("oracle", precision="int8").name
@@ -133,7 +133,7 @@ def test_quantize_model_keeps_the_listed_nodes_float(tmp_path: Path) -> None:
 
 def test_quantize_tools_do_not_import_torch() -> None:
     code = (
-        "import sys, shared.detection.camera.quantize, shared.detection.lidar.pointpillars.quantize; "
+        "import sys, training.camera.quantize, training.pointpillars.quantize; "
         "sys.exit('torch' in sys.modules)"
     )
     assert subprocess.run([sys.executable, "-c", code], cwd=REPO_ROOT, check=False).returncode == 0

@@ -15,27 +15,10 @@ from shared.perception.config import MecSettings
 from shared.perception.decode import FrameDecoder
 from shared.perception.pipeline import AgentInputs, AgentPipeline
 from shared.scene.scene import Scene
+from tests.shared.perception.stubs import CountingCameras, NoCars
 
 TICK_HZ = 60.0
 TICKS_PER_FRAME = 6  # 10 Hz sensors
-
-
-class CountingCameras:
-    name = "counting"
-
-    def __init__(self) -> None:
-        self.calls: list[int] = []
-
-    def detect(self, images: list[np.ndarray]) -> list[np.ndarray]:
-        self.calls.append(len(images))
-        return [np.zeros((0, 6), np.float32) for _ in images]
-
-
-class NoCars:
-    name = "no-cars"
-
-    def detect(self, points: np.ndarray) -> np.ndarray:
-        return np.zeros((0, 9), np.float32)
 
 
 @pytest.fixture(scope="module")

@@ -18,31 +18,11 @@ from shared.perception.inputs import Status
 from shared.scene.scene import Scene
 from shared.timebase import NS_PER_S
 from sim.sensors.lidar import LidarScan, to_point_cloud
+from tests.shared.perception.stubs import CountingCameras, NoCars
 
 TICK_HZ = 60.0
 TICKS_PER_FRAME = 6  # 10 Hz sensors
 AGENT = "agent1"  # 4 cameras, 2 lidars
-
-
-class NoBoxes:
-    name = "no-boxes"
-
-    def __init__(self, fail: bool = False) -> None:
-        self.fail = fail
-        self.images = 0
-
-    def detect(self, images: list[np.ndarray]) -> list[np.ndarray]:
-        if self.fail:
-            raise RuntimeError("detector bug")
-        self.images += len(images)
-        return [np.zeros((0, 6), np.float32) for _ in images]
-
-
-class NoCars:
-    name = "no-cars"
-
-    def detect(self, points: np.ndarray) -> np.ndarray:
-        return np.zeros((0, 9), np.float32)
 
 
 @pytest.fixture(scope="module")
@@ -58,8 +38,8 @@ def settings(**sync: object) -> MecSettings:
     )
 
 
-def core_of(scene: Scene, cfg: MecSettings | None = None, cameras: NoBoxes | None = None) -> MecCore:
-    return MecCore(scene, AGENT, cfg or settings(), cameras=cameras or NoBoxes(), lidar=NoCars())
+def core_of(scene: Scene, cfg: MecSettings | None = None, cameras: CountingCameras | None = None) -> MecCore:
+    return MecCore(scene, AGENT, cfg or settings(), cameras=cameras or CountingCameras(), lidar=NoCars())
 
 
 def jpeg() -> CompressedImage:
@@ -88,7 +68,7 @@ def feed(core: MecCore, frame: int, skip: tuple[str, ...] = (), late_s: float = 
 
 
 def test_a_complete_frame_is_processed_at_once_and_published_full(scene: Scene) -> None:
-    cams = NoBoxes()
+    cams = CountingCameras()
     core = core_of(scene, cameras=cams)
     now = feed(core, 1)
     out = core.step(now)
@@ -96,7 +76,7 @@ def test_a_complete_frame_is_processed_at_once_and_published_full(scene: Scene) 
     assert out.status is Status.FULL and out.message.status == PerceptionStatus.PERCEPTION_STATUS_FULL
     assert out.message.agent_id == AGENT and {i.sensor_id for i in out.message.inputs} == set(core.kinds)
     assert set(out.inputs.images) == {s for s, k in core.kinds.items() if k == "camera"}
-    assert cams.images == 4  # detected on arrival, reused by the frame
+    assert cams.calls == [1, 1, 1, 1]  # each image detected on arrival, reused by the frame
     assert out.result.latencies_s["detect_2d_ahead"] > 0
     assert core.step(now) is None  # nothing new
     assert core.counters["frames/published"] == 1
@@ -164,7 +144,7 @@ def test_an_undecodable_image_is_left_out_of_its_frame_and_counted(scene: Scene)
 
 
 def test_a_pipeline_failure_is_counted_and_the_next_frame_goes_on(scene: Scene) -> None:
-    cams = NoBoxes(fail=True)
+    cams = CountingCameras(fail=True)
     core = core_of(scene, cameras=cams)
     assert core.step(feed(core, 1)) is None
     assert core.counters["errors/pipeline"] == 1 and core.counters["errors/detect_ahead"] == 4
@@ -173,7 +153,7 @@ def test_a_pipeline_failure_is_counted_and_the_next_frame_goes_on(scene: Scene) 
 
 
 def test_under_a_sim_the_cameras_are_asked_for_every_nth_frame_while_a_lidar_is_live(scene: Scene) -> None:
-    core = MecCore(scene, AGENT, MecSettings(), cameras=NoBoxes(), lidar=NoCars())
+    core = MecCore(scene, AGENT, MecSettings(), cameras=CountingCameras(), lidar=NoCars())
     assert core.cadence(0.0) == (1, False)  # real sensors: no demand
     core.tick_hz = TICK_HZ
     n = MecSettings().detectors.camera_every_n_with_lidar

@@ -5,12 +5,12 @@ Modules
 config.py         `PointPillarsConfig` (grid, network, head targets, post-processing, augmentation, training)
 pillars.py        numpy pillarisation: (N, 4) points -> (P, 20, 7) point features + pillar coordinates
 coding.py         numpy head coding: training targets, decoding of the head's peaks, rotated-BEV NMS
-net.py            torch: PFN -> scatter to BEV -> 2-stage backbone + neck -> centre head
-data.py           torch Dataset over the OpenPCDet custom layout, augmentation, training windows
-train.py          `python -m shared.detection.lidar.pointpillars.train --data DIR --out DIR`
-export.py         `python -m shared.detection.lidar.pointpillars.export --checkpoint C --out M.onnx`
 onnx_detector.py  `OnnxPointPillars(model_path)`: the `LidarDetector` interface, onnxruntime only
-evaluation.py     KITTI R40 AP (shared.metrics.detection) + centre error, for validation and the bench
+
+Training lives in `training/pointpillars/`: net.py (torch: PFN -> scatter to BEV -> 2-stage backbone +
+neck -> centre head), data.py (torch Dataset over the OpenPCDet custom layout, augmentation, training
+windows), train.py (`python -m training.pointpillars.train --data DIR --out DIR`), export.py (ONNX),
+evaluation.py (KITTI R40 AP + centre error, for validation and the bench), quantize.py (int8).
 
 Design (defaults; measured on the default dataset, `make`-generated, 2-core AMD EPYC shared with other jobs)
 -----------------------------------------------------------------------------------------------------

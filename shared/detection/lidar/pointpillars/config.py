@@ -16,6 +16,8 @@ from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from shared.scene.scene import vehicle_size_m as scene_vehicle_size_m
+
 # The backbone has two stride-2 stages; the neck brings both to stride 2, so the grid must divide by 4.
 GRID_DIVISOR = 4
 HEAD_STRIDE = 2
@@ -107,7 +109,9 @@ class HeadConfig(_Model):
         0.2, ge=0, description="heatmap loss is masked within this distance of an ignore box centre, metres"
     )
     mean_size_m: tuple[float, float, float] = Field(
-        (0.33, 0.22, 0.21), description="reference (dx, dy, dz); sizes are regressed as log(size / this)"
+        default_factory=scene_vehicle_size_m,
+        description="reference (dx, dy, dz), m, default the scene's vehicle; sizes are regressed as "
+        "log(size / this) (a trained model keeps its own in its config)",
     )
     direction_offset_rad: float = Field(
         math.pi / 4,

@@ -1,4 +1,4 @@
-"""The int8 camera model (shared.detection.camera.quantize) loads through the registry and, on images
+"""The int8 camera model (training.camera.quantize) loads through the registry and, on images
 rendered by the simulation, finds the cars the fp32 model finds."""
 
 from __future__ import annotations

@@ -24,7 +24,7 @@ from shared.detection.camera.config import (  # noqa: E402
     NetConfig,
     TrainConfig,
 )
-from shared.detection.camera.data import (  # noqa: E402
+from training.camera.data import (  # noqa: E402
     IGNORED,
     NEGATIVE,
     Augmenter,
@@ -35,13 +35,12 @@ from shared.detection.camera.data import (  # noqa: E402
     assign_targets,
     read_label_boxes,
 )
-from shared.detection.camera.loss import aligned_iou_giou, detection_loss  # noqa: E402
-from shared.detection.camera.net import CameraNet, cell_centers, decode  # noqa: E402
-from shared.detection.camera.train import (  # noqa: E402
+from training.camera.loss import aligned_iou_giou, detection_loss  # noqa: E402
+from training.camera.net import CameraNet, cell_centers, decode, load_checkpoint  # noqa: E402
+from training.camera.train import (  # noqa: E402
     build_parser,
     config_from_args,
     learning_rate,
-    load_checkpoint,
     train,
 )
 
@@ -283,7 +282,7 @@ def test_tiny_training_lowers_the_loss_and_exports(synthetic_root: Path, tmp_pat
     with torch.no_grad():
         torch.testing.assert_close(loaded(images), model(images))
 
-    from shared.detection.camera.export import export_onnx
+    from training.camera.export import export_onnx
 
     export_onnx(loaded, cfg, tmp_path)
     assert (tmp_path / ONNX_FILE).exists()

@@ -133,9 +133,9 @@ def test_measure_latency_reports_percentiles(constant_detector: OnnxCameraDetect
 
 def test_onnx_matches_torch(tmp_path: Path) -> None:
     torch = pytest.importorskip("torch")
-    from shared.detection.camera.export import compare_with_torch, export_onnx
     from shared.detection.camera.geometry import letterbox_image, postprocess
-    from shared.detection.camera.net import CameraNet, ExportModel
+    from training.camera.export import compare_with_torch, export_onnx
+    from training.camera.net import CameraNet, ExportModel
 
     # Every cell kept (no top-k cut among near-equal scores): the comparison cannot flip on float noise.
     keep_all = PostprocessConfig(score_threshold=0.2, pre_nms_top_k=10_000, max_detections=10_000)

@@ -21,7 +21,7 @@ from shared.detection.lidar.pointpillars.coding import (
     wrap_angle,
 )
 from shared.detection.lidar.pointpillars.config import GridConfig, HeadConfig, PostConfig
-from shared.detection.lidar.pointpillars.evaluation import accuracy, centre_errors
+from training.pointpillars.evaluation import accuracy, centre_errors
 
 GRID = GridConfig(
     x_min_m=-0.8, x_max_m=0.8, y_min_m=-0.8, y_max_m=0.8, pillar_size_m=0.05

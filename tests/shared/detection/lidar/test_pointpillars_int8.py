@@ -1,4 +1,4 @@
-"""The int8 PointPillars (shared.detection.lidar.pointpillars.quantize) loads through the registry
+"""The int8 PointPillars (training.pointpillars.quantize) loads through the registry
 and, on a cloud rendered by the simulation, finds the cars the fp32 model finds."""
 
 from __future__ import annotations

@@ -11,10 +11,10 @@ import torch
 
 from shared.detection.interface import LIDAR_COLUMNS, DetectorInputError
 from shared.detection.lidar.pointpillars.config import PointPillarsConfig
-from shared.detection.lidar.pointpillars.export import compare, export_onnx, torch_outputs
-from shared.detection.lidar.pointpillars.net import PointPillarsNet
 from shared.detection.lidar.pointpillars.onnx_detector import OnnxPointPillars, config_path_for
 from shared.detection.lidar.pointpillars.pillars import pillarize
+from training.pointpillars.export import compare, export_onnx, torch_outputs
+from training.pointpillars.net import PointPillarsNet
 
 TOLERANCE = 1e-4
 

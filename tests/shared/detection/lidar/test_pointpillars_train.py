@@ -6,9 +6,9 @@ import numpy as np
 import torch
 
 from shared.detection.lidar.pointpillars.config import PointPillarsConfig
-from shared.detection.lidar.pointpillars.data import Frame, PillarDataset, augment, mirror_x, mirror_y
-from shared.detection.lidar.pointpillars.train import train
 from shared.geometry.boxes import box3d_corners
+from training.pointpillars.data import Frame, PillarDataset, augment, mirror_x, mirror_y
+from training.pointpillars.train import train
 
 TRAIN_FRAMES = 16
 STEPS = 40

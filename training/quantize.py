@@ -2,8 +2,8 @@
 
 The per-model tools build the calibration inputs and call `quantize_model`:
 
-    python -m shared.detection.camera.quantize                  # camera/model.onnx -> model_int8.onnx
-    python -m shared.detection.lidar.pointpillars.quantize      # lidar/pointpillars.onnx -> ..._int8.onnx
+    python -m training.camera.quantize                  # camera/model.onnx -> model_int8.onnx
+    python -m training.pointpillars.quantize      # lidar/pointpillars.onnx -> ..._int8.onnx
 
 Recipe: `quant_pre_process` (symbolic shape inference, ORT basic graph optimisation), then
 `quantize_static` in QDQ format, weights QInt8 per output channel, activations QUInt8, MinMax

@@ -1,6 +1,6 @@
 """Export a trained PointPillars checkpoint to ONNX and check it against torch.
 
-    python -m shared.detection.lidar.pointpillars.export --checkpoint RUN/model.pt --out MODEL.onnx \
+    python -m training.pointpillars.export --checkpoint RUN/model.pt --out MODEL.onnx \
         [--points FRAME.npy]
 
 The graph (opset 17, legacy TorchScript exporter) takes one frame's pillars, P dynamic:
@@ -25,7 +25,6 @@ import torch
 import torch.nn.functional as F  # noqa: N812 (torch convention)
 
 from shared.detection.lidar.pointpillars.config import PointPillarsConfig
-from shared.detection.lidar.pointpillars.net import PEAK_KERNEL, ExportModel, PointPillarsNet
 from shared.detection.lidar.pointpillars.onnx_detector import (
     INPUT_NAMES,
     OUTPUT_NAMES,
@@ -33,6 +32,7 @@ from shared.detection.lidar.pointpillars.onnx_detector import (
     make_session,
 )
 from shared.detection.lidar.pointpillars.pillars import Pillars, flat_coords, pillarize
+from training.pointpillars.net import PEAK_KERNEL, ExportModel, PointPillarsNet
 
 log = logging.getLogger("pointpillars.export")
 
@@ -164,7 +164,7 @@ def export_onnx(
 
 
 def main(argv: list[str] | None = None) -> None:
-    from shared.detection.lidar.pointpillars.train import load_checkpoint
+    from training.pointpillars.net import load_checkpoint
 
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter

@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F  # noqa: N812 (torch convention)
@@ -159,3 +160,11 @@ class ExportModel(nn.Module):
 
 def count_parameters(model: nn.Module) -> int:
     return sum(p.numel() for p in model.parameters())
+
+
+def load_checkpoint(path: Path, device: str = "cpu") -> tuple[PointPillarsNet, PointPillarsConfig]:
+    checkpoint = torch.load(path, map_location=device, weights_only=True)
+    config = PointPillarsConfig.model_validate(checkpoint["config"])
+    model = PointPillarsNet(config).to(device)
+    model.load_state_dict(checkpoint["state_dict"])
+    return model.eval(), config

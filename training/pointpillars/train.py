@@ -1,6 +1,6 @@
 """Train PointPillars from scratch on a generated dataset (OpenPCDet custom layout).
 
-    python -m shared.detection.lidar.pointpillars.train --data DATASET_ROOT --out RUN_DIR \
+    python -m training.pointpillars.train --data DATASET_ROOT --out RUN_DIR \
         [--config CONFIG.json] [--epochs N] [--max-frames N] [--device cpu|cuda]
 
 Writes RUN_DIR/config.json, RUN_DIR/last.pt, RUN_DIR/model.pt (best validation BEV AP@0.7, or the last
@@ -36,9 +36,9 @@ from shared.detection.lidar.pointpillars.coding import (
     rotated_nms,
 )
 from shared.detection.lidar.pointpillars.config import PointPillarsConfig, TrainConfig
-from shared.detection.lidar.pointpillars.data import Frame, PillarDataset, collate, read_split
-from shared.detection.lidar.pointpillars.evaluation import accuracy
-from shared.detection.lidar.pointpillars.net import PointPillarsNet, count_parameters, peak_scores
+from training.pointpillars.data import Frame, PillarDataset, collate, read_split
+from training.pointpillars.evaluation import accuracy
+from training.pointpillars.net import PointPillarsNet, count_parameters, peak_scores
 
 log = logging.getLogger("pointpillars.train")
 
@@ -263,14 +263,6 @@ def train(
         if step >= total_steps:
             break
     return model, history
-
-
-def load_checkpoint(path: Path, device: str = "cpu") -> tuple[PointPillarsNet, PointPillarsConfig]:
-    checkpoint = torch.load(path, map_location=device, weights_only=True)
-    config = PointPillarsConfig.model_validate(checkpoint["config"])
-    model = PointPillarsNet(config).to(device)
-    model.load_state_dict(checkpoint["state_dict"])
-    return model.eval(), config
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -14,8 +14,8 @@ import torch
 from torch.nn import functional as nnf
 
 from shared.detection.camera.config import LossConfig
-from shared.detection.camera.data import IGNORED
-from shared.detection.camera.net import split_raw
+from training.camera.data import IGNORED
+from training.camera.net import split_raw
 
 EPS = 1e-7
 

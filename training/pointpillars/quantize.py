@@ -1,8 +1,8 @@
 """Int8 static quantization of the ONNX PointPillars (onnxruntime only, no torch).
 
-    python -m shared.detection.lidar.pointpillars.quantize    # pointpillars.onnx -> pointpillars_int8.onnx
+    python -m training.pointpillars.quantize    # pointpillars.onnx -> pointpillars_int8.onnx
 
-Recipe and calibration rules: `shared.detection.quantize` (QDQ, per-channel QInt8 weights, QUInt8
+Recipe and calibration rules: `training.quantize` (QDQ, per-channel QInt8 weights, QUInt8
 activations, MinMax) on the 2D network (convolutions, their ReLUs and the neck's concat: OP_TYPES)
 but the head's two output convs (KEEP_FLOAT); the pillar feature net, the scatter and the peak
 extraction stay float too. Calibration frames: each
@@ -20,8 +20,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from shared.detection.lidar.pointpillars.onnx_detector import OnnxPointPillars
-from shared.detection.quantize import Feeds, quantize_calibrated, quantize_cli, render_training_captures
 from shared.detection.registry import LIDAR_MODEL, MODELS_DIR
+from training.quantize import Feeds, quantize_calibrated, quantize_cli, render_training_captures
 
 # The 2D network's ops; Relu and Concat too, so that the activations stay uint8 between the convolutions.
 OP_TYPES = ("Conv", "ConvTranspose", "Relu", "Concat")

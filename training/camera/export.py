@@ -1,6 +1,6 @@
 """Export the camera detector to ONNX and check it against torch.
 
-    python -m shared.detection.camera.export --model-dir MODEL_DIR    # reads model.pt, writes model.onnx
+    python -m training.camera.export --model-dir MODEL_DIR    # reads model.pt, writes model.onnx
 
 The exported graph is `ExportModel` (network + box decoding): input `images` (B, H, W, 3) uint8 RGB
 letterboxed to the configured input size, output `detections` (B, N, 5) float32
@@ -22,7 +22,7 @@ import onnxruntime as ort
 import torch
 
 from shared.detection.camera.config import ONNX_FILE, ONNX_INPUT, ONNX_OUTPUT, CameraDetectorConfig
-from shared.detection.camera.net import CameraNet, ExportModel
+from training.camera.net import CameraNet, ExportModel, load_checkpoint
 
 log = logging.getLogger(__name__)
 
@@ -85,7 +85,6 @@ def compare_with_torch(path: Path, model: CameraNet, cfg: CameraDetectorConfig) 
 
 
 def main(argv: list[str] | None = None) -> None:
-    from shared.detection.camera.train import load_checkpoint
     from shared.logging_setup import setup_logging
 
     parser = argparse.ArgumentParser(

@@ -1,6 +1,6 @@
 """Train the camera detector from scratch on a generated dataset, then export it to ONNX.
 
-    python -m shared.detection.camera.train --data DATASET_ROOT --out MODEL_DIR [--config JSON]
+    python -m training.camera.train --data DATASET_ROOT --out MODEL_DIR [--config JSON]
         [--epochs N] [--batch-size B] [--lr LR] [--max-minutes M] [--threads T] [--num-workers W]
         [--limit N] [--val-limit N] [--no-export]
 
@@ -41,11 +41,11 @@ from shared.detection.camera.config import (
     CameraDetectorConfig,
     PostprocessConfig,
 )
-from shared.detection.camera.data import Batch, CameraDataset, assign_targets, collate
 from shared.detection.camera.geometry import Letterbox, postprocess
-from shared.detection.camera.loss import detection_loss
-from shared.detection.camera.net import CameraNet, count_macs, count_parameters, decode
 from shared.metrics.detection import CocoSummary, evaluate_coco
+from training.camera.data import Batch, CameraDataset, assign_targets, collate
+from training.camera.loss import detection_loss
+from training.camera.net import CameraNet, count_macs, count_parameters, decode
 
 log = logging.getLogger(__name__)
 
@@ -150,15 +150,6 @@ def save_checkpoint(
     torch.save({"state_dict": state, "config": cfg.model_dump(mode="json"), "record": record}, path)
     cfg.save(out_dir / CONFIG_FILE)
     return path
-
-
-def load_checkpoint(model_dir: Path) -> tuple[CameraNet, CameraDetectorConfig]:
-    """The model of `model_dir/model.pt` in eval mode, on the CPU, and its config."""
-    ckpt = torch.load(Path(model_dir) / CHECKPOINT_FILE, map_location="cpu", weights_only=True)
-    cfg = CameraDetectorConfig.model_validate(ckpt["config"])
-    model = CameraNet(cfg)
-    model.load_state_dict(ckpt["state_dict"])
-    return model.eval(), cfg
 
 
 class Trainer:
@@ -363,7 +354,7 @@ def main(argv: list[str] | None = None) -> None:
     cfg = config_from_args(args)
     model, _ = train(cfg, args.data, args.out, limit=args.limit, val_limit=args.val_limit)
     if not args.no_export:
-        from shared.detection.camera.export import export_onnx
+        from training.camera.export import export_onnx
 
         export_onnx(model, cfg, args.out)
 

@@ -20,12 +20,13 @@ Only training and export import this module (torch); inference uses onnxruntime.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import torch
 from torch import nn
 from torch.nn import functional as nnf
 
-from shared.detection.camera.config import CameraDetectorConfig, NetConfig
+from shared.detection.camera.config import CHECKPOINT_FILE, CameraDetectorConfig, NetConfig
 
 PIXEL_MEAN = 127.5  # uint8 -> roughly zero-mean, unit-range input
 PIXEL_SCALE = 1.0 / 64.0
@@ -187,3 +188,12 @@ def count_macs(model: CameraNet, height: int, width: int) -> int:
         for h in handles:
             h.remove()
     return macs
+
+
+def load_checkpoint(model_dir: Path) -> tuple[CameraNet, CameraDetectorConfig]:
+    """The model of `model_dir/model.pt` in eval mode, on the CPU, and its config."""
+    ckpt = torch.load(Path(model_dir) / CHECKPOINT_FILE, map_location="cpu", weights_only=True)
+    cfg = CameraDetectorConfig.model_validate(ckpt["config"])
+    model = CameraNet(cfg)
+    model.load_state_dict(ckpt["state_dict"])
+    return model.eval(), cfg

@@ -1,8 +1,8 @@
 """Int8 static quantization of the camera detector (onnxruntime only, no torch).
 
-    python -m shared.detection.camera.quantize          # deploy/models/camera/model.onnx -> model_int8.onnx
+    python -m training.camera.quantize          # deploy/models/camera/model.onnx -> model_int8.onnx
 
-Recipe and calibration rules: `shared.detection.quantize` (QDQ, per-channel QInt8 weights, QUInt8
+Recipe and calibration rules: `training.quantize` (QDQ, per-channel QInt8 weights, QUInt8
 activations, MinMax) on the convolutions and their ReLUs (OP_TYPES) but the prediction conv
 (KEEP_FLOAT); the box decoding stays float too.
 Calibration images: every camera of the scene, sampled at CALIB_RATE_HZ for CALIB_SECONDS after
@@ -22,8 +22,8 @@ import numpy as np
 
 from shared.detection.camera.config import CONFIG_FILE, ONNX_INPUT, CameraDetectorConfig
 from shared.detection.camera.geometry import letterbox_image
-from shared.detection.quantize import Feeds, quantize_calibrated, quantize_cli, render_training_captures
 from shared.detection.registry import CAMERA_MODEL, MODELS_DIR
+from training.quantize import Feeds, quantize_calibrated, quantize_cli, render_training_captures
 
 # Relu too: the QDQ pair then sits after it and its range starts at 0 (measured on tuning-seed images
 # against Conv only: same speed, box deviation from fp32 p95 1.6 px instead of 2.5 px).

@@ -30,7 +30,7 @@ from shared.datasets.layout import DatasetLayout
 from shared.datasets.yolo import read_yolo
 from shared.detection.camera.config import AssignConfig, AugmentConfig, CameraDetectorConfig, InputConfig
 from shared.detection.camera.geometry import letterbox_image
-from shared.detection.camera.net import cell_centers
+from training.camera.net import cell_centers
 
 log = logging.getLogger(__name__)
 

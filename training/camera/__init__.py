@@ -1,0 +1,1 @@
+"""Camera detector training: torch net, data, loss, training loop, ONNX export, int8 quantization."""

@@ -1,0 +1,1 @@
+"""PointPillars training: torch net, data, training loop and accuracy, ONNX export, int8 quantization."""
