@@ -8,10 +8,15 @@ from __future__ import annotations
 
 from typing import Any
 
+from shared.config import read_yaml
+from shared.paths import DEFAULT_SCENE
 from shared.scene.model import SceneSpec
 from shared.scene.scene import Scene
 
 SPEED_MPS = 0.5
+
+
+VEHICLE = read_yaml(DEFAULT_SCENE)["vehicle"]  # the sand table's car (the scene file is its home)
 
 
 def _lane(lane_id: str, a: str, b: str, area: str, points: list[tuple[float, float]], **kw: Any) -> dict:
@@ -42,6 +47,7 @@ def planner_scene() -> Scene:
     """
     spec = {
         "scene_id": "planner_square",
+        "vehicle": VEHICLE,
         "table": {"size_x_m": 8.0, "size_y_m": 8.0, "origin_m": (-4.0, -4.0)},
         "junctions": [
             {"id": "jz", "number": 1, "position_m": (-1.0, 0.0, 0.0)},
@@ -85,6 +91,7 @@ def map_scene() -> Scene:
     Areas split at y = 1 (the boundary belongs to south, the first area in the file)."""
     spec = {
         "scene_id": "map_strip",
+        "vehicle": VEHICLE,
         "table": {"size_x_m": 5.0, "size_y_m": 3.0, "origin_m": (-1.0, -1.0)},
         "junctions": [
             {"id": "j1", "number": 1, "position_m": (0.5, 0.5, 0.0)},
