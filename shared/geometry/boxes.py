@@ -116,6 +116,13 @@ def bev_corners(boxes: ArrayLike) -> FloatArray:
     return _rotated_rectangles(_bev_params(boxes, "boxes"))
 
 
+def box2d_centres(boxes_xyxy: ArrayLike) -> FloatArray:
+    """(N, 2) centres (u, v) of (N, >= 4) image boxes [x0, y0, x1, y1, ...], pixels."""
+    bx = np.asarray(boxes_xyxy, float)
+    bx = bx.reshape(-1, bx.shape[-1] if bx.ndim > 1 else 4)[:, :4]
+    return np.column_stack([(bx[:, 0] + bx[:, 2]) / 2, (bx[:, 1] + bx[:, 3]) / 2])
+
+
 def iou2d_matrix(a: ArrayLike, b: ArrayLike) -> FloatArray:
     """Pairwise IoU of axis-aligned image boxes.
 

@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
+from shared.geometry.boxes import box2d_centres
 from shared.geometry.camera import pixel_rays
 from shared.perception.radar_camera import camera_position_cov, fuse_positions
 from shared.perception.views import CameraView, RoadSurface
@@ -87,7 +88,7 @@ def locate(
         boxes = boxes[keep]
         if len(boxes) == 0:
             continue
-        centres = np.column_stack([(boxes[:, 0] + boxes[:, 2]) / 2, (boxes[:, 1] + boxes[:, 3]) / 2])
+        centres = box2d_centres(boxes)
         rays = pixel_rays(centres, view.K) @ view.T_world_from_optical[:3, :3].T
         points = surface.first_hit(view.center_m, rays, height / 2)
         ok = np.isfinite(points).all(axis=1)

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from shared.geometry.boxes import box3d_corners
+from shared.geometry.boxes import box2d_centres, box3d_corners
 from shared.geometry.camera import box3d_to_image_box, pixel_to_world_on_plane, project_points
 from shared.scene.scene import Scene
 
@@ -29,11 +29,6 @@ CENTRE_FIT_ITERATIONS = 3
 SURFACE_SAMPLE_STEP_M = 0.05
 # Slack on k-d tree search radii so rounding never drops a sample at the exact limit, metres.
 NEAR_M = 1e-6
-
-
-def _box_centres(boxes_xyxy: FloatArray) -> FloatArray:
-    b = np.asarray(boxes_xyxy, float).reshape(-1, 4)
-    return np.column_stack([(b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2])
 
 
 @dataclass(frozen=True)
@@ -143,11 +138,11 @@ class CameraView:
         the shift). Comparing box centre with box centre cancels the perspective offset between a 2D
         box's centre and its 3D centre's projection. NaN rows where a viewing ray misses the plane."""
         boxes = np.array(boxes3d, float, copy=True).reshape(-1, 7)
-        target = self.to_plane(_box_centres(boxes2d), boxes[:, 2])
+        target = self.to_plane(box2d_centres(boxes2d), boxes[:, 2])
         lost = ~np.isfinite(target).all(axis=1)
         for _ in range(CENTRE_FIT_ITERATIONS):
             proj, visible, _ = self.image_boxes(boxes)
-            at = self.to_plane(_box_centres(proj), boxes[:, 2])
+            at = self.to_plane(box2d_centres(proj), boxes[:, 2])
             step = target[:, :2] - at[:, :2]
             lost |= ~visible | ~np.isfinite(step).all(axis=1)
             boxes[~lost, :2] += step[~lost]  # lost rows stay finite (and are reported NaN)

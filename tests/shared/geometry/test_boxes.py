@@ -9,6 +9,7 @@ from shared.geometry.boxes import (
     bev_corners,
     bev_intersection_area_matrix,
     bev_iou_matrix,
+    box2d_centres,
     box3d_corners,
     iou2d_matrix,
     iou3d_matrix,
@@ -209,3 +210,10 @@ def test_iou3d_empty_inputs() -> None:
 def test_invalid_inputs_raise(call, match: str) -> None:
     with pytest.raises(ValueError, match=match):
         call()
+
+
+def test_box2d_centres_known_answer_and_extra_columns() -> None:
+    boxes = np.array([[0.0, 0.0, 4.0, 2.0, 0.9, 0.0], [10.0, 20.0, 12.0, 30.0, 0.5, 0.0]])
+    np.testing.assert_allclose(box2d_centres(boxes), [[2.0, 1.0], [11.0, 25.0]])
+    np.testing.assert_allclose(box2d_centres([1.0, 1.0, 3.0, 5.0]), [[2.0, 3.0]])
+    assert box2d_centres(np.zeros((0, 4))).shape == (0, 2)
