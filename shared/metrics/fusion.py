@@ -57,6 +57,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import linear_sum_assignment
 
 from shared.geometry.boxes import bev_intersection_area_matrix, bev_iou_matrix
+from shared.geometry.grid import CellGrid, grid_shape
 from shared.metrics.detection import evaluate_kitti
 
 FloatArray = NDArray[np.float64]
@@ -71,7 +72,6 @@ __all__ = [
     "FrameMatch",
     "FusionAccumulator",
     "aos_term",
-    "grid_shape",
     "match_frame",
     "save_heat_map_png",
 ]
@@ -92,7 +92,6 @@ CLASS_ID = 0.0
 # Percentiles of the pose error reported by `FusionAccumulator.summary`.
 POSE_PERCENTILES = (50.0, 95.0)
 # A grid span may differ from a whole number of cells by this fraction of a cell (float rounding).
-GRID_TOLERANCE_CELLS = 1e-6
 HEAT_MAP_KEYS: tuple[str, ...] = ("pose_error_m", "aos", "bev_iou", "count", "num_gt", "recall")
 
 
@@ -143,35 +142,6 @@ def _positive(value: float, name: str) -> float:
     if not (math.isfinite(out) and out > 0.0):
         raise ValueError(f"{name} must be a positive finite number, got {value}")
     return out
-
-
-def grid_shape(
-    x_range_m: tuple[float, float], y_range_m: tuple[float, float], cell_m: float
-) -> tuple[int, int]:
-    """Cells ``(ny, nx)`` of a heat-map grid; each span must be a whole number of cells.
-
-    Parameters
-    ----------
-    x_range_m, y_range_m : (float, float)
-        ``(min, max)`` world extent, metres, ``min < max``.
-    cell_m : float
-        Square cell side, metres.
-
-    Returns
-    -------
-    (int, int)
-        Rows (y) and columns (x), e.g. ``(64, 32)`` for x in [-2, 2), y in [-5, 3) at 0.125 m.
-    """
-    cell = _positive(cell_m, "cell_m")
-    counts = []
-    for name, (lo, hi) in (("x_range_m", x_range_m), ("y_range_m", y_range_m)):
-        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
-            raise ValueError(f"{name} must be finite (min, max) with min < max, got {(lo, hi)}")
-        cells = (hi - lo) / cell
-        if abs(cells - round(cells)) > GRID_TOLERANCE_CELLS:
-            raise ValueError(f"{name} span {hi - lo} m is not a whole number of {cell} m cells")
-        counts.append(round(cells))
-    return counts[1], counts[0]
 
 
 # --- one frame ---------------------------------------------------------------------------------------
@@ -300,11 +270,8 @@ def _cell_index(
     xy: FloatArray, x_range_m: tuple[float, float], y_range_m: tuple[float, float], cell_m: float
 ) -> tuple[IntArray, BoolArray]:
     """Flat ``iy * nx + ix`` cell of each point and whether it lies in ``[min, max)`` on both axes."""
-    ny, nx = grid_shape(x_range_m, y_range_m, cell_m)
-    ix = np.floor((xy[:, 0] - x_range_m[0]) / cell_m).astype(np.int64)
-    iy = np.floor((xy[:, 1] - y_range_m[0]) / cell_m).astype(np.int64)
-    inside = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
-    return iy * nx + ix, inside
+    flat = CellGrid.spanning(x_range_m, y_range_m, cell_m).cells(xy)
+    return flat, flat >= 0
 
 
 def _cell_mean(flat: IntArray, values: FloatArray, num_cells: int) -> FloatArray:

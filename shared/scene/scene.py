@@ -16,6 +16,7 @@ from pydantic import ValidationError
 
 from shared.config import ConfigError, read_yaml
 from shared.geometry.camera import intrinsics_from_fov
+from shared.geometry.grid import CellGrid
 from shared.geometry.transforms import (
     camera_optical_from_world,
     camera_world_from_optical,
@@ -70,6 +71,11 @@ class Scene:
     @property
     def scene_id(self) -> str:
         return self.spec.scene_id
+
+    def table_grid(self, cell_m: float) -> CellGrid:
+        """Square cells of `cell_m` over the whole table (the last row / column may overhang it)."""
+        t = self.spec.table
+        return CellGrid.covering(t.origin_m, (t.size_x_m, t.size_y_m), cell_m)
 
     # --- sensors ---------------------------------------------------------------------------------
 

@@ -157,36 +157,6 @@ class TrafficSnapshot:
         return self.lane_ids.index(lane_id)
 
 
-@dataclass(frozen=True)
-class TableGrid:
-    """A regular grid over the table, laid out like foxglove.Grid: cell (row, col) covers
-    [origin + col * cell, origin + (col + 1) * cell) in x, likewise rows in y; flat index row-major."""
-
-    origin_m: tuple[float, float]
-    cell_m: float
-    shape: tuple[int, int]  # rows (y), columns (x)
-
-    @classmethod
-    def over(cls, scene: Scene, cell_m: float) -> TableGrid:
-        table = scene.spec.table
-        return cls(
-            (float(table.origin_m[0]), float(table.origin_m[1])),
-            cell_m,
-            (math.ceil(table.size_y_m / cell_m), math.ceil(table.size_x_m / cell_m)),
-        )
-
-    @property
-    def size(self) -> int:
-        return self.shape[0] * self.shape[1]
-
-    def cells(self, position_m: FloatArray) -> NDArray[np.int64]:
-        """Flat cell index per (N, 2+) position; -1 outside the table."""
-        col = np.floor((position_m[:, 0] - self.origin_m[0]) / self.cell_m).astype(np.int64)
-        row = np.floor((position_m[:, 1] - self.origin_m[1]) / self.cell_m).astype(np.int64)
-        inside = (col >= 0) & (col < self.shape[1]) & (row >= 0) & (row < self.shape[0])
-        return np.where(inside, row * self.shape[1] + col, -1)
-
-
 def area_ranks(counts: FloatArray) -> NDArray[np.int64]:
     """Rank of each area by count, 0 = emptiest; equal counts keep file order (stable sort)."""
     order = np.argsort(counts, kind="stable")
@@ -205,7 +175,7 @@ class TrafficMapBuilder:
         self.lane_ids = self.locator.lane_ids
         self.lane_agents = lane_agents(scene, network)
         self.area_ids = [a.id for a in scene.spec.areas]
-        self.grid = TableGrid.over(scene, cfg.grid_cell_m)
+        self.grid = scene.table_grid(cfg.grid_cell_m)
         self.grid_origin_m, self.grid_shape = self.grid.origin_m, self.grid.shape
         self._lanes = _Smoothed(len(self.lane_ids))
         self._areas = _Smoothed(len(self.area_ids))

@@ -36,7 +36,7 @@ from shared.timebase import NS_PER_S
 from shared.traffic.config import CoordinatorSettings, PolicyName
 from shared.traffic.core import CoordinatorCore, RequestRejected
 from shared.traffic.lanes import OFF_LANE
-from shared.traffic.maps import AgentObjects, TableGrid, TrafficSnapshot
+from shared.traffic.maps import AgentObjects, TrafficSnapshot
 from sim.config import SimSettings, TrafficSettings
 from sim.traffic import TrafficSim
 from studies.experiments.config import FlowExperimentSettings, OraclePerception
@@ -145,7 +145,7 @@ class HeatGrid:
     """Sum and count of vehicle speeds per cell of a regular grid over the table."""
 
     def __init__(self, scene: Scene, cell_m: float) -> None:
-        self.grid = TableGrid.over(scene, cell_m)
+        self.grid = scene.table_grid(cell_m)
         self.speed_sum = np.zeros(self.grid.shape)
         self.samples = np.zeros(self.grid.shape)
 

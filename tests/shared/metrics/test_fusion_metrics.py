@@ -8,13 +8,13 @@ import math
 import numpy as np
 import pytest
 
+from shared.geometry.grid import grid_shape
 from shared.metrics.fusion import (
     DEFAULT_CELL_M,
     DEFAULT_MATCH_DISTANCE_M,
     HEAT_MAP_KEYS,
     FusionAccumulator,
     aos_term,
-    grid_shape,
     match_frame,
     save_heat_map_png,
 )
