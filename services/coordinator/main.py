@@ -212,11 +212,10 @@ class CoordinatorService:
         min_update_s = 1.0 / settings.service.map_update_max_hz
         now = self.clock.now_s()
         next_map_s = now
-        next_replan_s = now + settings.replan_interval_s
         next_log_s = now + settings.report_interval_s
         last_update_s = -math.inf
         while not shutdown.requested:
-            wait_s = min(POLL_S, next_map_s - self.clock.now_s(), next_replan_s - self.clock.now_s())
+            wait_s = min(POLL_S, next_map_s - self.clock.now_s())
             self.ingest(wait_s)
             now = self.clock.now_s()
             changed = self.check_coverage(now)
@@ -226,11 +225,10 @@ class CoordinatorService:
             if changed or now >= next_map_s:
                 self.publish_map(now)
                 next_map_s = now + map_period_s  # a coverage-change publish restarts the period
-            if now >= next_replan_s:
-                issued = self.core.replan(now, time.time_ns())
+            issued = self.core.replan_if_due(now, time.time_ns())
+            if issued is not None:
                 if issued:
                     log.info("replan: %d plans to push", issued)
-                next_replan_s = max(next_replan_s + settings.replan_interval_s, now)
                 self.active_plans = self.core.active_plans(now)
             self.push(now)
             if now >= next_log_s:

@@ -96,6 +96,7 @@ class CoordinatorCore:
         self._missing: frozenset[str] = frozenset(self.agents)  # as of the latest maps
         self._map_stamp_ns = 0
         self.dirty = False  # objects arrived since the last map update
+        self.next_replan_s: float | None = None  # clock of record; set on the first `replan_if_due`
 
     # --- inputs ----------------------------------------------------------------------------------
 
@@ -226,6 +227,20 @@ class CoordinatorCore:
                 self._record(new, active.destination, wall_ns)
                 issued += 1
         return issued
+
+    def replan_if_due(self, now_s: float, wall_ns: int) -> int | None:
+        """`replan` every `replan_interval_s` of the clock of record, the first time one interval after
+        the first call: the number of plans issued, None when not due yet. The service calls it on every
+        loop, the flow experiment on every map update; the cadence is the core's either way."""
+        interval_s = self.settings.replan_interval_s
+        if self.next_replan_s is None:
+            self.next_replan_s = now_s + interval_s
+        if now_s < self.next_replan_s:
+            return None
+        self.next_replan_s += interval_s
+        if self.next_replan_s <= now_s:  # late by a whole interval or more: no catching up
+            self.next_replan_s = now_s + interval_s
+        return self.replan(now_s, wall_ns)
 
     def _replannable(self, plan: IssuedPlan, now_s: float) -> bool:
         if now_s - plan.issued_s > self.settings.planner.plan_ttl_s or plan.ack in ENDED:

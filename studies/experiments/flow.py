@@ -159,7 +159,7 @@ class HeatGrid:
 class Scheduler:
     """The production coordinator (`CoordinatorCore`) in lock step, with the vehicles as its plan
     clients the way the sim's vehicles are live (services/sim/plans.py): a vehicle asks once per lane
-    and acknowledges every plan it is given; after every map update the core re-checks the active
+    and acknowledges every plan it is given; at its re-planning cadence the core re-checks the active
     plans and the ones it pushes are delivered and acknowledged too. Only the bus is left out."""
 
     def __init__(
@@ -197,7 +197,7 @@ class Scheduler:
                 self.counts["rejected/unknown_agent"] += 1
         snap = self.core.update_map(now_s)
         self._score_maps(traffic, snap)
-        self.core.replan(now_s, stamp_ns)
+        self.core.replan_if_due(now_s, stamp_ns)  # the live coordinator's cadence (replan_interval_s)
         for plan, _stamp_ns, _first in self.core.due(now_s):
             self.pushed += 1
             self._deliver(traffic, plan)

@@ -199,3 +199,14 @@ def test_key_parsers() -> None:
     assert mec_of_token("rmmdet/@v1/agent3/@alive/mec/agent3") == "agent3"
     assert mec_of_token("rmmdet/@v1/agent3/@alive/mec/agent1") is None
     assert mec_of_token("rmmdet/@v1/site/@alive/router/main") is None
+
+
+def test_replanning_runs_at_its_interval_of_the_clock_of_record(scene: Scene) -> None:
+    """Known answer: with replan_interval_s = 2, calls at 10.0, 11.0, 12.0, 12.5, 14.3, 20.0 s replan at
+    12.0 (one interval after the first call), 14.3 (due since 14.0) and 20.0 (late: the next is then
+    from 20.0, not a burst of the missed ones)."""
+    core = make_core(scene)
+    assert core.settings.replan_interval_s == 2.0
+    ran = [t for t in (10.0, 11.0, 12.0, 12.5, 14.3, 20.0, 21.0) if core.replan_if_due(t, 0) is not None]
+    assert ran == [12.0, 14.3, 20.0]
+    assert core.next_replan_s == 22.0
