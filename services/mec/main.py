@@ -144,7 +144,6 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 )
                 if rejected:
                     node.counters.inc(f"rejected/{rejected}")
-            start_ns = time.time_ns()
             out = core.step(clock_s)
             if out is None:
                 continue
@@ -153,7 +152,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             header = objects_pub.next_header(
                 stamp_ns=out.frame.stamp_ns, tick=out.frame.tick, frame_id="world"
             )
-            stages = [processing_stamp("mec/process", start_ns, time.time_ns())]
+            stages = [processing_stamp("mec/process", out.started_ns, time.time_ns())]
             objects_pub.put(out.message, header, stages=stages)
             now = time.monotonic()
             if now - last_log >= settings.report_interval_s:

@@ -69,6 +69,7 @@ class MecOutput:
     message: TrackedObjects
     fused: dict[str, bool] = field(default_factory=dict)  # per input: delivered (or not due) this frame
     skipped: int = 0  # older ready frames skipped for this one (latest wins)
+    started_ns: int = 0  # wall clock when the frame's own work began (decode), for processing stamps
 
 
 def decode_frame(
@@ -283,6 +284,7 @@ class MecCore:
         self._ready.clear()
         if skipped:
             self.counters["frames/skipped"] += skipped
+        started_ns = time.time_ns()
         t0 = time.perf_counter()
         due = self.pipeline.cameras_due(self.pipeline.lidar_live(frame.samples), frame.tick)
         inputs, delivered = decode_frame(frame, self.kinds, self.counters, self.decoder, due, self._ahead)
@@ -313,7 +315,7 @@ class MecCore:
         )
         self.counters["frames/published"] += 1
         self.last_tick = frame.tick
-        return MecOutput(frame, inputs, result, state, message, fused, skipped)
+        return MecOutput(frame, inputs, result, state, message, fused, skipped, started_ns)
 
     # --- reporting ------------------------------------------------------------------------------
 

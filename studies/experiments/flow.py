@@ -175,7 +175,6 @@ class Scheduler:
         self.core = CoordinatorCore(
             scene, settings, max_vehicles, ground_truth=source is ground_truth_objects
         )
-        self.policy = policy
         self.source = source
         self.plans = 0  # plans served on request
         self.pushed = 0  # plans pushed after a map update (replanning, coverage changes)

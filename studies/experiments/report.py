@@ -30,6 +30,16 @@ log = logging.getLogger(__name__)
 SCHEDULED: PolicyName = "balanced"
 METRICS = ("total_flow", "trips", "travel_time_mean_s", "travel_time_p95_s", "mean_speed_mps")
 CONFIDENCE = 0.95
+_FORMAT = {"total_flow": "{:.0f}", "trips": "{:.0f}", "mean_speed_mps": "{:.3f}"}  # others: "{:.1f}"
+
+
+def _mean_ci_cells(row: dict[str, Any]) -> list[str]:
+    """The cells `mean ± ci95` of every metric of one (fleet, policy) row, in `METRICS` order."""
+    cells = []
+    for m in METRICS:
+        f = _FORMAT.get(m, "{:.1f}")
+        cells.append(f"{f.format(row[m]['mean'])} ± {f.format(row[m]['ci95'])}")
+    return cells
 
 
 def mean_ci(values: list[float]) -> dict[str, float]:
@@ -133,17 +143,12 @@ def acceptance(agg: dict[str, dict[str, Any]]) -> dict[str, Any]:
 
 def markdown(agg: dict[str, dict[str, Any]], junction_numbers: list[int], full: dict[str, Any] | None) -> str:
     lines = ["# Flow experiment", ""]
-    fmt = {"total_flow": "{:.0f}", "trips": "{:.0f}", "mean_speed_mps": "{:.3f}"}
     for n, row in agg.items():
         lines += [f"## {n} vehicles", ""]
         lines.append("| policy | total flow | trips | travel time mean (s) | p95 (s) | mean speed (m/s) |")
         lines.append("|---|---|---|---|---|---|")
         for policy, r in row.items():
-            cells = []
-            for m in METRICS:
-                f = fmt.get(m, "{:.1f}")
-                cells.append(f"{f.format(r[m]['mean'])} ± {f.format(r[m]['ci95'])}")
-            lines.append(f"| {policy} | " + " | ".join(cells) + " |")
+            lines.append(f"| {policy} | " + " | ".join(_mean_ci_cells(r)) + " |")
         lines += ["", "Flow per junction (mean over seeds; the paper's Table II):", ""]
         lines.append("| policy | " + " | ".join(str(j) for j in junction_numbers) + " | total |")
         lines.append("|---|" + "---|" * (len(junction_numbers) + 1))
@@ -197,7 +202,6 @@ def readme_section(results: dict[str, Any], junction_numbers: list[int]) -> str:
     checks of `acceptance` and the full-perception run."""
     agg, checks = results["aggregate"], results["acceptance"]
     settings = results["settings"]
-    fmt = {"total_flow": "{:.0f}", "trips": "{:.0f}", "mean_speed_mps": "{:.3f}"}
     lines = [
         f"Seeds {settings['seeds']} × {settings['duration_s']:g} simulated s per run, "
         f"{results['wall_s']:g} s wall with {settings['workers']} workers; "
@@ -211,11 +215,7 @@ def readme_section(results: dict[str, Any], junction_numbers: list[int]) -> str:
     for n, row in agg.items():
         for policy, r in sorted(row.items(), key=lambda kv: order.get(kv[0], len(order))):
             name = f"**`{policy}`**" if policy == SCHEDULED else f"`{policy}`"
-            cells = [
-                f"{fmt.get(m, '{:.1f}').format(r[m]['mean'])} ± {fmt.get(m, '{:.1f}').format(r[m]['ci95'])}"
-                for m in METRICS
-            ]
-            lines.append(f"| {n} | {name} | " + " | ".join(cells) + " |")
+            lines.append(f"| {n} | {name} | " + " | ".join(_mean_ci_cells(r)) + " |")
     small = min(agg, key=int)
     lines += [
         "",
