@@ -29,10 +29,11 @@ Preprocess (`preprocess`), in order; each stage can be switched off in `LidarPre
 5. Viaduct deck removal: a RANSAC over the whole cloud for near-horizontal planes picks horizontal
    slices through walls and vehicle sides (every ring of a level lidar lies in one) and removed 71 %
    of vehicle points in a measurement. So, as in the clustering detector, only BEV clusters larger
-   than a vehicle are searched (`ground.fit_horizontal_plane`), the slab around the plane found is
-   removed within its inlier footprint (`ground.split_at_slab`; points standing on it are kept) and
-   the rest is re-clustered, up to ``deck_max_peels`` times. A plane whose inliers stay below
-   ``deck_min_top_m`` is not a deck (vehicle roofs and wall slices at table level) and is left alone.
+   than a vehicle are searched, the slab around the plane found is removed within its inlier
+   footprint (points standing on it are kept) and the rest is re-clustered, up to ``deck.max_peels``
+   times (`ground.peel_slabs`, the loop of the clustering detector too). A plane whose inliers stay
+   below ``deck.min_top_m`` is not a deck (vehicle roofs and wall slices at table level) and is left
+   alone.
 6. Voxel subsampling (off by default): one measured point per voxel, the one nearest the voxel's
    centroid (no synthetic points; intensity stays a measurement).
 
@@ -48,6 +49,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import open3d as o3d
@@ -56,7 +58,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from scipy import ndimage
 
 from shared.datasets.layout import MIN_LIDAR_POINTS, agent_origin_m
-from shared.detection.lidar.ground import above_table, fit_horizontal_plane, split_at_slab
+from shared.detection.lidar.ground import SEARCH, SlabSearch, Verdict, above_table, peel_slabs
 from shared.geometry._validate import rigid_transform
 from shared.scene.scene import Scene
 
@@ -72,6 +74,8 @@ _XYZ = 3
 STAGES = ("input", "after_crop", "after_outliers", "after_table", "after_deck", "after_voxel")
 # ... and the rows dropped for a NaN or infinite value (not a stage that can be switched off).
 NON_FINITE = "non_finite"
+# A plane is a deck only if some inlier is this high, m (see LidarPreprocessConfig.deck).
+_DECK_MIN_TOP_M = 0.3
 # BEV cells touching by an edge or a corner belong to one component.
 _EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)
 
@@ -125,22 +129,12 @@ class LidarPreprocessConfig(BaseModel):
         description="only clusters whose BEV bounding box is longer than this are searched, m "
         "(a 0.33 x 0.22 m vehicle spans at most 0.4 m)",
     )
-    deck_min_top_m: float = Field(
-        0.3,
-        description="a plane is a deck only if some inlier is at least this high, m (vehicle roofs: 0.21 m, "
-        "buildings: <= 0.25 m; deck: 0.4 m)",
+    deck: SlabSearch = Field(
+        default_factory=lambda: SlabSearch(min_top_m=_DECK_MIN_TOP_M),
+        description="the surface search (`shared.detection.lidar.ground.SlabSearch`); min_top_m: a plane is "
+        "a deck only if some inlier is at least this high, m (vehicle roofs: 0.21 m, buildings: <= 0.25 m; "
+        "deck: 0.4 m)",
     )
-    deck_tolerance_m: float = Field(0.015, gt=0.0, description="RANSAC inlier distance to a deck plane, m")
-    deck_max_tilt_rad: float = Field(
-        0.3, ge=0.0, lt=np.pi / 2, description="steepest deck plane, rad (ramps are ~0.2 rad)"
-    )
-    deck_thickness_m: float = Field(0.04, ge=0.0, description="deck slab thickness removed around a plane, m")
-    deck_min_points: int = Field(15, ge=3, description="fewest inliers of a deck plane")
-    deck_cell_m: float = Field(0.1, gt=0.0, description="BEV cell of a deck plane's inlier footprint, m")
-    deck_max_peels: int = Field(4, ge=0, description="planes removed from one cluster at most (ramps + deck)")
-    ransac_iterations: int = Field(200, ge=1, description="RANSAC hypotheses per plane search")
-    ransac_max_points: int = Field(3000, ge=3, description="points scoring each RANSAC hypothesis (subset)")
-    seed: int = Field(0, description="RANSAC seed: preprocessing is deterministic")
     # voxel subsampling
     voxel_size_m: float = Field(
         0.0, ge=0.0, description="voxel edge, m; keeps the point nearest each voxel's centroid (0: off)"
@@ -295,39 +289,18 @@ def _bev_components(xyz: FloatArray, idx: IntArray, cell_m: float) -> list[IntAr
 
 def _deck_mask(xyz: FloatArray, cfg: LidarPreprocessConfig) -> BoolArray:
     """Points that are not part of an elevated slab (viaduct deck, ramps), (N,); see the module docstring."""
-    keep = np.ones(xyz.shape[0], dtype=bool)
     if xyz.shape[0] == 0:
-        return keep
-    rng = np.random.default_rng(cfg.seed)
-    clusters = _bev_components(xyz, np.arange(xyz.shape[0]), cfg.deck_cluster_cell_m)
-    queue = [(c, cfg.deck_max_peels) for c in clusters]
-    while queue:
-        idx, peels = queue.pop()
-        if peels == 0 or idx.size < cfg.deck_min_points:
-            continue
-        if np.ptp(xyz[idx, :2], axis=0).max() < cfg.deck_min_extent_m:
-            continue  # vehicle-sized: never searched, so a lone vehicle cannot lose its roof
-        pts = xyz[idx]
-        found = fit_horizontal_plane(
-            pts,
-            rng,
-            tolerance_m=cfg.deck_tolerance_m,
-            max_tilt_rad=cfg.deck_max_tilt_rad,
-            min_inliers=cfg.deck_min_points,
-            iterations=cfg.ransac_iterations,
-            max_points=cfg.ransac_max_points,
-        )
-        if found is None:
-            continue
-        plane, inliers = found
-        if pts[inliers, 2].max() < cfg.deck_min_top_m:
-            continue
-        half_thickness = cfg.deck_thickness_m + cfg.deck_tolerance_m
-        split = split_at_slab(pts, plane, inliers, half_thickness, cfg.deck_cell_m)
-        keep[idx[split.slab]] = False
-        rest = idx[~split.slab]
-        queue += [(c, peels - 1) for c in _bev_components(xyz, rest, cfg.deck_cluster_cell_m)]
-    return keep
+        return np.ones(0, dtype=bool)
+
+    def leaf(idx: IntArray, _support_m: FloatArray) -> Literal[Verdict.SEARCH] | None:
+        # Vehicle-sized: never searched, so a lone vehicle cannot lose its roof.
+        return None if np.ptp(xyz[idx, :2], axis=0).max() < cfg.deck_min_extent_m else SEARCH
+
+    def components(idx: IntArray) -> list[IntArray]:
+        return _bev_components(xyz, idx, cfg.deck_cluster_cell_m)
+
+    peeled = peel_slabs(xyz, components(np.arange(xyz.shape[0])), cfg.deck, leaf=leaf, recluster=components)
+    return np.asarray(~peeled.slab)
 
 
 def _voxel_mask(xyz: FloatArray, voxel_m: float) -> BoolArray:

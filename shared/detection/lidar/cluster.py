@@ -12,11 +12,12 @@ Input: one agent's merged cloud in the agent frame (world axes, z = 0 on the tab
    ``clip(radial_eps_per_m2 * range^2, across, radial_eps_max)`` (a lidar above the vehicles sees its
    roof as rings whose BEV spacing grows with range squared). Clustering in BEV joins the rings of one
    vehicle's side faces, which are up to ~15 cm apart vertically at 2 m.
-4. Elevated surfaces: a cluster larger than a vehicle in BEV is searched for a near-horizontal plane
-   (RANSAC, `ground.fit_horizontal_plane`); the slab around it (viaduct deck: top, sides, underside)
-   is removed, points standing on it get the plane as their support height, and the rest is
-   re-clustered. This repeats up to ``max_surface_peels`` times per cluster (ramps are several planes).
-   Clusters that stay too large (buildings, a deck with nothing left to peel) are dropped.
+4. Elevated surfaces (`ground.peel_slabs`, shared with the MEC's lidar preprocessing): a cluster larger
+   than a vehicle in BEV is searched for a near-horizontal plane (RANSAC); the slab around it (viaduct
+   deck: top, sides, underside) is removed, points standing on it get the plane as their support
+   height, and the rest is re-clustered. This repeats up to ``surfaces.max_peels`` times per cluster
+   (ramps are several planes). Clusters that stay too large (buildings, a deck with nothing left to
+   peel) are dropped.
 5. Filters: point count, BEV extent (vehicle-sized, not a pole), height above the support surface.
 6. Box: L-shape fit with the vehicle size as a prior (`box_fit`): the visible face(s) are extended to the
    prior size away from the sensor. z = support + height / 2. Score = ``n / (n + score_half_points)``
@@ -31,6 +32,7 @@ Yaw is in [-pi/2, pi/2) (front and back are indistinguishable).
 from __future__ import annotations
 
 import math
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -41,7 +43,7 @@ from scipy.spatial import cKDTree
 
 from shared.detection.interface import check_points, empty_lidar_detections
 from shared.detection.lidar.box_fit import BoxFitParams, FittedBox, fit_vehicle_box
-from shared.detection.lidar.ground import above_table, fit_horizontal_plane, split_at_slab
+from shared.detection.lidar.ground import SEARCH, SlabSearch, Verdict, above_table, peel_slabs
 from shared.scene.scene import vehicle_size_m as scene_vehicle_size_m
 
 FloatArray = NDArray[np.float64]
@@ -73,15 +75,9 @@ class ClusterLidarConfig(BaseModel):
     table_z_m: float = Field(0.0, description="table surface height in the agent frame")
     ground_tolerance_m: float = Field(0.02, ge=0.0, description="points up to this above the table are table")
     # elevated surfaces (viaduct deck)
-    surface_tolerance_m: float = Field(0.015, gt=0.0, description="RANSAC inlier distance to a surface")
-    surface_max_tilt_rad: float = Field(0.3, ge=0.0, lt=math.pi / 2, description="steepest surface (ramps)")
-    slab_thickness_m: float = Field(0.04, ge=0.0, description="deck thickness removed around a surface")
-    surface_min_points: int = Field(15, ge=3, description="fewest inliers of a surface")
-    surface_cell_m: float = Field(0.1, gt=0.0, description="BEV cell of a surface's footprint")
-    ransac_iterations: int = Field(200, ge=1, description="RANSAC hypotheses per surface search")
-    ransac_max_points: int = Field(3000, ge=3, description="points scoring each RANSAC hypothesis (subset)")
-    max_surface_peels: int = Field(4, ge=0, description="surfaces removed from one oversized cluster at most")
-    seed: int = Field(0, description="RANSAC seed: the detector is deterministic")
+    surfaces: SlabSearch = Field(
+        default_factory=SlabSearch, description="search for surfaces in clusters larger than a vehicle"
+    )
     # clustering
     cluster_eps_min_m: float = Field(0.05, gt=0.0, description="clustering radius near the lidar")
     cluster_eps_per_m: float = Field(
@@ -231,23 +227,25 @@ class ClusterLidarDetector:
         xyz = xyz[self._in_range(xyz) & above_table(xyz, cfg.table_z_m, cfg.ground_tolerance_m)]
         if xyz.shape[0] == 0:
             return empty_lidar_detections()
-        support = np.full(xyz.shape[0], cfg.table_z_m)
-        rng = np.random.default_rng(cfg.seed)
-        queue = [(c, cfg.max_surface_peels) for c in self._cluster(xyz, np.arange(xyz.shape[0]))]
-        rows: list[list[float]] = []
-        while queue:
-            idx, peels = queue.pop()
+
+        def leaf(idx: IntArray, support_m: FloatArray) -> list[float] | Literal[Verdict.SEARCH] | None:
             if idx.size < cfg.min_points:
-                continue
+                return None
             sensor, _ = nearest_sensor(xyz[idx, :2].mean(axis=0, keepdims=True), self._sensors)
             fit = fit_vehicle_box(xyz[idx, :2], sensor[0], self._fit)
             if fit.extent_length > cfg.max_length_m or fit.extent_width > cfg.max_width_m:
-                if peels > 0:
-                    queue += [(c, peels - 1) for c in self._peel(xyz, idx, support, rng)]
-                continue
-            row = self._box_row(xyz[idx], support[idx], fit)
-            if row is not None:
-                rows.append(row)
+                return SEARCH
+            return self._box_row(xyz[idx], support_m[idx], fit)
+
+        peeled = peel_slabs(
+            xyz,
+            self._cluster(xyz, np.arange(xyz.shape[0])),
+            cfg.surfaces,
+            leaf=leaf,
+            recluster=lambda idx: self._cluster(xyz, idx),
+            base_z_m=cfg.table_z_m,
+        )
+        rows = [row for row in peeled.leaves if row is not None]
         if not rows:
             return empty_lidar_detections()
         out = np.asarray(rows, dtype=np.float32)
@@ -271,31 +269,6 @@ class ClusterLidarDetector:
         tangential = np.clip(cfg.cluster_eps_per_m * r, cfg.cluster_eps_min_m, cfg.cluster_eps_max_m)
         radial = np.clip(cfg.cluster_radial_eps_per_m2 * r**2, tangential, cfg.cluster_radial_eps_max_m)
         return [idx[c] for c in bev_clusters(xy, origin, tangential, radial)]
-
-    def _peel(
-        self, xyz: FloatArray, idx: IntArray, support: FloatArray, rng: np.random.Generator
-    ) -> list[IntArray]:
-        """Remove the best near-horizontal slab from cluster ``idx``, update ``support``, re-cluster."""
-        cfg = self.config
-        pts = xyz[idx]
-        found = fit_horizontal_plane(
-            pts,
-            rng,
-            tolerance_m=cfg.surface_tolerance_m,
-            max_tilt_rad=cfg.surface_max_tilt_rad,
-            min_inliers=cfg.surface_min_points,
-            iterations=cfg.ransac_iterations,
-            max_points=cfg.ransac_max_points,
-        )
-        if found is None:
-            return []
-        plane, inliers = found
-        split = split_at_slab(
-            pts, plane, inliers, cfg.slab_thickness_m + cfg.surface_tolerance_m, cfg.surface_cell_m
-        )
-        on_top = idx[split.above]
-        support[on_top] = np.maximum(support[on_top], plane.height_at(xyz[on_top, :2]))
-        return self._cluster(xyz, idx[~split.slab])
 
     def _box_row(self, pts: FloatArray, support: FloatArray, fit: FittedBox) -> list[float] | None:
         """Detection row of a vehicle-sized cluster, or None if it fails the extent / height filters."""

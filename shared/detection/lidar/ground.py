@@ -11,17 +11,29 @@ tilted at most ``max_tilt_rad`` from horizontal (walls can never win), refined b
 `split_at_slab` then selects the slab around that plane: points within ``half_thickness_m`` of it (top
 surface, side faces and underside, whichever side the lidar saw) and inside the plane's inlier
 footprint on a BEV grid, so an extrapolated plane cannot cut objects elsewhere.
+
+`peel_slabs` is the loop both users run (the clustering detector and the MEC's lidar preprocessing):
+a cluster its caller finds too large for a vehicle is searched for a surface, the slab is removed,
+points standing on it get the surface as their support height, and the rest is re-clustered by the
+caller's rule, up to ``SlabSearch.max_peels`` times (ramps and deck are several planes).
 """
 
 from __future__ import annotations
 
+import enum
+import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Generic, Literal, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
+IntArray = NDArray[np.int64]
+T = TypeVar("T")
 
 # Points per RANSAC hypothesis (a plane through 3 points).
 _SAMPLE_SIZE = 3
@@ -202,3 +214,111 @@ def split_at_slab(
     return SlabSplit(
         slab=inside & (np.abs(distance) <= half_thickness_m), above=inside & (distance > half_thickness_m)
     )
+
+
+class SlabSearch(BaseModel):
+    """Settings of the elevated-surface search of `peel_slabs`: metres, radians."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    tolerance_m: float = Field(0.015, gt=0.0, description="RANSAC inlier distance to a surface, m")
+    max_tilt_rad: float = Field(
+        0.3, ge=0.0, lt=math.pi / 2, description="steepest surface, rad (ramps are ~0.2 rad)"
+    )
+    thickness_m: float = Field(0.04, ge=0.0, description="slab thickness removed around a surface, m")
+    min_points: int = Field(15, ge=3, description="fewest inliers of a surface")
+    cell_m: float = Field(0.1, gt=0.0, description="BEV cell of a surface's inlier footprint, m")
+    min_top_m: float | None = Field(
+        None, description="a surface counts only if some inlier is at least this high, m (None: any height)"
+    )
+    max_peels: int = Field(4, ge=0, description="surfaces removed from one cluster at most (ramps + deck)")
+    iterations: int = Field(200, ge=1, description="RANSAC hypotheses per surface search")
+    max_points: int = Field(3000, ge=3, description="points scoring each RANSAC hypothesis (subset)")
+    seed: int = Field(0, description="RANSAC seed: the search is deterministic")
+
+
+class Verdict(enum.Enum):
+    """What a `peel_slabs` caller's ``leaf`` rule says of a cluster that is not a leaf."""
+
+    SEARCH = "search"  # larger than a vehicle: look for a surface in it
+
+
+SEARCH = Verdict.SEARCH
+
+
+@dataclass(frozen=True)
+class Peeled(Generic[T]):
+    """Result of `peel_slabs`."""
+
+    leaves: list[T]  # the ``leaf`` rule's results, in the order the clusters were taken
+    slab: BoolArray  # (N,) points removed as part of a surface's slab
+    support_m: FloatArray  # (N,) height of the surface each point stands on (``base_z_m`` if none)
+
+
+def peel_slabs(
+    xyz: FloatArray,
+    clusters: Sequence[IntArray],
+    search: SlabSearch,
+    *,
+    leaf: Callable[[IntArray, FloatArray], T | Literal[Verdict.SEARCH]],
+    recluster: Callable[[IntArray], list[IntArray]],
+    base_z_m: float = 0.0,
+) -> Peeled[T]:
+    """Peel elevated slabs off the clusters that are too large to be objects.
+
+    Parameters
+    ----------
+    xyz : numpy.ndarray, shape (N, 3)
+        Points, metres.
+    clusters : sequence of numpy.ndarray of int
+        Initial clusters, indices into ``xyz`` (disjoint).
+    search : SlabSearch
+    leaf : callable
+        ``leaf(idx, support_m)``: the caller's result for cluster ``idx`` (kept in ``leaves``), or
+        `SEARCH` when the cluster is too large and is to be searched for a surface. ``support_m`` is
+        final for ``idx`` when it is called (only an ancestor's surface can support its points).
+    recluster : callable
+        ``recluster(idx)``: clusters of the points ``idx`` left when a slab is removed.
+    base_z_m : float
+        Support height of points on no surface (the table), metres.
+
+    Returns
+    -------
+    Peeled
+        A cluster without a surface, or still too large after ``max_peels`` surfaces, yields no leaf
+        and keeps its points (``slab`` False).
+    """
+    rng = np.random.default_rng(search.seed)
+    slab = np.zeros(xyz.shape[0], dtype=bool)
+    support = np.full(xyz.shape[0], base_z_m)
+    leaves: list[T] = []
+    queue = [(np.asarray(c, dtype=np.int64), search.max_peels) for c in clusters]
+    while queue:
+        idx, peels = queue.pop()
+        verdict = leaf(idx, support)
+        if verdict is not SEARCH:
+            leaves.append(verdict)
+            continue
+        if peels == 0:
+            continue
+        pts = xyz[idx]
+        found = fit_horizontal_plane(
+            pts,
+            rng,
+            tolerance_m=search.tolerance_m,
+            max_tilt_rad=search.max_tilt_rad,
+            min_inliers=search.min_points,
+            iterations=search.iterations,
+            max_points=search.max_points,
+        )
+        if found is None:
+            continue
+        plane, inliers = found
+        if search.min_top_m is not None and pts[inliers, 2].max() < search.min_top_m:
+            continue
+        split = split_at_slab(pts, plane, inliers, search.thickness_m + search.tolerance_m, search.cell_m)
+        slab[idx[split.slab]] = True
+        on_top = idx[split.above]
+        support[on_top] = np.maximum(support[on_top], plane.height_at(xyz[on_top, :2]))
+        queue += [(c, peels - 1) for c in recluster(idx[~split.slab])]
+    return Peeled(leaves=leaves, slab=slab, support_m=support)

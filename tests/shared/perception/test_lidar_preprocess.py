@@ -173,7 +173,8 @@ def test_a_queue_of_vehicles_is_not_taken_for_a_deck(synthetic: dict[str, np.nda
 
 
 def test_a_vehicle_on_the_deck_keeps_what_stands_above_the_slab(synthetic: dict[str, np.ndarray]) -> None:
-    slab_top = DECK_TOP + LidarPreprocessConfig().deck_thickness_m + LidarPreprocessConfig().deck_tolerance_m
+    deck = LidarPreprocessConfig().deck
+    slab_top = DECK_TOP + deck.thickness_m + deck.tolerance_m
     car = box_surface((0.0, 1.38), CAR_SIZE, (DECK_TOP + CAR_BOTTOM, DECK_TOP + CAR_TOP))
     cloud, labels = stack({"deck": synthetic["deck"], "car": with_intensity(car)})
     result = preprocess(cloud)

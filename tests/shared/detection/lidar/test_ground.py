@@ -8,10 +8,13 @@ import numpy as np
 import pytest
 
 from shared.detection.lidar.ground import (
+    SEARCH,
     Plane,
+    SlabSearch,
     above_table,
     fit_horizontal_plane,
     footprint_mask,
+    peel_slabs,
     split_at_slab,
 )
 
@@ -90,3 +93,58 @@ def test_split_at_slab() -> None:
     assert split.slab[:450].all()  # top and side face
     assert not split.slab[450:].any()  # car and the point outside the footprint
     assert split.above[450:490].all() and not split.above[490]
+
+
+def deck_with_car(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A flat deck (top at 0.4 m, 2 m long) with a car standing on it; the car's indices."""
+    deck = ramp(rng, 400, 0.0, 0.4)
+    car = np.column_stack([rng.uniform(0.5, 0.8, 40), np.full(40, 0.1), rng.uniform(0.46, 0.61, 40)])
+    xyz = np.vstack([deck, car])
+    return xyz, np.arange(400, 440)
+
+
+def vehicle_sized(xyz: np.ndarray):  # the leaf rule of the tests: a vehicle is shorter than 0.6 m
+    def leaf(idx: np.ndarray, support_m: np.ndarray):
+        if np.ptp(xyz[idx, :2], axis=0).max() < 0.6:
+            return idx, float(np.median(support_m[idx]))
+        return SEARCH
+
+    return leaf
+
+
+def test_peel_slabs_removes_the_deck_and_supports_what_stands_on_it() -> None:
+    xyz, car = deck_with_car(np.random.default_rng(5))
+    peeled = peel_slabs(
+        xyz, [np.arange(len(xyz))], SlabSearch(), leaf=vehicle_sized(xyz), recluster=lambda idx: [idx]
+    )
+    assert len(peeled.leaves) == 1
+    leaf_idx, support = peeled.leaves[0]
+    assert leaf_idx.tolist() == car.tolist()
+    assert support == pytest.approx(0.4, abs=0.01)
+    assert peeled.slab[:400].all() and not peeled.slab[car].any()
+
+
+def test_peel_slabs_stops_at_max_peels_min_top_and_planeless_clusters() -> None:
+    xyz, _ = deck_with_car(np.random.default_rng(5))
+    everything = [np.arange(len(xyz))]
+    for search in (SlabSearch(max_peels=0), SlabSearch(min_top_m=0.5)):
+        peeled = peel_slabs(xyz, everything, search, leaf=vehicle_sized(xyz), recluster=lambda idx: [idx])
+        assert peeled.leaves == [] and not peeled.slab.any()
+        np.testing.assert_array_equal(peeled.support_m, 0.0)
+    facade = wall(np.random.default_rng(6), 300)
+    peeled = peel_slabs(
+        facade, [np.arange(300)], SlabSearch(), leaf=vehicle_sized(facade), recluster=lambda i: [i]
+    )
+    assert peeled.leaves == [] and not peeled.slab.any()
+
+
+def test_peel_slabs_is_reproducible() -> None:
+    xyz, _ = deck_with_car(np.random.default_rng(7))
+    runs = [
+        peel_slabs(
+            xyz, [np.arange(len(xyz))], SlabSearch(seed=3), leaf=vehicle_sized(xyz), recluster=lambda i: [i]
+        )
+        for _ in range(2)
+    ]
+    np.testing.assert_array_equal(runs[0].slab, runs[1].slab)
+    np.testing.assert_array_equal(runs[0].support_m, runs[1].support_m)
