@@ -1,53 +1,7 @@
-"""Evaluation metrics: COCO-style 2D and KITTI-style R40 BEV / 3D detection AP (see `.detection`)."""
+"""Evaluation metrics (import the modules directly; this package re-exports nothing).
 
-from shared.metrics.detection import (
-    COCO_IOU_THRESHOLDS,
-    COCO_RECALL_POINTS,
-    DEFAULT_DISTANCE_BANDS_M,
-    KITTI_IOU_THRESHOLDS,
-    R40_RECALL_POINTS,
-    APResult,
-    CocoSummary,
-    FrameMatch,
-    KittiSummary,
-    MatchLabel,
-    PRCurve,
-    band_label,
-    evaluate_coco,
-    evaluate_kitti,
-    fraction_inside_2d,
-    fraction_inside_3d,
-    in_band,
-    interpolated_ap,
-    label_detections,
-    match_frame_2d,
-    match_frame_3d,
-    precision_recall_curve,
-    score_order,
-)
-
-__all__ = [
-    "COCO_IOU_THRESHOLDS",
-    "COCO_RECALL_POINTS",
-    "DEFAULT_DISTANCE_BANDS_M",
-    "KITTI_IOU_THRESHOLDS",
-    "R40_RECALL_POINTS",
-    "APResult",
-    "CocoSummary",
-    "FrameMatch",
-    "KittiSummary",
-    "MatchLabel",
-    "PRCurve",
-    "band_label",
-    "evaluate_coco",
-    "evaluate_kitti",
-    "fraction_inside_2d",
-    "fraction_inside_3d",
-    "in_band",
-    "interpolated_ap",
-    "label_detections",
-    "match_frame_2d",
-    "match_frame_3d",
-    "precision_recall_curve",
-    "score_order",
-]
+- :mod:`shared.metrics.detection`: COCO-style 2D and KITTI-style R40 BEV / 3D detection AP.
+- :mod:`shared.metrics.fusion`: fused / tracked boxes against ground truth (pose error, AOS,
+  precision / recall, heat maps, AP-BEV).
+- :mod:`shared.metrics.tracking`: CLEAR-MOT and identity metrics (MOTA, MOTP, IDF1) via motmetrics.
+"""

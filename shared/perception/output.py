@@ -9,7 +9,7 @@ from rmmdet.v1 import perception_pb2 as pb
 
 from shared.perception.inputs import InputReport, InputState, Status
 from shared.perception.pipeline import AgentResult
-from shared.tracking.tracker import Track, TrackState
+from shared.tracking.track_table import Track, TrackState
 
 MODALITY = {"camera": pb.MODALITY_CAMERA, "lidar": pb.MODALITY_LIDAR, "radar": pb.MODALITY_RADAR}
 STATUS = {

@@ -38,7 +38,9 @@ from shared.perception.radar_camera import RadarTargets
 from shared.perception.views import CameraView, RoadSurface
 from shared.scene.scene import Scene
 from shared.timebase import NS_PER_S
-from shared.tracking.tracker import CAMERA, LIDAR, RADAR, Measurement, MultiObjectTracker, Track
+from shared.tracking.measurement import CAMERA, LIDAR, RADAR, Measurement
+from shared.tracking.track_table import Track
+from shared.tracking.tracker import MultiObjectTracker
 
 FloatArray = NDArray[np.float64]
 # Per-axis position noise of a lidar box centre (PointPillars on the table), m.

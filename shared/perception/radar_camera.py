@@ -34,7 +34,7 @@ from scipy.optimize import linear_sum_assignment
 
 from shared.geometry.boxes import iou2d_matrix
 from shared.geometry.transforms import polar_to_cartesian, transform_points
-from shared.tracking.tracker import CAMERA, RADAR, Measurement
+from shared.tracking.measurement import CAMERA, RADAR, Measurement
 
 if TYPE_CHECKING:
     from shared.perception.views import CameraView, RoadSurface

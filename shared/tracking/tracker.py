@@ -18,44 +18,28 @@ Lifecycle (paper: new objects are hidden for stability, lost objects dropped aft
 - Published tracks (:meth:`MultiObjectTracker.confirmed`, the return value of ``step``) are CONFIRMED and
   COASTING ones. Ids count up from 1 and are never reused.
 
-Heading
+Modules
 -------
-Yaw measurements known only modulo pi (our lidar boxes) are averaged as unit vectors of the doubled
-angle, so 0.1 and 0.1 + pi reinforce instead of cancelling. The sign is taken, in this order, from
-measured full headings (``yaw_mod_pi=False``), from the velocity when the track moves clearly (speed
-above ``heading_from_velocity_min_mps`` and ``heading_min_speed_sigmas`` standard deviations of its
-estimate), else from the previous frame's resolved heading (a stopped car keeps its heading). A track
-never measured a yaw (radar or camera only) takes the velocity heading, or the previous one.
+What one step does lives beside this file: `measurement` (the input and its validation), `association`
+(gated Hungarian), `kalman` (motion model, updates), `track_table` (per-track columns, lifecycle
+states, snapshots) and `heading` (yaw sign from heading, motion or the previous frame).
 """
 
 from __future__ import annotations
 
 import collections
-import enum
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass
-from typing import Any, NamedTuple
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
-from scipy.optimize import linear_sum_assignment
 
 from shared.tracking import kalman
+from shared.tracking.association import associate
+from shared.tracking.heading import resolve_yaw
 from shared.tracking.kalman import POS, VX, VY, FloatArray, MotionKind, MotionModel
-
-__all__ = [
-    "MODALITIES",
-    "Measurement",
-    "MultiObjectTracker",
-    "RangeRate",
-    "Track",
-    "TrackState",
-    "TrackerConfig",
-]
-
-CAMERA, LIDAR, RADAR = "camera", "lidar", "radar"  # sensor kinds, as the scene names them
-MODALITIES: frozenset[str] = frozenset({CAMERA, LIDAR, RADAR})
+from shared.tracking.measurement import Measurement, MeasurementFrame, NDInt, stack_measurements
+from shared.tracking.track_table import Track, TrackState, TrackTable, ema
 
 
 class TrackerConfig(BaseModel):
@@ -149,268 +133,6 @@ class TrackerConfig(BaseModel):
         return MotionModel(self.motion_model, self.accel_std_mps2, self.identity_process_std_m)
 
 
-class RangeRate(NamedTuple):
-    """A radar radial velocity attached to a measurement."""
-
-    sensor_xy_m: Any
-    """(2,) radar position in the world plane, m."""
-    range_rate_mps: float
-    """Radial velocity, m/s, positive away from the radar."""
-    variance_m2ps2: float
-    """Noise variance, m²/s² (> 0)."""
-
-
-@dataclass(frozen=True, slots=True)
-class Measurement:
-    """One object seen in one fused frame. Not validated here: the tracker rejects malformed ones.
-
-    Attributes
-    ----------
-    position_m : array_like, shape (2,)
-        World x, y, m.
-    position_cov_m2 : array_like, shape (2, 2)
-        Position covariance, m² (symmetric positive definite).
-    z_m : float
-        World height of the object centre, m.
-    size_m : array_like, shape (3,), optional
-        Box length, width, height, m (> 0); None when the sensor gives no box (radar, camera).
-    yaw_rad : float, optional
-        Heading, rad, counter-clockwise from +x; None when unmeasured.
-    yaw_mod_pi : bool
-        True when the yaw is only known modulo pi (lidar boxes), False for a full heading.
-    range_rate : RangeRate or tuple, optional
-        ``(sensor_xy_m, range_rate_mps, variance_m2ps2)`` from a radar.
-    modalities : frozenset of str
-        Sensor kinds that saw the object, a subset of {"camera", "lidar", "radar"}.
-    score : float
-        Detection confidence in [0, 1].
-    sensor_ids : tuple of str
-        Sensors that saw the object (carried to the track for diagnostics).
-    """
-
-    position_m: Any
-    position_cov_m2: Any
-    z_m: float
-    size_m: Any = None
-    yaw_rad: float | None = None
-    yaw_mod_pi: bool = True
-    range_rate: RangeRate | tuple[Any, float, float] | None = None
-    modalities: frozenset[str] = frozenset()
-    score: float = 1.0
-    sensor_ids: tuple[str, ...] = ()
-
-
-class TrackState(enum.IntEnum):
-    """Lifecycle state of a track."""
-
-    TENTATIVE = 0
-    CONFIRMED = 1
-    COASTING = 2
-
-
-_STATES = tuple(TrackState)
-
-
-@dataclass(slots=True, eq=False)
-class Track:
-    """Snapshot of one track after a step: a new object each step that the tracker never touches again
-    (not frozen only because a frozen dataclass costs ~1 µs more per track to build); arrays are
-    read-only copies.
-
-    Attributes
-    ----------
-    track_id : int
-        Unique id, counting from 1, never reused.
-    state : TrackState
-    x : numpy.ndarray, shape (4,)
-        [x, y, vx, vy], world m and m/s.
-    P : numpy.ndarray, shape (4, 4)
-        Covariance of ``x``.
-    z_m : float
-        Smoothed centre height, m.
-    size_m : numpy.ndarray, shape (3,), or None
-        Smoothed length, width, height, m; None until a box was measured.
-    yaw_rad : float or None
-        Heading in (-pi, pi], rad; None when neither a yaw nor a clear motion was ever seen.
-    heading_sign_known : bool
-        False when ``yaw_rad`` is only known modulo pi (then it lies in (-pi/2, pi/2]).
-    hits, age_frames, consecutive_misses : int
-        Frames with an update, frames since birth (birth = 1), missed frames in a row.
-    modalities : frozenset of str
-        Sensor kinds of the latest update; empty when the track was missed this frame.
-    sensor_ids : tuple of str
-        Sensors of the latest update; empty when missed.
-    score : float
-        Smoothed detection score in [0, 1].
-    existence_probability : float
-        Heuristic in [0, 1]: ``score · min(1, hits / confirm_hits) · (1 - misses / (max_misses + 1))``.
-        Not calibrated; it falls to 0 as the track reaches deletion.
-    last_update_stamp_s : float
-        Stamp of the latest update, s.
-    """
-
-    track_id: int
-    state: TrackState
-    x: FloatArray
-    P: FloatArray
-    z_m: float
-    size_m: FloatArray | None
-    yaw_rad: float | None
-    heading_sign_known: bool
-    hits: int
-    age_frames: int
-    consecutive_misses: int
-    modalities: frozenset[str]
-    sensor_ids: tuple[str, ...]
-    score: float
-    existence_probability: float
-    last_update_stamp_s: float
-
-    @property
-    def position_m(self) -> FloatArray:
-        """(2,) world x, y, m."""
-        return self.x[POS]
-
-    @property
-    def velocity_mps(self) -> FloatArray:
-        """(2,) world vx, vy, m/s."""
-        return self.x[2:]
-
-    @property
-    def speed_mps(self) -> float:
-        return math.hypot(float(self.x[VX]), float(self.x[VY]))
-
-    @property
-    def position_cov_m2(self) -> FloatArray:
-        """(2, 2) position covariance, m²."""
-        return self.P[:2, :2]
-
-    @property
-    def velocity_cov_m2ps2(self) -> FloatArray:
-        """(2, 2) velocity covariance, m²/s²."""
-        return self.P[2:, 2:]
-
-
-NDBool = np.ndarray[Any, np.dtype[np.bool_]]
-NDInt = np.ndarray[Any, np.dtype[np.int64]]
-
-
-class _Frame(NamedTuple):
-    """The valid measurements of one step, stacked (M rows)."""
-
-    pos: FloatArray  # (M, 2)
-    cov: FloatArray  # (M, 2, 2)
-    attrs: FloatArray  # (M, _N_ATTRS): columns _Z, _SCORE, _SIZE, _AXIS2, _HEAD; NaN where unmeasured
-    rr_xy: FloatArray  # (M, 2), NaN without a range rate
-    rr: FloatArray  # (M,), NaN without a range rate
-    rr_var: FloatArray  # (M,)
-    modalities: list[frozenset[str]]
-    sensor_ids: list[tuple[str, ...]]
-
-
-# Smoothed per-track attributes share one array so a single exponential average updates them all:
-# height, score, box size (3), mean of (cos 2yaw, sin 2yaw) over every yaw, mean of (cos yaw, sin yaw)
-# over full headings. NaN: never measured.
-_Z, _SCORE = 0, 1
-_SIZE = slice(2, 5)
-_AXIS2 = slice(5, 7)
-_HEAD = slice(7, 9)
-_N_ATTRS = 9
-_COS, _SIN = 0, 1  # within _AXIS2 and _HEAD
-# A measured range rate: the radar's x, y (m), the rate (m/s) and its variance (m²/s²).
-_RR_SENSOR, _RR_RATE, _RR_VAR = slice(0, 2), 2, 3
-
-_EMPTY_FRAME = _Frame(
-    np.zeros((0, 2)),
-    np.zeros((0, 2, 2)),
-    np.zeros((0, _N_ATTRS)),
-    np.zeros((0, 2)),
-    np.zeros(0),
-    np.zeros(0),
-    [],
-    [],
-)
-
-# Per-track columns, all with the track index as the first axis (compacted together on deletion).
-_COLUMNS = ("ids", "state", "x", "P", "hits", "age", "misses", "attrs", "yaw", "sign_known", "last_update")
-
-
-class _Table:
-    """Struct-of-arrays storage of the tracks, so predict/update/lifecycle run vectorised."""
-
-    def __init__(self) -> None:
-        self.ids: NDInt = np.zeros(0, np.int64)
-        self.state: NDInt = np.zeros(0, np.int64)
-        self.x: FloatArray = np.zeros((0, 4))
-        self.P: FloatArray = np.zeros((0, 4, 4))
-        self.hits: NDInt = np.zeros(0, np.int64)
-        self.age: NDInt = np.zeros(0, np.int64)
-        self.misses: NDInt = np.zeros(0, np.int64)
-        self.attrs: FloatArray = np.zeros((0, _N_ATTRS))
-        self.yaw: FloatArray = np.zeros(0)  # resolved output yaw; NaN: unknown
-        self.sign_known: NDBool = np.zeros(0, bool)
-        self.last_update: FloatArray = np.zeros(0)
-        self.modalities: list[frozenset[str]] = []
-        self.sensor_ids: list[tuple[str, ...]] = []
-
-    def __len__(self) -> int:
-        return int(self.ids.shape[0])
-
-    def keep(self, mask: NDBool) -> None:
-        for name in _COLUMNS:
-            setattr(self, name, getattr(self, name)[mask])
-        idx = np.flatnonzero(mask).tolist()
-        self.modalities = [self.modalities[i] for i in idx]
-        self.sensor_ids = [self.sensor_ids[i] for i in idx]
-
-    def append(self, other: _Table) -> None:
-        for name in _COLUMNS:
-            setattr(self, name, np.concatenate([getattr(self, name), getattr(other, name)]))
-        self.modalities += other.modalities
-        self.sensor_ids += other.sensor_ids
-
-
-_ONES3 = np.ones(3)
-_ONES3.setflags(write=False)
-
-
-def _stack(values: list[Any], shape: tuple[int, ...], ok: NDBool) -> FloatArray:
-    """Stack values into a float64 (M, *shape) array; rows that do not fit become NaN, ``ok[row] = False``.
-
-    One ``np.array`` call when every value fits (the normal case), a per-value fallback otherwise.
-    """
-    n = len(values)
-    try:
-        stacked = np.array(values, dtype=np.float64)
-        if stacked.shape == (n, *shape):
-            return stacked
-    except (TypeError, ValueError):
-        pass
-    out = np.full((n, *shape), np.nan)
-    for i, value in enumerate(values):
-        try:
-            arr = np.asarray(value, dtype=np.float64)
-        except (TypeError, ValueError):
-            ok[i] = False
-            continue
-        if arr.shape == shape:
-            out[i] = arr
-        else:
-            ok[i] = False
-    return out
-
-
-def _ema(old: FloatArray, new: FloatArray, alpha: FloatArray) -> FloatArray:
-    """Exponential average where both are known, the known one otherwise (NaN marks unknown)."""
-    mixed = (1.0 - alpha) * old + alpha * new
-    return np.where(np.isnan(old), new, np.where(np.isnan(new), old, mixed))
-
-
-def _wrap(a: FloatArray) -> FloatArray:
-    # Same convention as shared.geometry.transforms.wrap_angle, (-pi, pi], but NaN-tolerant.
-    return np.pi - np.mod(np.pi - a, 2.0 * np.pi)
-
-
 class MultiObjectTracker:
     """GNN multi-object tracker on a batched Kalman filter (see the module docstring).
 
@@ -438,12 +160,12 @@ class MultiObjectTracker:
         )
         self.rejected: collections.Counter[str] = collections.Counter()
         self._next_id = 1
-        self._tracks = _Table()
+        self._tracks = TrackTable()
         self._last_stamp_s: float | None = None
 
     def reset(self) -> None:
         """Drop every track and the last stamp; ids keep counting (never reused) and ``rejected`` stays."""
-        self._tracks = _Table()
+        self._tracks = TrackTable()
         self._last_stamp_s = None
 
     @property
@@ -484,13 +206,20 @@ class MultiObjectTracker:
             self.rejected["out_of_order_stamp"] += 1
             return self.confirmed()
 
-        frame = self._validate(measurements)
+        frame = stack_measurements(measurements, self.rejected)
         t = self._tracks
         if self._last_stamp_s is not None and stamp > self._last_stamp_s and len(t):
             t.x, t.P = kalman.predict(t.x, t.P, stamp - self._last_stamp_s, self._model)
         self._last_stamp_s = stamp
 
-        rows, cols = self._associate(frame)
+        rows, cols = associate(
+            t.x[:, POS],
+            t.P[:, POS, POS],
+            frame.pos,
+            frame.cov,
+            gate_m=self.config.gate_m,
+            gate_mahalanobis=self.config.gate_mahalanobis,
+        )
         self._update_matched(rows, cols, frame, stamp)
         self._age(rows)
         births = np.ones(frame.pos.shape[0], bool)
@@ -509,151 +238,21 @@ class MultiObjectTracker:
 
     # --- steps -----------------------------------------------------------------------------------------
 
-    def _validate(self, measurements: Iterable[Measurement]) -> _Frame:
-        """Stack the well-formed measurements; count the others in ``rejected`` (first failed check)."""
-        items = list(measurements)
-        ms = [m for m in items if isinstance(m, Measurement)]
-        if len(ms) < len(items):
-            self.rejected["not_a_measurement"] += len(items) - len(ms)
-        n = len(ms)
-        if n == 0:
-            return _EMPTY_FRAME
-        # Absent optional fields get finite placeholders that pass every check (flagged by has_*), so
-        # one isfinite covers the whole frame; they become NaN ("unmeasured") at the end.
-        shape_ok = np.ones(n, bool)
-        pos = _stack([m.position_m for m in ms], (2,), shape_ok)
-        cov = _stack([m.position_cov_m2 for m in ms], (2, 2), shape_ok)
-        has_size = np.array([m.size_m is not None for m in ms], dtype=bool)
-        size = _stack([_ONES3 if m.size_m is None else m.size_m for m in ms], (3,), shape_ok)
-        has_yaw = np.array([m.yaw_rad is not None for m in ms], dtype=bool)
-        yaw = _stack([0.0 if m.yaw_rad is None else m.yaw_rad for m in ms], (), shape_ok)
-        mod_pi = np.array([bool(m.yaw_mod_pi) for m in ms], dtype=bool)
-        z = _stack([m.z_m for m in ms], (), shape_ok)
-        score = _stack([m.score for m in ms], (), shape_ok)
-
-        has_rr = np.array([m.range_rate is not None for m in ms], dtype=bool)
-        rr = np.zeros((n, 4))  # columns _RR_SENSOR (x, y), _RR_RATE, _RR_VAR
-        rr[:, _RR_VAR] = 1.0
-        for i in np.flatnonzero(has_rr).tolist():
-            try:
-                sensor, rate, var = ms[i].range_rate  # type: ignore[misc]
-                sensor_xy = np.asarray(sensor, dtype=np.float64)
-                rr[i, _RR_RATE], rr[i, _RR_VAR] = float(rate), float(var)
-            except (TypeError, ValueError):
-                shape_ok[i] = False
-                continue
-            if sensor_xy.shape == (2,):
-                rr[i, _RR_SENSOR] = sensor_xy
-            else:
-                shape_ok[i] = False
-
-        known_modality = np.ones(n, bool)
-        modalities: list[frozenset[str]] = []
-        sensor_ids: list[tuple[str, ...]] = []
-        for i, m in enumerate(ms):
-            mods, ids = m.modalities, m.sensor_ids
-            try:
-                mods = mods if type(mods) is frozenset else frozenset(mods)
-                ids = ids if type(ids) is tuple else tuple(ids)
-            except TypeError:
-                shape_ok[i] = False
-                mods, ids = frozenset(), ()
-            known_modality[i] = mods <= MODALITIES
-            modalities.append(mods)
-            sensor_ids.append(ids)
-
-        values = np.concatenate(
-            [pos, cov.reshape(n, 4), size, rr, z[:, None], score[:, None], yaw[:, None]], axis=1
-        )
-        c00, c01, c10, c11 = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 0], cov[:, 1, 1]
-        with np.errstate(invalid="ignore", over="ignore"):
-            # Tolerant symmetry test: covariances often travel as float32.
-            symmetric = np.abs(c01 - c10) <= 1e-6 * (np.abs(c00) + np.abs(c11))
-            checks = (
-                ("bad_shape", shape_ok),
-                ("unknown_modality", known_modality),
-                ("non_finite", np.isfinite(values).all(axis=1)),
-                ("bad_covariance", symmetric & (c00 > 0.0) & (c11 > 0.0) & (c00 * c11 - c01 * c10 > 0.0)),
-                ("score_out_of_range", (score >= 0.0) & (score <= 1.0)),
-                ("bad_size", (size > 0.0).all(axis=1)),
-                ("bad_range_rate", rr[:, _RR_VAR] > 0.0),
-            )
-        ok = checks[0][1].copy()
-        for _, passed in checks[1:]:
-            ok &= passed
-        if not ok.all():
-            # Count each rejected measurement once, under the first check it fails.
-            pending = ~ok
-            for reason, passed in checks:
-                failed = pending & ~passed
-                if failed.any():
-                    self.rejected[reason] += int(failed.sum())
-                    pending &= passed
-
-        attrs = np.empty((n, _N_ATTRS))
-        attrs[:, _Z] = z
-        attrs[:, _SCORE] = score
-        attrs[:, _SIZE] = size
-        yaw = np.where(np.isfinite(yaw), yaw, 0.0)  # rejected rows: keep cos/sin quiet
-        attrs[:, _AXIS2] = np.column_stack([np.cos(2.0 * yaw), np.sin(2.0 * yaw)])
-        attrs[:, _HEAD] = np.column_stack([np.cos(yaw), np.sin(yaw)])
-        if not has_size.all():
-            attrs[~has_size, _SIZE] = np.nan
-        if not has_yaw.all():
-            attrs[~has_yaw, _AXIS2] = np.nan
-        attrs[~has_yaw | mod_pi, _HEAD] = np.nan
-        if not has_rr.all():
-            rr[~has_rr] = np.nan
-        cov = 0.5 * (cov + cov.transpose(0, 2, 1))
-        if not ok.all():
-            idx = np.flatnonzero(ok)
-            keep = idx.tolist()
-            modalities = [modalities[i] for i in keep]
-            sensor_ids = [sensor_ids[i] for i in keep]
-            pos, cov, attrs, rr = pos[idx], cov[idx], attrs[idx], rr[idx]
-        return _Frame(
-            pos, cov, attrs, rr[:, _RR_SENSOR], rr[:, _RR_RATE], rr[:, _RR_VAR], modalities, sensor_ids
-        )
-
-    def _associate(self, frame: _Frame) -> tuple[NDInt, NDInt]:
-        """Global nearest neighbour: Hungarian on gated costs; returns matched (track, measurement) rows."""
-        t = self._tracks
-        empty = np.zeros(0, np.int64)
-        if len(t) == 0 or frame.pos.shape[0] == 0:
-            return empty, empty
-        diff = frame.pos[None, :, :] - t.x[:, None, POS]  # (N, M, 2)
-        cost = np.hypot(diff[..., 0], diff[..., 1])
-        feasible = cost <= self.config.gate_m
-        if self.config.gate_mahalanobis is not None:
-            S = t.P[:, None, :2, :2] + frame.cov[None]  # (N, M, 2, 2), symmetric positive definite
-            a, b, d = S[..., 0, 0], S[..., 0, 1], S[..., 1, 1]
-            dx, dy = diff[..., 0], diff[..., 1]
-            cost = (d * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / (a * d - b * b)
-            feasible &= cost <= self.config.gate_mahalanobis
-        if not feasible.any():
-            return empty, empty
-        # Infeasible pairs cost more than all feasible ones together, so the assignment first maximises
-        # the number of gated matches, then minimises their total cost.
-        big = 1.0 + float(cost[feasible].sum())
-        rows, cols = linear_sum_assignment(np.where(feasible, cost, big))
-        keep = feasible[rows, cols]
-        return rows[keep].astype(np.int64), cols[keep].astype(np.int64)
-
-    def _update_matched(self, rows: NDInt, cols: NDInt, frame: _Frame, stamp: float) -> None:
+    def _update_matched(self, rows: NDInt, cols: NDInt, frame: MeasurementFrame, stamp: float) -> None:
         if rows.size == 0:
             return
         t = self._tracks
         x, P, _, _ = kalman.update(t.x[rows], t.P[rows], frame.pos[cols], kalman.POSITION_H, frame.cov[cols])
         x, P = self._range_rate_update(x, P, cols, frame)
         t.x[rows], t.P[rows] = x, P
-        t.attrs[rows] = _ema(t.attrs[rows], frame.attrs[cols], self._alphas)
+        t.attrs[rows] = ema(t.attrs[rows], frame.attrs[cols], self._alphas)
         t.last_update[rows] = stamp
         for r, c in zip(rows.tolist(), cols.tolist(), strict=True):
             t.modalities[r] = frame.modalities[c]
             t.sensor_ids[r] = frame.sensor_ids[c]
 
     def _range_rate_update(
-        self, x: FloatArray, P: FloatArray, cols: NDInt, frame: _Frame
+        self, x: FloatArray, P: FloatArray, cols: NDInt, frame: MeasurementFrame
     ) -> tuple[FloatArray, FloatArray]:
         """EKF range-rate update of the rows of ``x``/``P`` whose measurement ``cols`` carries one."""
         if self._model.kind != "constant_velocity":
@@ -697,7 +296,7 @@ class MultiObjectTracker:
         if dead.any():
             t.keep(~dead)
 
-    def _birth(self, idx: NDInt, frame: _Frame, stamp: float) -> None:
+    def _birth(self, idx: NDInt, frame: MeasurementFrame, stamp: float) -> None:
         """Start tentative tracks on the unmatched measurements ``idx``."""
         room = max(self.config.max_tracks - len(self._tracks), 0)
         if idx.size > room:
@@ -707,7 +306,7 @@ class MultiObjectTracker:
         if k == 0:
             return
         cfg = self.config
-        new = _Table()
+        new = TrackTable()
         new.ids = np.arange(self._next_id, self._next_id + k, dtype=np.int64)
         self._next_id += k
         state = TrackState.CONFIRMED if cfg.confirm_hits <= 1 else TrackState.TENTATIVE
@@ -734,80 +333,20 @@ class MultiObjectTracker:
         self._tracks.append(new)
 
     def _resolve_yaw(self) -> None:
-        """Output yaw of every track: measured axis, sign from heading / motion / previous frame."""
         t = self._tracks
         if len(t) == 0:
             return
-        cfg = self.config
-        vx, vy = t.x[:, VX], t.x[:, VY]
-        speed = np.hypot(vx, vy)
-        speed_std = np.sqrt(np.maximum(0.5 * (t.P[:, VX, VX] + t.P[:, VY, VY]), 0.0))
-        moving = speed > np.maximum(
-            cfg.heading_from_velocity_min_mps, cfg.heading_min_speed_sigmas * speed_std
+        t.yaw, t.sign_known = resolve_yaw(
+            t.x,
+            t.P,
+            t.attrs,
+            t.yaw,
+            t.sign_known,
+            min_speed_mps=self.config.heading_from_velocity_min_mps,
+            min_speed_sigmas=self.config.heading_min_speed_sigmas,
         )
-        head, axis2 = t.attrs[:, _HEAD], t.attrs[:, _AXIS2]
-        ref = np.where(
-            ~np.isnan(head[:, _COS]),
-            np.arctan2(head[:, _SIN], head[:, _COS]),
-            np.where(moving, np.arctan2(vy, vx), np.where(t.sign_known, t.yaw, np.nan)),
-        )
-        has_ref = ~np.isnan(ref)
-        axis = 0.5 * np.arctan2(axis2[:, _SIN], axis2[:, _COS])  # (-pi/2, pi/2]; NaN if never measured
-        flip = np.abs(_wrap(np.where(has_ref, ref, 0.0) - axis)) > 0.5 * np.pi
-        t.yaw = np.where(np.isnan(axis), ref, _wrap(axis + np.pi * (flip & has_ref)))
-        t.sign_known = has_ref
 
     # --- output ----------------------------------------------------------------------------------------
 
     def _snapshot(self, idx: NDInt) -> list[Track]:
-        t = self._tracks
-        if idx.size == 0:
-            return []
-        cfg = self.config
-        x, P, size = t.x[idx], t.P[idx], t.attrs[idx, _SIZE]  # fancy indexing copies
-        for a in (x, P, size):
-            a.setflags(write=False)
-        has_size = (~np.isnan(size[:, 0])).tolist()
-        existence = (
-            t.attrs[idx, _SCORE]
-            * np.minimum(1.0, t.hits[idx] / cfg.confirm_hits)
-            * np.clip(1.0 - t.misses[idx] / (cfg.max_misses + 1.0), 0.0, 1.0)
-        )
-        yaw = [None if math.isnan(v) else v for v in t.yaw[idx].tolist()]
-        modalities, sensor_ids = t.modalities, t.sensor_ids
-        return [
-            Track(
-                track_id,
-                _STATES[state],
-                x[k],
-                P[k],
-                z_m,
-                size[k] if has_size[k] else None,
-                yaw[k],
-                sign,
-                hits,
-                age,
-                misses,
-                modalities[i],
-                sensor_ids[i],
-                score,
-                p_exist,
-                last,
-            )
-            for k, (i, track_id, state, z_m, sign, hits, age, misses, score, p_exist, last) in enumerate(
-                zip(
-                    idx.tolist(),
-                    t.ids[idx].tolist(),
-                    t.state[idx].tolist(),
-                    t.attrs[idx, _Z].tolist(),
-                    t.sign_known[idx].tolist(),
-                    t.hits[idx].tolist(),
-                    t.age[idx].tolist(),
-                    t.misses[idx].tolist(),
-                    t.attrs[idx, _SCORE].tolist(),
-                    existence.tolist(),
-                    t.last_update[idx].tolist(),
-                    strict=True,
-                )
-            )
-        ]
+        return self._tracks.snapshot(idx, self.config.confirm_hits, self.config.max_misses)

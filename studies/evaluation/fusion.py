@@ -52,7 +52,9 @@ from shared.perception.pipeline import (
 )
 from shared.scene.scene import Scene
 from shared.timebase import NS_PER_S
-from shared.tracking.tracker import Measurement, MultiObjectTracker, Track
+from shared.tracking.measurement import Measurement
+from shared.tracking.track_table import Track
+from shared.tracking.tracker import MultiObjectTracker
 from sim.config import SimSettings
 from sim.lockstep import LockstepSim
 from sim.sensors.camera import CameraFrame

@@ -32,7 +32,8 @@ from shared.perception.radar_camera import (
 from shared.perception.views import RoadSurface
 from shared.scene.scene import Scene
 from shared.timebase import NS_PER_S
-from shared.tracking.tracker import Measurement, MultiObjectTracker, TrackerConfig
+from shared.tracking.measurement import Measurement
+from shared.tracking.tracker import MultiObjectTracker, TrackerConfig
 from sim.config import load_sim_settings
 from sim.lockstep import LockstepSim
 from sim.sensors.radar import SimRadarTarget

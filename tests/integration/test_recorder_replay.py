@@ -16,7 +16,7 @@ from rmmdet.v1.health_pb2 import ServiceHealth
 
 from shared.bus.session import open_session
 from shared.bus.streams import stream_for_key
-from shared.recording import decode_record, read_records
+from shared.recording.reader import decode_record, read_records
 from tests.helpers import Router, spawn, stop
 from tests.shared.recording.samples import Sent, traffic
 

@@ -17,7 +17,9 @@ from rmmdet.v1.sensors_pb2 import RadarScan
 from shared.bus.codec import encode
 from shared.bus.streams import SENSOR_STREAM, get_stream
 from shared.perception.decode import point_cloud_to_array as from_point_cloud
-from shared.recording import Record, RecordingWriter, decode_record, read_records
+from shared.recording.reader import decode_record, read_records
+from shared.recording.record import Record
+from shared.recording.writer import RecordingWriter
 from shared.scene.cadence import fires
 from shared.scene.scene import Scene
 from sim.config import SimSettings

@@ -11,15 +11,16 @@ from mcap_protobuf.decoder import DecoderFactory
 from rmmdet.v1.common_pb2 import Header
 from rmmdet.v1.sensors_pb2 import RadarScan
 
-from shared.recording import (
+from shared.recording.reader import RecordingReader, decode_record, read_records
+from shared.recording.record import (
+    HEADER_TOPIC_SUFFIX,
+    META_ENCODING,
+    META_HEADER_FOR,
     Record,
-    RecordingReader,
-    RecordingWriter,
     UnknownSchema,
-    decode_record,
-    read_records,
+    encoding_of,
 )
-from shared.recording.record import HEADER_TOPIC_SUFFIX, META_ENCODING, META_HEADER_FOR, encoding_of
+from shared.recording.writer import RecordingWriter
 from tests.shared.recording.samples import CAMERA_KEY, GROUND_TRUTH_KEY, RADAR_KEY, Sent, traffic
 
 #: Receive wall clock of the first sample and the spacing between samples, ns.

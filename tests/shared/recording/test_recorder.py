@@ -9,8 +9,10 @@ import time
 import pytest
 
 from shared.bus.codec import Counters
-from shared.recording import Record, Recorder, RecordingWriter, read_records
-from shared.recording.recorder import header_stamp_ns, is_control_key
+from shared.recording.reader import read_records
+from shared.recording.record import Record
+from shared.recording.recorder import Recorder, header_stamp_ns, is_control_key
+from shared.recording.writer import RecordingWriter
 from tests.shared.recording.samples import (
     CAMERA_KEY,
     GROUND_TRUTH_KEY,

@@ -6,7 +6,8 @@ import math
 
 import pytest
 
-from shared.recording import AS_FAST_AS_POSSIBLE, Record, ReplayStats, replay, schedule
+from shared.recording.record import Record
+from shared.recording.schedule import AS_FAST_AS_POSSIBLE, ReplayStats, replay, schedule
 
 #: Recorded receive times relative to the first record, seconds.
 OFFSETS_S = (0.0, 0.1, 0.1, 0.3, 1.0)

@@ -8,14 +8,9 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from shared.tracking.tracker import (
-    Measurement,
-    MultiObjectTracker,
-    RangeRate,
-    Track,
-    TrackerConfig,
-    TrackState,
-)
+from shared.tracking.measurement import Measurement, RangeRate
+from shared.tracking.track_table import Track, TrackState
+from shared.tracking.tracker import MultiObjectTracker, TrackerConfig
 
 DT = 0.1
 
