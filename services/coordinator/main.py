@@ -25,22 +25,20 @@ from __future__ import annotations
 
 import argparse
 import logging
-import math
 import sys
-import threading
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 import zenoh
-from rmmdet.v1.common_pb2 import ErrorCode, ErrorResponse, Header
-from rmmdet.v1.planning_pb2 import RouteAck, RouteRequest, RouteResponse
+from google.protobuf.message import Message
+from rmmdet.v1.common_pb2 import Header
+from rmmdet.v1.planning_pb2 import RouteRequest, RouteResponse
 
-from shared.bus.codec import MessageDecoder, Rejected, RejectReason, encode
 from shared.bus.health import DEGRADED, NOMINAL
-from shared.bus.liveliness import LivelinessMonitor
+from shared.bus.liveliness import LivelinessMonitor, agent_of_mec_token
 from shared.bus.node import Node, Publisher, Received, processing_stamp
 from shared.bus.queues import BoundedQueue, OverflowPolicy
+from shared.bus.rpc import RpcRejected, RpcServer
 from shared.bus.streams import get_stream
 from shared.scene.scene import Scene
 from shared.service import run_service
@@ -48,9 +46,7 @@ from shared.shutdown import GracefulShutdown
 from shared.timebase import SimTime
 from shared.traffic.config import DEFAULT_COORDINATOR_CONFIG, CoordinatorSettings, load_coordinator_settings
 from shared.traffic.core import CoordinatorCore, RequestRejected
-from shared.traffic.coverage import AgentState
 from shared.traffic.messages import agent_objects
-from shared.traffic.plans import Ack
 
 log = logging.getLogger("services.coordinator")
 
@@ -59,81 +55,13 @@ STAGE = "coordinator"
 #: Longest idle wait of the main loop: presence changes are picked up at least this often.
 POLL_S = 0.05
 PRESENCE_QUEUE = 256
-ACK_STATUS = {a.value: a for a in Ack}
+OBJECTS, ACKS = get_stream("objects"), get_stream("route_ack")
 
 
-def agent_of_key(key: str) -> str:
-    """`agent1` from `rmmdet/@v1/agent1/objects` (the key, not the payload, says who published)."""
-    return (get_stream("objects").ids(key) or {}).get("agent", "")
-
-
-def vehicle_of_ack_key(key: str) -> str:
-    """`v01` from `rmmdet/@v1/vehicles/v01/plan_ack`."""
-    return (get_stream("route_ack").ids(key) or {}).get("vehicle", "")
-
-
-def mec_of_token(key: str) -> str | None:
-    """The agent of a MEC presence token `rmmdet/@v1/<agent>/@alive/mec/<agent>`, None otherwise."""
-    ids = get_stream("alive").ids(key)
-    if ids is None or ids["service"] != "mec" or ids["scope"] != ids["instance"]:
-        return None
-    return ids["instance"]
-
-
-class RouteRpc:
-    """The route queryable's handler. Runs on a Zenoh thread: decode, plan (the core's lock guards the
-    state), reply; never raises, never blocks beyond the planning itself."""
-
-    def __init__(
-        self, node: Node, core: CoordinatorCore, before_plan: Callable[[], None], clock: SimTime
-    ) -> None:
-        self.node = node
-        self.core = core
-        self.before_plan = before_plan
-        self.clock = clock
-        self.stream = get_stream("route_rpc")
-        self.key = self.stream.key()
-        self.qos = self.stream.qos.publisher_kwargs()
-        self.decoder = MessageDecoder(RouteRequest, node.counters)
-        self._seq_lock = threading.Lock()
-        self._seq = 0
-
-    def __call__(self, query: zenoh.Query) -> None:
-        start_ns = time.time_ns()
-        counters = self.node.counters
-        counters.inc("requests")
-        try:
-            if query.payload is None:
-                raise Rejected(RejectReason.DECODE, "query without payload")
-            attachment = query.attachment.to_bytes() if query.attachment is not None else None
-            decoded = self.decoder.decode_or_raise(query.payload.to_bytes(), str(query.encoding), attachment)
-            self.before_plan()
-            plan, stamp_ns = self.core.serve(decoded.message, self.clock.now_s(), start_ns)
-        except Rejected as err:
-            counters.inc(f"rejected/{err.reason}")
-            self._error(query, ErrorCode.ERROR_CODE_INVALID_REQUEST, str(err))
-            return
-        except RequestRejected as err:
-            counters.inc(f"rejected/{err.reason}")
-            self._error(query, err.code, err.message)
-            return
-        with self._seq_lock:
-            self._seq += 1
-            seq = self._seq
-        header = Header(source_id=self.node.source_id, seq=seq, frame_id="world")
-        header.stamp.FromNanoseconds(stamp_ns or start_ns)
-        header.processing.append(processing_stamp(f"{STAGE}/plan", start_ns, time.time_ns()))
-        plan.header.CopyFrom(header)
-        # RouteResponse has no header field: the codec puts the header in the attachment.
-        encoded = encode(RouteResponse(plan=plan), header)
-        query.reply(
-            self.key, encoded.payload, encoding=encoded.encoding, attachment=encoded.attachment, **self.qos
-        )
-        counters.inc("plans/served")
-
-    def _error(self, query: zenoh.Query, code: ErrorCode.ValueType, message: str) -> None:
-        encoded = encode(ErrorResponse(code=code, message=message))
-        query.reply_err(encoded.payload, encoding=encoded.encoding)
+def embed_plan_header(response: Message, header: Header) -> None:
+    """The plan inside a RouteResponse carries the reply's header too (pushed plans carry their own)."""
+    assert isinstance(response, RouteResponse)
+    response.plan.header.CopyFrom(header)
 
 
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
@@ -148,8 +76,17 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         monitor = LivelinessMonitor(
             node.session, get_stream("alive").pattern(service="mec"), on_change=service.on_presence
         )
+        rpc = RpcServer(
+            node,
+            "route_rpc",
+            RouteRequest,
+            service.plan,
+            stage=f"{STAGE}/plan",
+            embed_header=embed_plan_header,
+            served="plans/served",
+        )
         try:
-            node.queryable(get_stream("route_rpc").key(), RouteRpc(node, core, service.record_objects, clock))
+            node.queryable(rpc.key, rpc)
             log.info(
                 "coordinator up: scene %s, agents %s, policy %s, maps %.1f Hz, replan every %.1f s",
                 scene.scene_id,
@@ -189,56 +126,45 @@ class CoordinatorService:
         self.presence: BoundedQueue[tuple[str, bool]] = BoundedQueue(
             PRESENCE_QUEUE, OverflowPolicy.DROP_OLDEST
         )
-        self.states = dict.fromkeys(core.agents, AgentState.LOST)
-        self.active_plans = 0
         node.health.set_status(self.health)
 
     def on_presence(self, key: str, alive: bool) -> None:
         """Liveliness callback (Zenoh thread): enqueue only."""
-        agent = mec_of_token(key)
+        agent = agent_of_mec_token(key)
         if agent is not None:
             self.presence.put((agent, alive))
 
+    def plan(self, request: RouteRequest, start_ns: int) -> tuple[RouteResponse, int]:
+        """The route RPC's handler (Zenoh thread; the core's lock guards its state)."""
+        self.record_objects()  # a plan includes every list that reached the process before the request
+        try:
+            plan, stamp_ns = self.core.serve(request, self.clock.now_s(), start_ns)
+        except RequestRejected as err:
+            raise RpcRejected(err.reason, err.code, err.message) from None
+        return RouteResponse(plan=plan), stamp_ns
+
     def health(self) -> tuple[int, str]:
-        """Health status (Zenoh thread): reads the main loop's cached values only."""
-        states = self.states
-        missing = [f"{a} {s.value}" for a, s in states.items() if s is not AgentState.LIVE]
-        text = f"{len(states) - len(missing)}/{len(states)} agents LIVE, {self.active_plans} active plans"
-        return (DEGRADED, f"{text}; missing: {', '.join(missing)}") if missing else (NOMINAL, text)
+        """Health status (Zenoh thread): the core's cached summary."""
+        all_live, text = self.core.summary()
+        return (NOMINAL if all_live else DEGRADED), text
 
     def run(self, shutdown: GracefulShutdown) -> None:
-        settings = self.settings
-        map_period_s = 1.0 / settings.map_publish_hz
-        min_update_s = 1.0 / settings.service.map_update_max_hz
-        now = self.clock.now_s()
-        next_map_s = now
-        next_log_s = now + settings.report_interval_s
-        last_update_s = -math.inf
+        interval_s = self.settings.report_interval_s
+        next_log_s = self.clock.now_s() + interval_s
         while not shutdown.requested:
-            wait_s = min(POLL_S, next_map_s - self.clock.now_s())
-            self.ingest(wait_s)
+            self.ingest(min(POLL_S, self.core.next_map_s - self.clock.now_s()))
             now = self.clock.now_s()
-            changed = self.check_coverage(now)
-            if changed or now >= next_map_s or (self.core.dirty and now - last_update_s >= min_update_s):
-                self.core.update_map(now)
-                last_update_s = now
-            if changed or now >= next_map_s:
+            tick = self.core.tick(now, time.time_ns())
+            if tick.coverage is not None:
+                log.warning("coverage: %s", ", ".join(f"{a} {s.value}" for a, s in tick.coverage.items()))
+            if tick.publish_map:
                 self.publish_map(now)
-                next_map_s = now + map_period_s  # a coverage-change publish restarts the period
-            issued = self.core.replan_if_due(now, time.time_ns())
-            if issued is not None:
-                if issued:
-                    log.info("replan: %d plans to push", issued)
-                self.active_plans = self.core.active_plans(now)
+            if tick.replanned:
+                log.info("replan: %d plans to push", tick.replanned)
             self.push(now)
             if now >= next_log_s:
-                next_log_s = now + settings.report_interval_s
-                log.info(
-                    "coverage %s; %d active plans; counters %s",
-                    {a: s.value for a, s in self.states.items()},
-                    self.core.active_plans(now),
-                    self.counters.snapshot(),
-                )
+                next_log_s = now + interval_s
+                log.info("%s; counters %s", self.core.summary()[1], self.counters.snapshot())
 
     def ingest(self, wait_s: float) -> None:
         """Wait up to `wait_s` for object lists, then take everything queued."""
@@ -257,18 +183,10 @@ class CoordinatorService:
         now = self.clock.now_s()
         min_existence = self.settings.maps.min_existence_probability
         for item in items:
-            agent = agent_of_key(item.key)
+            agent = OBJECTS.id_of(item.key, "agent")  # the key, not the payload, says who published
             objs = agent_objects(agent, item.message, min_existence)
             if not self.core.on_objects(agent, objs, item.header.stamp.ToNanoseconds(), now):
                 self.counters.inc("rejected/unknown_agent")
-
-    def check_coverage(self, now: float) -> bool:
-        states = self.core.states(now)
-        if states == self.states:
-            return False
-        log.warning("coverage: %s", ", ".join(f"{a} {s.value}" for a, s in states.items()))
-        self.states = states
-        return True
 
     def publish_map(self, now: float) -> None:
         start_ns = time.time_ns()
@@ -292,18 +210,8 @@ class CoordinatorService:
             self.counters.inc("plans/pushed" if first_send else "plans/resent")
 
     def on_ack(self, item: Received) -> None:
-        ack: RouteAck = item.message
-        vehicle = vehicle_of_ack_key(item.key)
-        if ack.vehicle_id != vehicle:
-            self.counters.inc("rejected/ack_vehicle_mismatch")
-            return
-        status = ACK_STATUS.get(ack.status)
-        if status is None:
-            self.counters.inc("rejected/ack_status")
-            return
-        self.counters.inc(f"acks/{status.name.lower()}")
-        if not self.core.on_ack(vehicle, ack.plan_id, int(ack.version), status):
-            self.counters.inc("acks/not_latest")
+        for counter in self.core.receive_ack(ACKS.id_of(item.key, "vehicle"), item.message):
+            self.counters.inc(counter)
 
 
 def add_args(parser: argparse.ArgumentParser) -> None:

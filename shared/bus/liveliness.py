@@ -67,6 +67,15 @@ def alive_tokens(session: zenoh.Session, key_expr: str, timeout_s: float = 2.0) 
     return sorted(str(r.ok.key_expr) for r in replies if r.ok is not None)
 
 
+def agent_of_mec_token(key: str) -> str | None:
+    """The agent of a MEC's presence token (`rmmdet/@v1/<agent>/@alive/mec/<agent>`), None for any
+    other key."""
+    ids = get_stream("alive").ids(key)
+    if ids is None or ids["service"] != "mec" or ids["scope"] != ids["instance"]:
+        return None
+    return ids["instance"]
+
+
 def source_of_token(key: str) -> str | None:
     """The source id (`scope/service/instance`, as `Node.source_id`) whose presence token is `key`;
     None if `key` is not a presence token."""

@@ -106,6 +106,10 @@ class Stream:
                 return None
         return out
 
+    def id_of(self, key: str, field: str) -> str:
+        """The id `field` of a concrete key of this stream, "" if `key` is not one."""
+        return (self.ids(key) or {}).get(field, "")
+
     def matches(self, key: str) -> bool:
         return zenoh.KeyExpr(self.pattern()).intersects(zenoh.KeyExpr(key))
 

@@ -4,7 +4,9 @@
     update_map                 merge the LIVE agents' objects -> smoothed maps -> lane conditions
     serve                      a RouteRequest answered with a plan on the latest maps (RPC)
     replan / due               re-check active plans; pushed plans to send or resend
-    on_ack                     delivery bookkeeping from the vehicles' acknowledgements
+    on_ack / receive_ack       delivery bookkeeping from the vehicles' acknowledgements
+    tick                       the loop's cadence: coverage changes, map rebuilds and publications,
+                               re-planning (what the service does each turn of its loop)
 
 Only LIVE agents' objects enter the maps: a STALE agent's last list no longer describes its area, and
 the lanes it covers turn unobserved (count unknown) instead of keeping ghosts. Every plan records
@@ -17,11 +19,12 @@ time when a sim runs, shared/timebase.py), wall-clock `wall_ns`.
 
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import dataclass
 
 from rmmdet.v1.common_pb2 import ErrorCode
-from rmmdet.v1.planning_pb2 import RoutePlan, RouteRequest
+from rmmdet.v1.planning_pb2 import RouteAck, RoutePlan, RouteRequest
 from rmmdet.v1.traffic_pb2 import TrafficMap
 
 from shared.bus.streams import validate_id
@@ -38,6 +41,7 @@ from shared.traffic.plans import Ack, IssuedPlan, PlanBook
 GROUND_TRUTH = "ground_truth"  # the oracle object source of studies (every lane observed)
 #: Acknowledgements after which the vehicle no longer follows the plan (its lanes are no load).
 ENDED = (Ack.REJECTED_INVALID, Ack.REJECTED_STALE, Ack.COMPLETED)
+_ACK_STATUS = {a.value: a for a in Ack}  # wire value -> Ack
 
 
 class RequestRejected(Exception):
@@ -48,6 +52,15 @@ class RequestRejected(Exception):
         self.reason = reason
         self.code = code
         self.message = message
+
+
+@dataclass(frozen=True)
+class Tick:
+    """What one `CoordinatorCore.tick` decided."""
+
+    coverage: dict[str, AgentState] | None  # the agents' states when they changed since the last tick
+    publish_map: bool  # the maps are due for publication (period, or a coverage change)
+    replanned: int | None  # plans issued by a re-plan (sent by `due`); None when none was due
 
 
 @dataclass
@@ -97,6 +110,10 @@ class CoordinatorCore:
         self._map_stamp_ns = 0
         self.dirty = False  # objects arrived since the last map update
         self.next_replan_s: float | None = None  # clock of record; set on the first `replan_if_due`
+        self.next_map_s = -math.inf  # clock of record: next periodic map publication (first tick: now)
+        self._last_update_s = -math.inf
+        self._seen_states = dict.fromkeys(self.agents, AgentState.LOST)  # as of the latest tick
+        self.active_count = 0  # active plans, as of the latest re-plan
 
     # --- inputs ----------------------------------------------------------------------------------
 
@@ -242,6 +259,36 @@ class CoordinatorCore:
             self.next_replan_s = now_s + interval_s
         return self.replan(now_s, wall_ns)
 
+    def tick(self, now_s: float, wall_ns: int) -> Tick:
+        """One turn of the coordinator's loop at `now_s` (clock of record).
+
+        The maps are rebuilt when the coverage changed, when a publication is due (every
+        1 / `map_publish_hz`, restarted by a coverage-change publication) and when object lists
+        arrived, at most `service.map_update_max_hz` often; then `replan_if_due`.
+        """
+        states = self.states(now_s)
+        changed = states != self._seen_states
+        self._seen_states = states
+        publish = changed or now_s >= self.next_map_s
+        min_update_s = 1.0 / self.settings.service.map_update_max_hz
+        if publish or (self.dirty and now_s - self._last_update_s >= min_update_s):
+            self.update_map(now_s)
+            self._last_update_s = now_s
+        if publish:
+            self.next_map_s = now_s + 1.0 / self.settings.map_publish_hz
+        replanned = self.replan_if_due(now_s, wall_ns)
+        if replanned is not None:
+            self.active_count = self.active_plans(now_s)
+        return Tick(states if changed else None, publish, replanned)
+
+    def summary(self) -> tuple[bool, str]:
+        """(every agent LIVE, one line naming the missing ones) as of the latest tick; reads cached
+        values only, so a health callback on another thread may call it."""
+        states = self._seen_states
+        missing = [f"{a} {s.value}" for a, s in states.items() if s is not AgentState.LIVE]
+        text = f"{len(states) - len(missing)}/{len(states)} agents LIVE, {self.active_count} active plans"
+        return (False, f"{text}; missing: {', '.join(missing)}") if missing else (True, text)
+
     def _replannable(self, plan: IssuedPlan, now_s: float) -> bool:
         if now_s - plan.issued_s > self.settings.planner.plan_ttl_s or plan.ack in ENDED:
             self.planner.forget(plan.vehicle_id)
@@ -286,6 +333,20 @@ class CoordinatorCore:
             if recorded and status in ENDED:
                 self.planner.forget(vehicle_id)
             return recorded
+
+    def receive_ack(self, vehicle: str, ack: RouteAck) -> list[str]:
+        """An acknowledgement received on `vehicle`'s ack key; returns the counters it counts under
+        (``acks/<status>``, plus ``acks/not_latest`` when it is not for the latest plan; a vehicle id
+        other than the key's or an unknown status is rejected)."""
+        if ack.vehicle_id != vehicle:
+            return ["rejected/ack_vehicle_mismatch"]
+        status = _ACK_STATUS.get(ack.status)
+        if status is None:
+            return ["rejected/ack_status"]
+        counted = [f"acks/{status.name.lower()}"]
+        if not self.on_ack(vehicle, ack.plan_id, int(ack.version), status):
+            counted.append("acks/not_latest")
+        return counted
 
     def active_plans(self, now_s: float) -> int:
         """Vehicles whose latest plan is within its TTL and not ended."""

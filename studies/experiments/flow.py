@@ -194,9 +194,9 @@ class Scheduler:
         for o in objects:
             if not self.core.on_objects(o.agent_id, o, stamp_ns, now_s):
                 self.counts["rejected/unknown_agent"] += 1
-        snap = self.core.update_map(now_s)
-        self._score_maps(traffic, snap)
-        self.core.replan_if_due(now_s, stamp_ns)  # the live coordinator's cadence (replan_interval_s)
+        self.core.tick(now_s, stamp_ns)  # the live coordinator's loop: map rebuilds, re-plan cadence
+        if self.core.snapshot is not None:
+            self._score_maps(traffic, self.core.snapshot)
         for plan, _stamp_ns, _first in self.core.due(now_s):
             self.pushed += 1
             self._deliver(traffic, plan)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import zenoh
 
+from shared.bus.liveliness import agent_of_mec_token
 from shared.bus.streams import get_stream, markdown_table, message_type, stream_for_key, streams
 from tests.helpers import REPO_ROOT
 
@@ -71,3 +72,12 @@ def test_ids_inverts_key() -> None:
     assert get_stream("objects").ids("rmmdet/@v1/agent1/objects/extra") is None  # other length
     assert get_stream("objects").ids("rmmdet/@v2/agent1/objects") is None  # other literal chunk
     assert get_stream("route_ack").ids("rmmdet/@v1/agent1/objects") is None
+
+
+def test_id_of_and_mec_tokens() -> None:
+    assert get_stream("objects").id_of("rmmdet/@v1/agent2/objects", "agent") == "agent2"
+    assert get_stream("route_ack").id_of("rmmdet/@v1/vehicles/v07/plan_ack", "vehicle") == "v07"
+    assert get_stream("objects").id_of("rmmdet/@v1/vehicles/v07/plan_ack", "agent") == ""
+    assert agent_of_mec_token("rmmdet/@v1/agent3/@alive/mec/agent3") == "agent3"
+    assert agent_of_mec_token("rmmdet/@v1/agent3/@alive/mec/agent1") is None
+    assert agent_of_mec_token("rmmdet/@v1/site/@alive/router/main") is None

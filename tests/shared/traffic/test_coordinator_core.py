@@ -1,20 +1,19 @@
 """Coordinator core (no bus): coverage-filtered maps, served plans and rejections, pushed replans and
-their delivery, acknowledgements; plus the key parsers of the service shell."""
+their delivery, acknowledgements, and the loop's cadence (`tick`)."""
 
 from __future__ import annotations
 
 import pytest
 from rmmdet.v1.common_pb2 import ErrorCode
-from rmmdet.v1.planning_pb2 import RouteRequest
+from rmmdet.v1.planning_pb2 import RouteAck, RouteRequest
 from rmmdet.v1.traffic_pb2 import AgentState as PbState
 
-from services.coordinator.main import agent_of_key, mec_of_token, vehicle_of_ack_key
 from shared.paths import DEFAULT_SCENE
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.timebase import NS_PER_S
 from shared.traffic.config import CoordinatorSettings
-from shared.traffic.core import CoordinatorCore, RequestRejected
+from shared.traffic.core import CoordinatorCore, RequestRejected, Tick
 from shared.traffic.coverage import AgentState
 from shared.traffic.messages import agent_objects
 from shared.traffic.plans import Ack
@@ -193,12 +192,51 @@ def test_ended_plans_are_not_replanned(scene: Scene, cars: dict[str, AgentCars])
     assert core.replan(1.0, WALL0_NS) == 0
 
 
-def test_key_parsers() -> None:
-    assert agent_of_key("rmmdet/@v1/agent2/objects") == "agent2"
-    assert vehicle_of_ack_key("rmmdet/@v1/vehicles/v07/plan_ack") == "v07"
-    assert mec_of_token("rmmdet/@v1/agent3/@alive/mec/agent3") == "agent3"
-    assert mec_of_token("rmmdet/@v1/agent3/@alive/mec/agent1") is None
-    assert mec_of_token("rmmdet/@v1/site/@alive/router/main") is None
+def test_tick_rebuilds_publishes_and_flags_coverage_changes(scene: Scene, cars: dict[str, AgentCars]) -> None:
+    """Known answer with map_publish_hz = 2 and map_update_max_hz = 20: the first tick publishes; the
+    first lists make every agent LIVE (no presence token seen yet counts as present), which publishes at
+    once and restarts the 0.5 s period; lists arriving between publications rebuild the maps at most
+    every 0.05 s without publishing."""
+    core = make_core(scene)
+    assert core.tick(0.0, WALL0_NS) == Tick(coverage=None, publish_map=True, replanned=None)  # all LOST
+    feed(core, cars, 0.1)
+    t = core.tick(0.1, WALL0_NS)
+    assert t.publish_map and t.coverage == dict.fromkeys(core.agents, AgentState.LIVE) and not core.dirty
+    feed(core, cars, 0.12)
+    assert not core.tick(0.12, WALL0_NS).publish_map and core.dirty  # rebuilt 0.02 s ago: not yet
+    assert not core.tick(0.16, WALL0_NS).publish_map and not core.dirty
+    assert not core.tick(0.59, WALL0_NS).publish_map
+    assert core.tick(0.6, WALL0_NS).publish_map
+    assert core.tick(2.1, WALL0_NS).replanned == 0  # first re-plan one interval (2 s) after the first tick
+
+
+def test_tick_publishes_at_once_on_a_coverage_change(scene: Scene, cars: dict[str, AgentCars]) -> None:
+    core = make_core(scene)
+    for agent in core.agents:
+        core.on_presence(agent, True)
+    feed(core, cars, 0.0)
+    t = core.tick(0.0, WALL0_NS)
+    assert t.publish_map and t.coverage == dict.fromkeys(core.agents, AgentState.LIVE)
+    assert core.summary() == (True, "3/3 agents LIVE, 0 active plans")
+    assert core.tick(0.2, WALL0_NS).coverage is None
+    core.on_presence("agent2", False)
+    t = core.tick(0.3, WALL0_NS)  # before the 0.5 s period is over
+    assert t.publish_map and t.coverage is not None and t.coverage["agent2"] is AgentState.STALE
+    assert core.next_map_s == pytest.approx(0.8)
+    assert core.summary() == (False, "2/3 agents LIVE, 0 active plans; missing: agent2 STALE")
+
+
+def test_receive_ack_counts_and_rejects(scene: Scene, cars: dict[str, AgentCars]) -> None:
+    core = make_core(scene)
+    feed(core, cars, 0.0)
+    plan, _ = core.serve(request(), 0.0, WALL0_NS)
+    ok = RouteAck(vehicle_id="v01", plan_id=plan.plan_id, version=plan.version, status=Ack.ACCEPTED.value)
+    assert core.receive_ack("v01", ok) == ["acks/accepted"]
+    assert core.receive_ack("v02", ok) == ["rejected/ack_vehicle_mismatch"]  # the key says another vehicle
+    bad_status = RouteAck(vehicle_id="v01", plan_id=plan.plan_id, version=plan.version, status=99)
+    assert core.receive_ack("v01", bad_status) == ["rejected/ack_status"]
+    old = RouteAck(vehicle_id="v01", plan_id="p-old", version=plan.version, status=Ack.COMPLETED.value)
+    assert core.receive_ack("v01", old) == ["acks/completed", "acks/not_latest"]
 
 
 def test_replanning_runs_at_its_interval_of_the_clock_of_record(scene: Scene) -> None:

@@ -1,0 +1,124 @@
+"""`RpcServer`: a queryable that answers one request type with one response type.
+
+Runs on a Zenoh thread: decode (validated, rejections counted by reason), call the handler, reply with
+the response and a stamped header (source id, sequence number, data stamp, a processing stamp of the
+handler's work), or with an `ErrorResponse` when the request is malformed or the handler refuses it.
+It never raises into Zenoh and never blocks beyond the handler's own work.
+
+    server = RpcServer(node, "route_rpc", RouteRequest, handle, stage="coordinator/plan")
+    node.queryable(server.key, server)
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from typing import Generic, TypeVar, cast
+
+import zenoh
+from google.protobuf.message import Message
+from rmmdet.v1.common_pb2 import ErrorCode, ErrorResponse, Header
+
+from shared.bus.codec import MessageDecoder, Rejected, RejectReason, encode
+from shared.bus.node import Node, processing_stamp
+from shared.bus.streams import get_stream
+
+Req = TypeVar("Req", bound=Message)
+
+
+class RpcRejected(Exception):
+    """Raised by a handler for a request it will not serve: ``rejected/<reason>`` is counted and the
+    caller receives an ErrorResponse with ``code`` and ``message``."""
+
+    def __init__(self, reason: str, code: ErrorCode.ValueType, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+        self.code = code
+        self.message = message
+
+
+#: ``handle(request, start_ns) -> (response, data stamp in ns or 0)``; may raise RpcRejected.
+Handler = Callable[[Req, int], tuple[Message, int]]
+
+
+class RpcServer(Generic[Req]):
+    """Serve `stream_name` (a queryable stream of `proto/streams.yaml`) with `handle`.
+
+    Parameters
+    ----------
+    node : Node
+        Its counters count ``requests``, the ``served`` ones and ``rejected/<reason>``; its source id is the
+        header's.
+    stream_name, request_type
+        The queryable stream and the protobuf type its requests decode to.
+    handle : callable
+        See `Handler`. The data stamp (0: none) becomes the header stamp, else the request's arrival.
+    stage : str
+        Name of the processing stamp added to the header.
+    embed_header : callable, optional
+        ``embed_header(response, header)`` for responses that also carry the header in their body
+        (the header always travels in the attachment).
+    served : str
+        Counter of the requests answered with a response.
+    """
+
+    def __init__(
+        self,
+        node: Node,
+        stream_name: str,
+        request_type: type[Req],
+        handle: Handler[Req],
+        *,
+        stage: str,
+        embed_header: Callable[[Message, Header], None] | None = None,
+        served: str = "replies",
+    ) -> None:
+        self.node = node
+        stream = get_stream(stream_name)
+        self.key = stream.key()
+        self._qos = stream.qos.publisher_kwargs()
+        self._decoder = MessageDecoder(request_type, node.counters)
+        self._handle = handle
+        self._stage = stage
+        self._embed_header = embed_header
+        self._served = served
+        self._seq_lock = threading.Lock()
+        self._seq = 0
+
+    def __call__(self, query: zenoh.Query) -> None:
+        start_ns = time.time_ns()
+        counters = self.node.counters
+        counters.inc("requests")
+        try:
+            if query.payload is None:
+                raise Rejected(RejectReason.DECODE, "query without payload")
+            attachment = query.attachment.to_bytes() if query.attachment is not None else None
+            decoded = self._decoder.decode_or_raise(query.payload.to_bytes(), str(query.encoding), attachment)
+            response, stamp_ns = self._handle(cast(Req, decoded.message), start_ns)
+        except Rejected as err:
+            counters.inc(f"rejected/{err.reason}")
+            self._error(query, ErrorCode.ERROR_CODE_INVALID_REQUEST, str(err))
+            return
+        except RpcRejected as err:
+            counters.inc(f"rejected/{err.reason}")
+            self._error(query, err.code, err.message)
+            return
+        with self._seq_lock:
+            self._seq += 1
+            seq = self._seq
+        header = Header(source_id=self.node.source_id, seq=seq, frame_id="world")
+        header.stamp.FromNanoseconds(stamp_ns or start_ns)
+        header.processing.append(processing_stamp(self._stage, start_ns, time.time_ns()))
+        if self._embed_header is not None:
+            self._embed_header(response, header)
+        encoded = encode(response, header)
+        query.reply(
+            self.key, encoded.payload, encoding=encoded.encoding, attachment=encoded.attachment, **self._qos
+        )
+        counters.inc(self._served)
+
+    @staticmethod
+    def _error(query: zenoh.Query, code: ErrorCode.ValueType, message: str) -> None:
+        encoded = encode(ErrorResponse(code=code, message=message))
+        query.reply_err(encoded.payload, encoding=encoded.encoding)
