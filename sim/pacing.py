@@ -18,7 +18,9 @@ still loading). Times: sim stamps in ns, wall times in monotonic seconds.
 
 from __future__ import annotations
 
-from collections import deque
+import time
+from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from shared.timebase import NS_PER_S
@@ -58,6 +60,8 @@ class Pacer:
         self.max_period_ns = round(MAX_PERIOD_S * NS_PER_S)
         self.timeout_s = timeout_s
         self._consumers: dict[str, _Consumer] = {}
+        self.paced_by = ""  # the consumer holding the sim right now ("" when none)
+        self.held_by: Counter[str] = Counter()  # wall seconds each consumer held the sim, in all
 
     def on_progress(self, consumer: str, stamp_ns: int, now_s: float) -> None:
         """`consumer` published an output made from data stamped `stamp_ns` (reordered ones count too:
@@ -93,3 +97,28 @@ class Pacer:
             for name, c in self._consumers.items()
             if now_s - c.heard_s <= self.timeout_s
         }
+
+    def hold(
+        self,
+        tick_stamp_ns: int,
+        take_progress: Callable[[], None],
+        sleep: Callable[[float], bool],
+        poll_s: float,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> float:
+        """Wait while a consumer lags more than allowed; returns the wall seconds held.
+
+        ``take_progress()`` feeds the consumers' newest outputs (`on_progress`, `forget`) before each
+        look; ``sleep(poll_s)`` waits between looks and returns True to stop waiting (shutdown).
+        """
+        start = clock()
+        take_progress()
+        while (lagging := self.holding(tick_stamp_ns, clock())) is not None:
+            self.paced_by = lagging
+            t = clock()
+            if sleep(poll_s):
+                break
+            self.held_by[lagging] += clock() - t
+            take_progress()
+        self.paced_by = ""
+        return clock() - start

@@ -27,10 +27,7 @@ import argparse
 import logging
 import sys
 import time
-from collections import Counter
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import zenoh
 from rmmdet.v1.sim_pb2 import SimClock
@@ -40,7 +37,7 @@ from shared.bus.health import NOMINAL
 from shared.bus.liveliness import LivelinessMonitor, source_of_token
 from shared.bus.node import Node, Received, processing_stamp
 from shared.bus.queues import BoundedQueue, OverflowPolicy
-from shared.bus.streams import SENSOR_STREAM, get_stream, sensor_group_source
+from shared.bus.streams import get_stream, producer_of
 from shared.scene.calibration import calibration_set
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
@@ -50,6 +47,7 @@ from shared.timebase import NS_PER_S
 from sim.config import DEFAULT_SIM_CONFIG, SimSettings, load_sim_settings
 from sim.ground_truth import ground_truth_message
 from sim.pacing import Pacer
+from sim.realtime import Every, RealTimeSchedule
 from sim.traffic import TrafficSim
 
 log = logging.getLogger("services.sim")
@@ -77,7 +75,6 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     dt_s = 1.0 / settings.tick_hz
     collision_every = max(1, round(settings.tick_hz / settings.collision_check_hz))
     sensor_rates = sorted({s.rate_hz for s in scene.sensors.values()})
-    live = settings.speed > 0
     pacer = Pacer(settings.pacing.max_lag_s, settings.pacing.consumer_timeout_s)
     with Node(conf, service="sim", instance=args.instance, scope=SCOPE, stop=shutdown.event) as node:
         gt_pub = node.publisher("ground_truth")
@@ -86,7 +83,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         calib_sets = {agent: calibration_set(scene, agent) for agent in scene.agents}  # the scene is fixed
         outputs = None
         gone: BoundedQueue[str] = BoundedQueue(PACING_QUEUE, OverflowPolicy.DROP_OLDEST)
-        if live and settings.pacing.enabled:
+        if settings.speed > 0 and settings.pacing.enabled:
             outputs = BoundedQueue[Received](PACING_QUEUE, OverflowPolicy.DROP_OLDEST)
             for stream in settings.pacing.streams:
                 node.subscribe_stream(stream, queue=outputs)
@@ -101,21 +98,19 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             if settings.traffic.route_policy == "plan"
             else None
         )
-        state: dict[str, Any] = {"rtf": 0.0, "held_s": 0.0, "paced_by": "", "held_by": Counter()}
+        schedule = RealTimeSchedule(settings.speed, LATE_TOLERANCE_S, RTF_WINDOW_S)
 
         def status() -> tuple[int, str]:
-            held = f", held {state['held_s']:.1f} s by lagging consumers" if state["held_s"] else ""
+            held = f", held {schedule.held_s:.1f} s by lagging consumers" if schedule.held_s else ""
             return NOMINAL, (
-                f"tick {traffic.tick}, sim {traffic.time_s:.1f} s, real-time factor {state['rtf']:.2f} "
+                f"tick {traffic.tick}, sim {traffic.time_s:.1f} s, real-time factor {schedule.rtf:.2f} "
                 f"(target {settings.speed or 'max'}{held}), {len(traffic.vehicles)} vehicles, "
                 f"{sum(traffic.arrivals.values())} junction arrivals, {len(traffic.trips)} trips"
             )
 
         def take_progress() -> None:
-            if outputs is None:
-                return
             now = time.monotonic()
-            for item in outputs.drain():
+            for item in outputs.drain() if outputs is not None else []:
                 pacer.on_progress(producer_of(item.key), item.header.stamp.ToNanoseconds(), now)
             for key in gone.drain():
                 source = source_of_token(key)
@@ -123,13 +118,12 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                     pacer.forget(source)
 
         node.health.set_status(status)
-        start_wall_ns = time.time_ns()
-        # Wall time of sim time 0; moved on whenever the sim is held or falls behind, so it resumes at
-        # its speed instead of sprinting to catch up (sim time is the clock of record).
-        anchor_mono = time.monotonic()
-        rtf_mark = (anchor_mono, 0.0)
-        next_clock = next_calib = 0.0
-        last_log = anchor_mono
+        start_wall_ns = time.time_ns()  # wall time of sim time 0: stamps are start + sim time
+        clock_due, calib_due = (
+            Every(1.0 / settings.clock_publish_hz),
+            Every(1.0 / settings.calibration_publish_hz),
+        )
+        last_log = time.monotonic()
         log.info(
             "sim up: scene %s, %d vehicles, seed %d, %g Hz ticks, sensors at %s Hz, speed %s, route policy "
             "%s, pacing %s",
@@ -149,16 +143,11 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             traffic.step()
             stamp_ns = start_wall_ns + round(traffic.time_s * NS_PER_S)
             sensor_tick = bool(scene.agents_capturing_on(traffic.tick, settings.tick_hz))
-            if live:  # publish a tick at its stamp, not before (latencies stay >= 0)
-                wait = anchor_mono + traffic.time_s / settings.speed - time.monotonic()
-                if wait < -LATE_TOLERANCE_S:  # the host cannot keep up: slow down, do not sprint
-                    anchor_mono -= wait
-                    wait = 0.0
-                if wait > 0 and shutdown.wait(wait):
-                    break
-                if sensor_tick and outputs is not None:
-                    held_s = hold(pacer, take_progress, stamp_ns, shutdown, state)
-                    anchor_mono += held_s
+            wait_s = schedule.delay_s(traffic.time_s)  # publish a tick at its stamp, not before
+            if wait_s > 0 and shutdown.wait(wait_s):
+                break
+            if sensor_tick and outputs is not None:
+                schedule.hold(pacer.hold(stamp_ns, take_progress, shutdown.wait, HOLD_POLL_S))
             if sensor_tick:  # the sensors fire only on these ticks: nobody else needs ground truth
                 msg = ground_truth_message(traffic, scene, settings.seed, settings.tick_hz)
                 header = gt_pub.next_header(stamp_ns=stamp_ns, tick=traffic.tick, frame_id="world")
@@ -169,79 +158,37 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 for pair in traffic.overlapping_pairs():
                     node.counters.inc("traffic/overlaps")
                     log.warning("vehicles overlap: %s", pair)
-            now = time.monotonic()
-            if traffic.time_s >= next_clock:
-                next_clock += 1.0 / settings.clock_publish_hz
-                if now - rtf_mark[0] >= RTF_WINDOW_S:
-                    state["rtf"] = (traffic.time_s - rtf_mark[1]) / (now - rtf_mark[0])
-                    rtf_mark = (now, traffic.time_s)
+            if clock_due.due(traffic.time_s):
                 clock = SimClock(
                     tick=traffic.tick,
                     step_s=dt_s,
-                    real_time_factor=state["rtf"],
+                    real_time_factor=schedule.measure(traffic.time_s),
                     lock_step=False,
                     target_speed=settings.speed,
-                    paced_by=state["paced_by"],
+                    paced_by=pacer.paced_by,
                 )
                 clock.sim_time.FromNanoseconds(stamp_ns)
                 clock_pub.put(clock, stamp_ns=stamp_ns, tick=traffic.tick, frame_id="world")
-            if traffic.time_s >= next_calib:
-                next_calib += 1.0 / settings.calibration_publish_hz
+            if calib_due.due(traffic.time_s):
                 for agent, pub in calib_pubs.items():
                     pub.put(calib_sets[agent], stamp_ns=stamp_ns, tick=traffic.tick)
-            if now - last_log >= args.report_interval_s:
+            if time.monotonic() - last_log >= args.report_interval_s:
+                last_log = time.monotonic()
                 log.info(
                     "sim %.1f s, real-time factor %.2f, held %.1f s by consumers %s, %d junction arrivals, "
                     "%d trips, %d detours%s",
                     traffic.time_s,
-                    state["rtf"],
-                    state["held_s"],
-                    {k: round(v, 1) for k, v in state["held_by"].most_common(3)},
+                    schedule.rtf,
+                    schedule.held_s,
+                    {k: round(v, 1) for k, v in pacer.held_by.most_common(3)},
                     sum(traffic.arrivals.values()),
                     len(traffic.trips),
                     traffic.detours,
                     f"; plans {plans.summary()}" if plans is not None else "",
                 )
-                last_log = now
         if plans is not None:
             plans.close()
     return 0
-
-
-def producer_of(key: str) -> str:
-    """The node (`scope/service/instance`, as in its liveliness token) that publishes `key`: a sensor
-    group for sensor data, the agent's MEC for objects; the key itself for anything else."""
-    for kind, stream in SENSOR_STREAM.items():
-        ids = get_stream(stream).ids(key)
-        if ids is not None:
-            return sensor_group_source(ids["agent"], kind)
-    ids = get_stream("objects").ids(key)
-    if ids is not None:
-        return f"{ids['agent']}/mec/{ids['agent']}"
-    return key
-
-
-def hold(
-    pacer: Pacer,
-    take_progress: Callable[[], None],
-    stamp_ns: int,
-    shutdown: GracefulShutdown,
-    state: dict[str, Any],
-) -> float:
-    """Wait while a consumer lags more than the pacer allows; returns the wall seconds held."""
-    start = time.monotonic()
-    take_progress()
-    while (lagging := pacer.holding(stamp_ns, time.monotonic())) is not None:
-        state["paced_by"] = lagging
-        t = time.monotonic()
-        if shutdown.wait(HOLD_POLL_S):
-            break
-        state["held_by"][lagging] += time.monotonic() - t  # who holds the sim, for the periodic log
-        take_progress()
-    state["paced_by"] = ""
-    held = time.monotonic() - start
-    state["held_s"] += held
-    return held
 
 
 def add_args(parser: argparse.ArgumentParser) -> None:

@@ -212,6 +212,19 @@ def stream_for_key(key: str) -> Stream | None:
     return None
 
 
+def producer_of(key: str) -> str:
+    """The node (`scope/service/instance`, as in its presence token) that publishes `key`: a sensor
+    group for sensor data, the agent's MEC for objects; the key itself for anything else."""
+    for kind, stream in SENSOR_STREAM.items():
+        ids = get_stream(stream).ids(key)
+        if ids is not None:
+            return sensor_group_source(ids["agent"], kind)
+    ids = get_stream("objects").ids(key)
+    if ids is not None:
+        return f"{ids['agent']}/mec/{ids['agent']}"
+    return key
+
+
 def markdown_table() -> str:
     """The key-space table embedded in proto/README.md."""
     rows = [

@@ -97,3 +97,27 @@ def test_a_long_gap_is_not_taken_for_a_cadence() -> None:
     pacer.on_progress("mec1", T0, now_s=10.0)
     pacer.on_progress("mec1", T0 + 30 * NS_PER_S, now_s=10.5)  # restarted after 30 s of sim time
     assert pacer.holding(T0 + 31_200 * MS, now_s=10.6) == "mec1"  # period capped at 1 s
+
+
+def test_hold_waits_until_the_consumer_catches_up_and_counts_who_held() -> None:
+    pacer = Pacer(max_lag_s=0.25, timeout_s=5.0)
+    wall = [10.0]
+    outputs = iter([T0, T0, T0 + 100 * MS])  # the MEC catches up on the third look
+
+    def take_progress() -> None:
+        pacer.on_progress("mec1", next(outputs), wall[0])
+
+    def sleep(seconds: float) -> bool:
+        wall[0] += seconds
+        return False
+
+    held = pacer.hold(T0 + 300 * MS, take_progress, sleep, poll_s=0.01, clock=lambda: wall[0])
+    assert held == pytest.approx(0.02)  # two polls
+    assert pacer.held_by == {"mec1": pytest.approx(0.02)} and pacer.paced_by == ""
+
+
+def test_hold_stops_at_shutdown() -> None:
+    pacer = Pacer(max_lag_s=0.25, timeout_s=5.0)
+    pacer.on_progress("mec1", T0, 0.0)
+    held = pacer.hold(T0 + 1000 * MS, lambda: None, lambda _s: True, poll_s=0.01, clock=lambda: 0.0)
+    assert held == 0.0 and pacer.paced_by == ""

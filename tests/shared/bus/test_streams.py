@@ -6,7 +6,7 @@ import pytest
 import zenoh
 
 from shared.bus.liveliness import agent_of_mec_token
-from shared.bus.streams import get_stream, markdown_table, message_type, stream_for_key, streams
+from shared.bus.streams import get_stream, markdown_table, message_type, producer_of, stream_for_key, streams
 from tests.helpers import REPO_ROOT
 
 
@@ -81,3 +81,10 @@ def test_id_of_and_mec_tokens() -> None:
     assert agent_of_mec_token("rmmdet/@v1/agent3/@alive/mec/agent3") == "agent3"
     assert agent_of_mec_token("rmmdet/@v1/agent3/@alive/mec/agent1") is None
     assert agent_of_mec_token("rmmdet/@v1/site/@alive/router/main") is None
+
+
+def test_producer_of_names_the_publishing_node() -> None:
+    camera_key = get_stream("camera_image").key(agent="agent2", sensor="cam_21")
+    assert producer_of(camera_key) == "agent2/sensor/agent2-cameras"
+    assert producer_of("rmmdet/@v1/agent3/objects") == "agent3/mec/agent3"
+    assert producer_of("rmmdet/@v1/cloud/maps/traffic") == "rmmdet/@v1/cloud/maps/traffic"
