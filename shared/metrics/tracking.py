@@ -50,11 +50,11 @@ XY_COLUMNS = 2
 # Our summary key -> motmetrics metric name; float metrics may be undefined (None), counts are ints.
 _FLOAT_METRICS = {
     "mota": "mota",
-    "motp_m": "motp",
     "idf1": "idf1",
     "precision": "precision",
     "recall": "recall",
 }
+_MATCHED_EVENTS = ("MATCH", "SWITCH")  # motmetrics event types of a matched (object, track) pair
 _COUNT_METRICS = {
     "id_switches": "num_switches",
     "fp": "num_false_positives",
@@ -186,5 +186,11 @@ class TrackingAccumulator:
             out[key] = value if math.isfinite(value) else None
         for key, name in _COUNT_METRICS.items():
             out[key] = int(row[name])
+        # motmetrics' overall MOTP averages per-sequence MOTPs and is NaN as soon as one sequence has no
+        # match; the pooled mean over every matched pair (MATCH and SWITCH events) is the definition.
+        matched = [acc.mot_events for acc in accs]
+        distances = [ev.loc[ev["Type"].isin(_MATCHED_EVENTS), "D"].to_numpy(float) for ev in matched]
+        pooled = np.concatenate(distances) if distances else np.zeros(0)
+        out["motp_m"] = float(pooled.mean()) if pooled.size else None
         out["num_frames"] = self.num_frames
         return out

@@ -104,3 +104,15 @@ def test_merged_sequences_sum_their_events_and_never_link_ids() -> None:
     s = a.summary()
     assert s["num_frames"] == 5 and s["num_gt"] == 5 and s["misses"] == 1 and s["id_switches"] == 0
     assert s["mota"] == pytest.approx(1 - 1 / 5)
+
+
+def test_motp_pools_every_matched_pair_even_with_a_matchless_sequence() -> None:
+    # motmetrics' own overall MOTP is NaN here (one sequence has no match); the pooled mean is defined.
+    a, b, c = TrackingAccumulator(), TrackingAccumulator(), TrackingAccumulator()
+    a.update([1, 2], [[0.0, 0.0], [1.0, 1.0]], [7, 8], [[0.01, 0.0], [1.0, 1.03]])
+    b.update([1], [[0.0, 0.0]], [9], [[0.02, 0.0]])
+    c.update([1], [[0.0, 0.0]], [], np.zeros((0, 2)))
+    a.merge(b)
+    a.merge(c)
+    assert a.summary()["motp_m"] == pytest.approx((0.01 + 0.03 + 0.02) / 3)
+    assert TrackingAccumulator().summary()["motp_m"] is None
