@@ -71,6 +71,7 @@ __all__ = [
     "HEAT_MAP_KEYS",
     "FrameMatch",
     "FusionAccumulator",
+    "aos_kitti_term",
     "aos_term",
     "match_frame",
     "save_heat_map_png",
@@ -89,8 +90,9 @@ AP_BEV_IOU_THRESHOLDS: tuple[float, ...] = (0.7, 0.5)
 DEFAULT_SCORE = 1.0
 # Class id column fed to evaluate_kitti (class-agnostic: never read).
 CLASS_ID = 0.0
-# Percentiles of the pose error reported by `FusionAccumulator.summary`.
+# Percentiles of the pose and velocity errors reported by `FusionAccumulator.summary`.
 POSE_PERCENTILES = (50.0, 95.0)
+VELOCITY_PERCENTILES = POSE_PERCENTILES
 # A grid span may differ from a whole number of cells by this fraction of a cell (float rounding).
 HEAT_MAP_KEYS: tuple[str, ...] = ("pose_error_m", "aos", "bev_iou", "count", "num_gt", "recall")
 
@@ -112,6 +114,21 @@ def _boxes(value: ArrayLike, name: str) -> FloatArray:
         raise ValueError(f"{name} must contain only finite values (no NaN / inf)")
     if np.any(arr[:, DX : DZ + 1] < 0.0):
         raise ValueError(f"{name} sizes (dx, dy, dz) must be non-negative")
+    return arr
+
+
+def _velocities(value: ArrayLike, n: int, name: str) -> FloatArray:
+    """``value`` as an (n, 2) float64 array of BEV velocities (NaN rows allowed: unknown), m/s."""
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be a numeric ({n}, 2) array: {exc}") from exc
+    if arr.size == 0 and n == 0:
+        return np.zeros((0, 2))
+    if arr.shape != (n, 2):
+        raise ValueError(f"{name} must have shape ({n}, 2), got {arr.shape}")
+    if np.isinf(arr).any():
+        raise ValueError(f"{name} must not contain inf")
     return arr
 
 
@@ -147,8 +164,26 @@ def _positive(value: float, name: str) -> float:
 # --- one frame ---------------------------------------------------------------------------------------
 
 
+def aos_kitti_term(yaw_pred: ArrayLike, yaw_gt: ArrayLike) -> FloatArray:
+    """KITTI's orientation similarity ``(1 + cos Δθ) / 2`` per pair, in [0, 1]: 0 for a box facing
+    the wrong way (the heading sign counts).
+
+    Parameters
+    ----------
+    yaw_pred, yaw_gt : array_like, shape (K,)
+        Yaw, radians (any wrapping).
+
+    Returns
+    -------
+    numpy.ndarray, shape (K,)
+    """
+    delta = np.asarray(yaw_pred, dtype=np.float64) - np.asarray(yaw_gt, dtype=np.float64)
+    return np.asarray((1.0 + np.cos(delta)) / 2.0, dtype=np.float64)
+
+
 def aos_term(yaw_pred: ArrayLike, yaw_gt: ArrayLike) -> FloatArray:
-    """Orientation similarity ``(1 + cos 2Δθ) / 2`` per pair, in [0, 1]; invariant to a π flip.
+    """Orientation similarity ``(1 + cos 2Δθ) / 2`` per pair, in [0, 1]; invariant to a π flip (the
+    paper's measure; `aos_kitti_term` is the KITTI one).
 
     Parameters
     ----------
@@ -303,6 +338,8 @@ class FusionAccumulator:
         self.max_distance_m = _positive(max_distance_m, "max_distance_m")
         self._pose_error: list[FloatArray] = []
         self._aos: list[FloatArray] = []  # NaN where the prediction's yaw is not valid
+        self._aos_kitti: list[FloatArray] = []  # as _aos, with the heading sign
+        self._velocity_error: list[FloatArray] = []  # m/s, NaN where either velocity is not given
         self._iou: list[FloatArray] = []
         self._tp_gt_xy: list[FloatArray] = []
         self._fn_gt_xy: list[FloatArray] = []
@@ -316,11 +353,22 @@ class FusionAccumulator:
         self.fn = 0
         self.num_ignored = 0
 
+    _PER_PAIR = (
+        "_pose_error",
+        "_aos",
+        "_aos_kitti",
+        "_velocity_error",
+        "_iou",
+        "_tp_gt_xy",
+        "_fn_gt_xy",
+        "_kitti_frames",
+    )
+
     def merge(self, other: FusionAccumulator) -> None:
         """Add every frame of `other` (e.g. another agent or seed evaluated in another process)."""
         if other.max_distance_m != self.max_distance_m:
             raise ValueError("cannot merge accumulators with different gates")
-        for name in ("_pose_error", "_aos", "_iou", "_tp_gt_xy", "_fn_gt_xy", "_kitti_frames"):
+        for name in self._PER_PAIR:
             getattr(self, name).extend(getattr(other, name))
         for name in ("num_frames", "num_pred", "num_gt", "tp", "fp", "fn", "num_ignored"):
             setattr(self, name, getattr(self, name) + getattr(other, name))
@@ -333,6 +381,8 @@ class FusionAccumulator:
         yaw_valid: ArrayLike | None = None,
         scores: ArrayLike | None = None,
         gt_ignore: ArrayLike | None = None,
+        pred_velocity_mps: ArrayLike | None = None,
+        gt_velocity_mps: ArrayLike | None = None,
     ) -> FrameMatch:
         """Match one frame and record its pairs and counts.
 
@@ -349,6 +399,9 @@ class FusionAccumulator:
             Confidence per prediction, used only for AP; default 1 for all.
         gt_ignore : array_like, shape (I, 7), optional
             Ignore regions (see `match_frame`).
+        pred_velocity_mps, gt_velocity_mps : array_like, shapes (P, 2) and (G, 2), optional
+            BEV velocities, m/s (rows of NaN: unknown); with both, the velocity error of every matched
+            pair is recorded.
 
         Returns
         -------
@@ -364,6 +417,13 @@ class FusionAccumulator:
         p, g = match.pred_index, match.gt_index
         self._pose_error.append(match.distance_m)
         self._aos.append(np.where(valid[p], aos_term(preds[p, YAW], gts[g, YAW]), np.nan))
+        self._aos_kitti.append(np.where(valid[p], aos_kitti_term(preds[p, YAW], gts[g, YAW]), np.nan))
+        if pred_velocity_mps is None or gt_velocity_mps is None:
+            self._velocity_error.append(np.full(p.size, np.nan))
+        else:
+            v_pred = _velocities(pred_velocity_mps, preds.shape[0], "pred_velocity_mps")
+            v_gt = _velocities(gt_velocity_mps, gts.shape[0], "gt_velocity_mps")
+            self._velocity_error.append(np.linalg.norm(v_pred[p] - v_gt[g], axis=1))
         # Only the matched pairs' IoU is needed: the diagonal of the (K, K) matrix.
         self._iou.append(np.diagonal(bev_iou_matrix(preds[p], gts[g])).copy())
         self._tp_gt_xy.append(gts[g][:, [X, Y]])
@@ -391,6 +451,16 @@ class FusionAccumulator:
         return np.concatenate(self._aos) if self._aos else np.zeros(0)
 
     @property
+    def aos_kitti_terms(self) -> FloatArray:
+        """KITTI AOS term (heading sign counts) of every matched pair, NaN as `aos_terms`, shape (TP,)."""
+        return np.concatenate(self._aos_kitti) if self._aos_kitti else np.zeros(0)
+
+    @property
+    def velocity_errors_mps(self) -> FloatArray:
+        """BEV velocity error of every matched pair, m/s, NaN where a velocity is unknown, shape (TP,)."""
+        return np.concatenate(self._velocity_error) if self._velocity_error else np.zeros(0)
+
+    @property
     def bev_ious(self) -> FloatArray:
         """Rotated BEV IoU of every matched pair, shape (TP,)."""
         return np.concatenate(self._iou) if self._iou else np.zeros(0)
@@ -412,9 +482,12 @@ class FusionAccumulator:
         -------
         dict
             ``num_frames, num_gt, num_pred, tp, fp, fn, num_ignored`` (int); ``precision = tp / (tp +
-            fp)``, ``recall = tp / (tp + fn)``; ``pose_error_mean_m, pose_error_p50_m,
-            pose_error_p95_m, pose_error_max_m`` (metres, over TP); ``aos_mean`` and ``aos_count`` (TP
-            with a valid yaw); ``bev_iou_mean``; with ``with_ap`` also ``ap_bev_0.7`` and
+            fp)``, ``recall = tp / (tp + fn)``, ``f1`` (at the output operating point: every box
+            given); ``pose_error_mean_m, pose_error_p50_m, pose_error_p95_m, pose_error_max_m``
+            (metres, over TP); ``aos_mean`` (the paper's, π-invariant), ``aos_kitti_mean`` (heading
+            sign counts) and ``aos_count`` (TP with a valid yaw); ``velocity_error_p50_mps``,
+            ``velocity_error_p95_mps`` and ``velocity_count`` (TP with both velocities);
+            ``bev_iou_mean``; with ``with_ap`` also ``ap_bev_0.7`` and
             ``ap_bev_0.5`` (R40). A ratio with a zero denominator and a statistic over no pairs is None.
         """
         errors, aos, iou = self.pose_errors_m, self.aos_terms, self.bev_ious
@@ -429,6 +502,7 @@ class FusionAccumulator:
             "num_ignored": self.num_ignored,
             "precision": _ratio_or_none(self.tp, self.tp + self.fp),
             "recall": _ratio_or_none(self.tp, self.tp + self.fn),
+            "f1": _ratio_or_none(2 * self.tp, 2 * self.tp + self.fp + self.fn),
             "pose_error_mean_m": _float_or_none(errors.mean()) if errors.size else None,
         }
         for q in POSE_PERCENTILES:
@@ -436,7 +510,16 @@ class FusionAccumulator:
             out[f"pose_error_p{q:g}_m"] = _float_or_none(value)
         out["pose_error_max_m"] = _float_or_none(errors.max()) if errors.size else None
         out["aos_mean"] = _float_or_none(aos_valid.mean()) if aos_valid.size else None
+        aos_kitti = self.aos_kitti_terms
+        aos_kitti = aos_kitti[np.isfinite(aos_kitti)]
+        out["aos_kitti_mean"] = _float_or_none(aos_kitti.mean()) if aos_kitti.size else None
         out["aos_count"] = int(aos_valid.size)
+        velocity = self.velocity_errors_mps
+        velocity = velocity[np.isfinite(velocity)]
+        for q in VELOCITY_PERCENTILES:
+            value = np.percentile(velocity, q) if velocity.size else np.nan
+            out[f"velocity_error_p{q:g}_mps"] = _float_or_none(value)
+        out["velocity_count"] = int(velocity.size)
         out["bev_iou_mean"] = _float_or_none(iou.mean()) if iou.size else None
         if with_ap:
             out.update(self.ap_bev())

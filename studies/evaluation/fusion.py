@@ -76,6 +76,12 @@ SCOPE_MARGIN_Z_M = 0.06
 class FrameTruth:
     boxes: dict[str, FloatArray]  # observable vehicle id -> (7,) world box
     ignore: list[FloatArray]  # glimpsed vehicles' boxes
+    velocities_mps: dict[str, FloatArray] = field(default_factory=dict)  # vehicle id -> (2,) world vx, vy
+
+
+def vehicle_velocities(gt: Any) -> dict[str, FloatArray]:
+    """Vehicle id -> (2,) world BEV velocity, m/s, of a GroundTruth message."""
+    return {v.vehicle_id: np.array([v.velocity_mps.x, v.velocity_mps.y]) for v in gt.vehicles}
 
 
 def vehicle_boxes(gt: Any) -> dict[str, FloatArray]:
@@ -138,7 +144,8 @@ def observable(gt: Any, captures: list[Capture], scope: AgentScope) -> FrameTrut
     inside, near = scope.inside(stacked), scope.near(stacked)
     scored = {v: boxes[v] for v, i in zip(vehicle_ids, inside, strict=True) if i and v in seen}
     ignore = [boxes[v] for v, i, n in zip(vehicle_ids, inside, near, strict=True) if n and v not in scored]
-    return FrameTruth(scored, ignore)
+    velocities = vehicle_velocities(gt)
+    return FrameTruth(scored, ignore, {v: velocities[v] for v in scored})
 
 
 def feed_tick(core: MecCore, tick_stamp_ns: int, tick: int, captures: list[Capture]) -> MecOutput | None:
@@ -302,12 +309,16 @@ def _score_frame(
     ev.frames += 1
     gt_ids = list(truth.boxes)
     gt = np.stack([truth.boxes[v] for v in gt_ids]) if gt_ids else np.zeros((0, 7))
+    gt_velocity = np.stack([truth.velocities_mps[v] for v in gt_ids]) if gt_ids else np.zeros((0, 2))
     ignore = np.stack(truth.ignore) if truth.ignore else np.zeros((0, 7))
     for stage, seconds in result.latencies_s.items():
         ev.latencies_s.setdefault(stage, []).append(seconds)
-    sets: dict[str, tuple[list[tuple[FloatArray, bool]], list[float], list[int] | None]] = {}
+    # name -> (boxes with yaw validity, scores, track ids, velocities (tracks only: measurements have none))
+    sets: dict[
+        str, tuple[list[tuple[FloatArray, bool]], list[float], list[int] | None, FloatArray | None]
+    ] = {}
     for name, rows in {**singles, "fused": result.measurements}.items():
-        sets[name] = ([measurement_box(m, car_size_m) for m in rows], [m.score for m in rows], None)
+        sets[name] = ([measurement_box(m, car_size_m) for m in rows], [m.score for m in rows], None, None)
     for name, tracks in {
         "tracked": result.tracks,
         **{f"tracked_{m}": t for m, t in single_tracks.items()},
@@ -316,12 +327,21 @@ def _score_frame(
             [track_box(t, car_size_m) for t in tracks],
             [t.existence_probability for t in tracks],
             [t.track_id for t in tracks],
+            np.array([t.velocity_mps for t in tracks]).reshape(-1, 2),
         )
-    for name, (box_rows, score_list, track_ids) in sets.items():
+    for name, (box_rows, score_list, track_ids, velocity) in sets.items():
         boxes, yaw_ok = _stack(box_rows)
         keep = scope.near(boxes)  # objects beyond the agent's areas are another agent's business
         boxes, yaw_ok, scores = boxes[keep], yaw_ok[keep], np.asarray(score_list, float).reshape(-1)[keep]
-        match = ev.acc(name).add_frame(boxes, gt, yaw_valid=yaw_ok, scores=scores, gt_ignore=ignore)
+        match = ev.acc(name).add_frame(
+            boxes,
+            gt,
+            yaw_valid=yaw_ok,
+            scores=scores,
+            gt_ignore=ignore,
+            pred_velocity_mps=None if velocity is None else velocity[keep],
+            gt_velocity_mps=gt_velocity,
+        )
         if track_ids is not None:
             # Tracks on ignore regions (glimpsed cars, cars just outside the areas) are not scored.
             counted = np.ones(len(boxes), bool)

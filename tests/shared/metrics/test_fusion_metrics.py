@@ -14,6 +14,7 @@ from shared.metrics.fusion import (
     DEFAULT_MATCH_DISTANCE_M,
     HEAT_MAP_KEYS,
     FusionAccumulator,
+    aos_kitti_term,
     aos_term,
     match_frame,
     save_heat_map_png,
@@ -108,6 +109,7 @@ def test_yaw_off_by_pi_scores_full_aos() -> None:
     acc.add_frame(preds, GT3)
     s = acc.summary(with_ap=False)
     assert s["aos_mean"] == pytest.approx(1.0)
+    assert s["aos_kitti_mean"] == pytest.approx(0.0, abs=1e-12)  # KITTI: facing the wrong way scores 0
     assert s["bev_iou_mean"] == pytest.approx(1.0)  # a π flip leaves the footprint unchanged
 
 
@@ -283,3 +285,23 @@ def test_merge_equals_one_accumulator_over_all_frames() -> None:
         acc.add_frame(np.zeros((0, 7)), gt)
     a.merge(b)
     assert a.summary() == one.summary()
+
+
+def test_kitti_aos_term_known_answers() -> None:
+    got = aos_kitti_term([0.1, math.pi / 2, math.pi, 0.0], [0.1 + 2 * math.pi, 0.0, 0.0, 0.0])
+    assert got == pytest.approx([1.0, 0.5, 0.0, 1.0])
+
+
+def test_f1_and_velocity_error_of_matched_pairs() -> None:
+    acc = FusionAccumulator()
+    preds = cars(car(0.0, 0.0), car(1.0, -2.0), car(3.0, 3.0))  # frame 1: 2 TP, 1 FP, 1 FN
+    v_pred = np.array([[0.3, 0.0], [0.0, np.nan], [1.0, 1.0]])  # the second: velocity unknown
+    v_gt = np.array([[0.0, 0.4], [0.1, 0.0], [0.0, 0.0]])
+    acc.add_frame(preds, GT3, pred_velocity_mps=v_pred, gt_velocity_mps=v_gt)
+    acc.add_frame(preds[:1], GT3[:1])  # no velocities given: nothing recorded
+    s = acc.summary(with_ap=False)
+    assert (s["tp"], s["fp"], s["fn"]) == (3, 1, 1)
+    assert s["f1"] == pytest.approx(2 * 3 / (2 * 3 + 1 + 1))
+    assert s["velocity_count"] == 1 and s["velocity_error_p50_mps"] == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="pred_velocity_mps"):
+        acc.add_frame(preds, GT3, pred_velocity_mps=np.zeros((2, 2)), gt_velocity_mps=v_gt)

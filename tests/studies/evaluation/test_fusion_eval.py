@@ -40,6 +40,11 @@ def test_short_run_scores_every_output_and_merges(scene: Scene) -> None:
     for name in ("lidar", "camera", "fused", "tracked", "tracked_lidar", "tracked_camera"):
         assert summary[name]["num_frames"] == ev.frames, name
     assert summary["tracked"]["tracking"]["num_frames"] == ev.frames
+    # Tracks carry velocities (scored against the ground truth's), measurements none; MOTP is defined.
+    tracked = summary["tracked"]
+    assert tracked["velocity_count"] == tracked["tp"] > 0 and tracked["velocity_error_p95_mps"] is not None
+    assert summary["fused"]["velocity_count"] == 0 and summary["fused"]["aos_kitti_mean"] is not None
+    assert tracked["tracking"]["motp_m"] is not None
     assert {"detect_2d", "detect_3d", "fuse", "track"} <= set(summary["latency_ms"])
     both = fe.AgentEvaluation()
     both.merge(ev)
