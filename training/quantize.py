@@ -48,6 +48,8 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 Feeds = dict[str, np.ndarray]
+CALIB_SEEDS = (1, 5, 9, 13, 17, 21)  # training seeds, spread over the split's traffic densities
+WARMUP_S = 5.0  # traffic spreads over the table first (as the dataset generator)
 CALIB_FLUSH_EVERY = 16  # calibration outputs held in memory before the running min / max is updated
 
 

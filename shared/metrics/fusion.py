@@ -48,9 +48,10 @@ ignore box.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -130,6 +131,21 @@ def _velocities(value: ArrayLike, n: int, name: str) -> FloatArray:
     if np.isinf(arr).any():
         raise ValueError(f"{name} must not contain inf")
     return arr
+
+
+def _joined(parts: list[FloatArray]) -> FloatArray:
+    """Per-frame records of one kind concatenated (empty when there are none)."""
+    return np.concatenate(parts) if parts else np.zeros(0)
+
+
+def _finite(values: FloatArray) -> FloatArray:
+    """The finite entries (NaN marks a pair without that quantity)."""
+    return values[np.isfinite(values)]
+
+
+def _stat_or_none(stat: Callable[..., Any], values: FloatArray, *args: float) -> float | None:
+    """``stat(values, *args)`` as a float; None over no values (JSON-ready)."""
+    return _float_or_none(stat(values, *args)) if values.size else None
 
 
 def _per_box(value: ArrayLike | None, n: int, name: str, default: float | bool) -> NDArray[np.generic]:
@@ -443,27 +459,27 @@ class FusionAccumulator:
     @property
     def pose_errors_m(self) -> FloatArray:
         """BEV centre distance of every matched pair, metres, shape (TP,)."""
-        return np.concatenate(self._pose_error) if self._pose_error else np.zeros(0)
+        return _joined(self._pose_error)
 
     @property
     def aos_terms(self) -> FloatArray:
         """AOS term of every matched pair, NaN where the prediction's yaw is not valid, shape (TP,)."""
-        return np.concatenate(self._aos) if self._aos else np.zeros(0)
+        return _joined(self._aos)
 
     @property
     def aos_kitti_terms(self) -> FloatArray:
         """KITTI AOS term (heading sign counts) of every matched pair, NaN as `aos_terms`, shape (TP,)."""
-        return np.concatenate(self._aos_kitti) if self._aos_kitti else np.zeros(0)
+        return _joined(self._aos_kitti)
 
     @property
     def velocity_errors_mps(self) -> FloatArray:
         """BEV velocity error of every matched pair, m/s, NaN where a velocity is unknown, shape (TP,)."""
-        return np.concatenate(self._velocity_error) if self._velocity_error else np.zeros(0)
+        return _joined(self._velocity_error)
 
     @property
     def bev_ious(self) -> FloatArray:
         """Rotated BEV IoU of every matched pair, shape (TP,)."""
-        return np.concatenate(self._iou) if self._iou else np.zeros(0)
+        return _joined(self._iou)
 
     @property
     def matched_gt_xy(self) -> FloatArray:
@@ -490,8 +506,10 @@ class FusionAccumulator:
             ``bev_iou_mean``; with ``with_ap`` also ``ap_bev_0.7`` and
             ``ap_bev_0.5`` (R40). A ratio with a zero denominator and a statistic over no pairs is None.
         """
-        errors, aos, iou = self.pose_errors_m, self.aos_terms, self.bev_ious
-        aos_valid = aos[np.isfinite(aos)]
+        errors, iou = self.pose_errors_m, self.bev_ious
+        aos = _finite(self.aos_terms)
+        aos_kitti = _finite(self.aos_kitti_terms)
+        velocity = _finite(self.velocity_errors_mps)
         out: dict[str, float | int | None] = {
             "num_frames": self.num_frames,
             "num_gt": self.num_gt,
@@ -503,24 +521,18 @@ class FusionAccumulator:
             "precision": _ratio_or_none(self.tp, self.tp + self.fp),
             "recall": _ratio_or_none(self.tp, self.tp + self.fn),
             "f1": _ratio_or_none(2 * self.tp, 2 * self.tp + self.fp + self.fn),
-            "pose_error_mean_m": _float_or_none(errors.mean()) if errors.size else None,
+            "pose_error_mean_m": _stat_or_none(np.mean, errors),
         }
         for q in POSE_PERCENTILES:
-            value = np.percentile(errors, q) if errors.size else np.nan
-            out[f"pose_error_p{q:g}_m"] = _float_or_none(value)
-        out["pose_error_max_m"] = _float_or_none(errors.max()) if errors.size else None
-        out["aos_mean"] = _float_or_none(aos_valid.mean()) if aos_valid.size else None
-        aos_kitti = self.aos_kitti_terms
-        aos_kitti = aos_kitti[np.isfinite(aos_kitti)]
-        out["aos_kitti_mean"] = _float_or_none(aos_kitti.mean()) if aos_kitti.size else None
-        out["aos_count"] = int(aos_valid.size)
-        velocity = self.velocity_errors_mps
-        velocity = velocity[np.isfinite(velocity)]
+            out[f"pose_error_p{q:g}_m"] = _stat_or_none(np.percentile, errors, q)
+        out["pose_error_max_m"] = _stat_or_none(np.max, errors)
+        out["aos_mean"] = _stat_or_none(np.mean, aos)
+        out["aos_kitti_mean"] = _stat_or_none(np.mean, aos_kitti)
+        out["aos_count"] = int(aos.size)
         for q in VELOCITY_PERCENTILES:
-            value = np.percentile(velocity, q) if velocity.size else np.nan
-            out[f"velocity_error_p{q:g}_mps"] = _float_or_none(value)
+            out[f"velocity_error_p{q:g}_mps"] = _stat_or_none(np.percentile, velocity, q)
         out["velocity_count"] = int(velocity.size)
-        out["bev_iou_mean"] = _float_or_none(iou.mean()) if iou.size else None
+        out["bev_iou_mean"] = _stat_or_none(np.mean, iou)
         if with_ap:
             out.update(self.ap_bev())
         return out

@@ -247,8 +247,8 @@ class CoordinatorCore:
 
     def replan_if_due(self, now_s: float, wall_ns: int) -> int | None:
         """`replan` every `replan_interval_s` of the clock of record, the first time one interval after
-        the first call: the number of plans issued, None when not due yet. The service calls it on every
-        loop, the flow experiment on every map update; the cadence is the core's either way."""
+        the first call: the number of plans issued, None when not due yet. Called by `tick` (the service's
+        loop and the flow experiment's map updates alike)."""
         interval_s = self.settings.replan_interval_s
         if self.next_replan_s is None:
             self.next_replan_s = now_s + interval_s

@@ -23,7 +23,14 @@ import numpy as np
 from shared.detection.camera.config import CONFIG_FILE, ONNX_INPUT, CameraDetectorConfig
 from shared.detection.camera.geometry import letterbox_image
 from shared.detection.registry import CAMERA_MODEL, MODELS_DIR
-from training.quantize import Feeds, quantize_calibrated, quantize_cli, render_training_captures
+from training.quantize import (
+    CALIB_SEEDS,
+    WARMUP_S,
+    Feeds,
+    quantize_calibrated,
+    quantize_cli,
+    render_training_captures,
+)
 
 # Relu too: the QDQ pair then sits after it and its range starts at 0 (measured on tuning-seed images
 # against Conv only: same speed, box deviation from fp32 p95 1.6 px instead of 2.5 px).
@@ -31,8 +38,6 @@ OP_TYPES = ("Conv", "Relu")
 # The prediction conv stays float: its output mixes box distances and the score logit, whose ranges
 # one per-tensor uint8 scale serves badly (measured: max box deviation from fp32 31 px -> 7 px).
 KEEP_FLOAT = ("/net/pred/Conv",)
-CALIB_SEEDS = (1, 5, 9, 13, 17, 21)  # training seeds, spread over the split's traffic densities
-WARMUP_S = 5.0  # traffic spreads over the table first (as the dataset generator)
 CALIB_SECONDS = 4.0
 CALIB_RATE_HZ = 0.5  # images per camera per simulated second
 

@@ -21,7 +21,14 @@ from pathlib import Path
 
 from shared.detection.lidar.pointpillars.onnx_detector import OnnxPointPillars
 from shared.detection.registry import LIDAR_MODEL, MODELS_DIR
-from training.quantize import Feeds, quantize_calibrated, quantize_cli, render_training_captures
+from training.quantize import (
+    CALIB_SEEDS,
+    WARMUP_S,
+    Feeds,
+    quantize_calibrated,
+    quantize_cli,
+    render_training_captures,
+)
 
 # The 2D network's ops; Relu and Concat too, so that the activations stay uint8 between the convolutions.
 OP_TYPES = ("Conv", "ConvTranspose", "Relu", "Concat")
@@ -29,8 +36,6 @@ OP_TYPES = ("Conv", "ConvTranspose", "Relu", "Concat")
 # direction logit under one per-tensor uint8 scale (measured on tuning-seed frames: 5 % of the boxes
 # flipped heading by pi against fp32; 1 % with these in float, at +0.4 ms per frame).
 KEEP_FLOAT = ("/net/head/heatmap/Conv", "/net/head/regression/Conv")
-CALIB_SEEDS = (1, 5, 9, 13, 17, 21)  # training seeds, spread over the split's traffic densities
-WARMUP_S = 5.0  # traffic spreads over the table first (as the dataset generator)
 CALIB_SECONDS = 5.0
 CALIB_RATE_HZ = 2.0  # frames per agent per simulated second
 
