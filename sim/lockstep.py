@@ -75,8 +75,8 @@ class LockstepSim:
             scene, RoadNetwork(scene), settings.traffic, settings.seed, settings.tick_hz
         )
         specs = list(scene.spec.sensors) if sensor_ids is None else [scene.sensor(s) for s in sensor_ids]
-        specs = [override(s, rate_hz, None) for s in specs]
-        self.rig = SensorRig(scene, specs)
+        specs = [override(s, rate_hz, model_overrides) for s in specs]
+        self.rig = SensorRig(scene, specs, lighting)
 
     def ground_truth(self) -> GroundTruth:
         """Ground truth of the current tick, stamped with the epoch + simulated time."""

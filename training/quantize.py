@@ -174,13 +174,14 @@ def render_training_captures(
     from shared.scene.scene import Scene
     from sim.config import load_sim_settings
     from sim.lockstep import LockstepSim
+    from studies.dataset.conditions import SeedConditions
     from studies.dataset.config import DatasetSettings
-    from studies.dataset.generate import seed_variation
 
     scene = Scene.load(DEFAULT_SCENE)
     kinds = {scene.sensor(s).kind for s in sensor_ids}
     for seed in check_training_seeds(seeds):
-        vehicles = seed_variation(DatasetSettings(), seed)["vehicles"]  # as rmmdet eval fusion
+        # The seed's density only (clean sensors): how the shipped models were calibrated.
+        vehicles = SeedConditions.draw(DatasetSettings().variation, seed).vehicles
         settings = load_sim_settings(vehicles=vehicles, seed=seed)
         t0 = time.perf_counter()
         with LockstepSim(

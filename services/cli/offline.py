@@ -155,17 +155,23 @@ def eval_fusion(
     agents: Annotated[
         list[str] | None, typer.Option("--agent", help="agents (repeatable; default all)")
     ] = None,
+    split: Annotated[
+        str, typer.Option(help="seeds: 'test' (held out: score once per change) or 'tuning'")
+    ] = "test",
     seeds: Annotated[
         list[int] | None,
-        typer.Option("--seed", help="sim seeds (repeatable; default the dataset test split)"),
+        typer.Option("--seed", help="sim seeds (repeatable; replaces the split's seeds)"),
     ] = None,
     duration_s: Annotated[float, typer.Option(help="simulated seconds scored per (agent, seed)")] = 60.0,
     warmup_s: Annotated[float, typer.Option(help="simulated seconds before scoring (tracks settle)")] = 3.0,
     workers: Annotated[int, typer.Option(help="(agent, seed) runs in parallel (processes)")] = 2,
     config: Annotated[Path | None, typer.Option(help="MEC settings YAML")] = None,
     noise: Annotated[bool, typer.Option(help="also run the paper's Kalman noise experiment")] = True,
-    out: Annotated[Path, typer.Option(help="folder for results JSON and plots")] = Path("docs/eval/fusion"),
-    readme: Annotated[bool, typer.Option(help="rewrite the README's fusion table")] = False,
+    out: Annotated[
+        Path | None,
+        typer.Option(help="results folder (default docs/eval/fusion[_tuning])"),
+    ] = None,
+    readme: Annotated[bool, typer.Option(help="rewrite the README's fusion table of the split")] = False,
 ) -> None:
     """The MEC pipeline against simulation ground truth on held-out seeds: pose error, AOS, BEV IoU,
     heat maps (0.125 m grid), AP-BEV, precision / recall with false positives, MOTA / IDF1, pre- and
@@ -185,16 +191,23 @@ def eval_fusion(
     unknown = [a for a in agents if a not in scene.agents]
     if unknown:
         raise typer.BadParameter(f"unknown agents {unknown}: the scene has {sorted(scene.agents)}")
-    seeds = seeds or list(dataset.seeds.test)
+    if split not in fe.SPLIT_LABELS:
+        raise typer.BadParameter(f"--split must be one of {sorted(fe.SPLIT_LABELS)}")
+    split_seeds = dataset.seeds.fusion_test if split == "test" else dataset.seeds.fusion_tuning
+    seeds = seeds or list(split_seeds)
+    out = out or Path("docs/eval/fusion" if split == "test" else "docs/eval/fusion_tuning")
     mec = load_settings(MecSettings, config or DEFAULT_MEC_CONFIG)
-    results = run_fusion_study(scene, dataset, mec, agents, seeds, duration_s, warmup_s, workers, noise, out)
+    results = run_fusion_study(
+        scene, dataset, mec, agents, seeds, duration_s, warmup_s, workers, noise, out, split=split
+    )
     table = Table(title=f"fusion on seeds {seeds}, {results['all']['frames']} agent frames")  # type: ignore[index]
     for col in fe.TABLE_COLUMNS:
         table.add_column(col)
     for row in fe.table_rows(results, agents):
         table.add_row(*row)
     if readme:
-        replace_section("eval-fusion", fe.markdown_table(results, agents))
+        section = "eval-fusion" if split == "test" else "eval-fusion-tuning"
+        replace_section(section, fe.markdown_table(results, agents))
     console.print(table)
     console.print(f"results: {out / 'results.json'}")
 

@@ -21,6 +21,7 @@ from scipy.spatial.transform import Rotation
 
 from shared.geometry.boxes import box3d_corners
 from shared.geometry.camera import project_points
+from shared.scene.model import CameraModel
 from shared.scene.scene import Scene
 from sim.world import StaticWorld, VehiclePose, VehicleWorld
 
@@ -162,13 +163,15 @@ class CameraRenderer:
         static: StaticWorld,
         vehicles: VehicleWorld,
         lighting: Lighting = Lighting(),
+        model: CameraModel | None = None,
     ) -> None:
+        """`model` replaces the scene's camera model (its resolution and intrinsics must match)."""
         spec = scene.sensor(camera_id)
         assert spec.camera is not None
         self.lighting = lighting
         self.camera_id = camera_id
-        self.model = spec.camera
-        self.width, self.height = spec.camera.width_px, spec.camera.height_px
+        self.model = model or spec.camera
+        self.width, self.height = self.model.width_px, self.model.height_px
         self.K = np.asarray(scene.K(camera_id))
         self.T = np.asarray(scene.T_optical_from_world(camera_id))
         self.vehicles = vehicles

@@ -133,12 +133,20 @@ def rays_hitting_boxes(
 class LidarSimulator:
     """One lidar: cached static ranges + per-scan vehicle ray casts."""
 
-    def __init__(self, scene: Scene, sensor_id: str, static: StaticWorld, vehicles: VehicleWorld) -> None:
+    def __init__(
+        self,
+        scene: Scene,
+        sensor_id: str,
+        static: StaticWorld,
+        vehicles: VehicleWorld,
+        model: LidarModel | None = None,
+    ) -> None:
+        """`model` replaces the scene's lidar model (e.g. a run's own range noise)."""
         spec = scene.sensor(sensor_id)
         if spec.lidar is None:
             raise ValueError(f"sensor {sensor_id!r} is not a lidar")
         self.sensor_id = sensor_id
-        self.model = spec.lidar
+        self.model = model or spec.lidar
         self.vehicles = vehicles
         T = np.asarray(scene.T_world_from_sensor(sensor_id))
         self.dirs_sensor, self.channel = ray_directions(self.model)

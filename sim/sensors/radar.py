@@ -95,13 +95,20 @@ class _Candidate:
 class RadarSimulator:
     """Radar `sensor_id` of `scene`; `model` (a RadarModel) may be replaced, e.g. by a noise-free copy."""
 
-    def __init__(self, scene: Scene, sensor_id: str, static: StaticWorld, vehicles: VehicleWorld) -> None:
+    def __init__(
+        self,
+        scene: Scene,
+        sensor_id: str,
+        static: StaticWorld,
+        vehicles: VehicleWorld,
+        model: RadarModel | None = None,
+    ) -> None:
         spec = scene.sensor(sensor_id)
         if spec.radar is None:
             raise ValueError(f"{sensor_id} is a {spec.kind}, not a radar")
         self.scene = scene
         self.sensor_id = sensor_id
-        self.model: RadarModel = spec.radar
+        self.model: RadarModel = model or spec.radar
         self.static = static
         self.vehicles = vehicles
         self.T_world_from_sensor = np.asarray(scene.T_world_from_sensor(sensor_id), dtype=float)

@@ -117,7 +117,7 @@ class CameraSensor:
     ) -> None:
         assert spec.camera is not None
         self.spec = spec
-        self.renderer = CameraRenderer(scene, spec.id, static, vehicles, lighting)
+        self.renderer = CameraRenderer(scene, spec.id, static, vehicles, lighting, spec.camera)
         self.noise_std = spec.camera.image_noise_std
         self._empty_jpeg = encode_jpeg(self.renderer.background)
         self._last_jpeg: tuple[np.ndarray, bytes] | None = None  # (noise-free image, its JPEG)
@@ -143,7 +143,7 @@ class CameraSensor:
 class LidarSensor:
     def __init__(self, scene: Scene, spec: SensorSpec, static: StaticWorld, vehicles: VehicleWorld) -> None:
         self.spec = spec
-        self.simulator = LidarSimulator(scene, spec.id, static, vehicles)
+        self.simulator = LidarSimulator(scene, spec.id, static, vehicles, spec.lidar)
 
     def capture(self, world: TickWorld, labels: bool) -> Capture:
         scan = self.simulator.scan(world.poses, sensor_rng(world.seed, self.spec.id, world.tick))
@@ -154,7 +154,7 @@ class LidarSensor:
 class RadarSensor:
     def __init__(self, scene: Scene, spec: SensorSpec, static: StaticWorld, vehicles: VehicleWorld) -> None:
         self.spec = spec
-        self.simulator = RadarSimulator(scene, spec.id, static, vehicles)
+        self.simulator = RadarSimulator(scene, spec.id, static, vehicles, spec.radar)
 
     def capture(self, world: TickWorld, labels: bool) -> Capture:
         targets = self.simulator.scan(world.states, sensor_rng(world.seed, self.spec.id, world.tick))

@@ -28,15 +28,27 @@ class SplitSeeds(_Model):
     train: list[int] = Field(default_factory=lambda: list(range(1, 25)), description="training seeds")
     val: list[int] = Field(default_factory=lambda: list(range(101, 104)), description="validation seeds")
     test: list[int] = Field(default_factory=lambda: list(range(201, 206)), description="held-out test seeds")
+    fusion_tuning: list[int] = Field(
+        default_factory=lambda: list(range(201, 206)),
+        description="the fusion evaluation's tuning seeds: fusion and tracking settings were chosen on "
+        "these (the detectors' test seeds: no detector was tuned on them)",
+    )
+    fusion_test: list[int] = Field(
+        default_factory=lambda: list(range(401, 406)),
+        description="the fusion evaluation's held-out seeds: nothing is chosen on them; scored once per "
+        "change, never iterated on",
+    )
 
     @model_validator(mode="after")
     def _disjoint(self) -> SplitSeeds:
         seen: set[int] = set()
-        for split in (self.train, self.val, self.test):
+        for split in (self.train, self.val, self.test, self.fusion_test):
             overlap = seen & set(split)
             if overlap or len(set(split)) != len(split):
                 raise ValueError(f"seeds must be unique and splits disjoint; repeated: {sorted(overlap)}")
             seen |= set(split)
+        if set(self.fusion_tuning) & set(self.train):
+            raise ValueError("the fusion tuning seeds must not be detector training seeds")
         return self
 
     def items(self) -> list[tuple[str, int]]:

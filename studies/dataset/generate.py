@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import multiprocessing as mp
 import sys
 import time
@@ -53,16 +52,13 @@ from shared.datasets.layout import (
 from shared.paths import REPO_ROOT
 from shared.scene.scene import Scene
 from sim.config import load_sim_settings
-from sim.lockstep import LockstepSim
-from sim.sensors.camera import CameraFrame, Lighting
+from sim.sensors.camera import CameraFrame
 from sim.sensors.lidar import LidarScan
 from sim.sensors.rig import Capture
+from studies.dataset.conditions import SeedConditions
 from studies.dataset.config import DEFAULT_DATASET_CONFIG, DatasetSettings
 
 log = logging.getLogger("studies.dataset")
-
-APPEARANCE_STREAM = 0x4150  # separates the appearance generator from the traffic's
-COLOUR_MIN, COLOUR_MAX = 0.05, 0.95
 
 
 @dataclass
@@ -78,27 +74,6 @@ class SeedResult:
 
 def _resolve(path: Path) -> Path:
     return path if path.is_absolute() else REPO_ROOT / path
-
-
-def seed_variation(cfg: DatasetSettings, seed: int) -> dict[str, Any]:
-    """The seed's traffic density, noise levels and lighting (reproducible from the seed)."""
-    rng = np.random.default_rng([seed, APPEARANCE_STREAM])
-    v = cfg.variation
-    azimuth = rng.uniform(0, 2 * math.pi)
-    elevation = math.radians(rng.uniform(*v.light_elevation_deg))
-    return {
-        "vehicles": int(rng.choice(v.vehicles)),
-        "camera_noise_std": float(rng.choice(v.camera_noise_std)),
-        "lidar_range_noise_std_m": float(rng.choice(v.lidar_range_noise_std_m)),
-        "light_direction": [
-            math.cos(elevation) * math.cos(azimuth),
-            math.cos(elevation) * math.sin(azimuth),
-            math.sin(elevation),
-        ],
-        "light_ambient": float(rng.uniform(*v.light_ambient)),
-        "light_diffuse": float(rng.uniform(*v.light_diffuse)),
-        "colour_seed": int(rng.integers(2**31)),
-    }
 
 
 def camera_labels(frame: CameraFrame) -> tuple[list[str], np.ndarray, np.ndarray, list[int]]:
@@ -227,38 +202,21 @@ class SeedWriter:
 
 def generate_seed(cfg: DatasetSettings, layout: DatasetLayout, split: str, seed: int) -> SeedResult:
     """Run one seed and write its frames; returns what was written."""
-    var = seed_variation(cfg, seed)
-    sim_settings = load_sim_settings(_resolve(cfg.sim_settings), var["vehicles"], seed=seed)
+    conditions = SeedConditions.draw(cfg.variation, seed)
+    sim_settings = load_sim_settings(_resolve(cfg.sim_settings), conditions.vehicles, seed=seed)
     scene = Scene.load(sim_settings.scene)
     cameras = [s.id for s in scene.sensors_of(kind="camera")] if cfg.camera_sample_hz > 0 else []
     lidars = [s.id for s in scene.sensors_of(kind="lidar")] if cfg.lidar_sample_hz > 0 else []
     rates = {"camera": cfg.camera_sample_hz, "lidar": cfg.lidar_sample_hz}
-    lighting = Lighting(
-        direction=tuple(var["light_direction"]),
-        ambient=var["light_ambient"],
-        diffuse=var["light_diffuse"],
-    )
-    overrides = {
-        "camera": {"image_noise_std": var["camera_noise_std"]},
-        "lidar": {"range_noise_std_m": var["lidar_range_noise_std_m"]},
-    }
     writer = SeedWriter(scene, layout, split, seed)
-    writer.result.settings = var
-    with LockstepSim(
+    writer.result.settings = conditions.as_dict()
+    with conditions.lockstep(
         scene,
         sim_settings,
         sensor_ids=cameras + lidars,
         labels=True,
         rate_hz={k: r for k, r in rates.items() if r > 0},
-        model_overrides=overrides,
-        lighting=lighting,
     ) as sim:
-        if cfg.variation.random_vehicle_colours:
-            colours = np.random.default_rng(var["colour_seed"]).uniform(
-                COLOUR_MIN, COLOUR_MAX, (len(sim.traffic.vehicles), 3)
-            )
-            for vehicle, rgb in zip(sim.traffic.vehicles, colours, strict=True):
-                vehicle.rgba = (float(rgb[0]), float(rgb[1]), float(rgb[2]), 1.0)
         warmup_ticks = round(cfg.warmup_s * sim_settings.tick_hz)
         for _ in range(warmup_ticks):
             sim.traffic.step()

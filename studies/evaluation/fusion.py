@@ -1,8 +1,11 @@
 """`rmmdet eval fusion`: the MEC pipeline against simulation ground truth, pre- and post-fusion.
 
-For each (agent, held-out seed) the lock-step simulation renders the agent's sensors at their live
-rates; every tick's frames go through the bus codecs (JPEG, point cloud, radar scan) into
-`AgentPipeline`, exactly as the MEC receives them. Per agent frame the result is scored as:
+For each (agent, seed) the lock-step simulation renders the agent's sensors at their live rates under
+the seed's conditions (`studies.dataset.conditions.SeedConditions`: traffic density, sensor noise,
+lighting, colours); every tick's messages (JPEG, point cloud, radar scan) go into the MEC's core
+(`MecCore`: input health, join, decode, pipeline), exactly as the MEC service feeds it. Splits
+(`--split`): `test`, held out, and `tuning`, on which the settings were chosen
+(`studies/dataset/config.py` `SplitSeeds`). Per agent frame the result is scored as:
 
 - `lidar`: the 3D detector's boxes (pre-fusion, agents with a lidar);
 - `radar`: radar targets on the road (pre-fusion, the viaduct agent);
@@ -60,6 +63,8 @@ from sim.lockstep import LockstepSim
 from sim.sensors.camera import CameraFrame
 from sim.sensors.lidar import LidarScan
 from sim.sensors.rig import Capture
+from studies.dataset.conditions import SeedConditions
+from studies.dataset.config import Variation
 
 log = logging.getLogger(__name__)
 
@@ -248,8 +253,10 @@ def evaluate_run(
     warmup_s: float,
     cameras: CameraDetector | None = None,
     lidar: LidarDetector | None = None,
+    conditions: SeedConditions | None = None,
 ) -> AgentEvaluation:
-    """Run one seed for one agent: its frames scored (one MOT sequence per run)."""
+    """Run one seed for one agent: its frames scored (one MOT sequence per run). `conditions` (sensor
+    noise, lighting, colours) apply to the sim; without them the sensors run as the scene defines."""
     ev = AgentEvaluation()
     vehicle_index: dict[str, int] = {}
     sensor_ids = [s.id for s in scene.sensors_of(agent_id)]
@@ -259,7 +266,12 @@ def evaluate_run(
     baseline_decoder = FrameDecoder()  # the images the MEC skips, for the camera-only baseline
     single_trackers = {m: MultiObjectTracker(mec.tracker) for m in SINGLE_MODALITIES}
     scope = AgentScope(scene, agent_id, SCOPE_MARGIN_M, SCOPE_MARGIN_Z_M)
-    with LockstepSim(scene, sim_settings, sensor_ids=sensor_ids, labels=True) as sim:
+    kwargs: dict[str, Any] = {"sensor_ids": sensor_ids, "labels": True}
+    if conditions is not None:
+        lockstep = conditions.lockstep(scene, sim_settings, **kwargs)
+    else:
+        lockstep = LockstepSim(scene, sim_settings, **kwargs)
+    with lockstep as sim:
         tick_hz = sim_settings.tick_hz
         warmup_ticks = round(warmup_s * tick_hz)
         total_ticks = warmup_ticks + round(duration_s * tick_hz)
@@ -373,34 +385,50 @@ def timed(fn: Any, *args: Any, **kwargs: Any) -> tuple[Any, float]:
 # --- the whole evaluation ---------------------------------------------------------------------------
 
 
-def _run_worker(job: tuple[str, int, float, float, str]) -> tuple[str, int, AgentEvaluation, float]:
-    """One (agent, seed) run in a worker process (spawned: PyBullet and onnxruntime are per process)."""
-    agent, seed, duration_s, warmup_s, mec_json = job
+def _run_worker(job: tuple[str, int, float, float, str, str]) -> tuple[str, int, AgentEvaluation, float]:
+    """One (agent, seed) run in a worker process (spawned: PyBullet and onnxruntime are per process),
+    under the seed's conditions (density, sensor noise, lighting, colours)."""
+    agent, seed, duration_s, warmup_s, mec_json, variation_json = job
     from sim.config import load_sim_settings
-    from studies.dataset.config import DatasetSettings
-    from studies.dataset.generate import seed_variation
 
     scene = Scene.load(DEFAULT_SCENE)
     mec = MecSettings.model_validate_json(mec_json)
-    vehicles = seed_variation(DatasetSettings(), seed)["vehicles"]  # the detector test split's density
+    conditions = SeedConditions.draw(Variation.model_validate_json(variation_json), seed)
     t0 = time.perf_counter()
     ev = evaluate_run(
-        scene, agent, load_sim_settings(vehicles=vehicles, seed=seed), mec, duration_s, warmup_s
+        scene,
+        agent,
+        load_sim_settings(vehicles=conditions.vehicles, seed=seed),
+        mec,
+        duration_s,
+        warmup_s,
+        conditions=conditions,
     )
     return agent, seed, ev, time.perf_counter() - t0
 
 
 def evaluate(
-    agents: list[str], seeds: list[int], duration_s: float, warmup_s: float, mec: MecSettings, workers: int
+    agents: list[str],
+    seeds: list[int],
+    duration_s: float,
+    warmup_s: float,
+    mec: MecSettings,
+    workers: int,
+    variation: Variation,
 ) -> dict[str, AgentEvaluation]:
-    """Every (agent, seed) run, merged per agent and over all agents (key "all")."""
+    """Every (agent, seed) run under the seed's conditions drawn from `variation`, merged per agent
+    and over all agents (key "all")."""
     import multiprocessing as mp
 
     if workers > 1:
         # One onnxruntime thread per model and process: spinning ORT threads of parallel workers
         # oversubscribe the cores and run many times slower.
         mec = with_overrides(mec, {"detectors": {"camera_threads": 1, "lidar_threads": 1}})
-    jobs = [(a, s, duration_s, warmup_s, mec.model_dump_json()) for a in agents for s in seeds]
+    jobs = [
+        (a, s, duration_s, warmup_s, mec.model_dump_json(), variation.model_dump_json())
+        for a in agents
+        for s in seeds
+    ]
     per_agent: dict[str, AgentEvaluation] = {a: AgentEvaluation() for a in agents}
     if workers <= 1:
         results = map(_run_worker, jobs)
@@ -501,6 +529,12 @@ def write_heat_maps(ev: AgentEvaluation, scene: Scene, out_dir: Any, name: str =
     return written
 
 
+#: What each split of the fusion evaluation is (`rmmdet eval fusion --split`).
+SPLIT_LABELS = {
+    "test": "held-out fusion test split (nothing chosen on it; scored once per change)",
+    "tuning": "fusion tuning split (the fusion and tracking settings were chosen on it)",
+}
+
 #: Outputs in the order they are reported: before fusion, fused, then tracked.
 REPORTED_OUTPUTS = (
     "lidar",
@@ -512,7 +546,22 @@ REPORTED_OUTPUTS = (
     "tracked_camera",
     "tracked",
 )
-TABLE_COLUMNS = ("agent", "output", "pose p50 / p95 m", "AOS", "BEV IoU", "AP-BEV@0.7", "P / R", "MOTA")
+TABLE_COLUMNS = (
+    "agent",
+    "output",
+    "pose p50 / p95 m",
+    "AOS paper / KITTI",
+    "BEV IoU",
+    "AP-BEV@0.7",
+    "P / R / F1",
+    "MOTA",
+    "MOTP m",
+    "velocity error p50 / p95 m/s",
+)
+
+
+def _fmt(value: float | None, spec: str = ".3f") -> str:
+    return "-" if value is None else format(value, spec)
 
 
 def table_rows(results: dict[str, Any], agents: list[str]) -> list[list[str]]:
@@ -524,17 +573,22 @@ def table_rows(results: dict[str, Any], agents: list[str]) -> list[list[str]]:
             row = summary.get(output)
             if not isinstance(row, dict) or row.get("pose_error_p50_m") is None:
                 continue
-            mota = row.get("tracking", {}).get("mota")
+            tracking = row.get("tracking", {})
+            velocity = "-"
+            if row.get("velocity_error_p50_mps") is not None:
+                velocity = f"{row['velocity_error_p50_mps']:.3f} / {row['velocity_error_p95_mps']:.3f}"
             rows.append(
                 [
                     name,
                     output,
                     f"{row['pose_error_p50_m']:.3f} / {row['pose_error_p95_m']:.3f}",
-                    f"{row['aos_mean']:.3f}" if row["aos_mean"] is not None else "-",
+                    f"{_fmt(row['aos_mean'])} / {_fmt(row.get('aos_kitti_mean'))}",
                     f"{row['bev_iou_mean']:.3f}",
                     f"{row['ap_bev_0.7']:.3f}",
-                    f"{row['precision']:.3f} / {row['recall']:.3f}",
-                    f"{mota:.3f}" if mota is not None else "-",
+                    f"{row['precision']:.3f} / {row['recall']:.3f} / {_fmt(row.get('f1'))}",
+                    _fmt(tracking.get("mota")),
+                    _fmt(tracking.get("motp_m")),
+                    velocity,
                 ]
             )
     return rows
@@ -542,8 +596,11 @@ def table_rows(results: dict[str, Any], agents: list[str]) -> list[list[str]]:
 
 def markdown_table(results: dict[str, Any], agents: list[str]) -> str:
     """The README's fusion table: what was run, where, and one line per scored output."""
+    split = SPLIT_LABELS.get(results.get("split", ""), "chosen seeds")
     head = (
-        f"Seeds {results['seeds']} x {results['duration_s']:g} s after {results['warmup_s']:g} s, "
+        f"{split.capitalize()}: seeds {results['seeds']} x {results['duration_s']:g} s after "
+        f"{results['warmup_s']:g} s, each under its own conditions (density, sensor noise, lighting, "
+        f"colours: `SeedConditions`), "
         f"{results['all']['frames']} agent frames, {results['wall_s']:g} s wall; commit "
         f"{results.get('commit', '?')}, {results.get('machine', {}).get('cpu_model', '?')} "
         f"({', '.join(results.get('machine', {}).get('cpu_vector_flags', []))})."

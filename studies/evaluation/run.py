@@ -11,8 +11,8 @@ from typing import Any
 from shared.machine import git_commit, machine_info
 from shared.perception.config import MecSettings
 from shared.scene.scene import Scene
+from studies.dataset.conditions import SeedConditions
 from studies.dataset.config import DatasetSettings
-from studies.dataset.generate import seed_variation
 from studies.evaluation import fusion as fe
 from studies.evaluation import kalman_noise
 
@@ -28,13 +28,17 @@ def run_fusion_study(
     workers: int,
     noise: bool,
     out: Path,
+    split: str = "",
 ) -> dict[str, Any]:
-    """Evaluate, summarise per agent and for all, write `out/results.json` and plots; the results."""
+    """Evaluate `seeds` (the fusion split `split`, "" for chosen seeds) under each seed's conditions;
+    summarise per agent and for all; write `out/results.json` and plots; the results."""
     t0 = time.perf_counter()
-    evaluations = fe.evaluate(agents, seeds, duration_s, warmup_s, mec, workers)
+    evaluations = fe.evaluate(agents, seeds, duration_s, warmup_s, mec, workers, dataset.variation)
     results: dict[str, Any] = {
+        "split": split,
         "agents": agents,
         "seeds": seeds,
+        "conditions": [SeedConditions.draw(dataset.variation, s).as_dict() for s in seeds],
         "duration_s": duration_s,
         "warmup_s": warmup_s,
         "wall_s": round(time.perf_counter() - t0, 1),
@@ -51,7 +55,7 @@ def run_fusion_study(
         runs = kalman_noise.run_noise(
             scene,
             seeds[0],
-            seed_variation(dataset, seeds[0])["vehicles"],
+            SeedConditions.draw(dataset.variation, seeds[0]).vehicles,
             kalman_noise.PAPER_VARIANCES_M2,
             duration_s,
             warmup_s,

@@ -119,12 +119,13 @@ def simulated_images(seed: int = SIM_SEED) -> list[np.ndarray]:
     from shared.scene.scene import Scene
     from sim.config import load_sim_settings
     from sim.lockstep import LockstepSim
+    from studies.dataset.conditions import SeedConditions
     from studies.dataset.config import DatasetSettings
-    from studies.dataset.generate import seed_variation
 
     scene = Scene.load(DEFAULT_SCENE)
     cameras = [s.id for s in scene.sensors_of(kind="camera")]
-    settings = load_sim_settings(vehicles=seed_variation(DatasetSettings(), seed)["vehicles"], seed=seed)
+    vehicles = SeedConditions.draw(DatasetSettings().variation, seed).vehicles
+    settings = load_sim_settings(vehicles=vehicles, seed=seed)
     images = []
     with LockstepSim(scene, settings, sensor_ids=cameras, rate_hz={"camera": SIM_RATE_HZ}) as sim:
         for _ in range(round(SIM_WARMUP_S * settings.tick_hz)):

@@ -24,9 +24,9 @@ from shared.scene.cadence import fires
 from shared.scene.scene import Scene
 from sim.config import SimSettings
 from sim.lockstep import LockstepSim, Tick
-from sim.sensors.camera import CameraFrame
+from sim.sensors.camera import CameraFrame, Lighting
 from sim.sensors.lidar import LidarScan
-from sim.sensors.rig import sensor_rng
+from sim.sensors.rig import CameraSensor, LidarSensor, sensor_rng
 
 TICK_HZ = 60.0
 RUN_TICKS = 24  # 0.4 s: every sensor fires several times
@@ -150,3 +150,19 @@ def test_rate_overrides_change_how_often_a_kind_captures(scene: Scene) -> None:
     with LockstepSim(scene, settings, sensor_ids=["cam_11", "lidar_11"], rate_hz={"camera": 5.0}) as sim:
         counts = Counter(c.spec.id for _ in range(60) for c in sim.step().captures)
     assert counts == {"cam_11": 5, "lidar_11": 10}  # ticks 1..60: camera every 12th, lidar (10 Hz) every 6th
+
+
+def test_model_overrides_and_lighting_reach_the_sensors(scene: Scene) -> None:
+    """The dataset's and the evaluation's per-seed conditions (noise, lighting) must reach the rig."""
+    settings = SimSettings(seed=3, tick_hz=TICK_HZ)
+    light = Lighting(direction=(0.0, 0.6, 0.8), ambient=0.4, diffuse=0.5)
+    overrides = {"camera": {"image_noise_std": 0.02}, "lidar": {"range_noise_std_m": 0.01}}
+    with LockstepSim(
+        scene, settings, sensor_ids=["cam_11", "lidar_11"], model_overrides=overrides, lighting=light
+    ) as sim:
+        camera, lidar = sim.rig.sensors["cam_11"], sim.rig.sensors["lidar_11"]
+        assert isinstance(camera, CameraSensor) and isinstance(lidar, LidarSensor)
+        assert camera.noise_std == 0.02 and camera.renderer.lighting == light
+        assert lidar.simulator.model.range_noise_std_m == 0.01
+        plain = scene.sensor("lidar_11").lidar  # the scene's own model is left alone
+        assert plain is not None and plain.range_noise_std_m != 0.01

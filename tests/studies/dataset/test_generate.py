@@ -101,9 +101,29 @@ def test_split_seeds_must_be_disjoint() -> None:
         SplitSeeds(train=[1, 2], val=[2], test=[3])
 
 
-def test_seed_variation_is_reproducible_and_varies() -> None:
-    from studies.dataset.generate import seed_variation
+def test_seed_conditions_are_reproducible_and_vary() -> None:
+    from studies.dataset.conditions import SeedConditions
 
-    cfg = settings()
-    assert seed_variation(cfg, 5) == seed_variation(cfg, 5)
-    assert len({json.dumps(seed_variation(cfg, s)) for s in range(10)}) == 10
+    variation = settings().variation
+    assert SeedConditions.draw(variation, 5) == SeedConditions.draw(variation, 5)
+    drawn = [SeedConditions.draw(variation, s) for s in range(10)]
+    assert len({json.dumps({**c.as_dict(), "seed": 0}) for c in drawn}) == 10  # not just the seed differs
+    assert {c.vehicles for c in drawn} <= set(variation.vehicles)
+    assert {c.camera_noise_std for c in drawn} <= set(variation.camera_noise_std)
+
+
+def test_seed_conditions_reach_the_lockstep_sensors_and_the_cars() -> None:
+    from sim.config import SimSettings
+    from sim.sensors.rig import CameraSensor
+    from studies.dataset.conditions import COLOUR_MAX, COLOUR_MIN, SeedConditions
+
+    conditions = SeedConditions.draw(settings().variation, 7)
+    scene = Scene.load(DEFAULT_SCENE)
+    with conditions.lockstep(scene, SimSettings(seed=7), sensor_ids=["cam_11"]) as sim:
+        camera = sim.rig.sensors["cam_11"]
+        assert isinstance(camera, CameraSensor)
+        assert camera.noise_std == conditions.camera_noise_std
+        assert camera.renderer.lighting == conditions.lighting
+        colours = [v.rgba[:3] for v in sim.traffic.vehicles]
+    assert all(COLOUR_MIN <= c <= COLOUR_MAX for rgb in colours for c in rgb)
+    assert len(set(colours)) == len(colours)  # every car its own colour

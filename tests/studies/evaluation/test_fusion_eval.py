@@ -84,9 +84,18 @@ def test_the_readme_table_lists_every_scored_output_and_where_it_ran() -> None:
             "precision": 1.0,
             "recall": 0.98,
         }
-        return row | ({"tracking": {"mota": mota}} if mota is not None else {})
+        if mota is None:
+            return row
+        tracked = {
+            "aos_kitti_mean": 0.98,
+            "f1": 0.99,
+            "velocity_error_p50_mps": 0.02,
+            "velocity_error_p95_mps": 0.1,
+        }
+        return row | tracked | {"tracking": {"mota": mota, "motp_m": 0.011}}
 
     results = {
+        "split": "test",
         "seeds": [201],
         "duration_s": 60.0,
         "warmup_s": 3.0,
@@ -102,14 +111,17 @@ def test_the_readme_table_lists_every_scored_output_and_where_it_ran() -> None:
         "all": {"frames": 10, "tracked": scored(0.95, 0.99)},
     }
     text = markdown_table(results, ["agent1"])
-    assert (
-        "Seeds [201] x 60 s after 3 s, 10 agent frames, 12.5 s wall; commit abc1234, AMD EPYC (avx2)" in text
+    assert text.startswith(
+        "Held-out fusion test split (nothing chosen on it; scored once per change): seeds [201]"
     )
+    assert "10 agent frames, 12.5 s wall; commit abc1234, AMD EPYC (avx2)" in text
     rows = [line for line in text.splitlines() if line.startswith("| agent1") or line.startswith("| all")]
     assert rows == [
-        "| agent1 | lidar | 0.010 / 0.030 | 0.990 | 0.900 | 0.900 | 1.000 / 0.980 | - |",
-        "| agent1 | tracked | 0.010 / 0.030 | 0.990 | 0.900 | 0.950 | 1.000 / 0.980 | 0.990 |",
-        "| all | tracked | 0.010 / 0.030 | 0.990 | 0.900 | 0.950 | 1.000 / 0.980 | 0.990 |",
+        "| agent1 | lidar | 0.010 / 0.030 | 0.990 / - | 0.900 | 0.900 | 1.000 / 0.980 / - | - | - | - |",
+        "| agent1 | tracked | 0.010 / 0.030 | 0.990 / 0.980 | 0.900 | 0.950 | 1.000 / 0.980 / 0.990 | 0.990 "
+        "| 0.011 | 0.020 / 0.100 |",
+        "| all | tracked | 0.010 / 0.030 | 0.990 / 0.980 | 0.900 | 0.950 | 1.000 / 0.980 / 0.990 | 0.990 "
+        "| 0.011 | 0.020 / 0.100 |",
     ]
 
 
