@@ -5,7 +5,7 @@ generator and the fusion evaluation both run a seed under `SeedConditions.draw(v
 the same seed gives the same conditions in both, so the fusion evaluation scores the detectors under
 the conditions their test split had, not on clean sensors.
 
-    conditions = SeedConditions.draw(Variation(), 401)
+    conditions = SeedConditions.draw(Variation(), 501)
     with conditions.lockstep(scene, sim_settings, sensor_ids=...) as sim:   # noise + lighting + colours
         ...
 """

@@ -34,7 +34,7 @@ class SplitSeeds(_Model):
         "these (the detectors' test seeds: no detector was tuned on them)",
     )
     fusion_test: list[int] = Field(
-        default_factory=lambda: list(range(401, 406)),
+        default_factory=lambda: list(range(501, 506)),
         description="the fusion evaluation's held-out seeds: nothing is chosen on them; scored once per "
         "change, never iterated on",
     )
