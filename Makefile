@@ -12,7 +12,7 @@ SUPERVISOR_CONF := deploy/local/supervisord.conf
 RUN_DIR := .run
 PYTEST_ARGS ?=
 
-.PHONY: help install proto up down status logs test test-unit test-integration test-fault bench models eval eval-fusion experiments lint typecheck fmt clean
+.PHONY: help install proto up down status logs test test-unit test-integration test-fault bench models eval eval-fusion eval-robustness experiments lint typecheck fmt clean
 
 help: ## list targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-18s %s\n", $$1, $$2}'
@@ -106,6 +106,9 @@ eval: install ## evaluate every detector on the held-out split -> deploy/models/
 eval-fusion: install ## MEC fusion + tracking vs sim ground truth, tuning then held-out seeds (~25 min) -> docs/eval/fusion{_tuning,}
 	$(BIN)/rmmdet eval fusion --split tuning --no-noise --workers 2 --readme
 	$(BIN)/rmmdet eval fusion --split test --workers 2 --readme
+
+eval-robustness: install ## fusion accuracy under 2x noise, 100 ms delay, extrinsic error, 32 vehicles vs clean (~25 min) -> docs/eval/robustness
+	$(BIN)/rmmdet eval robustness --workers 2 --readme
 
 experiments: install ## the paper's flow experiment: 5 policies x 10/20/40 vehicles x 5 seeds + one full-perception run (~16 min) -> docs/eval/flow
 	$(BIN)/rmmdet experiments flow --out docs/eval/flow --readme

@@ -212,6 +212,45 @@ def eval_fusion(
     console.print(f"results: {out / 'results.json'}")
 
 
+@eval_app.command("robustness")
+def eval_robustness(
+    agents: Annotated[
+        list[str] | None, typer.Option("--agent", help="agents (repeatable; default all)")
+    ] = None,
+    seeds: Annotated[
+        list[int] | None,
+        typer.Option("--seed", help="sim seeds (repeatable; default the held-out fusion test split)"),
+    ] = None,
+    duration_s: Annotated[float, typer.Option(help="simulated seconds scored per run")] = 30.0,
+    warmup_s: Annotated[float, typer.Option(help="simulated seconds before scoring")] = 3.0,
+    workers: Annotated[int, typer.Option(help="(agent, seed) runs in parallel (processes)")] = 2,
+    config: Annotated[Path | None, typer.Option(help="MEC settings YAML")] = None,
+    out: Annotated[Path, typer.Option(help="results folder")] = Path("docs/eval/robustness"),
+    readme: Annotated[bool, typer.Option(help="rewrite the README's robustness table")] = False,
+) -> None:
+    """The fusion evaluation's tracked output under 2x sensor noise, 100 ms range-sensor delay, 1 cm /
+    0.5 deg extrinsic error and 32 vehicles, each against the clean run on the same seeds."""
+    from shared.config import load_settings
+    from shared.perception.config import DEFAULT_MEC_CONFIG, MecSettings
+    from shared.readme import replace_section
+    from studies.dataset.config import DEFAULT_DATASET_CONFIG, DatasetSettings
+    from studies.evaluation import robustness
+    from studies.evaluation.run import run_robustness_study
+
+    log_progress()
+    scene = Scene.load(DEFAULT_SCENE)
+    dataset = load_settings(DatasetSettings, DEFAULT_DATASET_CONFIG)
+    agents = agents or sorted(scene.agents)
+    seeds = seeds or list(dataset.seeds.fusion_test)
+    mec = load_settings(MecSettings, config or DEFAULT_MEC_CONFIG)
+    results = run_robustness_study(dataset, mec, agents, seeds, duration_s, warmup_s, workers, out)
+    text = robustness.markdown_table(results)
+    if readme:
+        replace_section("eval-robustness", text)
+    console.print(text)
+    console.print(f"results: {out / 'results.json'}")
+
+
 experiments_app = typer.Typer(add_completion=False, no_args_is_help=True, help="experiments (offline)")
 app.add_typer(experiments_app, name="experiments")
 

@@ -29,6 +29,8 @@ from studies.dataset.config import Variation
 APPEARANCE_STREAM = 0x4150
 #: Body colour channels are drawn in this range (no pure black or white cars).
 COLOUR_MIN, COLOUR_MAX = 0.05, 0.95
+#: The radar model's measurement noise (`radar_noise_scale` scales them together).
+RADAR_NOISE_FIELDS = ("range_noise_std_m", "azimuth_noise_std_rad", "range_rate_noise_std_mps")
 
 
 @dataclass(frozen=True)
@@ -42,6 +44,7 @@ class SeedConditions:
     lidar_range_noise_std_m: float
     lighting: Lighting
     colour_seed: int | None
+    radar_noise_scale: float = 1.0  # the scene's radar noise times this (robustness studies)
 
     @classmethod
     def draw(cls, variation: Variation, seed: int) -> SeedConditions:
@@ -69,12 +72,21 @@ class SeedConditions:
             colour_seed=colour_seed if variation.random_vehicle_colours else None,
         )
 
-    def model_overrides(self) -> dict[str, dict[str, Any]]:
+    def model_overrides(self, scene: Scene) -> dict[str, dict[str, Any]]:
         """Sensor model fields per kind (`LockstepSim(model_overrides=...)`)."""
-        return {
+        out: dict[str, dict[str, Any]] = {
             "camera": {"image_noise_std": self.camera_noise_std},
             "lidar": {"range_noise_std_m": self.lidar_range_noise_std_m},
         }
+        if self.radar_noise_scale != 1.0:
+            models = {s.radar for s in scene.sensors_of(kind="radar") if s.radar is not None}
+            if len(models) != 1:
+                raise ValueError("scaling radar noise needs one radar model shared by the scene's radars")
+            (model,) = models
+            out["radar"] = {
+                name: getattr(model, name) * self.radar_noise_scale for name in RADAR_NOISE_FIELDS
+            }
+        return out
 
     def paint(self, traffic: TrafficSim) -> None:
         """Give every vehicle its body colour for this seed (no-op with palette colours)."""
@@ -89,7 +101,7 @@ class SeedConditions:
     def lockstep(self, scene: Scene, sim_settings: SimSettings, **kwargs: Any) -> LockstepSim:
         """A lock-step sim of `sim_settings` under these conditions (`kwargs` go to LockstepSim)."""
         sim = LockstepSim(
-            scene, sim_settings, model_overrides=self.model_overrides(), lighting=self.lighting, **kwargs
+            scene, sim_settings, model_overrides=self.model_overrides(scene), lighting=self.lighting, **kwargs
         )
         self.paint(sim.traffic)
         return sim

@@ -65,6 +65,7 @@ from sim.sensors.lidar import LidarScan
 from sim.sensors.rig import Capture
 from studies.dataset.conditions import SeedConditions
 from studies.dataset.config import Variation
+from studies.evaluation import robustness
 
 log = logging.getLogger(__name__)
 
@@ -151,6 +152,31 @@ def observable(gt: Any, captures: list[Capture], scope: AgentScope) -> FrameTrut
     ignore = [boxes[v] for v, i, n in zip(vehicle_ids, inside, near, strict=True) if n and v not in scored]
     velocities = vehicle_velocities(gt)
     return FrameTruth(scored, ignore, {v: velocities[v] for v in scored})
+
+
+class RangeDelay:
+    """Lidar and radar frames `delay_s` old in place of the current ones (cameras untouched): what
+    the MEC receives when those sensors lag by an unmodelled latency but are stamped as new. Until a
+    sensor has a frame that old, its current one passes (the first `delay_s` of a run)."""
+
+    def __init__(self, delay_s: float) -> None:
+        self.delay_ns = round(delay_s * NS_PER_S)
+        self._history: dict[str, list[Capture]] = {}
+
+    def captures(self, stamp_ns: int, captures: list[Capture]) -> list[Capture]:
+        if self.delay_ns <= 0:
+            return captures
+        out = []
+        for c in captures:
+            if c.spec.kind == "camera":
+                out.append(c)
+                continue
+            history = self._history.setdefault(c.spec.id, [])
+            history.append(c)
+            old = [h for h in history if h.stamp_ns <= stamp_ns - self.delay_ns]
+            out.append(old[-1] if old else c)
+            del history[: max(0, len(old) - 1)]  # keep the newest old-enough frame and what follows
+        return out
 
 
 def feed_tick(core: MecCore, tick_stamp_ns: int, tick: int, captures: list[Capture]) -> MecOutput | None:
@@ -254,13 +280,18 @@ def evaluate_run(
     cameras: CameraDetector | None = None,
     lidar: LidarDetector | None = None,
     conditions: SeedConditions | None = None,
+    mec_scene: Scene | None = None,
+    range_delay_s: float = 0.0,
 ) -> AgentEvaluation:
     """Run one seed for one agent: its frames scored (one MOT sequence per run). `conditions` (sensor
-    noise, lighting, colours) apply to the sim; without them the sensors run as the scene defines."""
+    noise, lighting, colours) apply to the sim; without them the sensors run as the scene defines.
+    Perturbations (studies/evaluation/robustness.py): the MEC calibrated on `mec_scene` instead of
+    the true scene; its lidar and radar frames `range_delay_s` old but stamped as new."""
     ev = AgentEvaluation()
     vehicle_index: dict[str, int] = {}
     sensor_ids = [s.id for s in scene.sensors_of(agent_id)]
-    core = MecCore(scene, agent_id, mec, cameras=cameras, lidar=lidar)
+    core = MecCore(mec_scene or scene, agent_id, mec, cameras=cameras, lidar=lidar)
+    delayed = RangeDelay(range_delay_s)
     core.tick_hz = sim_settings.tick_hz  # the camera cadence of the live MEC (on sim ticks)
     pipeline = core.pipeline
     baseline_decoder = FrameDecoder()  # the images the MEC skips, for the camera-only baseline
@@ -281,7 +312,7 @@ def evaluate_run(
                 continue
             gt = tick.ground_truth
             stamp_ns = gt.header.stamp.ToNanoseconds()
-            out = feed_tick(core, stamp_ns, gt.header.tick, tick.captures)
+            out = feed_tick(core, stamp_ns, gt.header.tick, delayed.captures(stamp_ns, tick.captures))
             if out is None or out.frame.tick != gt.header.tick:
                 # Every sensor of an agent captures on the agent's ticks: a lock-step frame is complete
                 # at once. Anything else is a bug of the join, not a frame to score late.
@@ -385,15 +416,19 @@ def timed(fn: Any, *args: Any, **kwargs: Any) -> tuple[Any, float]:
 # --- the whole evaluation ---------------------------------------------------------------------------
 
 
-def _run_worker(job: tuple[str, int, float, float, str, str]) -> tuple[str, int, AgentEvaluation, float]:
+def _run_worker(
+    job: tuple[str, int, float, float, str, str, str],
+) -> tuple[str, int, AgentEvaluation, float]:
     """One (agent, seed) run in a worker process (spawned: PyBullet and onnxruntime are per process),
-    under the seed's conditions (density, sensor noise, lighting, colours)."""
-    agent, seed, duration_s, warmup_s, mec_json, variation_json = job
+    under the seed's conditions (density, sensor noise, lighting, colours) and a perturbation."""
+    agent, seed, duration_s, warmup_s, mec_json, variation_json, perturbation_name = job
     from sim.config import load_sim_settings
 
     scene = Scene.load(DEFAULT_SCENE)
     mec = MecSettings.model_validate_json(mec_json)
-    conditions = SeedConditions.draw(Variation.model_validate_json(variation_json), seed)
+    variation = Variation.model_validate_json(variation_json)
+    perturbation = robustness.BY_NAME[perturbation_name]
+    conditions = perturbation.conditions(SeedConditions.draw(variation, seed), variation)
     t0 = time.perf_counter()
     ev = evaluate_run(
         scene,
@@ -403,6 +438,8 @@ def _run_worker(job: tuple[str, int, float, float, str, str]) -> tuple[str, int,
         duration_s,
         warmup_s,
         conditions=conditions,
+        mec_scene=perturbation.mec_scene(scene, seed),
+        range_delay_s=perturbation.range_delay_s,
     )
     return agent, seed, ev, time.perf_counter() - t0
 
@@ -415,9 +452,10 @@ def evaluate(
     mec: MecSettings,
     workers: int,
     variation: Variation,
+    perturbation: robustness.Perturbation = robustness.CLEAN,
 ) -> dict[str, AgentEvaluation]:
-    """Every (agent, seed) run under the seed's conditions drawn from `variation`, merged per agent
-    and over all agents (key "all")."""
+    """Every (agent, seed) run under the seed's conditions drawn from `variation` (and `perturbation`),
+    merged per agent and over all agents (key "all")."""
     import multiprocessing as mp
 
     if workers > 1:
@@ -425,7 +463,7 @@ def evaluate(
         # oversubscribe the cores and run many times slower.
         mec = with_overrides(mec, {"detectors": {"camera_threads": 1, "lidar_threads": 1}})
     jobs = [
-        (a, s, duration_s, warmup_s, mec.model_dump_json(), variation.model_dump_json())
+        (a, s, duration_s, warmup_s, mec.model_dump_json(), variation.model_dump_json(), perturbation.name)
         for a in agents
         for s in seeds
     ]

@@ -3,6 +3,7 @@ heat maps, the Kalman noise experiment and the results file. The CLI only parses
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -14,7 +15,7 @@ from shared.scene.scene import Scene
 from studies.dataset.conditions import SeedConditions
 from studies.dataset.config import DatasetSettings
 from studies.evaluation import fusion as fe
-from studies.evaluation import kalman_noise
+from studies.evaluation import kalman_noise, robustness
 
 
 def run_fusion_study(
@@ -62,5 +63,49 @@ def run_fusion_study(
         )
         results["kalman_noise"] = [r.summary() for r in runs]
         kalman_noise.plot(runs, out / "kalman_noise.png")
+    (out / "results.json").write_text(json.dumps(results, indent=2, default=float) + "\n")
+    return results
+
+
+def run_robustness_study(
+    dataset: DatasetSettings,
+    mec: MecSettings,
+    agents: list[str],
+    seeds: list[int],
+    duration_s: float,
+    warmup_s: float,
+    workers: int,
+    out: Path,
+) -> dict[str, Any]:
+    """The clean run and each perturbation of `robustness.PERTURBATIONS` on the same seeds; the tracked
+    output's accuracy per agent, and its share of the clean AP-BEV@0.7. Writes `out/results.json`."""
+    t0 = time.perf_counter()
+    runs: dict[str, Any] = {}
+    for perturbation in (robustness.CLEAN, *robustness.PERTURBATIONS):
+        evaluations = fe.evaluate(
+            agents, seeds, duration_s, warmup_s, mec, workers, dataset.variation, perturbation
+        )
+        runs[perturbation.name] = {
+            "perturbation": dataclasses.asdict(perturbation),
+            **{name: fe.summarise(ev)["tracked"] for name, ev in evaluations.items()},
+        }
+    for run in runs.values():
+        for agent in [*agents, "all"]:
+            clean_ap = runs["clean"][agent]["ap_bev_0.7"]
+            run[agent]["ap_share_of_clean"] = run[agent]["ap_bev_0.7"] / clean_ap if clean_ap else None
+        run["keeps_80_percent"] = all(
+            (run[a]["ap_share_of_clean"] or 0.0) >= robustness.KEEP_SHARE for a in [*agents, "all"]
+        )
+    results = {
+        "agents": agents,
+        "seeds": seeds,
+        "duration_s": duration_s,
+        "warmup_s": warmup_s,
+        "wall_s": round(time.perf_counter() - t0, 1),
+        "commit": git_commit(),
+        "machine": machine_info(),
+        "runs": runs,
+    }
+    out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps(results, indent=2, default=float) + "\n")
     return results
