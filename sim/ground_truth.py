@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 
 from rmmdet.v1.perception_pb2 import ObjectClass
-from rmmdet.v1.sim_pb2 import GroundTruth, JunctionFlow, VehicleGroundTruth
+from rmmdet.v1.sim_pb2 import GroundTruth, JunctionFlow, SimClock, VehicleGroundTruth
 
 from shared.scene.scene import Scene
 from sim.traffic import TrafficSim
@@ -62,6 +62,23 @@ def ground_truth_message(traffic: TrafficSim, scene: Scene, seed: int, tick_hz: 
             )
         )
     return msg
+
+
+def sim_clock_message(
+    traffic: TrafficSim, stamp_ns: int, real_time_factor: float, target_speed: float, paced_by: str
+) -> SimClock:
+    """The sim clock of the current tick: sim time `stamp_ns` (wall ns), the measured real-time factor,
+    the target speed (0 = as fast as possible) and the consumer holding the sim ("" when none)."""
+    clock = SimClock(
+        tick=traffic.tick,
+        step_s=traffic.dt,
+        real_time_factor=real_time_factor,
+        lock_step=False,
+        target_speed=target_speed,
+        paced_by=paced_by,
+    )
+    clock.sim_time.FromNanoseconds(stamp_ns)
+    return clock
 
 
 def poses_from_ground_truth(msg: GroundTruth) -> list[VehiclePose]:

@@ -195,6 +195,11 @@ class TrafficSim:
 
     # --- public API ------------------------------------------------------------------------------
 
+    def progress_text(self) -> str:
+        """Counts so far, for status lines and logs."""
+        arrivals = sum(self.arrivals.values())
+        return f"{arrivals} junction arrivals, {len(self.trips)} trips, {self.detours} detours"
+
     def vehicle(self, vehicle_id: str) -> Vehicle:
         return self._by_id[vehicle_id]
 

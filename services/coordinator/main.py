@@ -2,23 +2,14 @@
 
     python -m services.coordinator [--settings deploy/coordinator/coordinator.yaml]
 
-Inputs: `rmmdet/@v1/<agent>/objects` (all agents), the MECs' presence tokens
-(`rmmdet/@v1/<agent>/@alive/mec/<agent>`), and the vehicles' acknowledgements
-(`rmmdet/@v1/vehicles/<vehicle>/plan_ack`). An agent is LIVE while its object lists are fresh and its
-MEC is present; only LIVE agents' objects enter the maps (shared/traffic/coverage.py).
-
-Outputs:
-- `rmmdet/@v1/cloud/maps/traffic` (TrafficMap) at `map_publish_hz`, and at once when an agent's
-  coverage changes; the maps themselves are rebuilt when object lists arrive (at most
-  `service.map_update_max_hz`) and before serving a plan if newer lists arrived since;
-- the route RPC `rmmdet/@v1/cloud/@rpc/route/coordinator` (RouteRequest -> RouteResponse, errors as
-  ErrorResponse): planned on the latest maps, carrying the agents that were missing;
-- pushed plans on `rmmdet/@v1/cloud/plans/<vehicle>` every `replan_interval_s` for vehicles whose
-  route can be improved by more than `replan_gain` or whose plan was made under another coverage,
-  resent until acknowledged (`delivery.ack_timeout_s`, at most `delivery.max_sends` times).
-
-Health is DEGRADED while an agent is not LIVE (the message names it). Header stamps of maps and plans
-are the newest object list's stamp they derive from, so object -> plan latency can be measured.
+A shell around `CoordinatorCore` (shared/traffic/core.py: coverage, maps, planning, re-planning and
+plan delivery; the flow experiment drives the same core). Here: the bus. Inputs: every agent's
+`objects`, the MECs' presence tokens and the vehicles' `plan_ack`s. Outputs: the TrafficMap
+(`rmmdet/@v1/cloud/maps/traffic`, periodically and at once on a coverage change), the route RPC
+(`rmmdet/@v1/cloud/@rpc/route/coordinator`, errors as ErrorResponse) and pushed plans
+(`rmmdet/@v1/cloud/plans/<vehicle>`, resent until acknowledged). Health is DEGRADED while an agent is
+not LIVE (the message names it). Maps and plans carry the stamp of the newest object list they derive
+from, so object -> plan latency can be measured.
 """
 
 from __future__ import annotations
@@ -30,23 +21,19 @@ import time
 from pathlib import Path
 
 import zenoh
-from google.protobuf.message import Message
-from rmmdet.v1.common_pb2 import Header
 from rmmdet.v1.planning_pb2 import RouteRequest, RouteResponse
 
-from shared.bus.health import DEGRADED, NOMINAL
-from shared.bus.liveliness import LivelinessMonitor, agent_of_mec_token
-from shared.bus.node import Node, Publisher, Received, processing_stamp
-from shared.bus.queues import BoundedQueue, OverflowPolicy
+from shared.bus.liveliness import agent_of_mec_token
+from shared.bus.node import Node, Received, processing_stamp
 from shared.bus.rpc import RpcRejected, RpcServer
 from shared.bus.streams import get_stream
 from shared.scene.scene import Scene
 from shared.service import run_service
 from shared.shutdown import GracefulShutdown
 from shared.timebase import SimTime
+from shared.traffic import messages
 from shared.traffic.config import DEFAULT_COORDINATOR_CONFIG, CoordinatorSettings, load_coordinator_settings
 from shared.traffic.core import CoordinatorCore, RequestRejected
-from shared.traffic.messages import agent_objects
 
 log = logging.getLogger("services.coordinator")
 
@@ -54,14 +41,7 @@ SERVICE, INSTANCE, SCOPE = "coordinator", "cloud", "cloud"  # INSTANCE: the --in
 STAGE = "coordinator"
 #: Longest idle wait of the main loop: presence changes are picked up at least this often.
 POLL_S = 0.05
-PRESENCE_QUEUE = 256
 OBJECTS, ACKS = get_stream("objects"), get_stream("route_ack")
-
-
-def embed_plan_header(response: Message, header: Header) -> None:
-    """The plan inside a RouteResponse carries the reply's header too (pushed plans carry their own)."""
-    assert isinstance(response, RouteResponse)
-    response.plan.header.CopyFrom(header)
 
 
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
@@ -73,31 +53,25 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         clock = SimTime()
         node.follow_sim_time(clock)
         service = CoordinatorService(node, core, settings, clock)
-        monitor = LivelinessMonitor(
-            node.session, get_stream("alive").pattern(service="mec"), on_change=service.on_presence
-        )
         rpc = RpcServer(
             node,
             "route_rpc",
             RouteRequest,
             service.plan,
             stage=f"{STAGE}/plan",
-            embed_header=embed_plan_header,
+            embed_header=messages.embed_plan_header,
             served="plans/served",
         )
-        try:
-            node.queryable(rpc.key, rpc)
-            log.info(
-                "coordinator up: scene %s, agents %s, policy %s, maps %.1f Hz, replan every %.1f s",
-                scene.scene_id,
-                core.agents,
-                settings.planner.policy,
-                settings.map_publish_hz,
-                settings.replan_interval_s,
-            )
-            service.run(shutdown)
-        finally:
-            monitor.undeclare()
+        node.queryable(rpc.key, rpc)
+        log.info(
+            "coordinator up: scene %s, agents %s, policy %s, maps %.1f Hz, replan every %.1f s",
+            scene.scene_id,
+            core.agents,
+            settings.planner.policy,
+            settings.map_publish_hz,
+            settings.replan_interval_s,
+        )
+        service.run(shutdown)
         log.info("counters at exit: %s", node.counters.snapshot())
     return 0
 
@@ -108,10 +82,7 @@ class CoordinatorService:
     def __init__(
         self, node: Node, core: CoordinatorCore, settings: CoordinatorSettings, clock: SimTime
     ) -> None:
-        self.node = node
-        self.core = core
-        self.settings = settings
-        self.clock = clock
+        self.node, self.core, self.settings, self.clock = node, core, settings, clock
         self.counters = node.counters
         # Object lists older than the stale threshold on arrival would not make their agent LIVE.
         self.objects = node.subscribe_stream(
@@ -121,18 +92,9 @@ class CoordinatorService:
             clock_s=clock.now_s,
         )
         self.acks = node.subscribe_stream("route_ack")
+        self.presence = node.presence(get_stream("alive").pattern(service="mec"))
         self.map_pub = node.publisher("traffic_map")
-        self.plan_pubs: dict[str, Publisher] = {}  # one per vehicle, declared once (declare churn leaks)
-        self.presence: BoundedQueue[tuple[str, bool]] = BoundedQueue(
-            PRESENCE_QUEUE, OverflowPolicy.DROP_OLDEST
-        )
-        node.health.set_status(self.health)
-
-    def on_presence(self, key: str, alive: bool) -> None:
-        """Liveliness callback (Zenoh thread): enqueue only."""
-        agent = agent_of_mec_token(key)
-        if agent is not None:
-            self.presence.put((agent, alive))
+        node.health.set_status(core.health)  # Zenoh thread: cached values only
 
     def plan(self, request: RouteRequest, start_ns: int) -> tuple[RouteResponse, int]:
         """The route RPC's handler (Zenoh thread; the core's lock guards its state)."""
@@ -142,11 +104,6 @@ class CoordinatorService:
         except RequestRejected as err:
             raise RpcRejected(err.reason, err.code, err.message) from None
         return RouteResponse(plan=plan), stamp_ns
-
-    def health(self) -> tuple[int, str]:
-        """Health status (Zenoh thread): the core's cached summary."""
-        all_live, text = self.core.summary()
-        return (NOMINAL if all_live else DEGRADED), text
 
     def run(self, shutdown: GracefulShutdown) -> None:
         interval_s = self.settings.report_interval_s
@@ -164,28 +121,27 @@ class CoordinatorService:
             self.push(now)
             if now >= next_log_s:
                 next_log_s = now + interval_s
-                log.info("%s; counters %s", self.core.summary()[1], self.counters.snapshot())
+                log.info("%s; counters %s", self.core.health()[1], self.counters.snapshot())
 
     def ingest(self, wait_s: float) -> None:
-        """Wait up to `wait_s` for object lists, then take everything queued."""
+        """Wait up to `wait_s` for object lists, then take everything queued: lists, presence, acks."""
         first = self.objects.recv(timeout=max(0.0, wait_s))
         self.record_objects([first] if first is not None else [])
-        for agent, alive in self.presence.drain():
-            if not self.core.on_presence(agent, alive):
+        for key, alive in self.presence.changes():
+            agent = agent_of_mec_token(key)
+            if agent is not None and not self.core.on_presence(agent, alive):
                 self.counters.inc("ignored/presence_unknown_agent")
         for item in self.acks.drain():
-            self.on_ack(item)
+            for counter in self.core.receive_ack(ACKS.id_of(item.key, "vehicle"), item.message):
+                self.counters.inc(counter)
 
     def record_objects(self, items: list[Received] | None = None) -> None:
         """Keep the latest lists of `items` and of everything queued. Also called by the route handler
         (Zenoh thread) so a plan includes every list that reached the process before the request."""
-        items = (items or []) + self.objects.drain()
         now = self.clock.now_s()
-        min_existence = self.settings.maps.min_existence_probability
-        for item in items:
+        for item in (items or []) + self.objects.drain():
             agent = OBJECTS.id_of(item.key, "agent")  # the key, not the payload, says who published
-            objs = agent_objects(agent, item.message, min_existence)
-            if not self.core.on_objects(agent, objs, item.header.stamp.ToNanoseconds(), now):
+            if not self.core.receive_objects(agent, item.message, item.header.stamp.ToNanoseconds(), now):
                 self.counters.inc("rejected/unknown_agent")
 
     def publish_map(self, now: float) -> None:
@@ -197,21 +153,12 @@ class CoordinatorService:
 
     def push(self, now: float) -> None:
         given_up = self.core.plans_given_up
-        due = self.core.due(now)
-        if self.core.plans_given_up > given_up:
-            self.counters.inc("plans/given_up", self.core.plans_given_up - given_up)
-        for plan, stamp_ns, first_send in due:
-            pub = self.plan_pubs.get(plan.vehicle_id)
-            if pub is None:
-                pub = self.plan_pubs[plan.vehicle_id] = self.node.publisher(
-                    "route_plan", vehicle=plan.vehicle_id
-                )
+        for plan, stamp_ns, first_send in self.core.due(now):
+            pub = self.node.publisher("route_plan", vehicle=plan.vehicle_id)  # declared once per vehicle
             pub.put(plan, stamp_ns=stamp_ns or time.time_ns(), frame_id="world")
             self.counters.inc("plans/pushed" if first_send else "plans/resent")
-
-    def on_ack(self, item: Received) -> None:
-        for counter in self.core.receive_ack(ACKS.id_of(item.key, "vehicle"), item.message):
-            self.counters.inc(counter)
+        if self.core.plans_given_up > given_up:
+            self.counters.inc("plans/given_up", self.core.plans_given_up - given_up)
 
 
 def add_args(parser: argparse.ArgumentParser) -> None:

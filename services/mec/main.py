@@ -18,12 +18,11 @@ import logging
 import sys
 import time
 from pathlib import Path
-from queue import SimpleQueue
 
 import zenoh
 from rmmdet.v1.sensors_pb2 import CaptureDemand
 
-from shared.bus.liveliness import LivelinessMonitor, source_of_token
+from shared.bus.liveliness import source_of_token
 from shared.bus.node import Node, Received, processing_stamp
 from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.bus.streams import SENSOR_STREAM, get_stream, sensor_group_source
@@ -31,6 +30,7 @@ from shared.config import load_settings
 from shared.paths import DEFAULT_SCENE
 from shared.perception.config import DEFAULT_MEC_CONFIG, MecSettings
 from shared.perception.core import MecCore
+from shared.scene.cadence import DemandRenewal
 from shared.scene.scene import Scene
 from shared.service import run_service
 from shared.shutdown import GracefulShutdown
@@ -40,8 +40,6 @@ log = logging.getLogger("services.mec")
 
 QUEUE_PER_SENSOR = 4  # latest-wins: a few frames per sensor, oldest dropped
 IDLE_WAIT_S = 0.1
-DEMAND_RENEW_S = 1.0  # capture demand: renewed this often ...
-DEMAND_VALID_S = 3.0  # ... and lapses (cameras back to every frame) if the MEC is gone this long
 
 
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
@@ -49,98 +47,66 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     agent = args.instance
     if agent not in scene.agents:
         raise SystemExit(f"unknown agent {agent!r}: scene has {sorted(scene.agents)}")
-    overrides = {}
-    if args.camera_detector or args.lidar_detector:
-        overrides["detectors"] = {
-            k: v for k, v in (("camera", args.camera_detector), ("lidar", args.lidar_detector)) if v
-        }
-    settings = load_settings(MecSettings, args.settings, **overrides)
-    specs = scene.sensors_of(agent)
-    if args.sensors:
-        wanted = set(args.sensors.split(","))
-        unknown = wanted - {s.id for s in specs}
-        if unknown:
-            raise SystemExit(f"--sensors: {sorted(unknown)} are not sensors of {agent}")
-        specs = [s for s in specs if s.id in wanted]
+    chosen = {"camera": args.camera_detector, "lidar": args.lidar_detector}
+    settings = load_settings(MecSettings, args.settings, detectors={k: v for k, v in chosen.items() if v})
     t0 = time.perf_counter()
-    core = MecCore(scene, agent, settings, sensor_ids=[s.id for s in specs])
-    log.info("agent %s: %d sensors, pipeline ready in %.2f s", agent, len(specs), time.perf_counter() - t0)
-
+    try:
+        core = MecCore(scene, agent, settings, sensor_ids=args.sensors.split(",") if args.sensors else None)
+    except ValueError as err:
+        raise SystemExit(f"mec {agent}: {err}") from None
+    log.info(
+        "agent %s: sensors %s, pipeline ready in %.2f s", agent, sorted(core.kinds), time.perf_counter() - t0
+    )
     with Node(conf, service="mec", instance=agent, scope=agent, stop=shutdown.event) as node:
         objects_pub = node.publisher("objects", agent=agent, source_id=f"{agent}/mec")
-        queue: BoundedQueue[Received] = BoundedQueue(
-            QUEUE_PER_SENSOR * len(specs), OverflowPolicy.DROP_OLDEST
-        )
+        queue = BoundedQueue[Received](QUEUE_PER_SENSOR * len(core.kinds), OverflowPolicy.DROP_OLDEST)
         # No expected rate on the bus-level monitors: a missing sensor makes this MEC DEGRADED (its
         # status below names it), not CRITICAL; the rates are still reported per input.
-        for s in specs:
-            node.subscribe_stream(SENSOR_STREAM[s.kind], agent=agent, sensor=s.id, queue=queue)
+        for sensor_id, kind in core.kinds.items():
+            node.subscribe_stream(SENSOR_STREAM[kind], agent=agent, sensor=sensor_id, queue=queue)
         # Input health is judged on the clock of record (sim time when a sim runs): a slow host slows
         # the sim, not the verdict. The core starts afresh when the sim clock is first heard.
         sim_time = SimTime()
         node.follow_sim_time(sim_time)
         core.reset(sim_time.now_s())
         demand_pub = node.publisher("capture_demand", agent=agent, kind="camera") if core.camera_ids else None
-        demand_sent_s = -DEMAND_RENEW_S
+        renewal = DemandRenewal()
         # A sensor service that leaves the bus (killed, crashed) takes its sensors with it at once: its
         # presence token vanishes long before 3 periods (3 s) of a camera asked for every 10th frame.
-        groups = {
-            sensor_group_source(agent, k): [s for s, kind in core.kinds.items() if kind == k]
-            for k in set(core.kinds.values())
-        }
-        gone: SimpleQueue[str] = SimpleQueue()
-        presence = LivelinessMonitor(
-            node.session,
-            get_stream("alive").pattern(scope=agent, service="sensor"),
-            on_change=lambda key, alive: None if alive else gone.put(key),
-        )
-        node.adopt(presence)
+        groups: dict[str, list[str]] = {}
+        for sensor_id, kind in core.kinds.items():
+            groups.setdefault(sensor_group_source(agent, kind), []).append(sensor_id)
+        presence = node.presence(get_stream("alive").pattern(scope=agent, service="sensor"))
         following = sim_time.following
         node.health.set_status(lambda: core.health(sim_time.now_s()))
         last_log = time.monotonic()
         while not shutdown.requested:
             # The join waits on the clock of record: a sim held back by a slow consumer holds the
             # wait too, so an input late only because the host is busy is not dropped.
-            deadline = core.next_deadline_s()
-            clock_s = sim_time.now_s()
-            if deadline is None:
-                wait = IDLE_WAIT_S
-            else:
-                wait = min(IDLE_WAIT_S, max(0.0, (deadline - clock_s) / sim_time.speed))
-            received = queue.get(timeout=wait)
+            received = queue.get(timeout=core.wait_s(sim_time.now_s(), sim_time.speed, IDLE_WAIT_S))
             items = ([received] if received is not None else []) + queue.drain()
-            now = time.monotonic()
             if sim_time.following != following:
                 following = sim_time.following
                 core.reset(sim_time.now_s())  # pending frames were timed on the other clock
             clock_s = sim_time.now_s()
-            while not gone.empty():
-                for sensor_id in groups.get(source_of_token(gone.get_nowait()) or "", []):
+            for key, alive in presence.changes():
+                for sensor_id in [] if alive else groups.get(source_of_token(key) or "", []):
                     core.mark_gone(sensor_id)
                     log.warning("%s: its sensor service left the bus", sensor_id)
             core.tick_hz = sim_time.tick_hz
             every_n, changed = core.cadence(clock_s)
             if changed:
                 log.info("cameras: every %d frame(s)", every_n)
-            # Under a sim the cameras are asked for just the frames the detector runs on (renewed every
-            # DEMAND_RENEW_S, at once on a change); they fall back to every frame if this MEC is gone.
-            if (
-                demand_pub is not None
-                and core.tick_hz is not None
-                and (changed or now - demand_sent_s >= DEMAND_RENEW_S)
-            ):
+            # Under a sim the cameras are asked for just the frames the detector runs on; they fall
+            # back to every frame if this MEC is gone (the demand lapses).
+            if demand_pub is not None and core.tick_hz is not None and renewal.due(time.monotonic(), changed):
                 reason = "lidar live" if every_n > 1 else "no lidar"
-                demand_pub.put(CaptureDemand(every_n=every_n, valid_for_s=DEMAND_VALID_S, reason=reason))
-                demand_sent_s = now
+                demand_pub.put(CaptureDemand(every_n=every_n, valid_for_s=renewal.valid_for_s, reason=reason))
             for item in items:
-                stamp_ns = item.header.stamp.ToNanoseconds()
+                sensor_id, stamp_ns = item.key.rsplit("/", 1)[-1], item.header.stamp.ToNanoseconds()
+                arrival_ns = sim_time.now_ns(item.received_wall_ns)
                 rejected = core.receive(
-                    item.key.rsplit("/", 1)[-1],
-                    stamp_ns,
-                    item.header.tick,
-                    item.message,
-                    clock_s,
-                    sim_time.now_ns(item.received_wall_ns),
+                    sensor_id, stamp_ns, item.header.tick, item.message, clock_s, arrival_ns
                 )
                 if rejected:
                     node.counters.inc(f"rejected/{rejected}")
@@ -152,10 +118,11 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             header = objects_pub.next_header(
                 stamp_ns=out.frame.stamp_ns, tick=out.frame.tick, frame_id="world"
             )
-            stages = [processing_stamp("mec/process", out.started_ns, time.time_ns())]
-            objects_pub.put(out.message, header, stages=stages)
-            now = time.monotonic()
-            if now - last_log >= settings.report_interval_s:
+            objects_pub.put(
+                out.message, header, stages=[processing_stamp("mec/process", out.started_ns, time.time_ns())]
+            )
+            if time.monotonic() - last_log >= settings.report_interval_s:
+                last_log = time.monotonic()
                 log.info(
                     "%d frames published, status %s, %d tracks, counters %s",
                     core.counters["frames/published"],
@@ -163,7 +130,6 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                     len(out.result.tracks),
                     dict(core.counts()),
                 )
-                last_log = now
     return 0
 
 

@@ -24,11 +24,13 @@ from shared.bus.health import CRITICAL, DEGRADED, NOMINAL, InputMonitor
 from shared.bus.node import Node
 from shared.recording.bus import overlapping, subscribe_recorder
 from shared.recording.recorder import (
+    BYTES_PER_MB,
     DEFAULT_FLUSH_INTERVAL_S,
     DEFAULT_MAX_QUEUED_BYTES,
     DEFAULT_QUEUE_SIZE,
     KeyStats,
     Recorder,
+    rate_line,
 )
 from shared.recording.writer import (
     COMPRESSIONS,
@@ -46,23 +48,7 @@ SCOPE = "site"
 DATA_KEYS = "rmmdet/@v1/**"
 #: Main-loop period, seconds (stop / duration checks, health status refresh).
 LOOP_S = 0.2
-BYTES_PER_MB = 1e6
 BYTES_PER_MIB = 1024 * 1024
-
-
-def rate_line(previous: dict[str, KeyStats], current: dict[str, KeyStats], interval_s: float) -> str:
-    """One log line of per-key message rates over the last interval."""
-    parts = []
-    total = 0
-    total_bytes = 0
-    for key in sorted(current):
-        n = current[key].messages - previous.get(key, KeyStats()).messages
-        total += n
-        total_bytes += current[key].bytes - previous.get(key, KeyStats()).bytes
-        if n:
-            parts.append(f"{key} {n / interval_s:.1f} Hz")
-    head = f"{total} msgs ({total_bytes / BYTES_PER_MB:.1f} MB) in {interval_s:.1f} s"
-    return head + (": " + ", ".join(parts) if parts else "")
 
 
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
@@ -90,11 +76,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             node.health.add_input(monitor)
         # Refreshed by the main loop: health callbacks only read cached state.
         status = (NOMINAL, f"recording {' '.join(keys)} to {out}")
-
-        def health_status() -> tuple[int, str]:
-            return status
-
-        node.health.set_status(health_status)
+        node.health.set_status(lambda: status)
         subscribers: list[zenoh.Subscriber[None]] = []
         started_s = time.monotonic()
         last_report_s = started_s

@@ -2,23 +2,14 @@
 
     python -m services.sim [--settings deploy/sim/sim.yaml] [--speed 1.0] [--vehicles 10] [--seed 0]
 
-Ticks run at 60 Hz of simulated time. On every tick on which a scene sensor fires (10 Hz per agent, the
-agents on their own phases: 30 Hz) it publishes
-`rmmdet/@v1/sim/ground_truth` stamped with the sim time (start wall time + simulated seconds: the
-clock of record, equal to wall time while the sim keeps real time); sensor services render from it, so
-all sensors of one tick share its stamp. It also publishes the SimClock (sim time, target speed and the
-measured real-time factor; other processes judge freshness on it, shared/timebase.py) and each agent's
-CalibrationSet at low rate.
-
-Pacing (sim/pacing.py): a sensor tick is held back while a consumer's newest output (a sensor
-service's frames or a MEC's object lists) lags it by more than its period + `pacing.max_lag_s` of sim
-time (a consumer whose liveliness token vanishes holds nothing), and a sim that falls behind its schedule
-moves the schedule on instead of sprinting, so on a host that cannot keep real time the whole loop runs
-slower together and stays correct; the real-time factor reached is reported.
-
-With route policy `plan` the vehicles are the coordinator's clients (services/sim/plans.py): they ask
-for plans over the route RPC, follow the plans they get (replies and pushes) and acknowledge each one;
-requests never block the tick loop. `--speed 0` runs as fast as possible (no wall-clock pacing).
+Ticks run at 60 Hz of sim time. On every tick on which a scene sensor fires (each agent at 10 Hz on its
+own phase: 30 Hz) it publishes `rmmdet/@v1/sim/ground_truth`, stamped with the sim time (start wall
+time + sim seconds: the clock of record, shared/timebase.py); the sensor services render from it. It
+also publishes the SimClock (sim time, target speed, measured real-time factor) and each agent's
+CalibrationSet at low rate. The wall-clock schedule is sim/realtime.py; pacing (a tick held back while
+a consumer lags, so a slow host slows the whole loop together) is sim/pacing.py. With route policy
+`plan` the vehicles are the coordinator's clients (services/sim/plans.py). `--speed 0`: as fast as
+possible.
 """
 
 from __future__ import annotations
@@ -30,11 +21,10 @@ import time
 from pathlib import Path
 
 import zenoh
-from rmmdet.v1.sim_pb2 import SimClock
 
 from services.sim.plans import PlanClient
 from shared.bus.health import NOMINAL
-from shared.bus.liveliness import LivelinessMonitor, source_of_token
+from shared.bus.liveliness import source_of_token
 from shared.bus.node import Node, Received, processing_stamp
 from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.bus.streams import get_stream, producer_of
@@ -44,8 +34,8 @@ from shared.scene.scene import Scene
 from shared.service import run_service
 from shared.shutdown import GracefulShutdown
 from shared.timebase import NS_PER_S
-from sim.config import DEFAULT_SIM_CONFIG, SimSettings, load_sim_settings
-from sim.ground_truth import ground_truth_message
+from sim.config import DEFAULT_SIM_CONFIG, load_sim_settings
+from sim.ground_truth import ground_truth_message, sim_clock_message
 from sim.pacing import Pacer
 from sim.realtime import Every, RealTimeSchedule
 from sim.traffic import TrafficSim
@@ -59,45 +49,25 @@ HOLD_POLL_S = 0.002  # while held: how often the consumers' progress is looked a
 PACING_QUEUE = 256  # consumer outputs between two looks (18 sensors + 3 MECs at 10 Hz)
 
 
-def load(args: argparse.Namespace) -> SimSettings:
-    overrides: dict[str, object] = {}
-    if args.speed is not None:
-        overrides["speed"] = args.speed
-    if args.seed is not None:
-        overrides["seed"] = args.seed
-    return load_sim_settings(args.settings, args.vehicles, **overrides)
-
-
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
-    settings = load(args)
+    given = {k: v for k in ("speed", "seed") if (v := getattr(args, k)) is not None}
+    settings = load_sim_settings(args.settings, args.vehicles, **given)
     scene = Scene.load(settings.scene)
     traffic = TrafficSim(scene, RoadNetwork(scene), settings.traffic, settings.seed, settings.tick_hz)
-    dt_s = 1.0 / settings.tick_hz
     collision_every = max(1, round(settings.tick_hz / settings.collision_check_hz))
-    sensor_rates = sorted({s.rate_hz for s in scene.sensors.values()})
     pacer = Pacer(settings.pacing.max_lag_s, settings.pacing.consumer_timeout_s)
+    pacing = settings.speed > 0 and settings.pacing.enabled
     with Node(conf, service="sim", instance=args.instance, scope=SCOPE, stop=shutdown.event) as node:
-        gt_pub = node.publisher("ground_truth")
-        clock_pub = node.publisher("sim_clock")
-        calib_pubs = {agent: node.publisher("calibration", agent=agent) for agent in scene.agents}
-        calib_sets = {agent: calibration_set(scene, agent) for agent in scene.agents}  # the scene is fixed
-        outputs = None
-        gone: BoundedQueue[str] = BoundedQueue(PACING_QUEUE, OverflowPolicy.DROP_OLDEST)
-        if settings.speed > 0 and settings.pacing.enabled:
-            outputs = BoundedQueue[Received](PACING_QUEUE, OverflowPolicy.DROP_OLDEST)
-            for stream in settings.pacing.streams:
-                node.subscribe_stream(stream, queue=outputs)
-            presence = LivelinessMonitor(
-                node.session,
-                get_stream("alive").pattern(),
-                on_change=lambda key, alive: None if alive else gone.put(key),
-            )
-            node.adopt(presence)
-        plans = (
-            PlanClient(node, traffic, settings.plan_request_timeout_s)
-            if settings.traffic.route_policy == "plan"
-            else None
-        )
+        gt_pub, clock_pub = node.publisher("ground_truth"), node.publisher("sim_clock")
+        # The scene is fixed: each agent's calibration is made once.
+        calibs = {node.publisher("calibration", agent=a): calibration_set(scene, a) for a in scene.agents}
+        outputs = BoundedQueue[Received](PACING_QUEUE, OverflowPolicy.DROP_OLDEST)
+        for stream in settings.pacing.streams if pacing else []:
+            node.subscribe_stream(stream, queue=outputs)
+        presence = node.presence(get_stream("alive").pattern()) if pacing else None
+        plans = None
+        if settings.traffic.route_policy == "plan":
+            plans = PlanClient(node, traffic, settings.plan_request_timeout_s)
         schedule = RealTimeSchedule(settings.speed, LATE_TOLERANCE_S, RTF_WINDOW_S)
 
         def status() -> tuple[int, str]:
@@ -105,36 +75,34 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             return NOMINAL, (
                 f"tick {traffic.tick}, sim {traffic.time_s:.1f} s, real-time factor {schedule.rtf:.2f} "
                 f"(target {settings.speed or 'max'}{held}), {len(traffic.vehicles)} vehicles, "
-                f"{sum(traffic.arrivals.values())} junction arrivals, {len(traffic.trips)} trips"
+                f"{traffic.progress_text()}"
             )
 
         def take_progress() -> None:
             now = time.monotonic()
-            for item in outputs.drain() if outputs is not None else []:
+            for item in outputs.drain():
                 pacer.on_progress(producer_of(item.key), item.header.stamp.ToNanoseconds(), now)
-            for key in gone.drain():
+            for key, alive in presence.changes() if presence is not None else []:
                 source = source_of_token(key)
-                if source is not None:
+                if not alive and source is not None:  # a consumer that left holds nothing
                     pacer.forget(source)
 
         node.health.set_status(status)
         start_wall_ns = time.time_ns()  # wall time of sim time 0: stamps are start + sim time
         clock_due, calib_due = (
-            Every(1.0 / settings.clock_publish_hz),
-            Every(1.0 / settings.calibration_publish_hz),
+            Every(1 / settings.clock_publish_hz),
+            Every(1 / settings.calibration_publish_hz),
         )
         last_log = time.monotonic()
         log.info(
-            "sim up: scene %s, %d vehicles, seed %d, %g Hz ticks, sensors at %s Hz, speed %s, route policy "
-            "%s, pacing %s",
+            "sim up: scene %s, %d vehicles, seed %d, %g Hz ticks, speed %s, route policy %s, pacing %s",
             scene.scene_id,
             len(traffic.vehicles),
             settings.seed,
             settings.tick_hz,
-            sensor_rates,
             settings.speed or "max",
             settings.traffic.route_policy,
-            f"to {settings.pacing.streams} within {settings.pacing.max_lag_s} s" if outputs else "off",
+            f"to {settings.pacing.streams} within {settings.pacing.max_lag_s} s" if pacing else "off",
         )
         while not shutdown.requested:
             if plans is not None:  # replies and pushes that arrived, then this tick's requests
@@ -146,44 +114,35 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             wait_s = schedule.delay_s(traffic.time_s)  # publish a tick at its stamp, not before
             if wait_s > 0 and shutdown.wait(wait_s):
                 break
-            if sensor_tick and outputs is not None:
+            if sensor_tick and pacing:
                 schedule.hold(pacer.hold(stamp_ns, take_progress, shutdown.wait, HOLD_POLL_S))
             if sensor_tick:  # the sensors fire only on these ticks: nobody else needs ground truth
                 msg = ground_truth_message(traffic, scene, settings.seed, settings.tick_hz)
-                header = gt_pub.next_header(stamp_ns=stamp_ns, tick=traffic.tick, frame_id="world")
-                msg.header.CopyFrom(header)
-                gt_pub.put(msg, header, stages=[processing_stamp("sim/step", t0, time.time_ns())])
+                msg.header.CopyFrom(
+                    gt_pub.next_header(stamp_ns=stamp_ns, tick=traffic.tick, frame_id="world")
+                )
+                gt_pub.put(msg, msg.header, stages=[processing_stamp("sim/step", t0, time.time_ns())])
                 node.counters.inc("published/ground_truth")
             if traffic.tick % collision_every == 0:
                 for pair in traffic.overlapping_pairs():
                     node.counters.inc("traffic/overlaps")
                     log.warning("vehicles overlap: %s", pair)
             if clock_due.due(traffic.time_s):
-                clock = SimClock(
-                    tick=traffic.tick,
-                    step_s=dt_s,
-                    real_time_factor=schedule.measure(traffic.time_s),
-                    lock_step=False,
-                    target_speed=settings.speed,
-                    paced_by=pacer.paced_by,
-                )
-                clock.sim_time.FromNanoseconds(stamp_ns)
+                rtf = schedule.measure(traffic.time_s)
+                clock = sim_clock_message(traffic, stamp_ns, rtf, settings.speed, pacer.paced_by)
                 clock_pub.put(clock, stamp_ns=stamp_ns, tick=traffic.tick, frame_id="world")
-            if calib_due.due(traffic.time_s):
-                for agent, pub in calib_pubs.items():
-                    pub.put(calib_sets[agent], stamp_ns=stamp_ns, tick=traffic.tick)
+            for pub, calib in calibs.items() if calib_due.due(traffic.time_s) else []:
+                pub.put(calib, stamp_ns=stamp_ns, tick=traffic.tick)
             if time.monotonic() - last_log >= args.report_interval_s:
                 last_log = time.monotonic()
+                held_by = {k: round(v, 1) for k, v in pacer.held_by.most_common(3)}
                 log.info(
-                    "sim %.1f s, real-time factor %.2f, held %.1f s by consumers %s, %d junction arrivals, "
-                    "%d trips, %d detours%s",
+                    "sim %.1f s, real-time factor %.2f, held %.1f s by consumers %s, %s%s",
                     traffic.time_s,
                     schedule.rtf,
                     schedule.held_s,
-                    {k: round(v, 1) for k, v in pacer.held_by.most_common(3)},
-                    sum(traffic.arrivals.values()),
-                    len(traffic.trips),
-                    traffic.detours,
+                    held_by,
+                    traffic.progress_text(),
                     f"; plans {plans.summary()}" if plans is not None else "",
                 )
         if plans is not None:

@@ -14,6 +14,7 @@ from collections.abc import Callable
 
 import zenoh
 
+from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.bus.streams import get_stream
 
 log = logging.getLogger(__name__)
@@ -21,16 +22,31 @@ log = logging.getLogger(__name__)
 ChangeFn = Callable[[str, bool], None]
 
 
+#: Presence changes kept between two `changes()` calls of a service loop (oldest dropped beyond).
+CHANGE_QUEUE = 256
+
+
 class LivelinessMonitor:
     """Tracks the live tokens under a key expression; optional callback on join/leave.
 
-    The callback runs on a Zenoh thread: it must only record or enqueue.
+    The callback runs on a Zenoh thread: it must only record or enqueue. With `queue_changes` the
+    monitor enqueues every join/leave itself and a service loop takes them with `changes()`.
     """
 
-    def __init__(self, session: zenoh.Session, key_expr: str, on_change: ChangeFn | None = None) -> None:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key_expr: str,
+        on_change: ChangeFn | None = None,
+        *,
+        queue_changes: bool = False,
+    ) -> None:
         self._lock = threading.Lock()
         self._alive: dict[str, float] = {}
         self._on_change = on_change
+        self._changes: BoundedQueue[tuple[str, bool]] | None = (
+            BoundedQueue(CHANGE_QUEUE, OverflowPolicy.DROP_OLDEST) if queue_changes else None
+        )
         self.joins = 0
         self.leaves = 0
         self._subscriber = session.liveliness().declare_subscriber(key_expr, self._on_sample, history=True)
@@ -46,8 +62,16 @@ class LivelinessMonitor:
                 self._alive.pop(key, None)
                 self.leaves += 1
         log.info("%s %s", "joined" if alive else "left", key)
+        if self._changes is not None:
+            self._changes.put((key, alive))
         if self._on_change is not None:
             self._on_change(key, alive)
+
+    def changes(self) -> list[tuple[str, bool]]:
+        """The (token key, alive) changes since the last call, oldest first (needs `queue_changes`)."""
+        if self._changes is None:
+            raise RuntimeError("this monitor was made without queue_changes")
+        return self._changes.drain()
 
     def alive(self) -> list[str]:
         with self._lock:

@@ -39,6 +39,7 @@ from shared.bus.codec import (
     has_body_header,
 )
 from shared.bus.health import DEFAULT_THRESHOLDS, HealthTracker, InputMonitor, RateThresholds
+from shared.bus.liveliness import LivelinessMonitor
 from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.bus.session import open_session
 from shared.bus.streams import Stream, get_stream, validate_id
@@ -232,6 +233,7 @@ class Node:
         self._stop = stop
         self._session: zenoh.Session | None = None
         self._declared: list[Any] = []
+        self._publishers: dict[tuple[str, str], Publisher] = {}
         self._lock = threading.Lock()
         self.alive_key = get_stream("alive").key(scope=scope, service=service, instance=instance)
         self.health_key = get_stream("health").key(scope=scope, service=service, instance=instance)
@@ -260,6 +262,7 @@ class Node:
     def close(self) -> None:
         with self._lock:
             declared, self._declared = self._declared, []
+            self._publishers.clear()
             session, self._session = self._session, None
         for entity in reversed(declared):
             try:
@@ -279,11 +282,17 @@ class Node:
     # --- publish ---------------------------------------------------------------------------------
 
     def publisher(self, stream_name: str, *, source_id: str | None = None, **ids: str) -> Publisher:
+        """A publisher on `stream_name`'s key for `ids`; one per key and source (a second call returns the
+        first: its sequence numbers go on, and repeated declarations would leak)."""
         stream = get_stream(stream_name)
         if stream.kind != "pubsub":
             raise ValueError(f"stream {stream_name} is a {stream.kind}, not pub/sub")
-        pub = Publisher(self.session, stream, stream.key(**ids), source_id or self.source_id, self.source_id)
-        self._declared.append(pub)
+        key, source = stream.key(**ids), source_id or self.source_id
+        pub = self._publishers.get((key, source))
+        if pub is None:
+            pub = Publisher(self.session, stream, key, source, self.source_id)
+            self._publishers[(key, source)] = pub
+            self._declared.append(pub)
         return pub
 
     # --- subscribe -------------------------------------------------------------------------------
@@ -339,6 +348,12 @@ class Node:
             queue=queue,
             clock_s=clock_s,
         )
+
+    def presence(self, key_expr: str) -> LivelinessMonitor:
+        """Watch the presence tokens under `key_expr`; the loop takes joins/leaves with `changes()`."""
+        monitor = LivelinessMonitor(self.session, key_expr, queue_changes=True)
+        self._declared.append(monitor)
+        return monitor
 
     def adopt(self, entity: Any) -> None:
         """Undeclare `entity` (anything with `undeclare()`, e.g. a LivelinessMonitor) when the node closes."""

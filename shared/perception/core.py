@@ -239,6 +239,12 @@ class MecCore:
             self._newest_images[sensor_id] = sample
         return None
 
+    def wait_s(self, now_s: float, speed: float, idle_s: float) -> float:
+        """Wall seconds to wait for input before the next `step`: until the oldest pending frame times
+        out (`now_s` and the deadline on the clock of record, which runs at `speed`), at most `idle_s`."""
+        deadline = self.next_deadline_s()
+        return idle_s if deadline is None else min(idle_s, max(0.0, (deadline - now_s) / speed))
+
     def next_deadline_s(self) -> float | None:
         """When the oldest pending frame times out (None if none pending), on the clock of record."""
         if isinstance(self._joiner, TickJoiner):

@@ -53,10 +53,28 @@ class _Sample:
     log_time_ns: int
 
 
+BYTES_PER_MB = 1e6
+
+
 @dataclass
 class KeyStats:
     messages: int = 0
     bytes: int = 0
+
+
+def rate_line(previous: dict[str, KeyStats], current: dict[str, KeyStats], interval_s: float) -> str:
+    """One log line of per-key message rates over the last interval."""
+    parts = []
+    total = 0
+    total_bytes = 0
+    for key in sorted(current):
+        n = current[key].messages - previous.get(key, KeyStats()).messages
+        total += n
+        total_bytes += current[key].bytes - previous.get(key, KeyStats()).bytes
+        if n:
+            parts.append(f"{key} {n / interval_s:.1f} Hz")
+    head = f"{total} msgs ({total_bytes / BYTES_PER_MB:.1f} MB) in {interval_s:.1f} s"
+    return head + (": " + ", ".join(parts) if parts else "")
 
 
 def header_stamp_ns(encoding: str, payload: bytes, attachment: bytes | None) -> int | None:

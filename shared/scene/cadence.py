@@ -11,7 +11,8 @@ rendering nor the MEC's detector work comes in bursts that miss the join and the
 
 `CaptureDemands` is the sensor's side: the demands it has heard, each valid until its `valid_for_s`
 runs out; the smallest `every_n` of the valid ones wins (a consumer that needs every frame is never
-starved by one that needs fewer), and with none the sensor captures every frame.
+starved by one that needs fewer), and with none the sensor captures every frame. `DemandRenewal` is
+the consumer's side: when to (re)send its demand so that it never lapses while the consumer lives.
 
     >>> [t for t in range(0, 61) if frame_due(10.0, 5, t, 60.0)]
     [0, 30, 60]
@@ -65,3 +66,23 @@ class CaptureDemands:
         for name in [n for n, d in self._demands.items() if d.until_s < now_s]:
             del self._demands[name]
         return min((d.every_n for d in self._demands.values()), default=1)
+
+
+class DemandRenewal:
+    """When a consumer sends its capture demand: at once when its `every_n` changes, else every
+    `renew_s`; each demand is valid for `valid_for_s` (> `renew_s`, so one lost message does not let
+    it lapse, while a consumer gone for `valid_for_s` stops thinning its sensors). Monotonic seconds."""
+
+    def __init__(self, renew_s: float = 1.0, valid_for_s: float = 3.0) -> None:
+        if not 0 < renew_s < valid_for_s:
+            raise ValueError(f"need 0 < renew_s < valid_for_s, got {renew_s}, {valid_for_s}")
+        self.renew_s = renew_s
+        self.valid_for_s = valid_for_s
+        self._sent_s = -float("inf")
+
+    def due(self, now_s: float, changed: bool) -> bool:
+        """True if the demand should be sent now (then it counts as sent)."""
+        if not changed and now_s - self._sent_s < self.renew_s:
+            return False
+        self._sent_s = now_s
+        return True

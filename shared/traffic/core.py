@@ -24,9 +24,11 @@ import threading
 from dataclasses import dataclass
 
 from rmmdet.v1.common_pb2 import ErrorCode
+from rmmdet.v1.perception_pb2 import TrackedObjects
 from rmmdet.v1.planning_pb2 import RouteAck, RoutePlan, RouteRequest
 from rmmdet.v1.traffic_pb2 import TrafficMap
 
+from shared.bus.health import DEGRADED, NOMINAL
 from shared.bus.streams import validate_id
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
@@ -129,6 +131,12 @@ class CoordinatorCore:
             self.coverage.on_data(agent, now_s, len(objects))
             self.dirty = True
         return True
+
+    def receive_objects(self, agent: str, msg: TrackedObjects, stamp_ns: int, now_s: float) -> bool:
+        """An agent's object list as received (objects below `maps.min_existence_probability` left
+        out); False for an agent not in the scene (caller counts it)."""
+        objects = messages.agent_objects(agent, msg, self.settings.maps.min_existence_probability)
+        return self.on_objects(agent, objects, stamp_ns, now_s)
 
     def on_presence(self, agent: str, alive: bool) -> bool:
         if agent not in self.coverage.agents:
@@ -281,13 +289,13 @@ class CoordinatorCore:
             self.active_count = self.active_plans(now_s)
         return Tick(states if changed else None, publish, replanned)
 
-    def summary(self) -> tuple[bool, str]:
-        """(every agent LIVE, one line naming the missing ones) as of the latest tick; reads cached
-        values only, so a health callback on another thread may call it."""
+    def health(self) -> tuple[int, str]:
+        """(NOMINAL if every agent is LIVE else DEGRADED, one line naming the missing ones) as of the
+        latest tick; reads cached values only, so a health callback on another thread may call it."""
         states = self._seen_states
         missing = [f"{a} {s.value}" for a, s in states.items() if s is not AgentState.LIVE]
         text = f"{len(states) - len(missing)}/{len(states)} agents LIVE, {self.active_count} active plans"
-        return (False, f"{text}; missing: {', '.join(missing)}") if missing else (True, text)
+        return (DEGRADED, f"{text}; missing: {', '.join(missing)}") if missing else (NOMINAL, text)
 
     def _replannable(self, plan: IssuedPlan, now_s: float) -> bool:
         if now_s - plan.issued_s > self.settings.planner.plan_ttl_s or plan.ack in ENDED:

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+from google.protobuf.message import Message
 from google.protobuf.timestamp_pb2 import Timestamp
+from rmmdet.v1.common_pb2 import Header
 from rmmdet.v1.perception_pb2 import TrackedObjects
-from rmmdet.v1.planning_pb2 import PlanCoverage, RoutePlan, RoutePolicy
+from rmmdet.v1.planning_pb2 import PlanCoverage, RoutePlan, RoutePolicy, RouteResponse
 from rmmdet.v1.traffic_pb2 import AgentCoverage, AgentState, AreaTraffic, LaneTraffic, TrafficMap
 
 from shared.traffic.coverage import AgentState as State
@@ -116,3 +118,9 @@ def route_plan(
     stamp.FromNanoseconds(valid_until_ns)
     msg.valid_until.CopyFrom(stamp)
     return msg
+
+
+def embed_plan_header(response: Message, header: Header) -> None:
+    """The plan inside a RouteResponse carries the reply's header too (pushed plans carry their own)."""
+    assert isinstance(response, RouteResponse)
+    response.plan.header.CopyFrom(header)

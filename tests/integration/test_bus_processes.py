@@ -13,6 +13,7 @@ from rmmdet.v1.perception_pb2 import TrackedObjects
 
 from shared.bus.codec import encoding_for
 from shared.bus.liveliness import LivelinessMonitor
+from shared.bus.node import Node
 from shared.bus.session import open_session
 from shared.bus.streams import get_stream
 from tests.helpers import Router, free_port, spawn, start_router, stop
@@ -104,7 +105,7 @@ def test_malformed_oversized_and_nan_payloads_are_counted_not_raised(router: Rou
 
 def test_killed_client_is_seen_leaving_and_others_keep_working(router: Router) -> None:
     with open_session(router.client_config(), timeout_s=5) as session:
-        alive = LivelinessMonitor(session, "rmmdet/@v1/*/@alive/**")
+        alive = LivelinessMonitor(session, "rmmdet/@v1/*/@alive/**", queue_changes=True)
         victim = spawn([*PEER, "sub", "--instance", "victim", *router.client_args()])
         survivor = spawn([*PEER, "sub", "--instance", "survivor", "--expect", "5", *router.client_args()])
         try:
@@ -123,6 +124,12 @@ def test_killed_client_is_seen_leaving_and_others_keep_working(router: Router) -
                 time.sleep(0.01)
             assert not alive.is_alive(victim_key), "liveliness DELETE expected after SIGKILL"
             assert time.monotonic() - t0 < 2.0
+            # The same join and leave, queued for a service loop, in order.
+            assert [c for c in alive.changes() if c[0] == victim_key] == [
+                (victim_key, True),
+                (victim_key, False),
+            ]
+            assert alive.changes() == []  # taken once
             pub = spawn([*PEER, "pub", "--count", "5", *router.client_args()])
             got = events(survivor, "done")
             assert sum(e["event"] == "received" for e in got) == 5
@@ -220,3 +227,11 @@ def test_zenoh_session_to_missing_router_fails_cleanly() -> None:
     conf = zenoh_config(DEFAULT_CLIENT_CONFIG, connect=[f"tcp/127.0.0.1:{free_port()}"])
     with pytest.raises(SessionUnavailable):
         open_session(conf, timeout_s=0.6)
+
+
+def test_node_declares_one_publisher_per_key_and_source(router: Router) -> None:
+    with Node(router.client_config(), service="testpeer", instance="pubs", scope="cloud") as node:
+        first = node.publisher("route_plan", vehicle="car01")
+        assert node.publisher("route_plan", vehicle="car01") is first  # its sequence numbers go on
+        assert node.publisher("route_plan", vehicle="car02") is not first
+        assert node.publisher("route_plan", vehicle="car01", source_id="cloud/other/x") is not first

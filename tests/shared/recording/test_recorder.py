@@ -11,7 +11,7 @@ import pytest
 from shared.bus.codec import Counters
 from shared.recording.reader import read_records
 from shared.recording.record import Record
-from shared.recording.recorder import Recorder, header_stamp_ns, is_control_key
+from shared.recording.recorder import KeyStats, Recorder, header_stamp_ns, is_control_key, rate_line
 from shared.recording.writer import RecordingWriter
 from tests.shared.recording.samples import (
     CAMERA_KEY,
@@ -138,3 +138,10 @@ def test_write_failure_stops_recording_and_is_reported() -> None:
     assert recorder.counters.get("errors/write") == 1
     assert not recorder.offer(s.key, s.encoding, s.payload, None)
     recorder.close()  # does not raise
+
+
+def test_rate_line_reports_per_key_rates_over_the_interval() -> None:
+    before = {"a/x": KeyStats(messages=10, bytes=1000)}
+    after = {"a/x": KeyStats(messages=30, bytes=2_001_000), "a/y": KeyStats(messages=5, bytes=0)}
+    assert rate_line(before, after, 2.0) == "25 msgs (2.0 MB) in 2.0 s: a/x 10.0 Hz, a/y 2.5 Hz"
+    assert rate_line(after, after, 2.0) == "0 msgs (0.0 MB) in 2.0 s"  # nothing new: no key list

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from shared.paths import DEFAULT_SCENE
-from shared.scene.cadence import CaptureDemands, fires, frame_due
+from shared.scene.cadence import CaptureDemands, DemandRenewal, fires, frame_due
 from shared.scene.scene import Scene
 
 TICK_HZ = 60.0
@@ -104,3 +104,17 @@ def test_malformed_demands_are_refused() -> None:
     assert not demands.on_demand("x", 5, valid_for_s=0.0, now_s=0.0)
     assert not demands.on_demand("x", 5, valid_for_s=float("nan"), now_s=0.0)
     assert demands.every_n(now_s=0.0) == 1
+
+
+def test_demand_renewal_sends_at_once_on_change_and_every_renew_period() -> None:
+    renewal = DemandRenewal(renew_s=1.0, valid_for_s=3.0)
+    assert renewal.due(10.0, changed=False)  # first call: never sent yet
+    assert not renewal.due(10.5, changed=False)
+    assert renewal.due(10.6, changed=True)  # a new every_n goes out at once
+    assert not renewal.due(11.5, changed=False)
+    assert renewal.due(11.6, changed=False)  # renewed a period after the last send
+
+
+def test_demand_renewal_rejects_a_validity_shorter_than_the_renewal() -> None:
+    with pytest.raises(ValueError):
+        DemandRenewal(renew_s=3.0, valid_for_s=1.0)

@@ -8,6 +8,7 @@ from rmmdet.v1.common_pb2 import ErrorCode
 from rmmdet.v1.planning_pb2 import RouteAck, RouteRequest
 from rmmdet.v1.traffic_pb2 import AgentState as PbState
 
+from shared.bus.health import DEGRADED, NOMINAL
 from shared.paths import DEFAULT_SCENE
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
@@ -217,13 +218,13 @@ def test_tick_publishes_at_once_on_a_coverage_change(scene: Scene, cars: dict[st
     feed(core, cars, 0.0)
     t = core.tick(0.0, WALL0_NS)
     assert t.publish_map and t.coverage == dict.fromkeys(core.agents, AgentState.LIVE)
-    assert core.summary() == (True, "3/3 agents LIVE, 0 active plans")
+    assert core.health() == (NOMINAL, "3/3 agents LIVE, 0 active plans")
     assert core.tick(0.2, WALL0_NS).coverage is None
     core.on_presence("agent2", False)
     t = core.tick(0.3, WALL0_NS)  # before the 0.5 s period is over
     assert t.publish_map and t.coverage is not None and t.coverage["agent2"] is AgentState.STALE
     assert core.next_map_s == pytest.approx(0.8)
-    assert core.summary() == (False, "2/3 agents LIVE, 0 active plans; missing: agent2 STALE")
+    assert core.health() == (DEGRADED, "2/3 agents LIVE, 0 active plans; missing: agent2 STALE")
 
 
 def test_receive_ack_counts_and_rejects(scene: Scene, cars: dict[str, AgentCars]) -> None:
