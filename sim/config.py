@@ -66,6 +66,12 @@ class TrafficSettings(_Model):
         description="a vehicle first in line whose exit lane stays full this long takes another exit "
         "with room (drivers avoid a blocked road; resolves gridlock in saturated networks)",
     )
+    trip_draws: Literal["shared", "per_vehicle"] = Field(
+        "shared",
+        description="destinations from the traffic's one generator (shared: the datasets' and evaluations' "
+        "traffic) or from one generator per vehicle (per_vehicle: each vehicle's k-th trip is the same "
+        "whatever the routing policy, so policies compare on the same trips)",
+    )
     idm: IdmParams = IdmParams()
     pursuit: PursuitParams = PursuitParams()
 

@@ -42,16 +42,27 @@ PALETTE_RGBA: tuple[tuple[float, float, float, float], ...] = (
     (0.75, 0.75, 0.78, 1.0),
 )
 SPAWN_ATTEMPTS = 200
+#: Separates the per-vehicle trip generators from the traffic's generator (`trip_draws: per_vehicle`).
+TRIP_STREAM = 0x5452
 SPAWN_SPACING_FACTOR = 2.0  # x vehicle length between spawned vehicles
 
 
 @dataclass
 class Trip:
+    """One completed trip: junction to junction, sim seconds. `index`: the vehicle's k-th trip (0: the
+    one it was spawned on, which starts mid-lane and has no free-flow time)."""
+
     vehicle_id: str
     origin_junction: str
     destination_junction: str
     start_s: float
     end_s: float
+    index: int = 0
+    free_flow_s: float | None = None  # shortest route at the speed limits, no waiting
+
+    @property
+    def travel_time_s(self) -> float:
+        return self.end_s - self.start_s
 
 
 @dataclass
@@ -77,6 +88,8 @@ class Vehicle:
     next_destination: str = ""  # drawn ahead, so a plan made before arriving can already aim at it
     origin: str = ""
     trip_start_s: float = 0.0
+    trip_start_lane: str | None = None  # the lane that ended at the trip's origin (None: spawned)
+    trips_done: int = 0
     arriving: bool = False  # the junction ahead is this trip's destination
     plan: list[str] = field(default_factory=list)  # lanes to take, from a route plan
     plan_version: int = 0
@@ -126,6 +139,9 @@ class TrafficSim:
         self.arrivals: dict[str, int] = dict.fromkeys(self.junction_ids, 0)
         self.trips: list[Trip] = []
         self.detours = 0
+        self.distance_m = 0.0  # driven by all vehicles together
+        self._seed = seed
+        self._trip_rngs: dict[int, np.random.Generator] = {}
         self.vehicles: list[Vehicle] = []
         self._by_id: dict[str, Vehicle] = {}
         self.circulating = {lane.id for lane in scene.spec.lanes if lane.circulating}
@@ -176,11 +192,11 @@ class TrafficSim:
                 origin=self.net.lane_start_junction(lane_id),
                 connected=connected,
             )
-            vehicle.destination = self._new_destination(exclude=self.net.lane_end_junction(lane_id))
+            vehicle.destination = self._new_destination(vehicle, exclude=self.net.lane_end_junction(lane_id))
             self.vehicles.append(vehicle)
             self._by_id[vid] = vehicle
         for vehicle in self.vehicles:  # after placement, so placement draws do not depend on this
-            vehicle.next_destination = self._new_destination(exclude=vehicle.destination)
+            vehicle.next_destination = self._new_destination(vehicle, exclude=vehicle.destination)
 
     def _too_close_to_any(self, pos: np.ndarray) -> bool:
         spacing = SPAWN_SPACING_FACTOR * self.length_m
@@ -189,9 +205,25 @@ class TrafficSim:
             for v in self.vehicles
         )
 
-    def _new_destination(self, exclude: str) -> str:
+    def _new_destination(self, v: Vehicle, exclude: str) -> str:
         choices = [j for j in self.junction_ids if j != exclude]
-        return choices[int(self.rng.integers(len(choices)))]
+        rng = self.rng
+        if self.cfg.trip_draws == "per_vehicle":
+            rng = self._trip_rngs.setdefault(
+                v.index, np.random.default_rng([self._seed, TRIP_STREAM, v.index])
+            )
+        return choices[int(rng.integers(len(choices)))]
+
+    def free_flow_s(self, from_lane: str, destination: str) -> float:
+        """Shortest route (by distance) from the end of `from_lane` to `destination`, driven at the
+        speed limits without waiting: connectors and lanes, sim seconds."""
+        total, prev = 0.0, from_lane
+        for lane_id in self.net.shortest_route(from_lane, destination):
+            junction = self.net.lane_end_junction(prev)
+            for path in (self.net.connector(junction, prev, lane_id), self.net.lanes[lane_id]):
+                total += path.length_m / self._speed_limit(path)
+            prev = lane_id
+        return total
 
     # --- public API ------------------------------------------------------------------------------
 
@@ -245,6 +277,7 @@ class TrafficSim:
         self._admit(occupancy)
         for v in self.vehicles:
             self._drive(v, occupancy)
+            self.distance_m += v.v * self.dt
         self.tick += 1
         self.time_s = self.tick * self.dt
 
@@ -290,7 +323,7 @@ class TrafficSim:
             if junction == v.destination:
                 v.arriving = True
                 v.destination = v.next_destination
-                v.next_destination = self._new_destination(exclude=v.destination)
+                v.next_destination = self._new_destination(v, exclude=v.destination)
             v.next_lane = self._choose_next_lane(v)
             v.requested = True
             v.requested_at_s = self.time_s
@@ -468,8 +501,13 @@ class TrafficSim:
             v.path = self.net.connector(junction, v.lane_id, v.next_lane)
             self.arrivals[junction] += 1
             if v.arriving:
-                self.trips.append(Trip(v.id, v.origin, junction, v.trip_start_s, self.time_s))
+                free_flow = None
+                if v.trip_start_lane is not None:
+                    free_flow = self.free_flow_s(v.trip_start_lane, junction)
+                trip = Trip(v.id, v.origin, junction, v.trip_start_s, self.time_s, v.trips_done, free_flow)
+                self.trips.append(trip)
                 v.origin, v.trip_start_s, v.arriving = junction, self.time_s, False
+                v.trip_start_lane, v.trips_done = v.lane_id, v.trips_done + 1
             return True
         assert v.path.to_lane is not None and v.path.junction_id is not None
         v.releasing = v.path.junction_id

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from rich.table import Table
@@ -179,7 +179,6 @@ def eval_fusion(
     0.05, 0.1 m²: raw vs filtered RMSE)."""
     from shared.config import load_settings
     from shared.perception.config import DEFAULT_MEC_CONFIG, MecSettings
-    from shared.readme import replace_section
     from studies.dataset.config import DEFAULT_DATASET_CONFIG, DatasetSettings
     from studies.evaluation import fusion as fe
     from studies.evaluation.run import run_fusion_study
@@ -206,10 +205,46 @@ def eval_fusion(
     for row in fe.table_rows(results, agents):
         table.add_row(*row)
     if readme:
-        section = "eval-fusion" if split == "test" else "eval-fusion-tuning"
-        replace_section(section, fe.markdown_table(results, agents))
+        write_fusion_readme(results, split)
     console.print(table)
     console.print(f"results: {out / 'results.json'}")
+
+
+def write_fusion_readme(results: dict[str, Any], split: str) -> None:
+    """The README sections of one fusion split's results: its table, and the noise experiment's line."""
+    from shared.readme import replace_section
+    from studies.evaluation import fusion as fe
+    from studies.evaluation import kalman_noise
+
+    section = "eval-fusion" if split == "test" else "eval-fusion-tuning"
+    replace_section(section, fe.markdown_table(results, results["agents"]))
+    if "kalman_noise" in results:
+        text = kalman_noise.markdown(results["kalman_noise"], results["seeds"][0], results["duration_s"])
+        replace_section("eval-fusion-kalman", text)
+
+
+@eval_app.command("readme")
+def eval_readme(
+    fusion: Annotated[Path, typer.Option(help="held-out fusion results")] = Path("docs/eval/fusion"),
+    tuning: Annotated[Path, typer.Option(help="tuning fusion results")] = Path("docs/eval/fusion_tuning"),
+    robustness_dir: Annotated[Path, typer.Option("--robustness", help="robustness results")] = Path(
+        "docs/eval/robustness"
+    ),
+) -> None:
+    """Rewrite the README's evaluation sections from the results files as they are (no re-run)."""
+
+    from shared.readme import replace_section
+    from studies.evaluation import robustness
+
+    for folder, split in ((tuning, "tuning"), (fusion, "test")):
+        path = folder / "results.json"
+        if path.exists():
+            write_fusion_readme(json.loads(path.read_text()), split)
+            console.print(f"README <- {path}")
+    path = robustness_dir / "results.json"
+    if path.exists():
+        replace_section("eval-robustness", robustness.markdown_table(json.loads(path.read_text())))
+        console.print(f"README <- {path}")
 
 
 @eval_app.command("robustness")

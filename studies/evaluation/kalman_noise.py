@@ -219,3 +219,21 @@ def plot(runs: list[NoiseRun], path: Path) -> None:
     ax.legend()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120, bbox_inches="tight")
+
+
+def markdown(summaries: list[dict[str, Any]], seed: int, duration_s: float) -> str:
+    """The README's line on the noise experiment, from the results file's `kalman_noise` list."""
+    variances = " / ".join(f"{s['variance_m2']:g}" for s in summaries)
+
+    def series(key: str) -> str:
+        return " / ".join("-" if s.get(key) is None else f"{s[key]:.3f}" for s in summaries)
+
+    last = summaries[-1]
+    return (
+        f"The paper's Kalman noise experiment (radar positions of the viaduct agent plus Gaussian noise of "
+        f"variance {variances} m² per axis, seed {seed}, {duration_s:g} s; "
+        f"`docs/eval/fusion/kalman_noise.png`): raw RMSE {series('raw_rmse_m')} m; constant-velocity "
+        f"Kalman filter {series('constant_velocity_rmse_m')} m (**{last['constant_velocity_ratio']:.0%} of "
+        f"raw at {last['variance_m2']:g} m²**); the paper's A = H = I filter {series('identity_rmse_m')} m "
+        f"({last['identity_ratio']:.0%})."
+    )

@@ -49,6 +49,7 @@ MAP_POLICIES: dict[str, str] = {  # policy -> source of its maps
     "balanced": "perceived",
     "dynamic_ground_truth": "ground_truth",
 }
+SECONDS_PER_HOUR = 3600.0
 GROUND_TRUTH = "ground_truth"
 ObjectSource = Callable[[TrafficSim], list[AgentObjects]]
 
@@ -115,6 +116,10 @@ class RunResult:
     speed_sum: FloatArray  # heat-map grid (rows, cols): sum of sampled speeds
     speed_samples: FloatArray  # and number of samples
     wall_s: float = 0.0
+    distance_m: float = 0.0  # driven by all vehicles together
+    # Completed trips: (vehicle id, its k-th trip, travel time s, free-flow time s or None for the
+    # spawn trip). With per-vehicle trip draws the k-th trip of a vehicle is the same in every policy.
+    trips: list[tuple[str, int, float, float | None]] = field(default_factory=list)
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -123,6 +128,7 @@ class RunResult:
 
     def summary(self) -> dict[str, Any]:
         trips = np.array(self.trip_times_s)
+        delays = [t - f for _, _, t, f in self.trips if f is not None]
         return {
             "policy": self.policy,
             "vehicles": self.vehicles,
@@ -133,6 +139,9 @@ class RunResult:
             "trips": len(trips),
             "travel_time_mean_s": float(trips.mean()) if len(trips) else None,
             "travel_time_p95_s": float(np.percentile(trips, 95)) if len(trips) else None,
+            "trips_per_hour": len(trips) * SECONDS_PER_HOUR / self.duration_s,
+            "delay_mean_s": float(np.mean(delays)) if delays else None,
+            "distance_m": self.distance_m,
             "mean_speed_mps": self.mean_speed_mps,
             "detours": self.detours,
             "plans": self.plans,
@@ -242,8 +251,14 @@ class Scheduler:
 
 
 def traffic_overrides(vehicles: int) -> dict[str, Any]:
-    """The experiment's traffic: `vehicles` cars, every one connected and following its plans."""
-    return {"vehicles": vehicles, "route_policy": "plan", "connected_fraction": 1.0}
+    """The experiment's traffic: `vehicles` cars, every one connected and following its plans, each
+    with its own trip draws (every policy drives the same trips: paired comparisons)."""
+    return {
+        "vehicles": vehicles,
+        "route_policy": "plan",
+        "connected_fraction": 1.0,
+        "trip_draws": "per_vehicle",
+    }
 
 
 def traffic_settings(sim: SimSettings, vehicles: int) -> TrafficSettings:
@@ -325,7 +340,9 @@ def _drive(
         seed=seed,
         duration_s=duration_s,
         arrivals={numbers[j]: n for j, n in traffic.arrivals.items()},
-        trip_times_s=[t.end_s - t.start_s for t in traffic.trips],
+        trip_times_s=[t.travel_time_s for t in traffic.trips],
+        trips=[(t.vehicle_id, t.index, t.travel_time_s, t.free_flow_s) for t in traffic.trips],
+        distance_m=traffic.distance_m,
         mean_speed_mps=speed_total / max(speed_n, 1),
         detours=traffic.detours,
         plans=scheduler.plans + scheduler.pushed,

@@ -28,9 +28,27 @@ from studies.experiments.flow import RunResult, run_flow
 log = logging.getLogger(__name__)
 
 SCHEDULED: PolicyName = "balanced"
-METRICS = ("total_flow", "trips", "travel_time_mean_s", "travel_time_p95_s", "mean_speed_mps")
+METRICS = (
+    "trips_per_hour",
+    "travel_time_mean_s",
+    "travel_time_p95_s",
+    "delay_mean_s",
+    "distance_m",
+    "mean_speed_mps",
+    "total_flow",
+)
+#: Every policy is compared with this one, paired by seed (same trips: per-vehicle trip draws).
+BASELINE: PolicyName = "shortest"
+#: Paired differences of a policy minus the baseline, per seed; "matched_travel_time_s" is over the
+#: trips both runs completed (same vehicle, same k-th trip).
+PAIRED = ("trips_per_hour", "matched_travel_time_s", "travel_time_mean_s", "delay_mean_s", "distance_m")
 CONFIDENCE = 0.95
-_FORMAT = {"total_flow": "{:.0f}", "trips": "{:.0f}", "mean_speed_mps": "{:.3f}"}  # others: "{:.1f}"
+_FORMAT = {
+    "total_flow": "{:.0f}",
+    "trips_per_hour": "{:.0f}",
+    "distance_m": "{:.0f}",
+    "mean_speed_mps": "{:.3f}",
+}  # others: "{:.1f}"
 
 
 def _mean_ci_cells(row: dict[str, Any]) -> list[str]:
@@ -118,6 +136,39 @@ def aggregate(results: list[RunResult]) -> dict[str, dict[str, Any]]:
     return out
 
 
+def paired_differences(results: list[RunResult], baseline: str = BASELINE) -> dict[str, dict[str, Any]]:
+    """{"<vehicles>": {"<policy>": {metric: mean/ci of (policy - baseline) over seeds}}}: each seed's
+    run of the policy against the baseline's run on the same seed (same trips)."""
+    runs = {(r.vehicles, r.policy, r.seed): r for r in results}
+    out: dict[str, dict[str, Any]] = {}
+    for n, policy in sorted({(r.vehicles, r.policy) for r in results if r.policy != baseline}):
+        diffs: dict[str, list[float]] = {m: [] for m in PAIRED}
+        for (vehicles, p, seed), run in sorted(runs.items()):
+            base = runs.get((vehicles, baseline, seed))
+            if vehicles != n or p != policy or base is None:
+                continue
+            a, b = run.summary(), base.summary()
+            for m in PAIRED:
+                if m == "matched_travel_time_s":
+                    mine = {(v, k): t for v, k, t, _ in run.trips}
+                    theirs = {(v, k): t for v, k, t, _ in base.trips}
+                    common = mine.keys() & theirs.keys()
+                    if common:
+                        diffs[m].append(float(np.mean([mine[c] - theirs[c] for c in common])))
+                elif a[m] is not None and b[m] is not None:
+                    diffs[m].append(a[m] - b[m])
+        out.setdefault(str(n), {})[policy] = {m: mean_ci(v) for m, v in diffs.items()}
+    return out
+
+
+def _paired_cell(d: dict[str, float], fmt: str) -> str:
+    """`+x ± ci`, bold when the interval excludes zero."""
+    if not d.get("n") or not math.isfinite(d["ci95"]):
+        return "-"
+    text = f"{fmt.format(d['mean'])} ± {fmt.format(d['ci95'])}".replace("+-", "-")
+    return f"**{text}**" if abs(d["mean"]) > d["ci95"] else text
+
+
 def acceptance(agg: dict[str, dict[str, Any]]) -> dict[str, Any]:
     """The issue's checks: flow gain at the smallest fleet; travel times at the larger ones."""
     checks: dict[str, Any] = {}
@@ -145,8 +196,8 @@ def markdown(agg: dict[str, dict[str, Any]], junction_numbers: list[int], full: 
     lines = ["# Flow experiment", ""]
     for n, row in agg.items():
         lines += [f"## {n} vehicles", ""]
-        lines.append("| policy | total flow | trips | travel time mean (s) | p95 (s) | mean speed (m/s) |")
-        lines.append("|---|---|---|---|---|---|")
+        lines.append("| policy | " + " | ".join(METRICS) + " |")
+        lines.append("|---|" + "---|" * len(METRICS))
         for policy, r in row.items():
             lines.append(f"| {policy} | " + " | ".join(_mean_ci_cells(r)) + " |")
         lines += ["", "Flow per junction (mean over seeds; the paper's Table II):", ""]
@@ -207,15 +258,34 @@ def readme_section(results: dict[str, Any], junction_numbers: list[int]) -> str:
         f"{results['wall_s']:g} s wall with {settings['workers']} workers; "
         f"commit {results.get('commit', '?')}.",
         "",
-        "| Vehicles | Policy | Total flow | Trips | Travel time mean (s) | Travel time p95 (s) "
-        "| Mean speed (m/s) |",
-        "|---|---|---|---|---|---|---|",
+        "| Vehicles | Policy | Trips / h | Travel time mean (s) | Travel time p95 (s) | Delay over free "
+        "flow (s) | Distance (m) | Mean speed (m/s) | Junction entries (the paper's flow) |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     order = {p: i for i, p in enumerate(settings.get("policies", []))}  # as configured: baselines first
     for n, row in agg.items():
         for policy, r in sorted(row.items(), key=lambda kv: order.get(kv[0], len(order))):
             name = f"**`{policy}`**" if policy == SCHEDULED else f"`{policy}`"
             lines.append(f"| {n} | {name} | " + " | ".join(_mean_ci_cells(r)) + " |")
+    paired = results.get("paired_vs_baseline", {})
+    if paired:
+        lines += [
+            "",
+            f"Each policy minus `{BASELINE}`, paired by seed (same trips), mean ± 95 % interval over the "
+            "seeds; **bold**: the interval excludes zero. Matched travel time: over the trips both runs "
+            "completed.",
+            "",
+            "| Vehicles | Policy | Δ trips / h | Δ matched travel time (s) | Δ travel time mean (s) "
+            "| Δ delay (s) | Δ distance (m) |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for n, row in paired.items():
+            for policy, d in sorted(row.items(), key=lambda kv: order.get(kv[0], len(order))):
+                cells = [
+                    _paired_cell(d[m], "{:+.0f}" if m in ("trips_per_hour", "distance_m") else "{:+.1f}")
+                    for m in PAIRED
+                ]
+                lines.append(f"| {n} | `{policy}` | " + " | ".join(cells) + " |")
     small = min(agg, key=int)
     lines += [
         "",

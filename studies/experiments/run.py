@@ -32,6 +32,7 @@ def run_flow_study(exp: FlowExperimentSettings, mec: MecSettings, out: Path) -> 
         "planner": json.loads(coordinator.planner.model_dump_json()),
         "aggregate": agg,
         "acceptance": report.acceptance(agg),
+        "paired_vs_baseline": report.paired_differences(runs),
         "runs": [r.summary() for r in runs],
         "commit": git_commit(),
         "machine": machine_info(),

@@ -139,7 +139,34 @@ def test_readme_section_reports_every_row_and_the_checks() -> None:
         "commit": "abc",
     }
     text = report.readme_section(results, [1, 2])
-    assert "| 10 | **`balanced`** | 12 ± 0 |" in text and "| 20 | **`balanced`** |" in text
+    balanced_10 = next(line for line in text.splitlines() if line.startswith("| 10 | **`balanced`** |"))
+    assert balanced_10.endswith("| 12 ± 0 |") and "| 20 | **`balanced`** |" in text  # flow: last column
     assert "| random (before) | 4 | 6 | 10 |" in text
     assert "10 vehicles: `balanced` flow against random turns +20.0 %" in text
     assert text.index("| 10 | `random`") < text.index("| 10 | **`balanced`**")  # configured order
+
+
+def _trips_run(policy: str, seed: int, trips: list[tuple[str, int, float, float | None]]) -> RunResult:
+    run = _result(policy, 20, seed, 100, 0.0)
+    run.trip_times_s = [t for _, _, t, _ in trips]
+    run.trips = trips
+    run.duration_s = 360.0
+    return run
+
+
+def test_paired_differences_match_trips_and_pair_by_seed() -> None:
+    """Known answer: per seed, balanced minus shortest over the trips both completed."""
+    runs = [
+        _trips_run("shortest", 1, [("v0", 1, 30.0, 10.0), ("v1", 1, 40.0, 10.0)]),
+        _trips_run("balanced", 1, [("v0", 1, 25.0, 10.0), ("v1", 1, 38.0, 10.0), ("v1", 2, 50.0, 10.0)]),
+        _trips_run("shortest", 2, [("v0", 1, 30.0, 10.0)]),
+        _trips_run("balanced", 2, [("v0", 1, 26.0, 10.0), ("v2", 1, 9.0, 10.0)]),
+    ]
+    paired = report.paired_differences(runs)["20"]["balanced"]
+    # Matched trips: seed 1 (-5 - 2) / 2 = -3.5, seed 2: -4 (v2's trip has no partner).
+    assert paired["matched_travel_time_s"]["mean"] == pytest.approx(-3.75)
+    assert paired["matched_travel_time_s"]["n"] == 2
+    # Trips per hour over 360 s: seed 1 +1 trip = +10 / h, seed 2 +1 trip = +10 / h.
+    assert paired["trips_per_hour"]["mean"] == pytest.approx(10.0)
+    assert paired["trips_per_hour"]["ci95"] == pytest.approx(0.0)
+    assert "shortest" not in report.paired_differences(runs)["20"]  # no row for the baseline itself
