@@ -230,11 +230,13 @@ def eval_readme(
     robustness_dir: Annotated[Path, typer.Option("--robustness", help="robustness results")] = Path(
         "docs/eval/robustness"
     ),
+    flow: Annotated[Path, typer.Option(help="flow experiment results")] = Path("docs/eval/flow"),
 ) -> None:
-    """Rewrite the README's evaluation sections from the results files as they are (no re-run)."""
-
+    """Rewrite the README's evaluation and experiment sections from the results files as they are
+    (no re-run)."""
     from shared.readme import replace_section
     from studies.evaluation import robustness
+    from studies.experiments.report import readme_section
 
     for folder, split in ((tuning, "tuning"), (fusion, "test")):
         path = folder / "results.json"
@@ -244,6 +246,11 @@ def eval_readme(
     path = robustness_dir / "results.json"
     if path.exists():
         replace_section("eval-robustness", robustness.markdown_table(json.loads(path.read_text())))
+        console.print(f"README <- {path}")
+    path = flow / "results.json"
+    if path.exists():
+        numbers = sorted(j.number for j in Scene.load(DEFAULT_SCENE).spec.junctions)
+        replace_section("flow", readme_section(json.loads(path.read_text()), numbers))
         console.print(f"README <- {path}")
 
 

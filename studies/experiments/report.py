@@ -165,7 +165,7 @@ def _paired_cell(d: dict[str, float], fmt: str) -> str:
     """`+x ± ci`, bold when the interval excludes zero."""
     if not d.get("n") or not math.isfinite(d["ci95"]):
         return "-"
-    text = f"{fmt.format(d['mean'])} ± {fmt.format(d['ci95'])}".replace("+-", "-")
+    text = f"{fmt.format(d['mean'])} ± {fmt.replace('+', '').format(d['ci95'])}"
     return f"**{text}**" if abs(d["mean"]) > d["ci95"] else text
 
 
