@@ -103,14 +103,14 @@ models: install ## regenerate the default dataset, train + export both detectors
 eval: install ## evaluate every detector on the held-out split -> deploy/models/metrics.json (the README's numbers)
 	$(BIN)/rmmdet eval detectors --data $(DATASET) --split test --out $(MODELS_DIR)/metrics.json
 
-eval-fusion: install ## MEC fusion + tracking vs sim ground truth, tuning then held-out seeds (~25 min) -> docs/eval/fusion{_tuning,}
+eval-fusion: install ## MEC fusion + tracking vs sim ground truth, tuning then held-out seeds (~20 min) -> docs/eval/fusion{_tuning,}
 	$(BIN)/rmmdet eval fusion --split tuning --no-noise --workers 2 --readme
 	$(BIN)/rmmdet eval fusion --split test --workers 2 --readme
 
-eval-robustness: install ## fusion accuracy under 2x noise, 100 ms delay, extrinsic error, 32 vehicles vs clean (~25 min) -> docs/eval/robustness
+eval-robustness: install ## fusion accuracy under 2x noise, 100 ms delay, extrinsic error, 32 vehicles vs clean (~30 min) -> docs/eval/robustness
 	$(BIN)/rmmdet eval robustness --workers 2 --readme
 
-experiments: install ## the paper's flow experiment: 5 policies x 10/20/40 vehicles x 5 seeds + one full-perception run (~16 min) -> docs/eval/flow
+experiments: install ## the paper's flow experiment: 5 policies x 10/20/40 vehicles x 5 seeds + one full-perception run (~20 min) -> docs/eval/flow
 	$(BIN)/rmmdet experiments flow --out docs/eval/flow --readme
 
 lint: install ## ruff
