@@ -193,8 +193,7 @@ def aos_kitti_term(yaw_pred: ArrayLike, yaw_gt: ArrayLike) -> FloatArray:
     -------
     numpy.ndarray, shape (K,)
     """
-    delta = np.asarray(yaw_pred, dtype=np.float64) - np.asarray(yaw_gt, dtype=np.float64)
-    return np.asarray((1.0 + np.cos(delta)) / 2.0, dtype=np.float64)
+    return _orientation_similarity(yaw_pred, yaw_gt, 1.0)
 
 
 def aos_term(yaw_pred: ArrayLike, yaw_gt: ArrayLike) -> FloatArray:
@@ -210,8 +209,13 @@ def aos_term(yaw_pred: ArrayLike, yaw_gt: ArrayLike) -> FloatArray:
     -------
     numpy.ndarray, shape (K,)
     """
+    return _orientation_similarity(yaw_pred, yaw_gt, 2.0)
+
+
+def _orientation_similarity(yaw_pred: ArrayLike, yaw_gt: ArrayLike, harmonic: float) -> FloatArray:
+    """``(1 + cos(harmonic · Δθ)) / 2`` per pair: harmonic 1 is KITTI's, 2 the π-invariant one."""
     delta = np.asarray(yaw_pred, dtype=np.float64) - np.asarray(yaw_gt, dtype=np.float64)
-    return np.asarray((1.0 + np.cos(2.0 * delta)) / 2.0, dtype=np.float64)
+    return np.asarray((1.0 + np.cos(harmonic * delta)) / 2.0, dtype=np.float64)
 
 
 @dataclass(frozen=True)
