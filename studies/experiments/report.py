@@ -140,25 +140,34 @@ def paired_differences(results: list[RunResult], baseline: str = BASELINE) -> di
     """{"<vehicles>": {"<policy>": {metric: mean/ci of (policy - baseline) over seeds}}}: each seed's
     run of the policy against the baseline's run on the same seed (same trips)."""
     runs = {(r.vehicles, r.policy, r.seed): r for r in results}
+    diffs: dict[tuple[int, str], dict[str, list[float]]] = {
+        key: {m: [] for m in PAIRED}
+        for key in sorted({(r.vehicles, r.policy) for r in results})
+        if key[1] != baseline
+    }
+    for (n, policy, seed), run in sorted(runs.items()):
+        base = runs.get((n, baseline, seed))
+        if policy == baseline or base is None:
+            continue
+        a, b = run.summary(), base.summary()
+        for m in PAIRED:
+            if m in a and a[m] is not None and b[m] is not None:
+                diffs[n, policy][m].append(a[m] - b[m])
+        matched = _matched_travel_time_difference(run, base)
+        if matched is not None:
+            diffs[n, policy]["matched_travel_time_s"].append(matched)
     out: dict[str, dict[str, Any]] = {}
-    for n, policy in sorted({(r.vehicles, r.policy) for r in results if r.policy != baseline}):
-        diffs: dict[str, list[float]] = {m: [] for m in PAIRED}
-        for (vehicles, p, seed), run in sorted(runs.items()):
-            base = runs.get((vehicles, baseline, seed))
-            if vehicles != n or p != policy or base is None:
-                continue
-            a, b = run.summary(), base.summary()
-            for m in PAIRED:
-                if m == "matched_travel_time_s":
-                    mine = {(v, k): t for v, k, t, _ in run.trips}
-                    theirs = {(v, k): t for v, k, t, _ in base.trips}
-                    common = mine.keys() & theirs.keys()
-                    if common:
-                        diffs[m].append(float(np.mean([mine[c] - theirs[c] for c in common])))
-                elif a[m] is not None and b[m] is not None:
-                    diffs[m].append(a[m] - b[m])
-        out.setdefault(str(n), {})[policy] = {m: mean_ci(v) for m, v in diffs.items()}
+    for (n, policy), d in diffs.items():
+        out.setdefault(str(n), {})[policy] = {m: mean_ci(v) for m, v in d.items()}
     return out
+
+
+def _matched_travel_time_difference(run: RunResult, base: RunResult) -> float | None:
+    """Mean travel-time difference over the trips both runs completed (same vehicle, same k-th trip)."""
+    mine = {(v, k): t for v, k, t, _ in run.trips}
+    theirs = {(v, k): t for v, k, t, _ in base.trips}
+    common = mine.keys() & theirs.keys()
+    return float(np.mean([mine[c] - theirs[c] for c in common])) if common else None
 
 
 def _paired_cell(d: dict[str, float], fmt: str) -> str:
