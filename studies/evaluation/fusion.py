@@ -24,6 +24,8 @@ motmetrics (`shared.metrics.tracking`).
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import logging
 import time
 from collections import Counter
@@ -421,13 +423,13 @@ def _run_worker(
 ) -> tuple[str, int, AgentEvaluation, float]:
     """One (agent, seed) run in a worker process (spawned: PyBullet and onnxruntime are per process),
     under the seed's conditions (density, sensor noise, lighting, colours) and a perturbation."""
-    agent, seed, duration_s, warmup_s, mec_json, variation_json, perturbation_name = job
+    agent, seed, duration_s, warmup_s, mec_json, variation_json, perturbation_json = job
     from sim.config import load_sim_settings
 
     scene = Scene.load(DEFAULT_SCENE)
     mec = MecSettings.model_validate_json(mec_json)
     variation = Variation.model_validate_json(variation_json)
-    perturbation = robustness.BY_NAME[perturbation_name]
+    perturbation = robustness.Perturbation(**json.loads(perturbation_json))
     conditions = perturbation.conditions(SeedConditions.draw(variation, seed), variation)
     t0 = time.perf_counter()
     ev = evaluate_run(
@@ -462,8 +464,11 @@ def evaluate(
         # One onnxruntime thread per model and process: spinning ORT threads of parallel workers
         # oversubscribe the cores and run many times slower.
         mec = with_overrides(mec, {"detectors": {"camera_threads": 1, "lidar_threads": 1}})
+    perturbation_json = json.dumps(
+        dataclasses.asdict(perturbation)
+    )  # any perturbation, not just the named ones
     jobs = [
-        (a, s, duration_s, warmup_s, mec.model_dump_json(), variation.model_dump_json(), perturbation.name)
+        (a, s, duration_s, warmup_s, mec.model_dump_json(), variation.model_dump_json(), perturbation_json)
         for a in agents
         for s in seeds
     ]

@@ -91,7 +91,6 @@ PERTURBATIONS = (
     Perturbation("extrinsics", extrinsic_translation_m=0.01, extrinsic_rotation_rad=math.radians(0.5)),
     Perturbation("dense", vehicles=32),
 )
-BY_NAME = {p.name: p for p in (CLEAN, *PERTURBATIONS)}
 
 
 def markdown_table(results: dict[str, Any]) -> str:

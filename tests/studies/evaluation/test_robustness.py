@@ -16,7 +16,9 @@ from sim.sensors.rig import Capture
 from studies.dataset.conditions import SeedConditions
 from studies.dataset.config import Variation
 from studies.evaluation.fusion import RangeDelay
-from studies.evaluation.robustness import BY_NAME, CLEAN, miscalibrated
+from studies.evaluation.robustness import CLEAN, PERTURBATIONS, miscalibrated
+
+BY_NAME = {p.name: p for p in PERTURBATIONS}
 
 
 @pytest.fixture(scope="module")
