@@ -110,7 +110,7 @@ eval-fusion: install ## MEC fusion + tracking vs sim ground truth, tuning then h
 eval-robustness: install ## fusion accuracy under 2x noise, 100 ms delay, extrinsic error, 32 vehicles vs clean (~30 min) -> docs/eval/robustness
 	$(BIN)/rmmdet eval robustness --workers 2 --readme
 
-experiments: install ## the paper's flow experiment: 5 policies x 10/20/40 vehicles x 5 seeds + one full-perception run (~20 min) -> docs/eval/flow
+experiments: install ## the flow experiment: oracle fitted on real-chain runs, 6 arms x 10/20/40 vehicles x 5 seeds, real chain vs oracle on 3 seeds x 10/20 vehicles (~45 min) -> docs/eval/flow
 	$(BIN)/rmmdet experiments flow --out docs/eval/flow --readme
 
 lint: install ## ruff

@@ -307,7 +307,10 @@ def experiments_flow(
     vehicles: Annotated[list[int] | None, typer.Option("--vehicles", help="fleet sizes (repeatable)")] = None,
     policies: Annotated[list[str] | None, typer.Option("--policy", help="policies (repeatable)")] = None,
     workers: Annotated[int | None, typer.Option(help="runs in parallel (processes)")] = None,
-    full: Annotated[bool | None, typer.Option(help="also the full-perception closed-loop run")] = None,
+    full: Annotated[bool | None, typer.Option(help="also the real-chain closed-loop runs")] = None,
+    fit: Annotated[
+        bool | None, typer.Option(help="fit the oracle's error model first (else use the file as it is)")
+    ] = None,
     out: Annotated[Path, typer.Option(help="folder for results, summary and heat maps")] = Path(
         "docs/eval/flow"
     ),
@@ -315,8 +318,9 @@ def experiments_flow(
 ) -> None:
     """The paper's traffic-flow experiment: junction flow, trips, travel time and speed for random
     turns, the paper's rule, shortest distance, dynamic rerouting on ground truth and the balanced
-    planner on perceived maps, over fleet sizes and seeds (mean ± 95 % CI); heat maps; one run with
-    the full perception chain."""
+    planner on perceived maps, over fleet sizes and seeds (mean ± 95 % CI); heat maps. The perceived
+    maps come from an oracle whose error model is first fitted on real-chain runs; real-chain runs on
+    the grid's seeds are then compared with the oracle's."""
     from shared.config import load_settings, with_overrides
     from shared.perception.config import DEFAULT_MEC_CONFIG, MecSettings
     from studies.experiments.config import load_flow_settings
@@ -335,6 +339,8 @@ def experiments_flow(
             update[key] = value
     if full is not None:
         update["full_perception"] = {"enabled": full}
+    if fit is not None:
+        update["oracle_fit"] = {"enabled": fit}
     exp = with_overrides(load_flow_settings(config), update)
     results, summary = run_flow_study(exp, load_settings(MecSettings, DEFAULT_MEC_CONFIG), out)
     if readme:

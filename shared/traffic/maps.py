@@ -6,7 +6,10 @@
 Smoothing is exponential with time constant tau: x += (1 - exp(-dt / tau)) (sample - x), so the result
 does not depend on the update rate. A speed is averaged only from samples (an empty lane has no speed,
 not speed 0) and turns invalid when no sample came for `speed_valid_s`. Lanes seen by no live agent are
-marked unobserved: their count is unknown, not zero. Units: metres, seconds, m/s.
+marked unobserved: their count is unknown, not zero. Planners read an unobserved lane's count from a
+prior (`TrafficSnapshot.lane_count_expected`): the observed lanes' mean density (vehicles per metre,
+the last one seen when nothing is observed) times its length; an area no live agent covers is ranked
+by the same prior. Units: metres, seconds, m/s.
 """
 
 from __future__ import annotations
@@ -139,12 +142,14 @@ class TrafficSnapshot:
     lane_speed_mps: FloatArray
     lane_speed_valid: BoolArray
     lane_observed: BoolArray  # covered by at least one live agent
+    prior_density_per_m: float  # vehicles per metre of observed lane (the prior of unobserved ones)
     area_ids: list[str]
     area_count: FloatArray
     area_count_smoothed: FloatArray
     area_speed_mps: FloatArray
     area_speed_valid: BoolArray
-    area_rank: NDArray[np.int64]  # 0 = least crowded (the paper's area rank), ties in file order
+    area_observed: BoolArray  # one of a live agent's areas
+    area_rank: NDArray[np.int64]  # 0 = least crowded (the paper's rank; unobserved areas at the prior)
     grid_origin_m: tuple[float, float]
     grid_cell_m: float
     grid_shape: tuple[int, int]  # rows (y), columns (x)
@@ -155,6 +160,11 @@ class TrafficSnapshot:
 
     def lane_index(self, lane_id: str) -> int:
         return self.lane_ids.index(lane_id)
+
+    @property
+    def lane_count_expected(self) -> FloatArray:
+        """(L,) vehicles per lane: counted where observed, the density prior elsewhere."""
+        return np.where(self.lane_observed, self.lane_count, self.prior_density_per_m * self.lane_length_m)
 
 
 def area_ranks(counts: FloatArray) -> NDArray[np.int64]:
@@ -175,6 +185,17 @@ class TrafficMapBuilder:
         self.lane_ids = self.locator.lane_ids
         self.lane_agents = lane_agents(scene, network)
         self.area_ids = [a.id for a in scene.spec.areas]
+        self.area_lane_length_m = np.array(
+            [
+                sum(
+                    float(ln)
+                    for ln, lane in zip(self.locator.lengths_m, self.lane_ids, strict=True)
+                    if scene.lanes[lane].area == area
+                )
+                for area in self.area_ids
+            ]
+        )
+        self._density_per_m = 0.0  # the prior: last observed mean density
         self.grid = scene.table_grid(cfg.grid_cell_m)
         self.grid_origin_m, self.grid_shape = self.grid.origin_m, self.grid.shape
         self._lanes = _Smoothed(len(self.lane_ids))
@@ -187,6 +208,13 @@ class TrafficMapBuilder:
         if live_agents is None:
             return np.ones(len(self.lane_ids), dtype=bool)
         return np.array([any(a in live_agents for a in self.lane_agents[lane]) for lane in self.lane_ids])
+
+    def area_observed(self, live_agents: Collection[str] | None) -> BoolArray:
+        """Areas one of whose agents is live; `None`: all (ground truth)."""
+        if live_agents is None:
+            return np.ones(len(self.area_ids), dtype=bool)
+        covered = {area for a in live_agents if a in self.scene.agents for area in self.scene.agents[a].areas}
+        return np.array([area in covered for area in self.area_ids])
 
     def cells(self, position_m: FloatArray) -> NDArray[np.int64]:
         """Flat grid index per position; -1 outside the table."""
@@ -216,6 +244,11 @@ class TrafficMapBuilder:
         area_count = np.bincount(area_idx[has_area], minlength=len(self.area_ids)).astype(float)
         area_speed = np.bincount(area_idx[has_area], weights=speed[has_area], minlength=len(self.area_ids))
         self._areas.update(gain, area_count, area_speed, t_s)
+        observed_m = float(self.locator.lengths_m[observed].sum())
+        if observed_m > 0:
+            self._density_per_m = float(lane_count[observed].sum()) / observed_m
+        area_observed = self.area_observed(live_agents)
+        area_expected = np.where(area_observed, area_count, self._density_per_m * self.area_lane_length_m)
 
         cell = self.cells(vehicles.position_m)
         inside = cell >= 0
@@ -234,12 +267,14 @@ class TrafficMapBuilder:
             lane_speed_mps=self._lanes.speed.copy(),
             lane_speed_valid=self._lanes.valid(t_s, valid_s),
             lane_observed=observed,
+            prior_density_per_m=self._density_per_m,
             area_ids=self.area_ids,
             area_count=area_count,
             area_count_smoothed=self._areas.count.copy(),
             area_speed_mps=self._areas.speed.copy(),
             area_speed_valid=self._areas.valid(t_s, valid_s),
-            area_rank=area_ranks(area_count),
+            area_observed=area_observed,
+            area_rank=area_ranks(area_expected),
             grid_origin_m=self.grid_origin_m,
             grid_cell_m=self.cfg.grid_cell_m,
             grid_shape=self.grid_shape,

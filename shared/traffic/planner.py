@@ -36,18 +36,17 @@ FloatArray = NDArray[np.float64]
 
 @dataclass
 class LaneConditions:
-    """What a planner knows about the lanes now. Missing entries: nothing known."""
+    """What a planner knows about the lanes now. Missing entries: nothing known (no car, free speed)."""
 
-    count: dict[str, float] = field(default_factory=dict)  # vehicles on the lane
+    count: dict[str, float] = field(default_factory=dict)  # vehicles on the lane (counted or prior)
     speed_mps: dict[str, float] = field(default_factory=dict)  # valid measured mean speed
     area_rank: dict[str, int] = field(default_factory=dict)  # area id -> crowding rank (0 = emptiest)
 
     @classmethod
     def from_snapshot(cls, snap: TrafficSnapshot) -> LaneConditions:
-        """Counts of observed lanes and valid speeds; unobserved lanes stay unknown."""
-        count = {
-            lane: float(snap.lane_count[i]) for i, lane in enumerate(snap.lane_ids) if snap.lane_observed[i]
-        }
+        """Counts of observed lanes, the density prior of unobserved ones (no lane counts as empty for
+        want of a sensor), valid speeds (unobserved or empty lanes: the speed limit)."""
+        count = dict(zip(snap.lane_ids, snap.lane_count_expected.tolist(), strict=True))
         speed = {
             lane: float(snap.lane_speed_mps[i])
             for i, lane in enumerate(snap.lane_ids)

@@ -2,18 +2,19 @@
 
 Each run drives `vehicles` cars for `duration_s` simulated seconds in lock-step (no wall clock). Every
 connected car asks for a plan once per lane, `plan_request_m` before its end (as over the bus), and
-the planner answers under one policy:
+the planner answers under one arm (`parse_arm`: a policy and the maps it plans on):
 
   random / shortest     no maps needed
-  paper_rule, balanced  perceived maps: per-agent object lists (only cars inside an agent's areas, with
-                        position / velocity noise and misses like the MECs'), merged across agents,
-                        smoothed into lane / area maps every `map_period_s`
-  dynamic_ground_truth  the same maps built from ground truth of every lane (SUMO-style rerouting)
+  paper_rule, balanced  perceived maps: per-agent object lists from the oracle (`oracle.py`, its error
+                        model fitted on the real chain's output), merged across agents, smoothed into
+                        lane / area maps every `map_period_s`
+  dynamic_ground_truth  the same maps built from ground truth of every lane (SUMO-style rerouting);
+  <policy>@ground_truth also any map-reading policy on those maps
 
-One run with the full chain (rendered sensors -> MEC pipelines with the ONNX detectors -> maps ->
-plans) checks that the perceived maps behave like the oracle's. Measured per run: arrivals at each of
-the 7 junctions (the paper's flow), trips completed, trip travel time (mean, p95), mean vehicle speed,
-and a mean-speed grid for the heat maps. Units: metres, seconds, m/s.
+`run_full_perception` drives the real chain instead (rendered sensors -> MEC pipelines with the ONNX
+detectors -> maps -> plans). Measured per run: arrivals at each of the 7 junctions (the paper's flow),
+trips completed, trip travel time (mean, p95), delay over free flow, distance, mean vehicle speed, and
+a mean-speed grid for the heat maps. Units: metres, seconds, m/s.
 """
 
 from __future__ import annotations
@@ -39,16 +40,12 @@ from shared.traffic.lanes import OFF_LANE
 from shared.traffic.maps import AgentObjects, TrafficSnapshot
 from sim.config import SimSettings, TrafficSettings
 from sim.traffic import TrafficSim
-from studies.experiments.config import FlowExperimentSettings, OraclePerception
+from studies.experiments.config import FlowExperimentSettings, parse_arm
+from studies.experiments.oracle import ErrorObserver, OracleAgents, OracleErrorModel
 
 log = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
-MAP_POLICIES: dict[str, str] = {  # policy -> source of its maps
-    "paper_rule": "perceived",
-    "balanced": "perceived",
-    "dynamic_ground_truth": "ground_truth",
-}
 SECONDS_PER_HOUR = 3600.0
 GROUND_TRUTH = "ground_truth"
 ObjectSource = Callable[[TrafficSim], list[AgentObjects]]
@@ -67,36 +64,6 @@ def vehicle_state(traffic: TrafficSim) -> tuple[FloatArray, FloatArray]:
 def ground_truth_objects(traffic: TrafficSim) -> list[AgentObjects]:
     pos, vel = vehicle_state(traffic)
     return [AgentObjects(GROUND_TRUTH, pos, vel, np.full(len(pos), 1e-6))]
-
-
-class OracleAgents:
-    """Each agent reports the cars inside its areas, with noise and misses (`OraclePerception`)."""
-
-    def __init__(self, scene: Scene, cfg: OraclePerception, seed: int) -> None:
-        self.scene = scene
-        self.cfg = cfg
-        self.rng = np.random.default_rng(seed)
-        self.agent_of_area: dict[str, list[str]] = {}
-        for agent in scene.spec.agents:
-            for area in agent.areas:
-                self.agent_of_area.setdefault(area, []).append(agent.id)
-
-    def __call__(self, traffic: TrafficSim) -> list[AgentObjects]:
-        pos, vel = vehicle_state(traffic)
-        seen: dict[str, list[int]] = {a: [] for a in self.scene.agents}
-        for i, (x, y, z) in enumerate(pos):
-            area = self.scene.area_of(float(x), float(y), float(z))
-            for agent in self.agent_of_area.get(area or "", []):
-                seen[agent].append(i)
-        out = []
-        var = self.cfg.position_std_m**2
-        for agent, rows in seen.items():
-            idx = np.array(rows, dtype=np.int64)
-            idx = idx[self.rng.uniform(size=len(idx)) < self.cfg.detection_probability]
-            p = pos[idx] + self.rng.normal(0.0, self.cfg.position_std_m, (len(idx), 3))
-            v = vel[idx] + self.rng.normal(0.0, self.cfg.velocity_std_mps, (len(idx), 3))
-            out.append(AgentObjects(agent, p, v, np.full(len(idx), max(var, 1e-6))))
-        return out
 
 
 # --- one run ----------------------------------------------------------------------------------------
@@ -269,14 +236,16 @@ def make_scheduler(
     scene: Scene,
     coordinator: CoordinatorSettings,
     exp: FlowExperimentSettings,
-    policy: PolicyName,
+    arm: str,
     seed: int,
     vehicles: int,
 ) -> Scheduler:
-    kind = MAP_POLICIES.get(policy)
+    """The coordinator for one arm (`parse_arm`): its policy, fed from the maps source it names."""
+    policy, kind = parse_arm(arm)
     source: ObjectSource | None = None
     if kind == "perceived":
-        source = OracleAgents(scene, exp.oracle, seed)
+        oracle = OracleAgents(scene, RoadNetwork(scene), OracleErrorModel.load(exp.oracle_model), seed)
+        source = lambda traffic: oracle(*vehicle_state(traffic))  # noqa: E731
     elif kind == GROUND_TRUTH:
         source = ground_truth_objects
     return Scheduler(scene, coordinator, policy, seed, source, vehicles)
@@ -287,16 +256,16 @@ def run_flow(
     sim: SimSettings,
     coordinator: CoordinatorSettings,
     exp: FlowExperimentSettings,
-    policy: PolicyName,
+    arm: str,
     vehicles: int,
     seed: int,
 ) -> RunResult:
-    """One (policy, fleet size, seed) run with oracle or ground-truth maps."""
+    """One (arm, fleet size, seed) run with oracle or ground-truth maps."""
     t0 = time.perf_counter()
     network = RoadNetwork(scene)
     traffic = TrafficSim(scene, network, traffic_settings(sim, vehicles), seed, sim.tick_hz)
-    scheduler = make_scheduler(scene, coordinator, exp, policy, seed, vehicles)
-    return _drive(scene, sim, exp, traffic, scheduler, policy, vehicles, seed, exp.duration_s, t0)
+    scheduler = make_scheduler(scene, coordinator, exp, arm, seed, vehicles)
+    return _drive(scene, sim, exp, traffic, scheduler, arm, vehicles, seed, exp.duration_s, t0)
 
 
 def _drive(
@@ -311,9 +280,11 @@ def _drive(
     duration_s: float,
     t0: float,
     step: Callable[[], list[AgentObjects] | None] | None = None,
+    before_map_update: Callable[[], None] | None = None,
 ) -> RunResult:
     """Drive `duration_s`; `step` advances the world and returns fresh objects when it perceives
-    (default: the traffic alone, maps from the scheduler's source)."""
+    (default: the traffic alone, maps from the scheduler's source); `before_map_update` is called
+    at each map update, before it."""
     map_every = max(1, round(exp.map_period_s * sim.tick_hz))
     sample_every = max(1, round(exp.speed_sample_period_s * sim.tick_hz))
     grid = HeatGrid(scene, exp.heat_map_cell_m)
@@ -321,6 +292,8 @@ def _drive(
     latest: list[AgentObjects] | None = None
     for tick in range(round(duration_s * sim.tick_hz)):
         if tick % map_every == 0:
+            if before_map_update is not None:
+                before_map_update()
             scheduler.update_maps(traffic, latest)
         scheduler.serve(traffic)
         if step is None:
@@ -378,26 +351,32 @@ def run_full_perception(
     coordinator: CoordinatorSettings,
     exp: FlowExperimentSettings,
     mec: Any,
+    vehicles: int,
+    seed: int,
+    duration_s: float,
+    observer: ErrorObserver | None = None,
 ) -> RunResult:
     """Closed loop through rendered sensors and the MEC pipelines (ONNX detectors, fusion, tracking):
     each agent's tracks become its object list exactly as the MEC publishes and the coordinator reads
-    them (TrackedObjects message -> `agent_objects`)."""
+    them (TrackedObjects message -> `agent_objects`). `observer` measures those lists against ground
+    truth (the oracle's fit). The result's policy is `<policy>@mec`."""
     from shared.perception.core import MecCore
     from shared.traffic.messages import agent_objects
     from sim.lockstep import LockstepSim
-    from studies.evaluation.fusion import feed_tick
+    from studies.evaluation.fusion import feed_tick, vehicle_boxes, vehicle_velocities
 
-    run = exp.full_perception
+    policy = exp.full_perception.policy
     t0 = time.perf_counter()
-    settings = with_overrides(sim, {"seed": run.seed, "traffic": traffic_overrides(run.vehicles)})
+    settings = with_overrides(sim, {"seed": seed, "traffic": traffic_overrides(vehicles)})
     cores = {a: MecCore(scene, a, mec) for a in scene.agents}
     for core in cores.values():
         core.tick_hz = sim.tick_hz  # the live MEC's camera cadence (on sim ticks)
     latest = {a: AgentObjects.empty(a) for a in scene.agents}
+    stamp_s: dict[str, float] = {}  # capture instant of each agent's newest list
     min_existence = coordinator.maps.min_existence_probability
     with LockstepSim(scene, settings) as world:
         traffic = world.traffic
-        scheduler = Scheduler(scene, coordinator, run.policy, run.seed, None, run.vehicles)
+        scheduler = Scheduler(scene, coordinator, policy, seed, None, vehicles)
 
         def step() -> list[AgentObjects] | None:
             tick = world.step()
@@ -406,12 +385,29 @@ def run_full_perception(
             by_agent: dict[str, list[Any]] = {}
             for capture in tick.captures:
                 by_agent.setdefault(capture.spec.agent, []).append(capture)
-            stamp_ns = tick.ground_truth.header.stamp.ToNanoseconds()
+            gt = tick.ground_truth
+            stamp_ns = gt.header.stamp.ToNanoseconds()
+            truth: tuple[np.ndarray, np.ndarray] | None = None
             for agent, captures in by_agent.items():
-                out = feed_tick(cores[agent], stamp_ns, tick.ground_truth.header.tick, captures)
-                if out is not None:
-                    latest[agent] = agent_objects(agent, out.message, min_existence)
+                out = feed_tick(cores[agent], stamp_ns, gt.header.tick, captures)
+                if out is None:
+                    continue
+                latest[agent] = agent_objects(agent, out.message, min_existence)
+                stamp_s[agent] = stamp_ns / NS_PER_S
+                if observer is not None:
+                    if truth is None:
+                        boxes, vels = vehicle_boxes(gt), vehicle_velocities(gt)
+                        ids = list(boxes)
+                        b = np.array([boxes[v] for v in ids]).reshape(-1, 7)
+                        contact = np.column_stack([b[:, 0], b[:, 1], b[:, 2] - b[:, 5] / 2])
+                        truth = contact, np.array([vels[v] for v in ids]).reshape(-1, 2)
+                    observer.objects(latest[agent], *truth)
             return list(latest.values())
+
+        def before_map_update() -> None:
+            if observer is not None:
+                for s in stamp_s.values():
+                    observer.age(traffic.time_s - s)
 
         result = _drive(
             scene,
@@ -419,12 +415,13 @@ def run_full_perception(
             exp,
             traffic,
             scheduler,
-            run.policy,
-            run.vehicles,
-            run.seed,
-            run.duration_s,
+            f"{policy}@mec",
+            vehicles,
+            seed,
+            duration_s,
             t0,
             step,
+            before_map_update,
         )
     result.extra["perception"] = "full"
     return result

@@ -255,7 +255,7 @@ def test_unobserved_lane_keeps_its_smoothed_count(builder: TrafficMapBuilder) ->
     assert snap.lane_count_smoothed[HI] == pytest.approx(1.0)
     assert snap.lane_count_smoothed[LO] == pytest.approx(2.0 * (1.0 - GAIN_1S))
     cond = LaneConditions.from_snapshot(snap)
-    assert cond.count == {"lo": 0.0}  # unobserved: unknown, not zero
+    assert cond.count == {"lo": 0.0, "hi": 0.0}  # unobserved hi: the prior (lo's density now: none)
     assert cond.speed_mps == pytest.approx({"hi": 0.3, "lo": 0.3})
     assert cond.area_rank == {"south": 0, "north": 1}  # equal counts (0): file order
     # nobody live: nothing observed, nothing decays
@@ -266,6 +266,24 @@ def test_unobserved_lane_keeps_its_smoothed_count(builder: TrafficMapBuilder) ->
     snap = builder.update(vehicles([]), 3.0, ["agent_s", "agent_n"])
     assert snap.lane_observed.tolist() == [True, True]
     assert snap.lane_count_smoothed[HI] == pytest.approx(1.0 - GAIN_1S)
+
+
+def test_unobserved_lanes_and_areas_take_the_observed_density(builder: TrafficMapBuilder) -> None:
+    snap = builder.update(FIRST, 0.0, {"agent_s"})  # agent_n down: hi and the north area unobserved
+    assert snap.prior_density_per_m == pytest.approx(2.0 / 3.0)  # lo: 2 cars on 3 m
+    np.testing.assert_allclose(snap.lane_count_expected, [2.0, 2.0])  # hi: 2/3 per m x 3 m; lo counted
+    assert LaneConditions.from_snapshot(snap).count == pytest.approx({"hi": 2.0, "lo": 2.0})
+    assert snap.area_observed.tolist() == [True, False]
+    # south counts 3 (one off-lane), north is ranked by its prior, 2 (not 0): north the emptier
+    assert snap.area_rank.tolist() == [1, 0]
+    # nobody live: the last observed density is kept (history), every lane at the prior
+    snap = builder.update(vehicles([]), 1.0, [])
+    assert snap.prior_density_per_m == pytest.approx(2.0 / 3.0)
+    np.testing.assert_allclose(snap.lane_count_expected, [2.0, 2.0])
+    # ground truth observes everything: the counts themselves
+    snap = builder.update(FIRST, 2.0, None)
+    np.testing.assert_array_equal(snap.lane_count_expected, snap.lane_count)
+    assert snap.area_observed.tolist() == [True, True]
 
 
 def test_live_agents_none_observes_everything(builder: TrafficMapBuilder) -> None:

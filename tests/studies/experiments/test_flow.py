@@ -9,11 +9,13 @@ import pytest
 
 from shared.scene.scene import Scene
 from shared.traffic.config import CoordinatorSettings
+from shared.traffic.maps import AgentObjects
 from sim.config import load_sim_settings
 from sim.traffic import TrafficSim
 from studies.experiments import report
-from studies.experiments.config import FlowExperimentSettings, OraclePerception
-from studies.experiments.flow import OracleAgents, RunResult, Scheduler, run_flow, traffic_settings
+from studies.experiments.config import FlowExperimentSettings, parse_arm
+from studies.experiments.flow import RunResult, Scheduler, run_flow, traffic_settings, vehicle_state
+from studies.experiments.oracle import AgentErrors, ErrorObserver, OracleAgents, OracleErrorModel, match
 
 DURATION_S = 20.0
 
@@ -24,7 +26,10 @@ def setup() -> tuple[Scene, object, CoordinatorSettings, FlowExperimentSettings]
     return Scene.load(sim.scene), sim, CoordinatorSettings(), FlowExperimentSettings(duration_s=DURATION_S)
 
 
-@pytest.mark.parametrize("policy", ["random", "paper_rule", "shortest", "dynamic_ground_truth", "balanced"])
+@pytest.mark.parametrize(
+    "policy",
+    ["random", "paper_rule", "paper_rule@ground_truth", "shortest", "dynamic_ground_truth", "balanced"],
+)
 def test_every_policy_plans_and_moves_traffic(setup, policy) -> None:  # type: ignore[no-untyped-def]
     scene, sim, coord, exp = setup
     result = run_flow(scene, sim, coord, exp, policy, vehicles=8, seed=7)
@@ -32,15 +37,15 @@ def test_every_policy_plans_and_moves_traffic(setup, policy) -> None:  # type: i
     # Every request is served and every plan applied: the vehicles acknowledge each one as accepted.
     assert not [k for k in counts if k.startswith(("plans/", "rejected/"))], counts
     assert counts.get("acks/accepted", 0) == result.plans >= 8
-    if policy in ("random", "shortest", "paper_rule"):
+    if policy.startswith(("random", "shortest", "paper_rule")):
         assert result.extra["plans_pushed"] == 0  # one-junction or map-free policies are never re-planned
     assert result.total_flow > 0
     assert set(result.arrivals) == {j.number for j in scene.spec.junctions}
     assert 0.0 < result.mean_speed_mps <= sim.traffic.max_speed_mps + 1e-9
     assert result.speed_samples.sum() > 0
-    if policy in ("paper_rule", "balanced", "dynamic_ground_truth"):
+    if policy != "random" and policy != "shortest":
         assert result.extra["map_updates"] == round(DURATION_S / exp.map_period_s)
-    if policy == "dynamic_ground_truth":  # maps of exact positions on every lane: no count error
+    if policy.endswith("ground_truth"):  # maps of exact positions on every lane: no count error
         assert result.extra["lane_count_abs_error_per_update"] == 0.0
 
 
@@ -68,19 +73,103 @@ def test_vehicles_follow_their_plans(setup) -> None:  # type: ignore[no-untyped-
     assert followed == entered
 
 
-def test_oracle_agents_report_only_their_areas(setup) -> None:  # type: ignore[no-untyped-def]
+@pytest.mark.parametrize(
+    ("arm", "parsed"),
+    [
+        ("random", ("random", None)),
+        ("balanced", ("balanced", "perceived")),
+        ("paper_rule@ground_truth", ("paper_rule", "ground_truth")),
+        ("dynamic_ground_truth", ("dynamic_ground_truth", "ground_truth")),
+    ],
+)
+def test_parse_arm(arm: str, parsed: tuple[str, str | None]) -> None:
+    assert parse_arm(arm) == parsed
+
+
+@pytest.mark.parametrize("arm", ["fastest", "shortest@ground_truth", "balanced@psychic", "random@perceived"])
+def test_parse_arm_rejects(arm: str) -> None:
+    with pytest.raises(ValueError, match=arm.partition("@")[0]):
+        parse_arm(arm)
+    with pytest.raises(ValueError):
+        FlowExperimentSettings(policies=[arm])
+
+
+def _model(scene: Scene, recall: list[float], **kw: float) -> OracleErrorModel:
+    errors = AgentErrors(
+        recall_by_distance=recall,
+        present_by_distance=[1] * len(recall),
+        false_positives_per_list=kw.pop("fp", 0.0),
+        object_lists=1,
+    )
+    defaults = {"position_std_m": 0.0, "velocity_std_mps": 0.0, "latency_s": 0.0, "matched": 1}
+    return OracleErrorModel(distance_bin_m=1.0, agents=dict.fromkeys(scene.agents, errors), **defaults | kw)
+
+
+def test_oracle_agents_follow_their_model(setup) -> None:  # type: ignore[no-untyped-def]
     scene, sim, _coord, _exp = setup
     traffic = TrafficSim(scene, _net(scene), traffic_settings(sim, 20), 5, sim.tick_hz)
-    oracle = OracleAgents(scene, OraclePerception(position_std_m=0.0, detection_probability=1.0), 0)
-    objects = {o.agent_id: o for o in oracle(traffic)}
-    assert set(objects) == set(scene.agents)
-    areas = {a.id: set(a.areas) for a in scene.spec.agents}
-    for agent, obj in objects.items():
-        for x, y, z in obj.position_m:
-            assert scene.area_of(x, y, z) in areas[agent]
-    outer = [v for v in traffic.vehicles if scene.area_of(v.x, v.y, v.z) == "outer_ring"]
-    reported = sum(len(o) for o in objects.values())
-    assert reported == len(traffic.vehicles) - len(outer)  # outer ring: no agent
+    pos, vel = vehicle_state(traffic)
+    # Recall 1 out to 100 m, no noise: every agent reports every vehicle, where it was 0.5 s ago.
+    sees_all = OracleAgents(scene, _net(scene), _model(scene, [1.0] * 100, latency_s=0.5), 0)
+    for obj in sees_all(pos, vel):
+        np.testing.assert_allclose(obj.position_m, pos - 0.5 * vel)
+        np.testing.assert_allclose(obj.velocity_mps, vel)
+    # Recall 0: nothing but the false positives, at rest on the agent's lanes (2 per list on average).
+    blind = OracleAgents(scene, _net(scene), _model(scene, [0.0], fp=2.0), 0)
+    lists = [blind(pos, vel) for _ in range(200)]
+    per_list = np.mean([len(o) for batch in lists for o in batch])
+    assert per_list == pytest.approx(2.0, abs=0.2)
+    assert all(not o.velocity_mps.any() for batch in lists for o in batch)
+
+
+def test_model_recall_by_distance_known_answer(setup) -> None:  # type: ignore[no-untyped-def]
+    scene = setup[0]
+    model = _model(scene, [0.9, 0.5])
+    agent = next(iter(scene.agents))
+    assert model.recall(agent, np.array([0.0, 0.99, 1.0, 1.99, 2.0, 50.0])).tolist() == [
+        0.9,
+        0.9,
+        0.5,
+        0.5,
+        0,
+        0,
+    ]
+
+
+def test_match_is_one_to_one_within_gate_and_level() -> None:
+    objects = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.0, 0.05, 0.2]])
+    truth = np.array([[0.05, 0.0, 0.0], [0.9, 0.0, 0.0], [0.0, 0.0, 0.2]])
+    rows, cols = match(objects, truth, gate_m=0.3, level_m=0.05)
+    assert sorted(zip(rows.tolist(), cols.tolist(), strict=True)) == [(0, 0), (1, 1), (3, 2)]
+
+
+def test_error_observer_fit_known_answer(setup) -> None:  # type: ignore[no-untyped-def]
+    """Two lists of one agent: errors +-0.03 m / +-0.04 m/s, one vehicle missed, one false positive."""
+    scene = setup[0]
+    agent = next(iter(scene.agents))
+    observer = ErrorObserver(scene, gate_m=0.3, level_m=0.05, bin_m=100.0, max_m=100.0)
+    truth = np.array([[1.0, 1.0, 0.0], [2.0, 1.0, 0.0], [3.0, 1.0, 0.0]])
+    truth_v = np.array([[0.2, 0.0], [0.2, 0.0], [0.2, 0.0]])
+    seen = AgentObjects(
+        agent,
+        truth[:2] + np.array([[0.03, 0.03, 0.0], [-0.03, -0.03, 0.0]]),
+        np.array([[0.24, 0.04, 0.0], [0.16, -0.04, 0.0]]),
+        np.ones(2),
+    )
+    observer.objects(seen, truth, truth_v)
+    ghost = AgentObjects(agent, np.array([[9.0, 9.0, 0.0]]), np.zeros((1, 3)), np.ones(1))
+    other = ErrorObserver(scene, gate_m=0.3, level_m=0.05, bin_m=100.0, max_m=100.0)
+    other.objects(ghost, truth, truth_v)
+    other.age(0.1)
+    observer.age(0.3)
+    observer.merge(other)
+    model = observer.fit()
+    assert model.position_std_m == pytest.approx(0.03)
+    assert model.velocity_std_mps == pytest.approx(0.04)
+    assert model.agents[agent].recall_by_distance == [pytest.approx(2 / 6, abs=1e-4)]
+    assert model.agents[agent].false_positives_per_list == 0.5
+    assert model.latency_s == pytest.approx(0.2)
+    assert model.matched == 2
 
 
 def test_mean_ci_known_answer() -> None:
