@@ -103,7 +103,8 @@ models: install ## regenerate the default dataset, train + export both detectors
 eval: install ## evaluate every detector on the held-out split -> deploy/models/metrics.json (the README's numbers)
 	$(BIN)/rmmdet eval detectors --data $(DATASET) --split test --out $(MODELS_DIR)/metrics.json
 
-eval-fusion: install ## MEC fusion + tracking vs sim ground truth, tuning then held-out seeds (~20 min) -> docs/eval/fusion{_tuning,}
+eval-fusion: install ## calibrated scores fitted on the tuning seeds, then MEC fusion + tracking vs sim ground truth, tuning then held-out seeds (~30 min) -> deploy/mec/score_calibration.json, docs/eval/fusion{_tuning,}
+	$(BIN)/rmmdet eval calibrate-scores --workers 2
 	$(BIN)/rmmdet eval fusion --split tuning --no-noise --workers 2 --readme
 	$(BIN)/rmmdet eval fusion --split test --workers 2 --readme
 

@@ -210,6 +210,49 @@ def eval_fusion(
     console.print(f"results: {out / 'results.json'}")
 
 
+@eval_app.command("calibrate-scores")
+def eval_calibrate_scores(
+    seeds: Annotated[
+        list[int] | None,
+        typer.Option("--seed", help="sim seeds (repeatable; default the fusion tuning split, never test)"),
+    ] = None,
+    duration_s: Annotated[float, typer.Option(help="simulated seconds scored per (agent, seed)")] = 60.0,
+    warmup_s: Annotated[float, typer.Option(help="simulated seconds before scoring")] = 3.0,
+    workers: Annotated[int, typer.Option(help="(agent, seed) runs in parallel (processes)")] = 2,
+    config: Annotated[Path | None, typer.Option(help="MEC settings YAML")] = None,
+    out: Annotated[
+        Path | None, typer.Option(help="calibration JSON (default: the MEC settings' path)")
+    ] = None,
+) -> None:
+    """Fit the calibrated confidence of every evidence kind (shared/perception/confidence.py): the MEC
+    run with raw scores on the tuning seeds, each measurement scored as a true box (BEV IoU >= 0.7) or
+    not, isotonic curves per evidence written where the MEC reads them."""
+    from shared.config import load_settings
+    from shared.perception.config import DEFAULT_MEC_CONFIG, DEFAULT_SCORE_CALIBRATION, MecSettings
+    from studies.dataset.config import DEFAULT_DATASET_CONFIG, DatasetSettings
+    from studies.evaluation.run import run_score_calibration
+
+    log_progress()
+    scene = Scene.load(DEFAULT_SCENE)
+    dataset = load_settings(DatasetSettings, DEFAULT_DATASET_CONFIG)
+    mec = load_settings(MecSettings, config or DEFAULT_MEC_CONFIG)
+    out = out or mec.score_calibration or DEFAULT_SCORE_CALIBRATION
+    seeds = seeds or list(dataset.seeds.fusion_tuning)
+    calibration, raw = run_score_calibration(
+        dataset, mec, sorted(scene.agents), seeds, duration_s, warmup_s, workers, out
+    )
+    table = Table(title=f"raw scores on seeds {seeds} -> calibrated ({out})")
+    for col in ("evidence", "measurements", "raw mean score", "true share", "raw ECE", "knots"):
+        table.add_column(col)
+    for key, c in raw.items():
+        curve = calibration.curves.get(key)
+        knots = str(len(curve.raw)) if curve is not None else "(too few: raw)"
+        table.add_row(
+            key, str(c["n"]), f"{c['mean_score']:.3f}", f"{c['true_share']:.3f}", f"{c['ece']:.3f}", knots
+        )
+    console.print(table)
+
+
 def write_fusion_readme(results: dict[str, Any], split: str) -> None:
     """The README sections of one fusion split's results: its table, and the noise experiment's line."""
     from shared.readme import replace_section

@@ -6,6 +6,8 @@ has a default and says its unit. The scene file stays the single source of senso
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from pydantic import BaseModel, ConfigDict, Field
 
 from shared.config import RmmdetSettings, settings_config
@@ -18,6 +20,8 @@ from shared.perception.radar_camera import RadarCameraConfig
 from shared.tracking.tracker import TrackerConfig
 
 DEFAULT_MEC_CONFIG = REPO_ROOT / "deploy" / "mec" / "mec.yaml"
+#: Written by `rmmdet eval calibrate-scores` (tuning seeds); shared/perception/confidence.py.
+DEFAULT_SCORE_CALIBRATION = REPO_ROOT / "deploy" / "mec" / "score_calibration.json"
 
 
 class _Model(BaseModel):
@@ -98,5 +102,9 @@ class MecSettings(RmmdetSettings):
     health: HealthConfig = HealthConfig()
     surface_half_width_m: float = Field(
         0.2, gt=0, description="road-surface lookup radius around lane samples"
+    )
+    score_calibration: Path | None = Field(
+        DEFAULT_SCORE_CALIBRATION,
+        description="calibrated-confidence tables (JSON, shared/perception/confidence.py); null: raw scores",
     )
     report_interval_s: float = Field(10.0, gt=0, description="log interval of rates and counters")

@@ -32,6 +32,7 @@ from shared.datasets.layout import agent_origin_m
 from shared.detection.interface import CameraDetector, DetectorInputError, LidarDetector
 from shared.detection.registry import camera_detector, lidar_detector
 from shared.perception import camera_only, lidar_camera, radar_camera
+from shared.perception.confidence import FUSED, ScoreCalibration
 from shared.perception.config import MecSettings
 from shared.perception.lidar_preprocess import agent_frame_transforms, merge_clouds, preprocess
 from shared.perception.radar_camera import RadarTargets
@@ -151,6 +152,8 @@ class AgentPipeline:
         self.lidar_T = agent_frame_transforms(scene, agent_id) if self.lidar_ids else {}
         self.radar_T = {s.id: np.asarray(scene.T_world_from_sensor(s.id), float) for s in self.radar_specs}
         self.tracker = MultiObjectTracker(settings.tracker)
+        path = settings.score_calibration
+        self.calibration = ScoreCalibration.load(path) if path is not None else ScoreCalibration()
         self.counts: Counter[str] = Counter()
         self.last_reduction = float("nan")
         self._lidar_frames = 0  # frames processed with a lidar live (camera cadence without ticks)
@@ -272,7 +275,7 @@ class AgentPipeline:
             boxes3d = np.zeros((0, 9))
         t2 = time.perf_counter()
         lat["detect_3d"] = t2 - t1
-        measurements = self._fuse(frame, dets2d, boxes3d, counts)
+        measurements = self.calibration.apply(FUSED, self._fuse(frame, dets2d, boxes3d, counts), counts)
         t3 = time.perf_counter()
         lat["fuse"] = t3 - t2
         self.tracker.step(frame.stamp_ns / NS_PER_S, measurements)

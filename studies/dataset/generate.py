@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import multiprocessing as mp
 import sys
 import time
 from dataclasses import dataclass, field
@@ -57,6 +56,7 @@ from sim.sensors.lidar import LidarScan
 from sim.sensors.rig import Capture
 from studies.dataset.conditions import SeedConditions
 from studies.dataset.config import DEFAULT_DATASET_CONFIG, DatasetSettings
+from studies.parallel import run_jobs
 
 log = logging.getLogger("studies.dataset")
 
@@ -288,16 +288,9 @@ def generate(cfg: DatasetSettings, root: Path, workers: int = 1, progress: bool 
     jobs = [(cfg, root, split, seed) for split, seed in todo]
     t0 = time.monotonic()
     bar = tqdm(total=len(jobs), desc="seeds", unit="seed", disable=not progress)
-    if workers > 1 and len(jobs) > 1:
-        with mp.get_context("spawn").Pool(workers) as pool:
-            for result in pool.imap_unordered(_work, jobs):
-                bar.update()
-                bar.set_postfix(images=len(result.camera_stems), lidar=len(result.lidar_stems))
-    else:
-        for job in jobs:
-            result = _work(job)
-            bar.update()
-            bar.set_postfix(images=len(result.camera_stems), lidar=len(result.lidar_stems))
+    for result in run_jobs(_work, jobs, workers if len(jobs) > 1 else 1):
+        bar.update()
+        bar.set_postfix(images=len(result.camera_stems), lidar=len(result.lidar_stems))
     bar.close()
     summary = finish(cfg, layout)
     log.info("dataset %s done in %.0f s: %s", root, time.monotonic() - t0, json.dumps(summary["splits"]))

@@ -40,10 +40,12 @@ from numpy.typing import NDArray
 from shared.config import with_overrides
 from shared.datasets.layout import MIN_LIDAR_POINTS, min_visible_px
 from shared.detection.interface import CameraDetector, LidarDetector
+from shared.geometry.boxes import bev_iou_matrix
 from shared.metrics.fusion import FusionAccumulator
 from shared.metrics.tracking import TrackingAccumulator
 from shared.paths import DEFAULT_SCENE
 from shared.perception import camera_only
+from shared.perception.confidence import ALONE, FUSED, ScoreCalibration, evidence_key
 from shared.perception.config import MecSettings
 from shared.perception.core import MecCore, MecOutput
 from shared.perception.decode import FrameDecoder
@@ -78,6 +80,8 @@ SCOPE_MARGIN_M = 0.3
 # The same margin in height, for areas bounded in z (the viaduct): the ramps climb 0.4 m over 2 m, so
 # 0.3 m along a ramp is 0.06 m of height.
 SCOPE_MARGIN_Z_M = 0.06
+#: A measurement counts as a true box at this BEV IoU with its matched vehicle (the AP-BEV@0.7 criterion).
+CALIBRATION_IOU = 0.7
 
 
 @dataclass
@@ -220,6 +224,14 @@ class AgentEvaluation:
     latencies_s: dict[str, list[float]] = field(default_factory=dict)
     counts: Counter[str] = field(default_factory=Counter)
     frames: int = 0
+    # evidence key -> per frame (K, 2) [score, 1 if a true box (BEV IoU >= CALIBRATION_IOU) else 0] of
+    # the measurements (pipeline output and single modalities): calibration and its check
+    score_samples: dict[str, list[FloatArray]] = field(default_factory=dict)
+
+    def samples(self, key: str) -> tuple[FloatArray, NDArray[np.bool_]]:
+        """(scores, is a true box) of every measurement of evidence `key`."""
+        rows = np.concatenate(self.score_samples.get(key) or [np.zeros((0, 2))])
+        return rows[:, 0], rows[:, 1] > 0.5
 
     def acc(self, name: str) -> FusionAccumulator:
         return self.fusion.setdefault(name, FusionAccumulator())
@@ -236,6 +248,8 @@ class AgentEvaluation:
             self.latencies_s.setdefault(stage, []).extend(values)
         self.counts.update(other.counts)
         self.frames += other.frames
+        for key, rows in other.score_samples.items():
+            self.score_samples.setdefault(key, []).extend(rows)
 
 
 def single_modality_measurements(
@@ -269,7 +283,8 @@ def single_modality_measurements(
         out["radar"] = merge_across_sensors(
             per_radar, pipeline.cfg.radar_camera.cross_radar_gate_m, Counter()
         )
-    return out
+    # Scores mean the same as the pipeline's: each modality alone has its own calibrated evidence key.
+    return {m: pipeline.calibration.apply(ALONE, ms) for m, ms in out.items()}
 
 
 def evaluate_run(
@@ -362,8 +377,11 @@ def _score_frame(
     sets: dict[
         str, tuple[list[tuple[FloatArray, bool]], list[float], list[int] | None, FloatArray | None]
     ] = {}
+    evidence: dict[str, list[str]] = {}  # measurement sets: evidence key per row
     for name, rows in {**singles, "fused": result.measurements}.items():
         sets[name] = ([measurement_box(m, car_size_m) for m in rows], [m.score for m in rows], None, None)
+        source = FUSED if name == "fused" else ALONE
+        evidence[name] = [evidence_key(source, m.modalities) for m in rows]
     for name, tracks in {
         "tracked": result.tracks,
         **{f"tracked_{m}": t for m, t in single_tracks.items()},
@@ -387,6 +405,9 @@ def _score_frame(
             pred_velocity_mps=None if velocity is None else velocity[keep],
             gt_velocity_mps=gt_velocity,
         )
+        if name in evidence:
+            keys = [k for k, kept in zip(evidence[name], keep, strict=True) if kept]
+            _record_scores(ev, keys, scores, boxes, gt, match)
         if track_ids is not None:
             # Tracks on ignore regions (glimpsed cars, cars just outside the areas) are not scored.
             counted = np.ones(len(boxes), bool)
@@ -394,6 +415,48 @@ def _score_frame(
             ids = [t for t, k in zip(track_ids, keep, strict=True) if k]
             ids = [i for i, c in zip(ids, counted, strict=True) if c]
             ev.trk(name).update([gt_numbers[v] for v in gt_ids], gt[:, :2], ids, boxes[counted, :2])
+
+
+def _record_scores(
+    ev: AgentEvaluation, keys: list[str], scores: FloatArray, boxes: FloatArray, gt: FloatArray, match: Any
+) -> None:
+    """Each scored measurement's (score, true box?) under its evidence key; ignored ones are left out."""
+    true_box = np.zeros(len(boxes), bool)
+    p, g = match.pred_index, match.gt_index
+    true_box[p] = np.diagonal(bev_iou_matrix(boxes[p], gt[g])) >= CALIBRATION_IOU
+    counted = np.ones(len(boxes), bool)
+    counted[match.ignored] = False
+    for key in set(keys):
+        rows = np.flatnonzero(counted & (np.asarray(keys) == key))
+        ev.score_samples.setdefault(key, []).append(np.column_stack([scores[rows], true_box[rows]]))
+
+
+def calibration_check(ev: AgentEvaluation, bins: int = 10) -> dict[str, dict[str, float]]:
+    """Per evidence key: measurements, mean score, share of true boxes, and the expected calibration
+    error (mean |score - true share| over `bins` equal-width score bins, weighted by their counts)."""
+    out = {}
+    for key in sorted(ev.score_samples):
+        score, true_box = ev.samples(key)
+        if len(score) == 0:
+            continue
+        k = np.minimum((score * bins).astype(int), bins - 1)
+        ece = sum(
+            abs(score[k == b].mean() - true_box[k == b].mean()) * np.count_nonzero(k == b)
+            for b in range(bins)
+            if np.any(k == b)
+        ) / len(score)
+        out[key] = {
+            "n": len(score),
+            "mean_score": float(score.mean()),
+            "true_share": float(true_box.mean()),
+            "ece": float(ece),
+        }
+    return out
+
+
+def fit_calibration(ev: AgentEvaluation) -> ScoreCalibration:
+    """Calibrated-score curves from raw-score samples (an evaluation run without calibration)."""
+    return ScoreCalibration.fit({key: ev.samples(key) for key in ev.score_samples})
 
 
 def summarise(ev: AgentEvaluation) -> dict[str, Any]:
@@ -407,6 +470,7 @@ def summarise(ev: AgentEvaluation) -> dict[str, Any]:
         for stage, v in ev.latencies_s.items()
     }
     out["counts"] = dict(ev.counts)
+    out["score_calibration"] = calibration_check(ev)
     return out
 
 
@@ -650,4 +714,19 @@ def markdown_table(results: dict[str, Any], agents: list[str]) -> str:
     )
     lines = [head, "", "| " + " | ".join(TABLE_COLUMNS) + " |", "|" + "---|" * len(TABLE_COLUMNS)]
     lines += ["| " + " | ".join(row) + " |" for row in table_rows(results, agents)]
+    check = results["all"].get("score_calibration")
+    if check:
+        lines += [
+            "",
+            "Scores against what they claim, all agents (`fused/`: the pipeline's output by evidence, "
+            "`alone/`: one modality by itself; a true box has BEV IoU >= 0.7 with its vehicle; ECE: mean "
+            "|score - true share| over 10 score bins):",
+            "",
+            "| evidence | measurements | mean score | true share | ECE |",
+            "|---|---|---|---|---|",
+            *(
+                f"| {key} | {c['n']} | {c['mean_score']:.3f} | {c['true_share']:.3f} | {c['ece']:.3f} |"
+                for key, c in check.items()
+            ),
+        ]
     return "\n".join(lines)

@@ -9,7 +9,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+from shared.config import with_overrides
 from shared.machine import git_commit, machine_info
+from shared.perception.confidence import ScoreCalibration
 from shared.perception.config import MecSettings
 from shared.scene.scene import Scene
 from studies.dataset.conditions import SeedConditions
@@ -65,6 +67,29 @@ def run_fusion_study(
         kalman_noise.plot(runs, out / "kalman_noise.png")
     (out / "results.json").write_text(json.dumps(results, indent=2, default=float) + "\n")
     return results
+
+
+def run_score_calibration(
+    dataset: DatasetSettings,
+    mec: MecSettings,
+    agents: list[str],
+    seeds: list[int],
+    duration_s: float,
+    warmup_s: float,
+    workers: int,
+    out: Path,
+) -> tuple[ScoreCalibration, dict[str, Any]]:
+    """Evaluate `seeds` (the tuning split) with raw scores, fit the calibrated-score curves and write
+    them to `out`; the calibration and the raw scores' check (`fe.calibration_check`)."""
+    raw = with_overrides(mec, {"score_calibration": None})
+    evaluations = fe.evaluate(agents, seeds, duration_s, warmup_s, raw, workers, dataset.variation)
+    calibration = fe.fit_calibration(evaluations["all"])
+    calibration.save(
+        out,
+        fitted_on={"seeds": seeds, "agents": agents, "duration_s": duration_s, "warmup_s": warmup_s},
+        commit=git_commit(),
+    )
+    return calibration, fe.calibration_check(evaluations["all"])
 
 
 def run_robustness_study(

@@ -7,12 +7,10 @@ Statistics per (fleet size, policy) over seeds: mean and a 95 % confidence inter
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
 import re
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +22,7 @@ from shared.traffic.config import CoordinatorSettings, PolicyName
 from sim.config import SimSettings
 from studies.experiments.config import FlowExperimentSettings
 from studies.experiments.flow import RunResult, run_flow
+from studies.parallel import run_jobs
 
 log = logging.getLogger(__name__)
 
@@ -86,8 +85,6 @@ def run_grid(
     exp: FlowExperimentSettings, sim: SimSettings, coordinator: CoordinatorSettings
 ) -> list[RunResult]:
     """Every (policy, fleet size, seed) run; processes in parallel (spawned, one per run)."""
-    import multiprocessing as mp
-
     dumps = (exp.model_dump_json(), sim.model_dump_json(), coordinator.model_dump_json())
     # Longest first, so the pool does not end on one big run.
     jobs = sorted(
@@ -96,25 +93,19 @@ def run_grid(
     )
     results: list[RunResult] = []
     t0 = time.perf_counter()
-    with contextlib.ExitStack() as stack:
-        if exp.workers <= 1:
-            finished: Iterator[RunResult] = map(_worker, jobs)
-        else:
-            pool = stack.enter_context(mp.get_context("spawn").Pool(exp.workers))
-            finished = pool.imap_unordered(_worker, jobs)
-        for r in finished:
-            results.append(r)
-            log.info(
-                "%s %d vehicles seed %d: flow %d, %d trips (%d/%d, %.0f s)",
-                r.policy,
-                r.vehicles,
-                r.seed,
-                r.total_flow,
-                len(r.trip_times_s),
-                len(results),
-                len(jobs),
-                time.perf_counter() - t0,
-            )
+    for r in run_jobs(_worker, jobs, exp.workers):
+        results.append(r)
+        log.info(
+            "%s %d vehicles seed %d: flow %d, %d trips (%d/%d, %.0f s)",
+            r.policy,
+            r.vehicles,
+            r.seed,
+            r.total_flow,
+            len(r.trip_times_s),
+            len(results),
+            len(jobs),
+            time.perf_counter() - t0,
+        )
     return results
 
 

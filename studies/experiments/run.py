@@ -3,11 +3,9 @@ the full-perception run, heat maps, the summary and the results file. The CLI on
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +19,7 @@ from studies.experiments import report
 from studies.experiments.config import FlowExperimentSettings
 from studies.experiments.flow import RunResult, run_full_perception
 from studies.experiments.oracle import ErrorObserver, OracleErrorModel
+from studies.parallel import run_jobs
 
 log = logging.getLogger(__name__)
 #: Real-chain against oracle: the metrics whose paired interval must include zero for "agrees".
@@ -54,8 +53,6 @@ def run_real_chain(
     """(vehicles, seed, duration) closed-loop runs through the MEC chain, `exp.workers` in parallel
     (one onnxruntime thread per model each: the workers share the cores); their results and the
     pooled error measurements."""
-    import multiprocessing as mp
-
     mec = with_overrides(mec, {"detectors": {"camera_threads": 1, "lidar_threads": 1}})
     dumps = (
         exp.model_dump_json(),
@@ -67,27 +64,21 @@ def run_real_chain(
     results: list[RunResult] = []
     pooled: ErrorObserver | None = None
     t0 = time.perf_counter()
-    with contextlib.ExitStack() as stack:
-        if exp.workers <= 1:
-            finished: Iterator[tuple[RunResult, ErrorObserver]] = map(_real_chain_worker, jobs)
+    for result, observer in run_jobs(_real_chain_worker, jobs, exp.workers):
+        results.append(result)
+        if pooled is None:
+            pooled = observer
         else:
-            pool = stack.enter_context(mp.get_context("spawn").Pool(exp.workers))
-            finished = pool.imap_unordered(_real_chain_worker, jobs)
-        for result, observer in finished:
-            results.append(result)
-            if pooled is None:
-                pooled = observer
-            else:
-                pooled.merge(observer)
-            log.info(
-                "real chain %d vehicles seed %d: %d trips (%d/%d, %.0f s)",
-                result.vehicles,
-                result.seed,
-                len(result.trips),
-                len(results),
-                len(jobs),
-                time.perf_counter() - t0,
-            )
+            pooled.merge(observer)
+        log.info(
+            "real chain %d vehicles seed %d: %d trips (%d/%d, %.0f s)",
+            result.vehicles,
+            result.seed,
+            len(result.trips),
+            len(results),
+            len(jobs),
+            time.perf_counter() - t0,
+        )
     return results, pooled
 
 
