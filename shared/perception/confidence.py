@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import isotonic_regression
 
+from shared.config import ConfigError
 from shared.tracking.measurement import Measurement
 
 FloatArray = NDArray[np.float64]
@@ -84,9 +85,10 @@ class ScoreCalibration:
 
     @classmethod
     def load(cls, path: Path) -> ScoreCalibration:
-        data = json.loads(path.read_text())
-        return cls(
-            {
+        """Raises ConfigError naming the file when it is missing, not JSON, or a curve is malformed."""
+        try:
+            data = json.loads(path.read_text())
+            curves = {
                 key: Curve(
                     np.asarray(c["raw"], float),
                     np.asarray(c["calibrated"], float),
@@ -95,7 +97,14 @@ class ScoreCalibration:
                 )
                 for key, c in data["curves"].items()
             }
-        )
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            raise ConfigError(f"{path}: not a score calibration: {err!r}") from None
+        for key, c in curves.items():
+            if c.raw.ndim != 1 or c.raw.shape != c.calibrated.shape or len(c.raw) == 0:
+                raise ConfigError(f"{path}: curve {key!r} needs equal, non-empty raw and calibrated lists")
+            if np.any(np.diff(c.raw) <= 0) or np.any((c.calibrated < 0) | (c.calibrated > 1)):
+                raise ConfigError(f"{path}: curve {key!r} needs increasing raw scores and values in [0, 1]")
+        return cls(curves)
 
     def to_dict(self) -> dict[str, Any]:
         return {

@@ -108,3 +108,24 @@ def test_the_mec_reads_the_shipped_calibration(tmp_path: Path) -> None:
         scene, "agent1", MecSettings(score_calibration=None), cameras=CountingCameras(), lidar=NoCars()
     )
     assert raw.calibration.curves == {}
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "not json",
+        '{"curves": {"fused/radar": {"raw": [0.5]}}}',
+        '{"curves": {"fused/radar": {"raw": [0.5, 0.4], "calibrated": [0.1, 0.2], '
+        '"samples": 2, "precision": 0.1}}}',
+        '{"curves": {"fused/radar": {"raw": [0.5], "calibrated": [1.5], "samples": 2, "precision": 0.1}}}',
+    ],
+)
+def test_a_bad_calibration_file_is_a_clear_config_error(tmp_path: Path, text: str) -> None:
+    from shared.config import ConfigError
+
+    path = tmp_path / "cal.json"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=r"cal\.json"):
+        ScoreCalibration.load(path)
+    with pytest.raises(ConfigError, match=r"missing\.json"):
+        ScoreCalibration.load(tmp_path / "missing.json")
