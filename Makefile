@@ -12,7 +12,7 @@ SUPERVISOR_CONF := deploy/local/supervisord.conf
 RUN_DIR := .run
 PYTEST_ARGS ?=
 
-.PHONY: help install proto up down status logs test test-unit test-integration test-fault bench models eval eval-fusion eval-robustness experiments lint typecheck fmt clean
+.PHONY: help install proto pki up down status logs test test-unit test-integration test-fault bench models eval eval-fusion eval-robustness experiments lint typecheck fmt clean
 
 help: ## list targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-18s %s\n", $$1, $$2}'
@@ -38,7 +38,7 @@ proto: $(INSTALLED) ## (re)generate the protobuf Python code into proto/gen
 	$(BIN)/python proto/generate.py
 
 SPEED ?=
-up: install ## start router and every service under supervisord (idempotent); SPEED=x: sim seconds per wall second
+up: install pki ## start router and every service under supervisord (idempotent); SPEED=x: sim seconds per wall second
 	@mkdir -p $(RUN_DIR)/logs
 	@if $(BIN)/supervisorctl -c $(SUPERVISOR_CONF) pid >/dev/null 2>&1; then \
 	  echo "already up"; \
@@ -49,6 +49,9 @@ up: install ## start router and every service under supervisord (idempotent); SP
 	@$(BIN)/supervisorctl -c $(SUPERVISOR_CONF) status || true
 	@echo "try: $(BIN)/rmmdet topics   |   $(BIN)/rmmdet health   |   make down"
 
+pki: install ## local CA, service certificates and plan-signing key in .run/pki (keeps what exists)
+	@$(BIN)/rmmdet pki init
+
 down: ## stop every service and supervisord; leaves no process behind
 	@if [ -x $(BIN)/python ]; then $(BIN)/python deploy/local/down.py --conf $(SUPERVISOR_CONF); else echo "not installed: nothing to stop"; fi
 
@@ -58,7 +61,7 @@ status: ## supervisor view of the services
 logs: ## tail all service logs
 	@tail -n 50 -F $(RUN_DIR)/logs/*.log
 
-test: install ## lint, type-check, then unit + integration + fault tests (excludes slow experiments)
+test: install pki ## lint, type-check, then unit + integration + fault tests (excludes slow experiments)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy

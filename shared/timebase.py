@@ -22,6 +22,11 @@ NS_PER_S = 1_000_000_000
 TICK_HZ_DECIMALS = 6
 
 
+def tick_stamp_ns(epoch_ns: int, tick: int, tick_hz: float) -> int:
+    """Stamp of tick `tick` of the sim run whose tick 0 is stamped `epoch_ns` (`Header.epoch`), ns."""
+    return epoch_ns + round(tick * NS_PER_S / tick_hz)
+
+
 class SimTime:
     """Thread-safe sim-time follower.
 

@@ -12,7 +12,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from shared.config import RmmdetSettings, deep_merge, load_settings, settings_config
-from shared.paths import DEFAULT_SCENE, REPO_ROOT
+from shared.paths import DEFAULT_PKI_DIR, DEFAULT_SCENE, REPO_ROOT
 
 DEFAULT_SIM_CONFIG = REPO_ROOT / "deploy" / "sim" / "sim.yaml"
 
@@ -119,6 +119,17 @@ class SimSettings(RmmdetSettings):
         description="route_policy=plan: a route request unanswered by then is given up (the vehicle keeps "
         "its route and asks again on its next lane)",
     )
+    plan_verify_keys: list[Path] = Field(
+        [DEFAULT_PKI_DIR / "plan-signing.pub"],
+        min_length=1,
+        description="route_policy=plan: Ed25519 public keys (PEM) of the coordinator; a plan signed by "
+        "none of them is refused",
+    )
+    plan_max_ttl_s: float = Field(
+        600.0,
+        gt=0,
+        description="route_policy=plan: a plan valid for longer than this from now is refused",
+    )
     traffic: TrafficSettings = TrafficSettings()
     pacing: PacingSettings = PacingSettings()
 
@@ -133,4 +144,5 @@ def load_sim_settings(
     settings = load_settings(SimSettings, path, **deep_merge(overrides, nested))
     if not settings.scene.is_absolute():
         settings.scene = REPO_ROOT / settings.scene
+    settings.plan_verify_keys = [k if k.is_absolute() else REPO_ROOT / k for k in settings.plan_verify_keys]
     return settings

@@ -22,7 +22,7 @@ from shared.config import with_overrides
 from shared.scene.model import SensorSpec
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
-from shared.timebase import NS_PER_S
+from shared.timebase import tick_stamp_ns
 from sim.config import SimSettings
 from sim.ground_truth import ground_truth_message
 from sim.sensors.camera import Lighting
@@ -82,8 +82,11 @@ class LockstepSim:
         """Ground truth of the current tick, stamped with the epoch + simulated time."""
         msg = ground_truth_message(self.traffic, self.scene, self.settings.seed, self.settings.tick_hz)
         msg.header.tick = self.traffic.tick
+        msg.header.epoch = self.epoch_ns
         msg.header.frame_id = "world"
-        msg.header.stamp.FromNanoseconds(self.epoch_ns + round(self.traffic.time_s * NS_PER_S))
+        msg.header.stamp.FromNanoseconds(
+            tick_stamp_ns(self.epoch_ns, self.traffic.tick, self.settings.tick_hz)
+        )
         return msg
 
     def step(self) -> Tick:

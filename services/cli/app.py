@@ -26,7 +26,8 @@ HELP = """`rmmdet`: command-line tool for a running RMMDet system.
     rmmdet health [--service mec]    every service's health report (exit 1 unless all NOMINAL)
     rmmdet wait-ready                wait until the router answers (used by `make up`)
     rmmdet record [--out F.mcap] [--key K ...] [--duration S]   record bus traffic to MCAP
-    rmmdet replay F.mcap [--speed 1|N|0] [--key K ...] [--loop]  publish a recording again
+    rmmdet replay F.mcap [--speed 1|N|0] [--key K ...] [--loop] [--live-keys]  publish a recording
+                                     again, on replay/<key> unless --live-keys
     rmmdet snapshot [--out docs/images] [--at-s 20]   offline: camera PNGs + bird's-eye map of the sim
     rmmdet dataset generate --out DIR [--config deploy/datasets/default.yaml] [--workers 2]
     rmmdet eval detectors [--data DIR] [--split test] [--camera onnx] [--lidar pointpillars] [--out F.json]

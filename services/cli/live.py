@@ -28,7 +28,7 @@ from shared.bus.codec import Counters, MessageDecoder, schema_of
 from shared.bus.liveliness import alive_tokens
 from shared.bus.streams import get_stream
 from shared.paths import DEFAULT_SCENE
-from shared.recording.bus import ReplayPublisher, key_filter, overlapping, subscribe_recorder
+from shared.recording.bus import REPLAY_PREFIX, ReplayPublisher, key_filter, overlapping, subscribe_recorder
 from shared.recording.reader import RecordingReader
 from shared.recording.recorder import Recorder
 from shared.recording.schedule import ReplayStats, check_speed, replay
@@ -266,11 +266,16 @@ def replay_cmd(
     wait_subscribers: Annotated[
         float, typer.Option(help="seconds to wait for a subscriber before sending")
     ] = 2.0,
+    prefix: Annotated[str, typer.Option(help="publish each key under PREFIX/")] = REPLAY_PREFIX,
+    live_keys: Annotated[
+        bool,
+        typer.Option("--live-keys", help="publish on the recorded keys themselves (drives a live system)"),
+    ] = False,
 ) -> None:
     """Publish a recording again, paced by its receive times.
 
-    Keys, payloads, encodings and header attachments go out as recorded (stamps are never re-stamped),
-    each with its stream's QoS."""
+    Payloads, encodings and header attachments go out as recorded (stamps are never re-stamped), each
+    with its stream's QoS, on `replay/<recorded key>` unless `--live-keys` is given."""
     try:
         check_speed(speed)
     except ValueError as err:
@@ -283,7 +288,7 @@ def replay_cmd(
         raise typer.Exit(1)
     stats = ReplayStats()
     with connect(ctx) as session, GracefulShutdown() as shutdown:
-        publisher = ReplayPublisher(session)
+        publisher = ReplayPublisher(session, "" if live_keys else prefix)
         try:
             for k in keys:
                 publisher.declare(k)

@@ -26,8 +26,9 @@ from rmmdet.v1.planning_pb2 import RouteRequest, RouteResponse
 from shared.bus.liveliness import agent_of_mec_token
 from shared.bus.node import Node, Received, processing_stamp
 from shared.bus.rpc import RpcRejected, RpcServer
-from shared.bus.streams import get_stream
+from shared.bus.streams import get_stream, limits
 from shared.scene.scene import Scene
+from shared.security.plan_signing import PlanSigner
 from shared.service import run_service
 from shared.shutdown import GracefulShutdown
 from shared.timebase import SimTime
@@ -48,11 +49,12 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     settings = load_coordinator_settings(args.settings)
     scene = Scene.load(settings.scene)
     core = CoordinatorCore(scene, settings, settings.service.max_vehicles)
+    signer = PlanSigner.load(settings.plan_signing_key)
     with Node(conf, service=SERVICE, instance=args.instance, scope=SCOPE, stop=shutdown.event) as node:
         # Coverage, map smoothing and plan timing run on the clock of record (sim time when a sim runs).
         clock = SimTime()
         node.follow_sim_time(clock)
-        service = CoordinatorService(node, core, settings, clock)
+        service = CoordinatorService(node, core, settings, clock, signer)
         rpc = RpcServer(
             node,
             "route_rpc",
@@ -64,12 +66,13 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         )
         node.queryable(rpc.key, rpc)
         log.info(
-            "coordinator up: scene %s, agents %s, policy %s, maps %.1f Hz, replan every %.1f s",
+            "coordinator up: scene %s, agents %s, policy %s, maps %.1f Hz, replan every %.1f s, plan key %s",
             scene.scene_id,
             core.agents,
             settings.planner.policy,
             settings.map_publish_hz,
             settings.replan_interval_s,
+            signer.key_id,
         )
         service.run(shutdown)
         log.info("counters at exit: %s", node.counters.snapshot())
@@ -80,9 +83,15 @@ class CoordinatorService:
     """The main loop: ingest objects, presence and acks; rebuild and publish maps; push plans."""
 
     def __init__(
-        self, node: Node, core: CoordinatorCore, settings: CoordinatorSettings, clock: SimTime
+        self,
+        node: Node,
+        core: CoordinatorCore,
+        settings: CoordinatorSettings,
+        clock: SimTime,
+        signer: PlanSigner,
     ) -> None:
         self.node, self.core, self.settings, self.clock = node, core, settings, clock
+        self.signer = signer
         self.counters = node.counters
         # Object lists older than the stale threshold on arrival would not make their agent LIVE.
         self.objects = node.subscribe_stream(
@@ -90,6 +99,7 @@ class CoordinatorService:
             maxsize=settings.service.objects_queue_per_agent * len(core.agents),
             max_age_s=settings.coverage.stale_after_s,
             clock_s=clock.now_s,
+            max_future_s=limits().max_clock_skew_s,
         )
         self.acks = node.subscribe_stream("route_ack")
         self.presence = node.presence(get_stream("alive").pattern(service="mec"))
@@ -103,7 +113,7 @@ class CoordinatorService:
             plan, stamp_ns = self.core.serve(request, self.clock.now_s(), start_ns)
         except RequestRejected as err:
             raise RpcRejected(err.reason, err.code, err.message) from None
-        return RouteResponse(plan=plan), stamp_ns
+        return RouteResponse(plan=self.signer.sign(plan)), stamp_ns
 
     def run(self, shutdown: GracefulShutdown) -> None:
         interval_s = self.settings.report_interval_s
@@ -121,18 +131,24 @@ class CoordinatorService:
             self.push(now)
             if now >= next_log_s:
                 next_log_s = now + interval_s
-                log.info("%s; counters %s", self.core.health()[1], self.counters.snapshot())
+                log.info(
+                    "%s, %d vehicles evicted; counters %s",
+                    self.core.health()[1],
+                    self.core.vehicles_evicted,
+                    self.counters.snapshot(),
+                )
 
     def ingest(self, wait_s: float) -> None:
         """Wait up to `wait_s` for object lists, then take everything queued: lists, presence, acks."""
         first = self.objects.recv(timeout=max(0.0, wait_s))
         self.record_objects([first] if first is not None else [])
+        now = self.clock.now_s()
         for key, alive in self.presence.changes():
             agent = agent_of_mec_token(key)
             if agent is not None and not self.core.on_presence(agent, alive):
                 self.counters.inc("ignored/presence_unknown_agent")
         for item in self.acks.drain():
-            for counter in self.core.receive_ack(ACKS.id_of(item.key, "vehicle"), item.message):
+            for counter in self.core.receive_ack(ACKS.id_of(item.key, "vehicle"), item.message, now):
                 self.counters.inc(counter)
 
     def record_objects(self, items: list[Received] | None = None) -> None:
@@ -141,7 +157,8 @@ class CoordinatorService:
         now = self.clock.now_s()
         for item in (items or []) + self.objects.drain():
             agent = OBJECTS.id_of(item.key, "agent")  # the key, not the payload, says who published
-            if not self.core.receive_objects(agent, item.message, item.header.stamp.ToNanoseconds(), now):
+            stamp_ns, epoch = item.header.stamp.ToNanoseconds(), item.header.epoch
+            if not self.core.receive_objects(agent, item.message, stamp_ns, now, epoch):
                 self.counters.inc("rejected/unknown_agent")
 
     def publish_map(self, now: float) -> None:
@@ -155,7 +172,7 @@ class CoordinatorService:
         given_up = self.core.plans_given_up
         for plan, stamp_ns, first_send in self.core.due(now):
             pub = self.node.publisher("route_plan", vehicle=plan.vehicle_id)  # declared once per vehicle
-            pub.put(plan, stamp_ns=stamp_ns or time.time_ns(), frame_id="world")
+            pub.put(self.signer.sign(plan), stamp_ns=stamp_ns or time.time_ns(), frame_id="world")
             self.counters.inc("plans/pushed" if first_send else "plans/resent")
         if self.core.plans_given_up > given_up:
             self.counters.inc("plans/given_up", self.core.plans_given_up - given_up)

@@ -25,7 +25,7 @@ from rmmdet.v1.sensors_pb2 import CaptureDemand
 from shared.bus.liveliness import source_of_token
 from shared.bus.node import Node, Received, processing_stamp
 from shared.bus.queues import BoundedQueue, OverflowPolicy
-from shared.bus.streams import SENSOR_STREAM, get_stream, sensor_group_source
+from shared.bus.streams import SENSOR_STREAM, get_stream, limits, sensor_group_source
 from shared.config import load_settings
 from shared.paths import DEFAULT_SCENE
 from shared.perception.config import DEFAULT_MEC_CONFIG, MecSettings
@@ -62,12 +62,20 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         queue = BoundedQueue[Received](QUEUE_PER_SENSOR * len(core.kinds), OverflowPolicy.DROP_OLDEST)
         # No expected rate on the bus-level monitors: a missing sensor makes this MEC DEGRADED (its
         # status below names it), not CRITICAL; the rates are still reported per input.
-        for sensor_id, kind in core.kinds.items():
-            node.subscribe_stream(SENSOR_STREAM[kind], agent=agent, sensor=sensor_id, queue=queue)
         # Input health is judged on the clock of record (sim time when a sim runs): a slow host slows
-        # the sim, not the verdict. The core starts afresh when the sim clock is first heard.
+        # the sim, not the verdict. The core starts afresh when the sim clock is first heard. Frames
+        # stamped ahead of that clock are refused (one must not make the join drop what follows).
         sim_time = SimTime()
         node.follow_sim_time(sim_time)
+        for sensor_id, kind in core.kinds.items():
+            node.subscribe_stream(
+                SENSOR_STREAM[kind],
+                agent=agent,
+                sensor=sensor_id,
+                queue=queue,
+                clock_s=sim_time.now_s,
+                max_future_s=limits().max_clock_skew_s,
+            )
         core.reset(sim_time.now_s())
         demand_pub = node.publisher("capture_demand", agent=agent, kind="camera") if core.camera_ids else None
         renewal = DemandRenewal()
@@ -106,7 +114,13 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 sensor_id, stamp_ns = item.key.rsplit("/", 1)[-1], item.header.stamp.ToNanoseconds()
                 arrival_ns = sim_time.now_ns(item.received_wall_ns)
                 rejected = core.receive(
-                    sensor_id, stamp_ns, item.header.tick, item.message, clock_s, arrival_ns
+                    sensor_id,
+                    stamp_ns,
+                    item.header.tick,
+                    item.message,
+                    clock_s,
+                    arrival_ns,
+                    item.header.epoch,
                 )
                 if rejected:
                     node.counters.inc(f"rejected/{rejected}")

@@ -29,13 +29,15 @@ from rmmdet.v1.sim_pb2 import GroundTruth
 
 from shared.bus.health import NOMINAL
 from shared.bus.node import Node, Publisher, Received, processing_stamp
-from shared.bus.streams import SENSOR_STREAM, sensor_group
+from shared.bus.ordering import OrderGate, reset_after_ticks
+from shared.bus.streams import SENSOR_STREAM, limits, sensor_group
 from shared.paths import DEFAULT_SCENE
 from shared.scene.cadence import CaptureDemands
 from shared.scene.model import SensorSpec
 from shared.scene.scene import Scene
 from shared.service import run_service
 from shared.shutdown import GracefulShutdown
+from shared.timebase import SimTime
 from sim.sensors.rig import SensorRig
 
 log = logging.getLogger("services.sensor")
@@ -94,7 +96,15 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             )
             for spec in specs
         }
-        gt_sub = node.subscribe_stream("ground_truth", maxsize=GT_QUEUE)
+        # Ground truth ahead of the sim's own clock is refused, and the tick order restarts with a
+        # new sim run (epoch) or after a bogus tick (shared/bus/ordering.py): nothing latches it.
+        sim_time = SimTime()
+        node.follow_sim_time(sim_time)
+        bus_limits = limits()
+        gt_sub = node.subscribe_stream(
+            "ground_truth", maxsize=GT_QUEUE, clock_s=sim_time.now_s, max_future_s=bus_limits.max_clock_skew_s
+        )
+        ticks: OrderGate | None = None
         demand_sub = node.subscribe_stream("capture_demand", agent=agent, kind=kind, maxsize=DEMAND_QUEUE)
         demands = CaptureDemands()
         stats = {"frames": 0, "skipped": 0, "last_tick": -1, "every_n": 1}
@@ -125,9 +135,13 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             due, skipped = newest_due([received, *gt_sub.drain()], scene, specs, every_n)
             stats["skipped"] += skipped
             node.counters.inc("frames/skipped_ticks", skipped)
-            if due is None or due.message.header.tick <= stats["last_tick"]:
+            if due is None:
                 continue
             gt: GroundTruth = due.message
+            if ticks is None:
+                ticks = OrderGate(reset_after_ticks(gt.tick_hz))
+            if not ticks.admit(gt.header.epoch, gt.header.tick):
+                continue
             stats["last_tick"] = gt.header.tick
             for capture in rig.captures(gt, every_n=every_n):  # each published as soon as made
                 stage = processing_stamp(f"sensor/{capture.spec.kind}", capture.start_ns, capture.end_ns)
@@ -141,10 +155,11 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             now = time.monotonic()
             if now - last_log >= args.report_interval_s:
                 log.info(
-                    "%d frames published, tick %d, %d ticks skipped",
+                    "%d frames published, tick %d, %d ticks skipped, tick order restarted %d times",
                     stats["frames"],
                     stats["last_tick"],
                     stats["skipped"],
+                    ticks.restarts if ticks is not None else 0,
                 )
                 last_log = now
     return 0

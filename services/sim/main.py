@@ -22,7 +22,7 @@ from pathlib import Path
 
 import zenoh
 
-from services.sim.plans import PlanClient
+from services.sim.plans import PlanCheck, PlanClient
 from shared.bus.health import NOMINAL
 from shared.bus.liveliness import source_of_token
 from shared.bus.node import Node, Received, processing_stamp
@@ -31,9 +31,10 @@ from shared.bus.streams import get_stream, producer_of
 from shared.scene.calibration import calibration_set
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
+from shared.security.plan_signing import PlanVerifier
 from shared.service import run_service
 from shared.shutdown import GracefulShutdown
-from shared.timebase import NS_PER_S
+from shared.timebase import tick_stamp_ns
 from sim.config import DEFAULT_SIM_CONFIG, load_sim_settings
 from sim.ground_truth import ground_truth_message, sim_clock_message
 from sim.pacing import Pacer
@@ -67,7 +68,10 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         presence = node.presence(get_stream("alive").pattern()) if pacing else None
         plans = None
         if settings.traffic.route_policy == "plan":
-            plans = PlanClient(node, traffic, settings.plan_request_timeout_s)
+            check = PlanCheck(
+                PlanVerifier.load(settings.plan_verify_keys), settings.plan_max_ttl_s, node.counters
+            )
+            plans = PlanClient(node, traffic, settings.plan_request_timeout_s, check)
         schedule = RealTimeSchedule(settings.speed, LATE_TOLERANCE_S, RTF_WINDOW_S)
 
         def status() -> tuple[int, str]:
@@ -89,6 +93,8 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
 
         node.health.set_status(status)
         start_wall_ns = time.time_ns()  # wall time of sim time 0: stamps are start + sim time
+        # This run's epoch (Header.epoch): receivers restart their tick order when it changes.
+        epoch = start_wall_ns
         clock_due, calib_due = (
             Every(1 / settings.clock_publish_hz),
             Every(1 / settings.calibration_publish_hz),
@@ -106,10 +112,10 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         )
         while not shutdown.requested:
             if plans is not None:  # replies and pushes that arrived, then this tick's requests
-                plans.tick(start_wall_ns + round(traffic.time_s * NS_PER_S))
+                plans.tick(tick_stamp_ns(epoch, traffic.tick, settings.tick_hz))
             t0 = time.time_ns()
             traffic.step()
-            stamp_ns = start_wall_ns + round(traffic.time_s * NS_PER_S)
+            stamp_ns = tick_stamp_ns(epoch, traffic.tick, settings.tick_hz)
             sensor_tick = bool(scene.agents_capturing_on(traffic.tick, settings.tick_hz))
             wait_s = schedule.delay_s(traffic.time_s)  # publish a tick at its stamp, not before
             if wait_s > 0 and shutdown.wait(wait_s):
@@ -119,7 +125,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             if sensor_tick:  # the sensors fire only on these ticks: nobody else needs ground truth
                 msg = ground_truth_message(traffic, scene, settings.seed, settings.tick_hz)
                 msg.header.CopyFrom(
-                    gt_pub.next_header(stamp_ns=stamp_ns, tick=traffic.tick, frame_id="world")
+                    gt_pub.next_header(stamp_ns=stamp_ns, tick=traffic.tick, epoch=epoch, frame_id="world")
                 )
                 gt_pub.put(msg, msg.header, stages=[processing_stamp("sim/step", t0, time.time_ns())])
                 node.counters.inc("published/ground_truth")
@@ -130,9 +136,9 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             if clock_due.due(traffic.time_s):
                 rtf = schedule.measure(traffic.time_s)
                 clock = sim_clock_message(traffic, stamp_ns, rtf, settings.speed, pacer.paced_by)
-                clock_pub.put(clock, stamp_ns=stamp_ns, tick=traffic.tick, frame_id="world")
+                clock_pub.put(clock, stamp_ns=stamp_ns, tick=traffic.tick, epoch=epoch, frame_id="world")
             for pub, calib in calibs.items() if calib_due.due(traffic.time_s) else []:
-                pub.put(calib, stamp_ns=stamp_ns, tick=traffic.tick)
+                pub.put(calib, stamp_ns=stamp_ns, tick=traffic.tick, epoch=epoch)
             if time.monotonic() - last_log >= args.report_interval_s:
                 last_log = time.monotonic()
                 held_by = {k: round(v, 1) for k, v in pacer.held_by.most_common(3)}

@@ -4,7 +4,11 @@ Each vehicle is a client of the coordinator: once per lane (`TrafficSim.needs_pl
 RouteRequest on the route RPC key with a non-blocking query; the reply (or an error, or nothing by
 `plan_request_timeout_s`) is queued by the Zenoh callback and applied on the next tick, so the 60 Hz
 loop never waits for the network. Plans pushed on `rmmdet/@v1/cloud/plans/<vehicle>` are applied the
-same way. Every plan received is answered with a RouteAck carrying the vehicle's decision
+same way. A plan is considered only if the coordinator's plan key signed it, its id is well formed
+and its TTL is within `plan_max_ttl_s` (`plan_problem`); anything else is counted under
+`rejected/plan_<reason>` and not acknowledged, and a reply that fails the checks does not stop the
+vehicle from taking a later, genuine reply to the same request (a rogue second queryable cannot answer
+for the coordinator). Every plan considered is answered with a RouteAck carrying the vehicle's decision
 (ACCEPTED, DUPLICATE, REJECTED_STALE, REJECTED_INVALID). Without a coordinator vehicles keep driving:
 no plan means the shortest route.
 """
@@ -21,11 +25,12 @@ from google.protobuf.message import DecodeError
 from rmmdet.v1.common_pb2 import ErrorCode, ErrorResponse
 from rmmdet.v1.planning_pb2 import RouteAck, RoutePlan, RouteRequest, RouteResponse
 
-from shared.bus.codec import MessageDecoder, encode
+from shared.bus.codec import Counters, MessageDecoder, encode
 from shared.bus.node import Node, Publisher, Received
 from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.bus.streams import get_stream
-from shared.traffic.plans import Ack
+from shared.security.plan_signing import PlanVerifier
+from shared.traffic.plans import Ack, plan_problem
 from sim.traffic import TrafficSim, Vehicle
 
 log = logging.getLogger("services.sim.plans")
@@ -44,11 +49,28 @@ class Outcome:
     error: str = ""
 
 
+class PlanCheck:
+    """`plan_problem` with the vehicles' trusted keys and TTL bound; counts what it refuses. Called on
+    Zenoh threads (replies) and the main loop (pushes): stateless but for the thread-safe counters."""
+
+    def __init__(self, verifier: PlanVerifier, max_ttl_s: float, counters: Counters) -> None:
+        self.verifier = verifier
+        self.max_ttl_s = max_ttl_s
+        self.counters = counters
+
+    def accept(self, plan: RoutePlan) -> bool:
+        problem = plan_problem(plan, self.verifier, time.time_ns(), self.max_ttl_s)
+        if problem is not None:
+            self.counters.inc(f"rejected/{problem}")
+        return problem is None
+
+
 class PlanClient:
-    def __init__(self, node: Node, traffic: TrafficSim, request_timeout_s: float) -> None:
+    def __init__(self, node: Node, traffic: TrafficSim, request_timeout_s: float, check: PlanCheck) -> None:
         self.node = node
         self.traffic = traffic
         self.counters = node.counters
+        self.check = check
         rpc = get_stream("route_rpc")
         # One querier declared for the whole run (declaring per request would churn declarations).
         self.querier = node.session.declare_querier(
@@ -105,7 +127,7 @@ class PlanClient:
         req.header.stamp.FromNanoseconds(stamp_ns)
         req.header.frame_id = "world"
         encoded = encode(req)
-        handler = _ReplyHandler(v.id, self.decoder, self.outcomes)
+        handler = _ReplyHandler(v.id, self.decoder, self.outcomes, self.check)
         self.querier.get(
             zenoh.handlers.Callback(handler.on_reply, handler.on_done),
             payload=encoded.payload,
@@ -118,7 +140,8 @@ class PlanClient:
         if (get_stream("route_plan").ids(received.key) or {}).get("vehicle") != plan.vehicle_id:
             self.counters.inc("rejected/plan_key_mismatch")
             return
-        self.apply(plan)
+        if self.check.accept(plan):
+            self.apply(plan)
 
     def apply(self, plan: RoutePlan) -> None:
         """Hand the plan to its vehicle and acknowledge with the vehicle's decision."""
@@ -147,16 +170,18 @@ class PlanClient:
 class _ReplyHandler:
     """Callbacks of one request. They run on Zenoh threads: decode and enqueue only."""
 
-    def __init__(self, vehicle_id: str, decoder: MessageDecoder, outcomes: BoundedQueue[Outcome]) -> None:
+    def __init__(
+        self, vehicle_id: str, decoder: MessageDecoder, outcomes: BoundedQueue[Outcome], check: PlanCheck
+    ) -> None:
         self.vehicle_id = vehicle_id
         self.decoder = decoder
         self.outcomes = outcomes
+        self.check = check
         self.answered = False
 
     def on_reply(self, reply: zenoh.Reply) -> None:
         if self.answered:
             return  # one coordinator answers; extra replies are ignored
-        self.answered = True
         try:
             if reply.ok is not None:
                 sample = reply.ok
@@ -167,8 +192,9 @@ class _ReplyHandler:
                     return
                 response = cast(RouteResponse, decoded.message)
                 if response.plan.vehicle_id != self.vehicle_id:
-                    self.outcomes.put(Outcome(self.vehicle_id, None, "wrong_vehicle"))
-                else:
+                    self.check.counters.inc("rejected/plan_wrong_vehicle")
+                elif self.check.accept(response.plan):  # else counted; a genuine reply may follow
+                    self.answered = True
                     self.outcomes.put(Outcome(self.vehicle_id, response.plan))
                 return
             error = ErrorResponse()

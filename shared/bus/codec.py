@@ -39,6 +39,7 @@ class RejectReason(StrEnum):
     RANGE = "range"  # a value outside its physical range (negative size, probability > 1, ...)
     HEADER = "header"  # header missing or malformed
     STALE = "stale"  # older than the consumer's freshness limit
+    FUTURE = "future"  # stamped further ahead of the consumer's clock than the clock-skew bound
 
 
 class Rejected(Exception):
@@ -226,11 +227,16 @@ class MessageDecoder:
         max_payload_bytes: int = DEFAULT_MAX_PAYLOAD_BYTES,
         max_age_s: float | None = None,
         clock_s: Callable[[], float] = time.time,
+        max_future_s: float | None = None,
     ) -> None:
+        """`max_age_s` / `max_future_s`: how far behind / ahead of `clock_s` (the consumer's clock of
+        record) a header stamp may be (None: unchecked). A receiver that orders its input by stamp or
+        tick sets `max_future_s`, so one message stamped ahead cannot make it drop what follows."""
         self.expected = expected
         self.counters = counters if counters is not None else Counters()
         self.max_payload_bytes = max_payload_bytes
         self.max_age_s = max_age_s
+        self.max_future_s = max_future_s
         self._clock_s = clock_s
 
     def decode(self, payload: bytes, encoding: str | None, attachment: bytes | None = None) -> Decoded | None:
@@ -261,10 +267,12 @@ class MessageDecoder:
         if msg is not header and not has_body_header(msg):
             validate(header)  # a body header is validated with the message
         validate(msg)
-        if self.max_age_s is not None and header.HasField("stamp"):
+        if (self.max_age_s is not None or self.max_future_s is not None) and header.HasField("stamp"):
             age_s = self._clock_s() - header.stamp.ToNanoseconds() * 1e-9
-            if age_s > self.max_age_s:
+            if self.max_age_s is not None and age_s > self.max_age_s:
                 raise Rejected(RejectReason.STALE, f"age {age_s:.3f} s > {self.max_age_s} s")
+            if self.max_future_s is not None and -age_s > self.max_future_s:
+                raise Rejected(RejectReason.FUTURE, f"stamped {-age_s:.3f} s ahead > {self.max_future_s} s")
         return Decoded(msg, header)
 
     def _resolve_type(self, encoding: str | None) -> type[Message]:

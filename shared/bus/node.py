@@ -143,6 +143,7 @@ class Publisher:
         stamp_ns: int | None = None,
         derived_from: Header | None = None,
         tick: int = 0,
+        epoch: int = 0,
         frame_id: str = "",
     ) -> Header:
         """Header for the next message. The data stamp is inherited from `derived_from` (never
@@ -150,10 +151,11 @@ class Publisher:
         with self._lock:
             self.seq += 1
             seq = self.seq
-        header = Header(source_id=self.source_id, seq=seq, frame_id=frame_id, tick=tick)
+        header = Header(source_id=self.source_id, seq=seq, frame_id=frame_id, tick=tick, epoch=epoch)
         if derived_from is not None:
             header.stamp.CopyFrom(derived_from.stamp)
             header.tick = derived_from.tick
+            header.epoch = derived_from.epoch
             header.processing.extend(derived_from.processing)
             if not frame_id:
                 header.frame_id = derived_from.frame_id
@@ -309,12 +311,15 @@ class Node:
         max_payload_bytes: int = DEFAULT_MAX_PAYLOAD_BYTES,
         queue: BoundedQueue[Received] | None = None,
         clock_s: Callable[[], float] = time.time,
+        max_future_s: float | None = None,
     ) -> Subscription:
         """Subscribe to `key_expr`; `expected_type=None` accepts any known schema (tools). Several
         subscriptions may share one `queue` (a service that waits on all its inputs at once); then
-        `maxsize` and `policy` are the queue's own. `max_age_s` is judged on `clock_s` (the clock of
-        record: `SimTime.now_s` where a sim runs)."""
-        decoder = MessageDecoder(expected_type, self.counters, max_payload_bytes, max_age_s, clock_s)
+        `maxsize` and `policy` are the queue's own. `max_age_s` and `max_future_s` are judged on
+        `clock_s` (the clock of record: `SimTime.now_s` where a sim runs)."""
+        decoder = MessageDecoder(
+            expected_type, self.counters, max_payload_bytes, max_age_s, clock_s, max_future_s
+        )
         monitor = InputMonitor(key_expr, expected_rate_hz, self.thresholds)
         self.health.add_input(monitor)
         if queue is None:
@@ -332,6 +337,7 @@ class Node:
         max_age_s: float | None = None,
         queue: BoundedQueue[Received] | None = None,
         clock_s: Callable[[], float] = time.time,
+        max_future_s: float | None = None,
         **ids: str,
     ) -> Subscription:
         """Subscribe to a stream; ids left out become `*`. Latest-wins streams keep a short
@@ -347,6 +353,7 @@ class Node:
             max_age_s=max_age_s,
             queue=queue,
             clock_s=clock_s,
+            max_future_s=max_future_s,
         )
 
     def presence(self, key_expr: str) -> LivelinessMonitor:

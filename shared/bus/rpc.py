@@ -11,6 +11,7 @@ It never raises into Zenoh and never blocks beyond the handler's own work.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections.abc import Callable
@@ -23,6 +24,8 @@ from rmmdet.v1.common_pb2 import ErrorCode, ErrorResponse, Header
 from shared.bus.codec import MessageDecoder, Rejected, RejectReason, encode
 from shared.bus.node import Node, processing_stamp
 from shared.bus.streams import get_stream
+
+log = logging.getLogger(__name__)
 
 Req = TypeVar("Req", bound=Message)
 
@@ -103,6 +106,11 @@ class RpcServer(Generic[Req]):
         except RpcRejected as err:
             counters.inc(f"rejected/{err.reason}")
             self._error(query, err.code, err.message)
+            return
+        except Exception:  # a bug must still answer: the caller gets INTERNAL, not a timeout
+            counters.inc("rejected/internal")
+            log.exception("%s: handler failed", self.key)
+            self._error(query, ErrorCode.ERROR_CODE_INTERNAL, "internal error")
             return
         with self._seq_lock:
             self._seq += 1

@@ -126,6 +126,28 @@ class Stream:
         return message_type(self.reply_type_name)
 
 
+@dataclass(frozen=True)
+class Limits:
+    """The bus-wide input limits (`limits:` in proto/streams.yaml; units in the names)."""
+
+    max_clock_skew_s: float
+    order_reset_s: float
+    max_objects_per_list: int
+    max_tick_hz: float
+    max_plan_version: int
+
+    def __post_init__(self) -> None:
+        if min(self.max_clock_skew_s, self.order_reset_s, self.max_tick_hz) <= 0:
+            raise ValueError("limits: times and rates must be > 0")
+        if self.max_objects_per_list < 1 or not 1 <= self.max_plan_version < 2**63:
+            raise ValueError("limits: max_objects_per_list >= 1, max_plan_version in [1, 2^63)")
+
+
+@functools.cache
+def limits(path: Path = STREAMS_YAML) -> Limits:
+    return Limits(**yaml.safe_load(path.read_text())["limits"])
+
+
 def validate_id(value: str, what: str = "id") -> str:
     if not isinstance(value, str) or not ID_PATTERN.match(value):
         raise ValueError(f"invalid {what} {value!r}: must match {ID_PATTERN.pattern}")

@@ -5,11 +5,13 @@ Each check returns a short description of the first problem, or None.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sized
 
 from google.protobuf.message import Message
 
 from shared.bus.codec import register_validator
+from shared.bus.streams import limits
+from shared.timebase import NS_PER_S, tick_stamp_ns
 
 #: Sanity bound for any coordinate on an 8 m x 10 m table (generous, catches unit mix-ups).
 MAX_ABS_COORD_M = 1000.0
@@ -45,6 +47,27 @@ def _first(problems: Iterable[str | None]) -> str | None:
     return next((p for p in problems if p), None)
 
 
+def _count(name: str, items: Sized) -> str | None:
+    """Checked before anything iterates the list: a forged list of 100k objects costs nothing more."""
+    cap = limits().max_objects_per_list
+    return f"{len(items)} {name} > {cap}" if len(items) > cap else None
+
+
+def _tick_rate(tick_hz: float) -> str | None:
+    cap = limits().max_tick_hz
+    return None if 0 < tick_hz <= cap else f"tick_hz={tick_hz} outside (0, {cap}]"
+
+
+def _tick_stamp(header: Message, tick_hz: float) -> str | None:
+    """A sim message's stamp must be its tick's time in its run (`tick_stamp_ns`), within half a tick:
+    a forged far-future tick cannot pass with a present stamp (nor the other way round)."""
+    h = header
+    expected_ns = tick_stamp_ns(h.epoch, h.tick, tick_hz)  # type: ignore[attr-defined]
+    if abs(h.stamp.ToNanoseconds() - expected_ns) > NS_PER_S / (2 * tick_hz):  # type: ignore[attr-defined]
+        return f"tick {h.tick} of epoch {h.epoch} is not stamped at its time"  # type: ignore[attr-defined]
+    return None
+
+
 @register_validator("rmmdet.v1.Header")
 def _header(m: Message) -> str | None:
     for stamp in m.processing:  # type: ignore[attr-defined]
@@ -59,6 +82,8 @@ def _header(m: Message) -> str | None:
 
 @register_validator("rmmdet.v1.Detection2DArray")
 def _detections_2d(m: Message) -> str | None:
+    if problem := _count("detections", m.detections):  # type: ignore[attr-defined]
+        return problem
     for i, d in enumerate(m.detections):  # type: ignore[attr-defined]
         if d.box.width_px < 0 or d.box.height_px < 0:
             return f"detections[{i}]: negative box size"
@@ -72,6 +97,8 @@ def _detections_2d(m: Message) -> str | None:
 
 @register_validator("rmmdet.v1.DetectedObjects")
 def _detected(m: Message) -> str | None:
+    if problem := _count("objects", m.objects):  # type: ignore[attr-defined]
+        return problem
     for i, o in enumerate(m.objects):  # type: ignore[attr-defined]
         problem = (
             _probability(f"objects[{i}].existence_probability", o.existence_probability)
@@ -85,6 +112,8 @@ def _detected(m: Message) -> str | None:
 
 @register_validator("rmmdet.v1.TrackedObjects")
 def _tracked(m: Message) -> str | None:
+    if problem := _count("objects", m.objects):  # type: ignore[attr-defined]
+        return problem
     seen: set[int] = set()
     for i, o in enumerate(m.objects):  # type: ignore[attr-defined]
         if o.track_id in seen:
@@ -113,6 +142,8 @@ def _tracked(m: Message) -> str | None:
 
 @register_validator("rmmdet.v1.RadarScan")
 def _radar(m: Message) -> str | None:
+    if problem := _count("targets", m.targets):  # type: ignore[attr-defined]
+        return problem
     for i, t in enumerate(m.targets):  # type: ignore[attr-defined]
         if t.range_m < 0:
             return f"targets[{i}]: negative range"
@@ -161,8 +192,10 @@ def _traffic(m: Message) -> str | None:
 def _route_plan(m: Message) -> str | None:
     if not m.vehicle_id or not m.plan_id:  # type: ignore[attr-defined]
         return "plan without vehicle_id or plan_id"
-    if m.version == 0:  # type: ignore[attr-defined]
-        return "plan version must be >= 1"
+    if not 1 <= m.version <= limits().max_plan_version:  # type: ignore[attr-defined]
+        return f"plan version {m.version} outside [1, {limits().max_plan_version}]"  # type: ignore[attr-defined]
+    if len(m.signature) > 64 or len(m.key_id) > 64:  # type: ignore[attr-defined]
+        return "oversized signature or key id"
     if not m.lane_ids:  # type: ignore[attr-defined]
         return "plan without lanes"
     return None
@@ -174,11 +207,19 @@ def _route_request(m: Message) -> str | None:
         return "request without vehicle_id"
     if m.lane_progress_m < 0:  # type: ignore[attr-defined]
         return "negative lane progress"
+    if m.current_plan_version > limits().max_plan_version:  # type: ignore[attr-defined]
+        return f"current_plan_version beyond {limits().max_plan_version}"
     return None
 
 
 @register_validator("rmmdet.v1.GroundTruth")
 def _ground_truth(m: Message) -> str | None:
+    if problem := (
+        _count("vehicles", m.vehicles)  # type: ignore[attr-defined]
+        or _tick_rate(m.tick_hz)  # type: ignore[attr-defined]
+        or _tick_stamp(m.header, m.tick_hz)  # type: ignore[attr-defined]
+    ):
+        return problem
     ids: set[str] = set()
     for v in m.vehicles:  # type: ignore[attr-defined]
         if v.vehicle_id in ids:
@@ -192,8 +233,15 @@ def _ground_truth(m: Message) -> str | None:
 
 @register_validator("rmmdet.v1.SimClock")
 def _sim_clock(m: Message) -> str | None:
-    if m.step_s < 0 or m.real_time_factor < 0:  # type: ignore[attr-defined]
-        return "negative step or real-time factor"
+    if m.real_time_factor < 0 or m.target_speed < 0:  # type: ignore[attr-defined]
+        return "negative real-time factor or target speed"
+    if not m.step_s > 0:  # type: ignore[attr-defined]
+        return "step_s must be > 0"
+    tick_hz = 1.0 / m.step_s  # type: ignore[attr-defined]
+    if (problem := _tick_rate(tick_hz)) or (problem := _tick_stamp(m.header, tick_hz)):  # type: ignore[attr-defined]
+        return problem
+    if m.sim_time.ToNanoseconds() != m.header.stamp.ToNanoseconds():  # type: ignore[attr-defined]
+        return "sim_time differs from the header stamp"
     return None
 
 

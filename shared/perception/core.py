@@ -35,6 +35,7 @@ import numpy as np
 from rmmdet.v1.perception_pb2 import TrackedObjects
 
 from shared.bus.health import CRITICAL, DEGRADED, NOMINAL
+from shared.bus.ordering import reset_after_ticks
 from shared.detection.interface import CameraDetector, LidarDetector
 from shared.perception.config import MecSettings
 from shared.perception.decode import FrameDecoder
@@ -171,6 +172,8 @@ class MecCore:
     def tick_hz(self, hz: float | None) -> None:
         """The sim's tick rate (None with real sensors): the camera cadence follows the ticks."""
         self.pipeline.tick_hz = hz
+        if hz is not None and isinstance(self._joiner, TickJoiner):
+            self._joiner.reset_after_ticks = reset_after_ticks(hz)
 
     def reset(self, now_s: float) -> None:
         """Start the input monitor and the join afresh (the clock of record changed: their times were
@@ -181,7 +184,10 @@ class MecCore:
         sync = self.settings.sync
         if sync.collector == "tick":
             self._joiner: TickJoiner | BoundedWaitCollector = TickJoiner(
-                self.kinds, sync.max_wait_s, sync.max_pending_ticks
+                self.kinds,
+                sync.max_wait_s,
+                sync.max_pending_ticks,
+                reset_after_ticks(self.tick_hz),
             )
         else:
             trigger = sync.trigger or default_trigger(self.kinds)
@@ -220,7 +226,14 @@ class MecCore:
         return lambda tick: live - (self.camera_ids - self.pipeline.cameras_due(lidar_live, tick))
 
     def receive(
-        self, sensor_id: str, stamp_ns: int, tick: int, message: object, now_s: float, arrival_ns: int
+        self,
+        sensor_id: str,
+        stamp_ns: int,
+        tick: int,
+        message: object,
+        now_s: float,
+        arrival_ns: int,
+        epoch: int = 0,
     ) -> str | None:
         """One sensor message; the reason it was rejected ("unknown_sensor", "stale"; counted), or None."""
         if sensor_id not in self.kinds:
@@ -230,7 +243,7 @@ class MecCore:
         if not self.monitor.accept(sensor_id, stamp_ns, now_s, arrival_ns):
             self.counters[f"stale/{sensor_id}"] += 1
             return "stale"
-        sample = Sample(sensor_id, stamp_ns, message, tick, now_s)
+        sample = Sample(sensor_id, stamp_ns, message, tick, now_s, epoch)
         if isinstance(self._joiner, TickJoiner):
             self._ready += self._joiner.add(sample, self.expected(self.monitor.alive(now_s)), now_s)
         else:

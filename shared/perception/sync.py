@@ -28,6 +28,7 @@ from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from shared.bus.ordering import Order, Position, order
 from shared.timebase import NS_PER_S
 
 #: The sensors a tick waits for: one set for every tick, or a function of the tick.
@@ -43,6 +44,7 @@ class Sample:
     data: Any
     tick: int = 0
     arrival_s: float = 0.0
+    epoch: int = 0  # sim run of `tick` (Header.epoch)
 
 
 @dataclass
@@ -75,16 +77,24 @@ class TickJoiner:
         Longest wait for the expected sensors of a tick after its first sample arrived, s.
     max_pending : int
         Ticks held at once; when exceeded the oldest is emitted as it is.
+    reset_after_ticks : int
+        A sample this many ticks behind the last emitted one, or of another sim run (epoch), restarts
+        the join (shared/bus/ordering.py): a restarted sim or one bogus tick cannot latch it.
     """
 
-    def __init__(self, sensors: Collection[str], max_wait_s: float, max_pending: int = 4) -> None:
-        if max_wait_s <= 0 or max_pending < 1:
-            raise ValueError("max_wait_s must be > 0 and max_pending >= 1")
+    def __init__(
+        self, sensors: Collection[str], max_wait_s: float, max_pending: int = 4, reset_after_ticks: int = 120
+    ) -> None:
+        if max_wait_s <= 0 or max_pending < 1 or reset_after_ticks < 1:
+            raise ValueError("max_wait_s must be > 0, max_pending and reset_after_ticks >= 1")
         self.sensors = frozenset(sensors)
         self.max_wait_s = max_wait_s
         self.max_pending = max_pending
+        self.reset_after_ticks = reset_after_ticks
         self._pending: dict[int, _Pending] = {}
-        self._last_emitted_tick = -1
+        self._last_emitted: Position | None = None
+        self._epoch: int | None = None  # of the pending ticks
+        self.restarts = 0
         self.late = 0  # samples of a tick already emitted (counted, dropped)
         self.late_by_sensor: Counter[str] = Counter()  # ... and whose they were
         self.duplicates = 0
@@ -95,10 +105,19 @@ class TickJoiner:
         if sample.sensor_id not in self.sensors:
             self.unknown += 1
             return []
-        if sample.tick <= self._last_emitted_tick:
+        newest = self._last_emitted
+        if newest is None and self._epoch is not None:
+            newest = Position(self._epoch, -1)
+        verdict = order(newest, Position(sample.epoch, sample.tick), self.reset_after_ticks)
+        if verdict is Order.OLDER:
             self.late += 1
             self.late_by_sensor[sample.sensor_id] += 1
             return []
+        if verdict is Order.RESTART:
+            self.restarts += 1
+            self._pending.clear()
+            self._last_emitted = None
+        self._epoch = sample.epoch
         pending = self._pending.get(sample.tick)
         if pending is None:
             pending = _Pending(sample.tick, sample.stamp_ns, now_s)
@@ -130,7 +149,7 @@ class TickJoiner:
             p = self._pending.pop(tick)
             missing = tuple(sorted(self._wanted(expected, tick).difference(p.samples)))
             out.append(JoinedFrame(p.stamp_ns, tick, p.samples, missing, p.first_arrival_s))
-            self._last_emitted_tick = tick
+            self._last_emitted = Position(self._epoch or 0, tick)
         return out
 
     def next_deadline_s(self) -> float | None:

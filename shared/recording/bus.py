@@ -84,11 +84,23 @@ def subscribe_recorder(
     return subscribers
 
 
-class ReplayPublisher:
-    """Publishes recorded samples unchanged: original key, payload, encoding and attachment."""
+#: Where `rmmdet replay` publishes by default: under this prefix a recording cannot drive a live
+#: system (a replayed plan would otherwise reach the vehicles, reliability.md (c)).
+REPLAY_PREFIX = "replay"
 
-    def __init__(self, session: zenoh.Session) -> None:
+
+def replay_key(key: str, prefix: str) -> str:
+    """The key a recorded `key` is replayed on: `prefix/key`, or `key` itself for an empty prefix."""
+    return f"{prefix.strip('/')}/{key}" if prefix.strip("/") else key
+
+
+class ReplayPublisher:
+    """Publishes recorded samples unchanged (payload, encoding, attachment) on their recorded keys
+    under `prefix` ("" = the original keys, onto a live system)."""
+
+    def __init__(self, session: zenoh.Session, prefix: str = REPLAY_PREFIX) -> None:
         self._session = session
+        self._prefix = prefix
         self._publishers: dict[str, zenoh.Publisher] = {}
         self.sent = 0
 
@@ -97,7 +109,7 @@ class ReplayPublisher:
         if pub is None:
             stream = stream_for_key(key)
             qos = stream.qos.publisher_kwargs() if stream is not None else {}
-            pub = self._session.declare_publisher(key, **qos)
+            pub = self._session.declare_publisher(replay_key(key, self._prefix), **qos)
             self._publishers[key] = pub
         return pub
 

@@ -13,7 +13,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from shared.config import RmmdetSettings, load_settings, settings_config
-from shared.paths import DEFAULT_SCENE, REPO_ROOT
+from shared.paths import DEFAULT_PKI_DIR, DEFAULT_SCENE, REPO_ROOT
 from shared.scene.model import LEVEL_SEPARATION_M
 
 DEFAULT_COORDINATOR_CONFIG = REPO_ROOT / "deploy" / "coordinator" / "coordinator.yaml"
@@ -87,6 +87,9 @@ class PlannerConfig(_Section):
 class DeliveryConfig(_Section):
     ack_timeout_s: float = Field(0.5, gt=0, description="resend a pushed plan not acknowledged by then")
     max_sends: int = Field(5, ge=1, description="a pushed plan is sent at most this many times")
+    vehicle_idle_s: float = Field(
+        300.0, gt=0, description="a vehicle without a request or acknowledgement for this long is forgotten"
+    )
 
 
 class ServiceConfig(_Section):
@@ -101,7 +104,9 @@ class ServiceConfig(_Section):
         4, ge=1, description="latest-wins queue depth of incoming object lists, per agent"
     )
     max_vehicles: int = Field(
-        256, ge=1, description="distinct vehicles served; requests from further vehicle ids are rejected"
+        256,
+        ge=1,
+        description="vehicles whose plans are tracked at once; a further one replaces the longest idle",
     )
 
 
@@ -114,6 +119,10 @@ class CoordinatorSettings(RmmdetSettings):
     planner: PlannerConfig = PlannerConfig()
     delivery: DeliveryConfig = DeliveryConfig()
     service: ServiceConfig = ServiceConfig()
+    plan_signing_key: Path = Field(
+        DEFAULT_PKI_DIR / "plan-signing.key",
+        description="Ed25519 private key (PEM) that signs every plan (`rmmdet pki init` creates it)",
+    )
     map_publish_hz: float = Field(2.0, gt=0, description="traffic map update and publication rate")
     replan_interval_s: float = Field(
         2.0, gt=0, description="pushed plans are re-checked this often against the current maps"
@@ -128,4 +137,6 @@ def load_coordinator_settings(path: Path | None = DEFAULT_COORDINATOR_CONFIG) ->
     settings = load_settings(CoordinatorSettings, path)
     if not settings.scene.is_absolute():
         settings.scene = REPO_ROOT / settings.scene
+    if not settings.plan_signing_key.is_absolute():
+        settings.plan_signing_key = REPO_ROOT / settings.plan_signing_key
     return settings

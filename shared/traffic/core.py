@@ -29,7 +29,8 @@ from rmmdet.v1.planning_pb2 import RouteAck, RoutePlan, RouteRequest
 from rmmdet.v1.traffic_pb2 import TrafficMap
 
 from shared.bus.health import DEGRADED, NOMINAL
-from shared.bus.streams import validate_id
+from shared.bus.ordering import OrderGate
+from shared.bus.streams import limits, validate_id
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.timebase import NS_PER_S
@@ -101,10 +102,12 @@ class CoordinatorCore:
         self.coverage = CoverageTracker(self.agents, settings.coverage)
         self.builder = TrafficMapBuilder(scene, network, settings.maps)
         self.planner = RoutePlanner(scene, network, settings.planner)
-        self.book = PlanBook(settings.delivery)
+        self.book = PlanBook(settings.delivery, max_vehicles)
         self._lock = threading.Lock()
         self._objects: dict[str, AgentObjects] = {}
         self._stamp_ns: dict[str, int] = {}  # data stamp of each agent's latest objects
+        reset_ns = round(limits().order_reset_s * NS_PER_S)
+        self._order = {a: OrderGate(reset_ns) for a in self.agents}  # (epoch, stamp) per agent
         self._active: dict[str, _Active] = {}
         self.snapshot: TrafficSnapshot | None = None
         self._cond = LaneConditions()
@@ -119,12 +122,16 @@ class CoordinatorCore:
 
     # --- inputs ----------------------------------------------------------------------------------
 
-    def on_objects(self, agent: str, objects: AgentObjects, stamp_ns: int, now_s: float) -> bool:
-        """Keep `agent`'s latest objects; False for an agent not in the scene (caller counts it)."""
+    def on_objects(
+        self, agent: str, objects: AgentObjects, stamp_ns: int, now_s: float, epoch: int = 0
+    ) -> bool:
+        """Keep `agent`'s latest objects; False for an agent not in the scene (caller counts it).
+        Latest wins by (sim run `epoch`, stamp): a list of a new run, or one far behind a bogus newest,
+        restarts the order (shared/bus/ordering.py), so one future-stamped list cannot shut out the rest."""
         if agent not in self.coverage.agents:
             return False
         with self._lock:
-            if stamp_ns < self._stamp_ns.get(agent, 0):
+            if not self._order[agent].admit(epoch, stamp_ns):
                 return True  # reordered: the newer list is already held (latest wins)
             self._objects[agent] = objects
             self._stamp_ns[agent] = stamp_ns
@@ -132,11 +139,15 @@ class CoordinatorCore:
             self.dirty = True
         return True
 
-    def receive_objects(self, agent: str, msg: TrackedObjects, stamp_ns: int, now_s: float) -> bool:
+    def receive_objects(
+        self, agent: str, msg: TrackedObjects, stamp_ns: int, now_s: float, epoch: int = 0
+    ) -> bool:
         """An agent's object list as received (objects below `maps.min_existence_probability` left
         out); False for an agent not in the scene (caller counts it)."""
+        if agent not in self.coverage.agents:
+            return False
         objects = messages.agent_objects(agent, msg, self.settings.maps.min_existence_probability)
-        return self.on_objects(agent, objects, stamp_ns, now_s)
+        return self.on_objects(agent, objects, stamp_ns, now_s, epoch)
 
     def on_presence(self, agent: str, alive: bool) -> bool:
         if agent not in self.coverage.agents:
@@ -210,12 +221,8 @@ class CoordinatorCore:
                 # main loop's rebuilds are rate-limited).
                 self._update_map(now_s)
             vid = req.vehicle_id
-            if self.book.latest(vid) is None and len(self.book.vehicles()) >= self.max_vehicles:
-                raise RequestRejected(
-                    "too_many_vehicles",
-                    ErrorCode.ERROR_CODE_UNAVAILABLE,
-                    f"serving {self.max_vehicles} vehicles already",
-                )
+            for gone in self.book.heard(vid, now_s):
+                self._forget(gone)
             try:
                 route = self.planner.plan(vid, req.current_lane_id, req.destination_junction_id, self._cond)
             except NoRouteError as err:
@@ -334,15 +341,28 @@ class CoordinatorCore:
                 self.book.sent(plan, now_s)
         return out
 
-    def on_ack(self, vehicle_id: str, plan_id: str, version: int, status: Ack) -> bool:
+    def on_ack(self, vehicle_id: str, plan_id: str, version: int, status: Ack, now_s: float) -> bool:
         """Record an acknowledgement; False when it is not for the vehicle's latest plan."""
         with self._lock:
             recorded = self.book.on_ack(vehicle_id, plan_id, version, status)
+            if recorded:
+                for gone in self.book.heard(vehicle_id, now_s):
+                    self._forget(gone)
             if recorded and status in ENDED:
                 self.planner.forget(vehicle_id)
             return recorded
 
-    def receive_ack(self, vehicle: str, ack: RouteAck) -> list[str]:
+    def _forget(self, vehicle_id: str) -> None:
+        """Drop an evicted vehicle's plan state (its load on the lanes included)."""
+        self._active.pop(vehicle_id, None)
+        self.planner.forget(vehicle_id)
+
+    @property
+    def vehicles_evicted(self) -> int:
+        """Vehicles forgotten: idle past `delivery.vehicle_idle_s`, or the longest idle of a full book."""
+        return self.book.evicted
+
+    def receive_ack(self, vehicle: str, ack: RouteAck, now_s: float) -> list[str]:
         """An acknowledgement received on `vehicle`'s ack key; returns the counters it counts under
         (``acks/<status>``, plus ``acks/not_latest`` when it is not for the latest plan; a vehicle id
         other than the key's or an unknown status is rejected)."""
@@ -352,7 +372,7 @@ class CoordinatorCore:
         if status is None:
             return ["rejected/ack_status"]
         counted = [f"acks/{status.name.lower()}"]
-        if not self.on_ack(vehicle, ack.plan_id, int(ack.version), status):
+        if not self.on_ack(vehicle, ack.plan_id, int(ack.version), status, now_s):
             counted.append("acks/not_latest")
         return counted
 

@@ -9,12 +9,19 @@ DUPLICATE or REJECTED_STALE. Times are monotonic seconds.
 
 from __future__ import annotations
 
+import re
 import uuid
 from dataclasses import dataclass
 from enum import Enum
 
+from rmmdet.v1.planning_pb2 import RoutePlan
+
+from shared.security.plan_signing import PlanVerifier
+from shared.timebase import NS_PER_S
 from shared.traffic.config import DeliveryConfig
 from shared.traffic.planner import Route
+
+PLAN_ID = re.compile(r"[0-9a-f]{32}")  # uuid4 hex, as `PlanBook.issue` makes them
 
 
 class Ack(Enum):
@@ -43,11 +50,35 @@ class IssuedPlan:
 class PlanBook:
     """The latest plan issued to each vehicle, and the acknowledgement state of pushed ones."""
 
-    def __init__(self, cfg: DeliveryConfig) -> None:
+    def __init__(self, cfg: DeliveryConfig, max_vehicles: int) -> None:
         self.cfg = cfg
+        self.max_vehicles = max_vehicles
         self._latest: dict[str, IssuedPlan] = {}
         self._version: dict[str, int] = {}
+        self._heard_s: dict[str, float] = {}  # last request or acknowledgement, insertion = LRU order
         self.unacknowledged_dropped = 0  # pushed plans given up after max_sends
+        self.evicted = 0  # vehicles forgotten: idle, or the longest idle when a new one came
+
+    def heard(self, vehicle_id: str, now_s: float) -> list[str]:
+        """`vehicle_id` asked or acknowledged at `now_s`. Returns the vehicles forgotten to make room
+        (idle longer than `vehicle_idle_s`, then the longest idle while more than `max_vehicles`): a
+        flood of made-up ids cannot lock a real vehicle out, it can only evict idle bookkeeping."""
+        self._heard_s.pop(vehicle_id, None)
+        self._heard_s[vehicle_id] = now_s
+        out = []
+        for vid, heard_s in list(self._heard_s.items()):
+            if len(self._heard_s) <= self.max_vehicles and now_s - heard_s <= self.cfg.vehicle_idle_s:
+                break  # oldest first: the rest are newer
+            if vid != vehicle_id:
+                out.append(vid)
+                self.forget(vid)
+        self.evicted += len(out)
+        return out
+
+    def forget(self, vehicle_id: str) -> None:
+        self._latest.pop(vehicle_id, None)
+        self._version.pop(vehicle_id, None)
+        self._heard_s.pop(vehicle_id, None)
 
     def issue(
         self, vehicle_id: str, route: Route, now_s: float, *, pushed: bool, after_version: int = 0
@@ -100,4 +131,19 @@ def vehicle_decision(current_version: int, current_plan_id: str, plan_id: str, v
         return Ack.DUPLICATE
     if version <= current_version:
         return Ack.REJECTED_STALE
+    return None
+
+
+def plan_problem(plan: RoutePlan, verifier: PlanVerifier, now_ns: int, max_ttl_s: float) -> str | None:
+    """Vehicle side, before a plan is considered at all: why it is refused (the rejection counter's
+    name), or None. Refused: not signed by a trusted coordinator key (`plan_unsigned`,
+    `plan_unknown_key`, `plan_bad_signature`), a malformed plan id, or no TTL / one reaching further
+    than `max_ttl_s` from now (`plan_ttl`). Version order and expiry are the vehicle's decision after."""
+    problem = verifier.problem(plan)
+    if problem is not None:
+        return f"plan_{problem}"
+    if not PLAN_ID.fullmatch(plan.plan_id):
+        return "plan_id"
+    if not plan.HasField("valid_until") or plan.valid_until.ToNanoseconds() - now_ns > max_ttl_s * NS_PER_S:
+        return "plan_ttl"
     return None

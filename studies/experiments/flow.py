@@ -175,7 +175,7 @@ class Scheduler:
             self._score_maps(traffic, self.core.snapshot)
         for plan, _stamp_ns, _first in self.core.due(now_s):
             self.pushed += 1
-            self._deliver(traffic, plan)
+            self._deliver(traffic, plan, now_s)
 
     def _score_maps(self, traffic: TrafficSim, snap: TrafficSnapshot) -> None:
         """Perceived vs true vehicles per observed lane (how good the maps the planner uses are)."""
@@ -207,13 +207,13 @@ class Scheduler:
                 self.counts[f"plans/{err.reason}"] += 1
                 continue
             self.plans += 1
-            self._deliver(traffic, plan)
+            self._deliver(traffic, plan, now_s)
 
-    def _deliver(self, traffic: TrafficSim, plan: RoutePlan) -> None:
+    def _deliver(self, traffic: TrafficSim, plan: RoutePlan, now_s: float) -> None:
         """The vehicle applies the plan and acknowledges it with its decision (never stale in lock step:
         a plan is applied the tick it is made)."""
         status = traffic.set_plan(plan.vehicle_id, list(plan.lane_ids), int(plan.version), plan.plan_id)
-        self.core.on_ack(plan.vehicle_id, plan.plan_id, int(plan.version), status)
+        self.core.on_ack(plan.vehicle_id, plan.plan_id, int(plan.version), status, now_s)
         self.counts[f"acks/{status.name.lower()}"] += 1
 
 

@@ -16,6 +16,7 @@ from rmmdet.v1.health_pb2 import ServiceHealth
 
 from shared.bus.session import open_session
 from shared.bus.streams import stream_for_key
+from shared.recording.bus import REPLAY_PREFIX
 from shared.recording.reader import decode_record, read_records
 from tests.helpers import Router, spawn, stop
 from tests.shared.recording.samples import Sent, traffic
@@ -142,7 +143,9 @@ def test_record_with_the_service_then_replay_with_the_cli(router: Router, tmp_pa
     with open_session(router.client_config(), timeout_s=5) as session:
         collector = Collector(session)
         try:
-            proc = spawn([*CLI, "--connect", router.endpoint, "replay", str(out), "--speed", "4"])
+            proc = spawn(
+                [*CLI, "--connect", router.endpoint, "replay", str(out), "--speed", "4", "--live-keys"]
+            )
             stdout, _ = proc.communicate(timeout=30)
             assert proc.returncode == 0, stdout
             wait_until(lambda: collector.count() >= len(samples), what="replayed samples")
@@ -174,7 +177,8 @@ def test_cli_record_for_a_duration_and_replay_a_selected_key(router: Router, tmp
 
     camera_key = samples[0].key
     with open_session(router.client_config(), timeout_s=5) as session:
-        collector = Collector(session)
+        live = Collector(session)  # the default replay must not reach the live keys
+        collector = Collector(session, f"{REPLAY_PREFIX}/{DATA_KEYS}")
         try:
             replay = spawn(
                 [*CLI, "--connect", router.endpoint, "replay", str(out), "--speed", "0", "--key", camera_key]
@@ -185,7 +189,10 @@ def test_cli_record_for_a_duration_and_replay_a_selected_key(router: Router, tmp
             time.sleep(0.2)
         finally:
             collector.undeclare()
-    assert collector.samples == as_tuples([s for s in samples if s.key == camera_key])
+            live.undeclare()
+    expected = as_tuples([s for s in samples if s.key == camera_key])
+    assert collector.samples == [(f"{REPLAY_PREFIX}/{k}", *rest) for k, *rest in expected]
+    assert live.samples == []
 
 
 def test_recorder_stops_cleanly_on_sigterm_with_nothing_recorded(router: Router, tmp_path: Path) -> None:

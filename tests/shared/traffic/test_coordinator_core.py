@@ -134,14 +134,25 @@ def test_serve_rejects_bad_requests(scene: Scene, req: RouteRequest, reason: str
     assert err.value.reason == reason and err.value.code == code
 
 
-def test_vehicle_cap(scene: Scene) -> None:
-    core = make_core(scene, max_vehicles=1)
+def test_a_full_plan_book_evicts_the_longest_idle_vehicle_and_serves_the_new_one(scene: Scene) -> None:
+    core = make_core(scene, max_vehicles=2)
     core.update_map(0.0)
     core.serve(request("v01"), 0.0, WALL0_NS)
-    core.serve(request("v01"), 0.1, WALL0_NS)  # a known vehicle is still served
-    with pytest.raises(RequestRejected) as err:
-        core.serve(request("v02"), 0.2, WALL0_NS)
-    assert err.value.reason == "too_many_vehicles"
+    core.serve(request("v02"), 0.1, WALL0_NS)
+    core.serve(request("v01"), 0.2, WALL0_NS)  # v02 is now the longest idle
+    plan, _ = core.serve(request("v03"), 0.3, WALL0_NS)  # a new vehicle is served, never locked out
+    assert plan.vehicle_id == "v03" and core.vehicles_evicted == 1
+    again, _ = core.serve(request("v02"), 0.4, WALL0_NS)  # the evicted one starts afresh when it asks
+    assert again.version == 1 and core.vehicles_evicted == 2
+
+
+def test_vehicles_idle_past_the_limit_are_forgotten(scene: Scene) -> None:
+    core = make_core(scene)
+    idle_s = core.settings.delivery.vehicle_idle_s
+    core.update_map(0.0)
+    core.serve(request("v01"), 0.0, WALL0_NS)
+    core.serve(request("v02"), idle_s + 1.0, WALL0_NS)
+    assert core.vehicles_evicted == 1
 
 
 def test_coverage_change_pushes_plan_until_acknowledged(scene: Scene, cars: dict[str, AgentCars]) -> None:
@@ -149,7 +160,7 @@ def test_coverage_change_pushes_plan_until_acknowledged(scene: Scene, cars: dict
     delivery = core.settings.delivery
     core.update_map(0.0)  # nothing LIVE yet
     first, _ = core.serve(request(), 0.0, WALL0_NS)
-    core.on_ack("v01", first.plan_id, first.version, Ack.ACCEPTED)
+    core.on_ack("v01", first.plan_id, first.version, Ack.ACCEPTED, 0.0)
     assert core.replan(0.5, WALL0_NS) == 0  # same coverage, same (empty) maps: nothing to push
     feed(core, cars, 1.0)
     core.update_map(1.0)  # every agent LIVE now: the plan was made without them
@@ -163,8 +174,8 @@ def test_coverage_change_pushes_plan_until_acknowledged(scene: Scene, cars: dict
     assert core.due(1.0 + delivery.ack_timeout_s / 2) == []
     resent = core.due(1.0 + delivery.ack_timeout_s)
     assert [(p.plan_id, first_send) for p, _, first_send in resent] == [(pushed.plan_id, False)]
-    assert not core.on_ack("v01", first.plan_id, first.version, Ack.ACCEPTED)  # not the latest
-    assert core.on_ack("v01", pushed.plan_id, pushed.version, Ack.ACCEPTED)
+    assert not core.on_ack("v01", first.plan_id, first.version, Ack.ACCEPTED, 1.0)  # not the latest
+    assert core.on_ack("v01", pushed.plan_id, pushed.version, Ack.ACCEPTED, 1.0)
     assert core.due(5.0) == []
     assert core.active_plans(5.0) == 1
 
@@ -186,7 +197,7 @@ def test_ended_plans_are_not_replanned(scene: Scene, cars: dict[str, AgentCars])
     core = make_core(scene)
     core.update_map(0.0)
     plan, _ = core.serve(request(), 0.0, WALL0_NS)
-    assert core.on_ack("v01", plan.plan_id, plan.version, Ack.REJECTED_INVALID)
+    assert core.on_ack("v01", plan.plan_id, plan.version, Ack.REJECTED_INVALID, 0.0)
     assert core.planner.planned_load() == {}  # its lanes are no longer load for others
     feed(core, cars, 1.0)
     core.update_map(1.0)
@@ -232,12 +243,14 @@ def test_receive_ack_counts_and_rejects(scene: Scene, cars: dict[str, AgentCars]
     feed(core, cars, 0.0)
     plan, _ = core.serve(request(), 0.0, WALL0_NS)
     ok = RouteAck(vehicle_id="v01", plan_id=plan.plan_id, version=plan.version, status=Ack.ACCEPTED.value)
-    assert core.receive_ack("v01", ok) == ["acks/accepted"]
-    assert core.receive_ack("v02", ok) == ["rejected/ack_vehicle_mismatch"]  # the key says another vehicle
+    assert core.receive_ack("v01", ok, 0.0) == ["acks/accepted"]
+    assert core.receive_ack("v02", ok, 0.0) == [
+        "rejected/ack_vehicle_mismatch"
+    ]  # key: another vehicle
     bad_status = RouteAck(vehicle_id="v01", plan_id=plan.plan_id, version=plan.version, status=99)
-    assert core.receive_ack("v01", bad_status) == ["rejected/ack_status"]
+    assert core.receive_ack("v01", bad_status, 0.0) == ["rejected/ack_status"]
     old = RouteAck(vehicle_id="v01", plan_id="p-old", version=plan.version, status=Ack.COMPLETED.value)
-    assert core.receive_ack("v01", old) == ["acks/completed", "acks/not_latest"]
+    assert core.receive_ack("v01", old, 0.0) == ["acks/completed", "acks/not_latest"]
 
 
 def test_replanning_runs_at_its_interval_of_the_clock_of_record(scene: Scene) -> None:

@@ -142,7 +142,7 @@ def test_every_policy_has_a_wire_value() -> None:
 @pytest.mark.parametrize("policy", POLICIES)
 def test_route_plan_fields(policy: str) -> None:
     route = Route(["in", "ac", "cb"], ["ja", "jc"], 8.0, 5.0, policy)  # type: ignore[arg-type]
-    book = PlanBook(DeliveryConfig())
+    book = PlanBook(DeliveryConfig(), max_vehicles=16)
     book.issue("car7", route, 0.0, pushed=False, after_version=6)
     plan = book.latest("car7")
     assert plan is not None

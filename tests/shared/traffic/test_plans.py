@@ -13,7 +13,7 @@ ROUTE = Route(["in", "ab"], ["ja"], 4.0, 3.0, "shortest")
 
 @pytest.fixture
 def book() -> PlanBook:
-    return PlanBook(DeliveryConfig(ack_timeout_s=0.5, max_sends=3))
+    return PlanBook(DeliveryConfig(ack_timeout_s=0.5, max_sends=3), max_vehicles=16)
 
 
 def test_versions_increase_per_vehicle(book: PlanBook) -> None:

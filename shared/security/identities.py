@@ -1,0 +1,95 @@
+"""Who is who in a secure deployment: identity names (certificate CNs) and what each one is.
+
+An identity's name says its role and the key bindings it is confined to:
+
+    router                      the one-host router (`make up`)
+    router-cloud                the cloud router (coordinator, recorder, operator, sim connect here)
+    router-<agent>              a roadside site's router (that agent's sensor groups and MEC)
+    sensor-<agent>-<kind>s      one sensor group: publishes only <agent>'s <kind> sensor keys
+    mec-<agent>                 agent <agent>'s edge process
+    coordinator, recorder, operator (the `rmmdet` tool), sim (the world and its vehicles' fleet)
+    vehicle-<id>                one connected vehicle: requests, receives and acks only its own plans
+
+`proto/streams.yaml` says which role publishes, subscribes, serves or queries each stream; the access
+control rules (`shared/security/acl.py`) are those grants with each identity's bindings filled in.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+
+from shared.config import ConfigError
+from shared.scene.scene import Scene
+
+ROLES = ("router", "sim", "vehicles", "sensors", "mec", "coordinator", "recorder", "operator")
+#: The `service` part of each role's health and presence keys (`rmmdet/@v1/{scope}/@alive/{service}/..`).
+SERVICE_OF_ROLE = {
+    "router": "router",
+    "sim": "sim",
+    "sensors": "sensor",
+    "mec": "mec",
+    "coordinator": "coordinator",
+    "recorder": "recorder",
+}
+SENSOR_KINDS = ("camera", "lidar", "radar")
+CLOUD_ROUTER = "router-cloud"
+LOCAL_ROUTER = "router"
+_SENSOR_RE = re.compile(r"^sensor-(?P<agent>[a-z0-9_]+)-(?P<kind>camera|lidar|radar)s$")
+_AGENT_RE = re.compile(r"^(?P<role>mec|router)-(?P<agent>[a-z0-9_]+)$")
+_VEHICLE_RE = re.compile(r"^vehicle-(?P<vehicle>[A-Za-z0-9_]+)$")
+
+
+@dataclass(frozen=True)
+class Grant:
+    """One role an identity holds, with the key placeholders it is confined to (unbound: any)."""
+
+    role: str
+    bindings: dict[str, str] = field(default_factory=dict)
+
+    def __hash__(self) -> int:
+        return hash((self.role, tuple(sorted(self.bindings.items()))))
+
+
+@dataclass(frozen=True)
+class Identity:
+    name: str
+    grants: tuple[Grant, ...]
+
+
+def parse_identity(name: str) -> Identity:
+    """The grants an identity name stands for; ConfigError for a name that is none of the above."""
+    if name in ("coordinator", "recorder", "operator"):
+        return Identity(name, (Grant(name),))
+    if name == "sim":  # the world (ground truth, clock, calibration) and the vehicles it drives
+        return Identity(name, (Grant("sim"), Grant("vehicles")))
+    if name in (LOCAL_ROUTER, CLOUD_ROUTER):
+        return Identity(name, (Grant("router", {"scope": "*"}),))
+    if m := _SENSOR_RE.match(name):
+        return Identity(name, (Grant("sensors", {"agent": m["agent"], "kind": m["kind"]}),))
+    if m := _AGENT_RE.match(name):
+        if m["role"] == "mec":
+            return Identity(name, (Grant("mec", {"agent": m["agent"]}),))
+        return Identity(name, (Grant("router", {"scope": m["agent"]}),))
+    if m := _VEHICLE_RE.match(name):
+        return Identity(name, (Grant("vehicles", {"vehicle": m["vehicle"]}),))
+    raise ConfigError(f"identity {name!r}: not a known role (see shared/security/identities.py)")
+
+
+def sensor_group_identity(group: str) -> str:
+    """`agent1-cameras` -> `sensor-agent1-cameras`."""
+    return f"sensor-{group}"
+
+
+def site_identities(scene: Scene, agent: str) -> list[str]:
+    """The identities at one roadside site: its router, its sensor groups and its MEC."""
+    kinds = sorted({s.kind for s in scene.sensors_of(agent)})
+    return [f"router-{agent}", *(sensor_group_identity(f"{agent}-{k}s") for k in kinds), f"mec-{agent}"]
+
+
+def deployment_identities(scene: Scene) -> list[str]:
+    """Every identity of the multi-site deployment of `scene` (and the one-host router)."""
+    names = [LOCAL_ROUTER, CLOUD_ROUTER, "sim", "coordinator", "recorder", "operator"]
+    for agent in scene.agents:
+        names += site_identities(scene, agent)
+    return names

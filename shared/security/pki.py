@@ -1,0 +1,255 @@
+"""The deployment's local certificate authority: one CA, one X.509 certificate per service identity,
+and the coordinator's Ed25519 plan-signing key (`rmmdet pki init`).
+
+Layout of a PKI directory (default `.run/pki`, private keys mode 0600):
+
+    ca.pem, ca.key                 the CA (ECDSA P-256, self-signed, path length 0)
+    <identity>.pem, <identity>.key one leaf per identity: CN = identity, SAN = DNS:identity,
+                                   DNS:localhost, IP:127.0.0.1 and any extra names; serverAuth +
+                                   clientAuth (routers both listen and connect; clients connect)
+    plan-signing.key / .pub        Ed25519, PKCS#8 / SubjectPublicKeyInfo PEM
+
+Zenoh's TLS links (rustls) verify chains to `ca.pem`; access control keys its rules on the leaf's
+common name (`shared/security/acl.py`). `init` is idempotent: what exists is kept, what is missing is
+made, so adding an identity never reissues the others (their keys may already be on other hosts).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import ipaddress
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+from shared.config import ConfigError
+
+CA_NAME = "ca"
+PLAN_KEY_NAME = "plan-signing"
+CA_VALIDITY_DAYS = 3650
+LEAF_VALIDITY_DAYS = 825  # the CA/Browser ceiling; renew with `rmmdet pki init --renew`
+#: Identities are file names and certificate CNs: keep them to a safe alphabet.
+IDENTITY_RE = re.compile(r"^[a-z0-9][a-z0-9_-]{0,62}$")
+PRIVATE_MODE = 0o600
+
+
+@dataclass(frozen=True)
+class Paths:
+    """Where one identity's files live in a PKI directory."""
+
+    cert: Path
+    key: Path
+
+
+def identity_paths(pki_dir: Path, identity: str) -> Paths:
+    check_identity(identity)
+    return Paths(pki_dir / f"{identity}.pem", pki_dir / f"{identity}.key")
+
+
+def plan_key_paths(pki_dir: Path) -> Paths:
+    """The plan-signing key pair: `cert` is the public key (PEM), `key` the private key."""
+    return Paths(pki_dir / f"{PLAN_KEY_NAME}.pub", pki_dir / f"{PLAN_KEY_NAME}.key")
+
+
+def check_identity(identity: str) -> str:
+    if not IDENTITY_RE.match(identity) or identity in (CA_NAME, PLAN_KEY_NAME):
+        raise ConfigError(f"identity {identity!r}: use 1-63 of [a-z0-9_-], not 'ca' or 'plan-signing'")
+    return identity
+
+
+def _write_private(path: Path, pem: bytes) -> None:
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, PRIVATE_MODE)
+    with os.fdopen(fd, "wb") as f:
+        f.write(pem)
+
+
+def _key_pem(key: ec.EllipticCurvePrivateKey | Ed25519PrivateKey) -> bytes:
+    return key.private_bytes(
+        serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
+    )
+
+
+def _name(common_name: str) -> x509.Name:
+    return x509.Name(
+        [
+            x509.NameAttribute(NameOID.ORGANIZATION_NAME, "RMMDet deployment"),
+            x509.NameAttribute(NameOID.COMMON_NAME, common_name),
+        ]
+    )
+
+
+def _now() -> dt.datetime:
+    return dt.datetime.now(dt.UTC)
+
+
+class CertificateAuthority:
+    """A CA certificate and its key, loaded from or created in a PKI directory."""
+
+    def __init__(self, cert: x509.Certificate, key: ec.EllipticCurvePrivateKey) -> None:
+        self.cert = cert
+        self.key = key
+
+    @classmethod
+    def create(cls, pki_dir: Path, name: str = "RMMDet local CA") -> CertificateAuthority:
+        key = ec.generate_private_key(ec.SECP256R1())
+        now = _now()
+        ski = x509.SubjectKeyIdentifier.from_public_key(key.public_key())
+        cert = (
+            x509.CertificateBuilder()
+            .subject_name(_name(name))
+            .issuer_name(_name(name))
+            .public_key(key.public_key())
+            .serial_number(x509.random_serial_number())
+            .not_valid_before(now - dt.timedelta(minutes=5))
+            .not_valid_after(now + dt.timedelta(days=CA_VALIDITY_DAYS))
+            .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+            .add_extension(
+                x509.KeyUsage(
+                    digital_signature=True,
+                    content_commitment=False,
+                    key_encipherment=False,
+                    data_encipherment=False,
+                    key_agreement=False,
+                    key_cert_sign=True,
+                    crl_sign=True,
+                    encipher_only=False,
+                    decipher_only=False,
+                ),
+                critical=True,
+            )
+            .add_extension(ski, critical=False)
+            .sign(key, hashes.SHA256())
+        )
+        pki_dir.mkdir(parents=True, exist_ok=True)
+        _write_private(pki_dir / f"{CA_NAME}.key", _key_pem(key))
+        (pki_dir / f"{CA_NAME}.pem").write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+        return cls(cert, key)
+
+    @classmethod
+    def load(cls, pki_dir: Path) -> CertificateAuthority:
+        try:
+            cert = x509.load_pem_x509_certificate((pki_dir / f"{CA_NAME}.pem").read_bytes())
+            key = serialization.load_pem_private_key((pki_dir / f"{CA_NAME}.key").read_bytes(), None)
+        except (OSError, ValueError) as err:
+            raise ConfigError(f"{pki_dir}: cannot load the CA: {err}") from None
+        if not isinstance(key, ec.EllipticCurvePrivateKey):
+            raise ConfigError(f"{pki_dir}/{CA_NAME}.key: expected an EC key, got {type(key).__name__}")
+        return cls(cert, key)
+
+    def issue(self, pki_dir: Path, identity: str, extra_names: tuple[str, ...] = ()) -> Paths:
+        """Create `identity`'s key and certificate, signed by this CA."""
+        paths = identity_paths(pki_dir, identity)
+        key = ec.generate_private_key(ec.SECP256R1())
+        now = _now()
+        names: list[x509.GeneralName] = [x509.DNSName(identity), x509.DNSName("localhost")]
+        addresses = {ipaddress.ip_address("127.0.0.1")}
+        for extra in extra_names:
+            try:
+                addresses.add(ipaddress.ip_address(extra))
+            except ValueError:
+                names.append(x509.DNSName(extra))
+        names += [x509.IPAddress(a) for a in sorted(addresses, key=str)]
+        ca_ski = self.cert.extensions.get_extension_for_class(x509.SubjectKeyIdentifier).value
+        cert = (
+            x509.CertificateBuilder()
+            .subject_name(_name(identity))
+            .issuer_name(self.cert.subject)
+            .public_key(key.public_key())
+            .serial_number(x509.random_serial_number())
+            .not_valid_before(now - dt.timedelta(minutes=5))
+            .not_valid_after(now + dt.timedelta(days=LEAF_VALIDITY_DAYS))
+            .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+            .add_extension(
+                x509.KeyUsage(
+                    digital_signature=True,
+                    content_commitment=False,
+                    key_encipherment=False,
+                    data_encipherment=False,
+                    key_agreement=False,
+                    key_cert_sign=False,
+                    crl_sign=False,
+                    encipher_only=False,
+                    decipher_only=False,
+                ),
+                critical=True,
+            )
+            .add_extension(
+                x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]),
+                critical=False,
+            )
+            .add_extension(x509.SubjectAlternativeName(names), critical=False)
+            .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+            .add_extension(
+                x509.AuthorityKeyIdentifier.from_issuer_subject_key_identifier(ca_ski), critical=False
+            )
+            .sign(self.key, hashes.SHA256())
+        )
+        _write_private(paths.key, _key_pem(key))
+        paths.cert.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+        return paths
+
+
+def create_plan_key(pki_dir: Path) -> Paths:
+    paths = plan_key_paths(pki_dir)
+    key = Ed25519PrivateKey.generate()
+    _write_private(paths.key, _key_pem(key))
+    paths.cert.write_bytes(
+        key.public_key().public_bytes(
+            serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
+        )
+    )
+    return paths
+
+
+@dataclass
+class InitReport:
+    created: list[str]
+    kept: list[str]
+
+
+def init_pki(
+    pki_dir: Path,
+    identities: list[str],
+    extra_names: dict[str, tuple[str, ...]] | None = None,
+    renew: bool = False,
+) -> InitReport:
+    """Make the CA, the plan-signing key and a certificate per identity, keeping what exists (all of
+    the leaves are reissued with `renew`; the CA and the plan key never are)."""
+    extra_names = extra_names or {}
+    for identity in identities:
+        check_identity(identity)
+    report = InitReport([], [])
+    pki_dir.mkdir(parents=True, exist_ok=True)
+    if (pki_dir / f"{CA_NAME}.pem").exists():
+        ca = CertificateAuthority.load(pki_dir)
+        report.kept.append(CA_NAME)
+    else:
+        ca = CertificateAuthority.create(pki_dir)
+        report.created.append(CA_NAME)
+    if plan_key_paths(pki_dir).key.exists():
+        report.kept.append(PLAN_KEY_NAME)
+    else:
+        create_plan_key(pki_dir)
+        report.created.append(PLAN_KEY_NAME)
+    for identity in identities:
+        paths = identity_paths(pki_dir, identity)
+        if paths.cert.exists() and paths.key.exists() and not renew:
+            report.kept.append(identity)
+        else:
+            ca.issue(pki_dir, identity, extra_names.get(identity, ()))
+            report.created.append(identity)
+    return report
+
+
+def common_name(cert_path: Path) -> str:
+    """The CN of a PEM certificate (what Zenoh access control matches `cert_common_names` against)."""
+    cert = x509.load_pem_x509_certificate(cert_path.read_bytes())
+    values = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    return str(values[0].value) if values else ""

@@ -1,0 +1,111 @@
+"""Ed25519 signatures on route plans: the coordinator signs, vehicles verify.
+
+Zenoh's access control keeps other identities from publishing on the plan keys, but it gives the
+receiver no authenticated sender, and a second queryable on the route RPC key can answer a vehicle's
+request (reliability.md (c).12). So every plan carries a signature by the coordinator's plan key, over
+the plan serialised deterministically with `header` and `signature` cleared (the header is rewritten by
+the transport layer; everything a vehicle acts on is signed: vehicle, plan id, version, lanes, TTL).
+`key_id` names the key, so keys can be rotated by trusting two at once.
+
+Deterministic serialisation is stable for one protobuf runtime, which both ends share here (a
+cross-language deployment would sign the exact bytes in an envelope instead).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+from cryptography.exceptions import InvalidSignature
+from cryptography.hazmat.primitives import serialization
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
+from rmmdet.v1.planning_pb2 import RoutePlan
+
+from shared.config import ConfigError
+
+#: Length of an Ed25519 signature, bytes.
+SIGNATURE_BYTES = 64
+
+
+def key_id(public_key: Ed25519PublicKey) -> str:
+    """First 16 hex digits of the SHA-256 of the raw public key."""
+    raw = public_key.public_bytes(serialization.Encoding.Raw, serialization.PublicFormat.Raw)
+    return hashlib.sha256(raw).hexdigest()[:16]
+
+
+def signed_bytes(plan: RoutePlan) -> bytes:
+    """What the signature covers: the plan without its header and signature, deterministically."""
+    body = RoutePlan()
+    body.CopyFrom(plan)
+    body.ClearField("header")
+    body.ClearField("signature")
+    return body.SerializeToString(deterministic=True)
+
+
+def load_private_key(path: Path) -> Ed25519PrivateKey:
+    try:
+        key = serialization.load_pem_private_key(path.read_bytes(), password=None)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: plan-signing key not found (create it with `rmmdet pki init`)") from None
+    except ValueError as err:
+        raise ConfigError(f"{path}: not a PEM private key: {err}") from None
+    if not isinstance(key, Ed25519PrivateKey):
+        raise ConfigError(f"{path}: plan-signing key must be Ed25519, got {type(key).__name__}")
+    return key
+
+
+def load_public_key(path: Path) -> Ed25519PublicKey:
+    try:
+        key = serialization.load_pem_public_key(path.read_bytes())
+    except FileNotFoundError:
+        raise ConfigError(
+            f"{path}: plan verification key not found (create it with `rmmdet pki init`)"
+        ) from None
+    except ValueError as err:
+        raise ConfigError(f"{path}: not a PEM public key: {err}") from None
+    if not isinstance(key, Ed25519PublicKey):
+        raise ConfigError(f"{path}: plan verification key must be Ed25519, got {type(key).__name__}")
+    return key
+
+
+class PlanSigner:
+    """The coordinator's side: `sign` sets `key_id` and `signature` in place."""
+
+    def __init__(self, private_key: Ed25519PrivateKey) -> None:
+        self._key = private_key
+        self.key_id = key_id(private_key.public_key())
+
+    @classmethod
+    def load(cls, path: Path) -> PlanSigner:
+        return cls(load_private_key(path))
+
+    def sign(self, plan: RoutePlan) -> RoutePlan:
+        plan.key_id = self.key_id
+        plan.signature = self._key.sign(signed_bytes(plan))
+        return plan
+
+
+class PlanVerifier:
+    """The vehicles' side: `problem` names why a plan's signature is not acceptable (None: it is)."""
+
+    def __init__(self, public_keys: list[Ed25519PublicKey]) -> None:
+        if not public_keys:
+            raise ValueError("at least one trusted plan key")
+        self._keys = {key_id(k): k for k in public_keys}
+
+    @classmethod
+    def load(cls, paths: list[Path]) -> PlanVerifier:
+        return cls([load_public_key(p) for p in paths])
+
+    def problem(self, plan: RoutePlan) -> str | None:
+        """ "unsigned", "unknown_key" or "bad_signature"; None for a plan signed by a trusted key."""
+        if not plan.signature:
+            return "unsigned"
+        key = self._keys.get(plan.key_id)
+        if key is None:
+            return "unknown_key"
+        try:
+            key.verify(plan.signature, signed_bytes(plan))
+        except InvalidSignature:
+            return "bad_signature"
+        return None

@@ -1,0 +1,62 @@
+"""The local CA: chains verify, names and usages are what Zenoh's TLS needs, init is idempotent."""
+
+from __future__ import annotations
+
+import ipaddress
+from pathlib import Path
+
+import pytest
+from cryptography import x509
+from cryptography.x509.oid import ExtendedKeyUsageOID
+
+from shared.config import ConfigError
+from shared.security.pki import common_name, identity_paths, init_pki, plan_key_paths
+
+
+def load(path: Path) -> x509.Certificate:
+    return x509.load_pem_x509_certificate(path.read_bytes())
+
+
+def test_init_makes_a_ca_leaves_and_the_plan_key(tmp_path: Path) -> None:
+    report = init_pki(
+        tmp_path, ["mec-agent1", "router-cloud"], {"router-cloud": ("10.0.0.1", "cloud.example")}
+    )
+    assert report.created == ["ca", "plan-signing", "mec-agent1", "router-cloud"]
+    ca = load(tmp_path / "ca.pem")
+    assert ca.extensions.get_extension_for_class(x509.BasicConstraints).value.ca
+    leaf = load(identity_paths(tmp_path, "router-cloud").cert)
+    leaf.verify_directly_issued_by(ca)
+    assert common_name(identity_paths(tmp_path, "router-cloud").cert) == "router-cloud"
+    san = leaf.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert set(san.get_values_for_type(x509.DNSName)) == {"router-cloud", "localhost", "cloud.example"}
+    assert set(san.get_values_for_type(x509.IPAddress)) == {
+        ipaddress.ip_address("127.0.0.1"),
+        ipaddress.ip_address("10.0.0.1"),
+    }
+    usages = leaf.extensions.get_extension_for_class(x509.ExtendedKeyUsage).value
+    assert {ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH} <= set(usages)
+    assert not leaf.extensions.get_extension_for_class(x509.BasicConstraints).value.ca
+    for path in (
+        tmp_path / "ca.key",
+        identity_paths(tmp_path, "mec-agent1").key,
+        plan_key_paths(tmp_path).key,
+    ):
+        assert path.stat().st_mode & 0o777 == 0o600
+
+
+def test_init_keeps_what_exists_and_renews_only_leaves(tmp_path: Path) -> None:
+    init_pki(tmp_path, ["coordinator"])
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    report = init_pki(tmp_path, ["coordinator", "recorder"])
+    assert report.created == ["recorder"] and set(report.kept) == {"ca", "plan-signing", "coordinator"}
+    assert all((tmp_path / name).read_bytes() == data for name, data in before.items())
+    init_pki(tmp_path, ["coordinator"], renew=True)
+    assert (tmp_path / "ca.pem").read_bytes() == before["ca.pem"]
+    assert (tmp_path / "coordinator.pem").read_bytes() != before["coordinator.pem"]
+
+
+@pytest.mark.parametrize("name", ["", "ca", "plan-signing", "../etc", "Upper", "a" * 64])
+def test_bad_identity_names_are_refused(tmp_path: Path, name: str) -> None:
+    with pytest.raises(ConfigError):
+        init_pki(tmp_path, [name])
+    assert not (tmp_path / "ca.pem").exists()  # refused before anything is written
