@@ -76,7 +76,7 @@ test-integration: install
 test-fault: install
 	$(BIN)/python -m pytest -m "fault and not slow" $(PYTEST_ARGS)
 
-bench: install ## benchmarks: the whole system as `make up` runs it (10 min), then bus, sim, detectors, MEC, coordinator -> tests/bench/results/*.json
+bench: install pki ## benchmarks: the whole system as `make up` runs it (10 min), then bus, sim, detectors, MEC, coordinator, secure sites -> tests/bench/results/*.json
 	$(MAKE) down
 	$(BIN)/python -m tests.bench.system_bench --readme $(SYSTEM_BENCH_ARGS)
 	$(BIN)/python -m tests.bench.bus_bench $(BENCH_ARGS)
@@ -85,6 +85,7 @@ bench: install ## benchmarks: the whole system as `make up` runs it (10 min), th
 	$(BIN)/python -m tests.bench.lidar_detector_bench --model $(MODELS_DIR)/lidar/pointpillars.onnx $(BENCH_DATA)
 	$(BIN)/python -m tests.bench.mec_bench
 	$(BIN)/python -m tests.bench.coordinator_bench
+	$(BIN)/python -m tests.bench.sites_bench --readme
 
 DATASET ?= data/datasets/default
 MODEL_RUNS ?= data/models

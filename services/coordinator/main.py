@@ -15,6 +15,7 @@ from, so object -> plan latency can be measured.
 from __future__ import annotations
 
 import argparse
+import ctypes
 import logging
 import sys
 import time
@@ -43,9 +44,33 @@ STAGE = "coordinator"
 #: Longest idle wait of the main loop: presence changes are picked up at least this often.
 POLL_S = 0.05
 OBJECTS, ACKS = get_stream("objects"), get_stream("route_ack")
+#: Bytes an object may take in an object list's payload: a tracked object with every field set (three
+#: class hypotheses, both covariances) serialises to 325 B. A list over `max_objects_per_list` of these
+#: is refused unparsed (`rejected/oversize`): parsing and range-checking a forged list of 100k objects
+#: (7.5 MB) held the subscriber thread ~0.6 s, so the agent's genuine lists came late (STALE), and grew
+#: the process by ~20 MB.
+MAX_OBJECT_BYTES = 1024
+#: glibc's M_MMAP_THRESHOLD (malloc.h), and the value it is fixed at (see `keep_large_buffers_unmapped`).
+M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES = -3, 1 << 20
+
+
+def keep_large_buffers_unmapped() -> None:
+    """Serve every allocation of 1 MiB or more by mmap, so that it is returned to the OS when freed.
+    By default glibc raises its mmap threshold to the size of the largest block freed (up to 32 MiB), and
+    later blocks of that size come from the heap and stay resident: a few forged multi-MB messages (whose
+    receive buffers Zenoh and the decoder allocate before any check can refuse them) grew the process
+    by ~21 MB for good (7.5 MB messages); with the threshold fixed, by 0-8 MB, and 12-16 MB after a 15 MB
+    message (tests/integration/test_attacks.py). No-op without glibc."""
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:
+        return
+    if not libc.mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES):
+        log.warning("mallopt(M_MMAP_THRESHOLD) failed: large buffers may stay resident")
 
 
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
+    keep_large_buffers_unmapped()
     settings = load_coordinator_settings(args.settings)
     scene = Scene.load(settings.scene)
     core = CoordinatorCore(scene, settings, settings.service.max_vehicles)
@@ -93,13 +118,17 @@ class CoordinatorService:
         self.node, self.core, self.settings, self.clock = node, core, settings, clock
         self.signer = signer
         self.counters = node.counters
-        # Object lists older than the stale threshold on arrival would not make their agent LIVE.
-        self.objects = node.subscribe_stream(
-            "objects",
+        # Object lists older than the stale threshold on arrival would not make their agent LIVE; lists
+        # too large to hold `limits.max_objects_per_list` objects are refused before they are parsed.
+        bus_limits = limits()
+        self.objects = node.subscribe(
+            OBJECTS.pattern(),
+            OBJECTS.message_type,
             maxsize=settings.service.objects_queue_per_agent * len(core.agents),
             max_age_s=settings.coverage.stale_after_s,
+            max_payload_bytes=bus_limits.max_objects_per_list * MAX_OBJECT_BYTES,
             clock_s=clock.now_s,
-            max_future_s=limits().max_clock_skew_s,
+            max_future_s=bus_limits.max_clock_skew_s,
         )
         self.acks = node.subscribe_stream("route_ack")
         self.presence = node.presence(get_stream("alive").pattern(service="mec"))

@@ -73,8 +73,16 @@ class PlanClient:
         self.check = check
         rpc = get_stream("route_rpc")
         # One querier declared for the whole run (declaring per request would churn declarations).
+        # Every queryable on the key is asked (target ALL: Zenoh's default asks only a "complete" one
+        # when there is one, which any client may declare) and every reply is delivered as it comes
+        # (no consolidation: by default replies on one key are held and only the newest is delivered,
+        # so a rogue replying last would hide the coordinator's): the first valid reply is taken.
         self.querier = node.session.declare_querier(
-            rpc.key(), timeout=request_timeout_s, **rpc.qos.publisher_kwargs()
+            rpc.key(),
+            target=zenoh.QueryTarget.ALL,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            timeout=request_timeout_s,
+            **rpc.qos.publisher_kwargs(),
         )
         self.decoder = MessageDecoder(RouteResponse, node.counters)
         self.outcomes: BoundedQueue[Outcome] = BoundedQueue(

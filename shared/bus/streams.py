@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import importlib
 import re
@@ -70,6 +71,8 @@ class Stream:
     header: HeaderPlacement = "body"
     reply_type_name: str | None = None
     doc: str = ""
+    #: verb (publish, subscribe, serve, query, token, watch) -> roles allowed (`role` or `role/kind`)
+    access: dict[str, tuple[str, ...]] = dataclasses.field(default_factory=dict)
 
     @property
     def fields(self) -> tuple[str, ...]:
@@ -135,12 +138,15 @@ class Limits:
     max_objects_per_list: int
     max_tick_hz: float
     max_plan_version: int
+    max_claimed_plan_version: int
 
     def __post_init__(self) -> None:
         if min(self.max_clock_skew_s, self.order_reset_s, self.max_tick_hz) <= 0:
             raise ValueError("limits: times and rates must be > 0")
         if self.max_objects_per_list < 1 or not 1 <= self.max_plan_version < 2**63:
             raise ValueError("limits: max_objects_per_list >= 1, max_plan_version in [1, 2^63)")
+        if not 0 <= self.max_claimed_plan_version < self.max_plan_version:
+            raise ValueError("limits: max_claimed_plan_version in [0, max_plan_version)")
 
 
 @functools.cache
@@ -210,8 +216,42 @@ def load_streams(path: Path = STREAMS_YAML) -> dict[str, Stream]:
             header=s.get("header", "body"),
             reply_type_name=s.get("reply_type"),
             doc=s.get("doc", ""),
+            access=_access(name, s.get("access", {}), spec.get("readers", []), s.get("kind", "pubsub")),
         )
     return streams
+
+
+ACCESS_VERBS = {
+    "pubsub": ("publish", "subscribe"),
+    "queryable": ("serve", "query"),
+    "liveliness": ("token", "watch"),
+}
+
+
+def _access(
+    name: str, access: dict[str, list[str]], readers: list[str], kind: str
+) -> dict[str, tuple[str, ...]]:
+    """A stream's grants, checked: only its kind's verbs; the global readers subscribe to pub/sub."""
+    verbs = ACCESS_VERBS[kind]
+    unknown = access.keys() - set(verbs)
+    if unknown:
+        raise ValueError(f"stream {name}: access verbs {sorted(unknown)} not among {verbs}")
+    out = {verb: tuple(access.get(verb, [])) for verb in verbs}
+    if kind == "pubsub":
+        out["subscribe"] = (*out["subscribe"], *(r for r in readers if r not in out["subscribe"]))
+    return out
+
+
+@functools.cache
+def key_prefix(path: Path = STREAMS_YAML) -> str:
+    """Every stream's key starts with it (streams.yaml `prefix`, e.g. `rmmdet/@v1`)."""
+    return str(yaml.safe_load(path.read_text())["prefix"])
+
+
+@functools.cache
+def readers(path: Path = STREAMS_YAML) -> tuple[str, ...]:
+    """Roles that may subscribe to every pub/sub stream (streams.yaml `readers`)."""
+    return tuple(yaml.safe_load(path.read_text()).get("readers", []))
 
 
 @functools.cache

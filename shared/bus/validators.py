@@ -207,8 +207,8 @@ def _route_request(m: Message) -> str | None:
         return "request without vehicle_id"
     if m.lane_progress_m < 0:  # type: ignore[attr-defined]
         return "negative lane progress"
-    if m.current_plan_version > limits().max_plan_version:  # type: ignore[attr-defined]
-        return f"current_plan_version beyond {limits().max_plan_version}"
+    if m.current_plan_version > limits().max_claimed_plan_version:  # type: ignore[attr-defined]
+        return f"current_plan_version beyond {limits().max_claimed_plan_version}"
     return None
 
 

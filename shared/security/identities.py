@@ -64,13 +64,13 @@ def parse_identity(name: str) -> Identity:
     if name == "sim":  # the world (ground truth, clock, calibration) and the vehicles it drives
         return Identity(name, (Grant("sim"), Grant("vehicles")))
     if name in (LOCAL_ROUTER, CLOUD_ROUTER):
-        return Identity(name, (Grant("router", {"scope": "*"}),))
+        return Identity(name, (Grant("router"),))
     if m := _SENSOR_RE.match(name):
         return Identity(name, (Grant("sensors", {"agent": m["agent"], "kind": m["kind"]}),))
     if m := _AGENT_RE.match(name):
         if m["role"] == "mec":
             return Identity(name, (Grant("mec", {"agent": m["agent"]}),))
-        return Identity(name, (Grant("router", {"scope": m["agent"]}),))
+        return Identity(name, (Grant("router", {"site": m["agent"]}),))
     if m := _VEHICLE_RE.match(name):
         return Identity(name, (Grant("vehicles", {"vehicle": m["vehicle"]}),))
     raise ConfigError(f"identity {name!r}: not a known role (see shared/security/identities.py)")

@@ -16,6 +16,7 @@ from enum import Enum
 
 from rmmdet.v1.planning_pb2 import RoutePlan
 
+from shared.bus.streams import limits
 from shared.security.plan_signing import PlanVerifier
 from shared.timebase import NS_PER_S
 from shared.traffic.config import DeliveryConfig
@@ -137,13 +138,17 @@ def vehicle_decision(current_version: int, current_plan_id: str, plan_id: str, v
 def plan_problem(plan: RoutePlan, verifier: PlanVerifier, now_ns: int, max_ttl_s: float) -> str | None:
     """Vehicle side, before a plan is considered at all: why it is refused (the rejection counter's
     name), or None. Refused: not signed by a trusted coordinator key (`plan_unsigned`,
-    `plan_unknown_key`, `plan_bad_signature`), a malformed plan id, or no TTL / one reaching further
-    than `max_ttl_s` from now (`plan_ttl`). Version order and expiry are the vehicle's decision after."""
+    `plan_unknown_key`, `plan_bad_signature`), a malformed plan id (`plan_id`), a version out of range
+    (`plan_version`: a reply's plan is not range-checked by the codec), or no TTL / one reaching
+    further than `max_ttl_s` from now (`plan_ttl`). Version order and expiry are the vehicle's
+    decision after."""
     problem = verifier.problem(plan)
     if problem is not None:
         return f"plan_{problem}"
     if not PLAN_ID.fullmatch(plan.plan_id):
         return "plan_id"
+    if not 1 <= plan.version <= limits().max_plan_version:
+        return "plan_version"
     if not plan.HasField("valid_until") or plan.valid_until.ToNanoseconds() - now_ns > max_ttl_s * NS_PER_S:
         return "plan_ttl"
     return None

@@ -4,8 +4,9 @@
 
 Runs a Node exactly like the real MEC's (scope = service instance = the agent, service `mec`, so it
 holds the MEC's presence token) and publishes `rmmdet/@v1/<agent>/objects` at `--rate-hz`, stamped
-with the send time less `--stamp-lag-s`: `--objects` cars driving along the lanes inside the agent's
-areas. Prints one JSON line `{"event": "ready"}` once it has a subscriber.
+with the send time less `--stamp-lag-s` (on the sim's clock when a sim runs, else the wall clock):
+`--objects` cars driving along the lanes inside the agent's areas. Prints one JSON line
+`{"event": "ready"}` once it has a subscriber.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.service import run_service
 from shared.shutdown import GracefulShutdown
-from shared.timebase import NS_PER_S
+from shared.timebase import NS_PER_S, SimTime
 
 SPEED_MPS = 0.3
 POSITION_VAR_M2 = 0.01
@@ -73,6 +74,8 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     scene = Scene.load(args.scene)
     cars = AgentCars(scene, RoadNetwork(scene), agent, args.objects)
     with Node(conf, service="mec", instance=agent, scope=agent, stop=shutdown.event) as node:
+        sim_time = SimTime()  # like the real MEC's data, stamps are on the sim's clock when one runs
+        node.follow_sim_time(sim_time)
         pub = node.publisher("objects", agent=agent, source_id=f"{agent}/mec")
         pub.wait_for_subscribers(READY_TIMEOUT_S, shutdown.event)
         print(json.dumps({"event": "ready"}), flush=True)
@@ -80,7 +83,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         start = time.monotonic()
         next_s = start
         while not shutdown.requested:
-            stamp_ns = time.time_ns() - round(args.stamp_lag_s * NS_PER_S)
+            stamp_ns = sim_time.now_ns() - round(args.stamp_lag_s * NS_PER_S)
             pub.put(cars.message(time.monotonic() - start), stamp_ns=stamp_ns, frame_id="world")
             next_s += period_s
             if shutdown.wait(max(0.0, next_s - time.monotonic())):

@@ -11,7 +11,8 @@ from google.protobuf.descriptor import FieldDescriptor
 from google.protobuf.message import Message
 from rmmdet.v1.common_pb2 import Header
 from rmmdet.v1.perception_pb2 import TrackedObject, TrackedObjects
-from rmmdet.v1.planning_pb2 import RoutePlan
+from rmmdet.v1.planning_pb2 import RoutePlan, RouteRequest
+from rmmdet.v1.sim_pb2 import GroundTruth
 
 from shared.bus.codec import (
     Counters,
@@ -21,6 +22,7 @@ from shared.bus.codec import (
     encode,
     encoding_for,
     has_body_header,
+    range_problem,
     schema_of,
 )
 from shared.bus.streams import all_rmmdet_message_types
@@ -231,3 +233,37 @@ def test_any_type_decoder_uses_the_encoding_schema() -> None:
     assert dec.decode_or_raise(msg.SerializeToString(), str(encoding_for(msg))).message == msg
     assert _reject(dec, b"", "application/protobuf;rmmdet.v1.NoSuchThing") == RejectReason.ENCODING
     assert _reject(dec, b"", "application/protobuf") == RejectReason.ENCODING
+
+
+def _gt(tick: int = 120, tick_hz: float = 60.0, epoch: int = 10**18) -> GroundTruth:
+    msg = GroundTruth(tick_hz=tick_hz)
+    msg.header.tick, msg.header.epoch = tick, epoch
+    if tick_hz > 0:
+        on_its_tick(msg)
+    return msg
+
+
+@pytest.mark.parametrize(
+    ("msg", "problem"),
+    [
+        (_gt(), None),
+        (_gt(tick_hz=0.0), "tick_hz"),  # crashed every sensor (ZeroDivisionError)
+        (_gt(tick_hz=1e6), "tick_hz"),
+        (lambda m: (m.header.stamp.FromNanoseconds(m.header.stamp.ToNanoseconds() + 10**9), m)[1], "stamp"),
+        (RoutePlan(vehicle_id="v", plan_id="p", version=2**53, lane_ids=["a"]), "version"),
+        (RoutePlan(vehicle_id="v", plan_id="p", version=2**53 - 1, lane_ids=["a"]), None),
+        (RouteRequest(vehicle_id="v", current_plan_version=2**52), "current_plan_version"),
+        (RouteRequest(vehicle_id="v", current_plan_version=2**52 - 1), None),
+        (TrackedObjects(objects=[TrackedObject(track_id=i) for i in range(513)]), "objects"),
+    ],
+)
+def test_physical_ranges_and_caps(msg, problem: str | None) -> None:
+    """streams.yaml `limits`: tick rate in (0, 1000] Hz, stamps on their tick, 512 objects, plan
+    versions <= 2^53 - 1 and claimed versions <= 2^52 - 1."""
+    if callable(msg):
+        msg = msg(_gt())
+    found = range_problem(msg)
+    if problem is None:
+        assert found is None
+    else:
+        assert found is not None and problem in found

@@ -14,8 +14,8 @@ from shared.security.identities import Grant, deployment_identities, parse_ident
     [
         ("coordinator", (Grant("coordinator"),)),
         ("sim", (Grant("sim"), Grant("vehicles"))),
-        ("router-cloud", (Grant("router", {"scope": "*"}),)),
-        ("router-agent2", (Grant("router", {"scope": "agent2"}),)),
+        ("router-cloud", (Grant("router"),)),
+        ("router-agent2", (Grant("router", {"site": "agent2"}),)),
         ("mec-agent1", (Grant("mec", {"agent": "agent1"}),)),
         ("sensor-agent3-lidars", (Grant("sensors", {"agent": "agent3", "kind": "lidar"}),)),
         ("vehicle-v17", (Grant("vehicles", {"vehicle": "v17"}),)),

@@ -75,6 +75,9 @@ def test_plan_problem_checks_signature_id_and_ttl(signer: PlanSigner) -> None:
     bad_id = plan()
     bad_id.plan_id = "../../etc"
     assert plan_problem(signer.sign(bad_id), v, NOW_NS, 600.0) == "plan_id"
+    huge = plan()
+    huge.version = 2**53
+    assert plan_problem(signer.sign(huge), v, NOW_NS, 600.0) == "plan_version"
     far = plan()
     far.valid_until.FromNanoseconds(NOW_NS + 601 * 10**9)  # the attack: valid until 2100
     assert plan_problem(signer.sign(far), v, NOW_NS, 600.0) == "plan_ttl"

@@ -244,9 +244,7 @@ def test_receive_ack_counts_and_rejects(scene: Scene, cars: dict[str, AgentCars]
     plan, _ = core.serve(request(), 0.0, WALL0_NS)
     ok = RouteAck(vehicle_id="v01", plan_id=plan.plan_id, version=plan.version, status=Ack.ACCEPTED.value)
     assert core.receive_ack("v01", ok, 0.0) == ["acks/accepted"]
-    assert core.receive_ack("v02", ok, 0.0) == [
-        "rejected/ack_vehicle_mismatch"
-    ]  # key: another vehicle
+    assert core.receive_ack("v02", ok, 0.0) == ["rejected/ack_vehicle_mismatch"]  # key: another vehicle
     bad_status = RouteAck(vehicle_id="v01", plan_id=plan.plan_id, version=plan.version, status=99)
     assert core.receive_ack("v01", bad_status, 0.0) == ["rejected/ack_status"]
     old = RouteAck(vehicle_id="v01", plan_id="p-old", version=plan.version, status=Ack.COMPLETED.value)

@@ -1,0 +1,142 @@
+"""Zenoh access control generated from `proto/streams.yaml`: default deny, rules per identity.
+
+Each stream's `access` says which roles publish, subscribe, serve, query, hold a token or watch; an
+identity's grants (`identities.parse_identity`) fill the stream's key placeholders with its bindings
+(mec-agent1 -> `rmmdet/@v1/agent1/objects`; unbound ones become `*`). A verb becomes the Zenoh messages
+and flows it needs at the router, seen from the holder's face: a publisher's `put` is ingress, a
+subscriber's deliveries are egress, and so on (`VERB_MESSAGES`).
+
+Routers in a chain see each other, not the clients behind them: on the cloud router a site router's
+subject holds the union of its site's identities' grants, on the site router the cloud router's subject
+holds the union of the cloud side's. Each router enforces its own clients' rules, so a site can at most
+do what its own identities may.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Iterable
+from typing import Any
+
+from shared.bus.streams import Stream, key_prefix, readers, streams
+from shared.security.identities import ROLES, SERVICE_OF_ROLE, Grant, parse_identity
+
+#: (message, flow) pairs at the router for each access verb, from the holder's side.
+VERB_MESSAGES: dict[str, tuple[tuple[str, str], ...]] = {
+    "publish": (("put", "ingress"), ("delete", "ingress")),
+    "subscribe": (("declare_subscriber", "ingress"), ("put", "egress"), ("delete", "egress")),
+    "serve": (("declare_queryable", "ingress"), ("reply", "ingress")),
+    "query": (("query", "ingress"), ("reply", "egress")),
+    "token": (("liveliness_token", "ingress"),),
+    "watch": (
+        ("declare_liveliness_subscriber", "ingress"),
+        ("liveliness_query", "ingress"),
+        ("liveliness_token", "egress"),
+        ("reply", "egress"),
+    ),
+}
+#: What a holder must be told of others, on the stream's whole key space: Zenoh checks a declaration
+#: or query against the allowed key expressions as a whole, and the interested party's may be wider
+#: than the holder's own keys (the coordinator subscribes `*/objects`, the operator queries
+#: `*/@health/**`). Knowing that someone listens reveals no data; the data itself stays confined.
+VERB_INTEREST: dict[str, tuple[tuple[str, str], ...]] = {
+    "publish": (("declare_subscriber", "egress"),),  # where to route its puts
+    "serve": (("query", "egress"),),  # the queries it is to answer
+    "query": (("declare_queryable", "egress"),),  # where to route its queries
+}
+
+
+def role_matches(token: str, grant: Grant) -> bool:
+    """`token` from streams.yaml (`role` or `role/kind`) covers `grant`."""
+    role, _, kind = token.partition("/")
+    if role not in ROLES:
+        raise ValueError(f"streams.yaml names unknown role {role!r} (known: {ROLES})")
+    return role == grant.role and (not kind or grant.bindings.get("kind") == kind)
+
+
+#: Verbs on a node's own health and presence keys: their `service` chunk is the holder's own.
+OWN_KEY_VERBS = ("serve", "token")
+
+
+def key_for(stream: Stream, grant: Grant, verb: str) -> str:
+    """The stream's key expression confined to the grant's bindings (`*` where it has none): an agent
+    binding also fills `scope`; a node serves health and holds presence under its own service name."""
+    b = grant.bindings
+    fill = {
+        "scope": b.get("scope", b.get("agent", "*")),
+        "service": SERVICE_OF_ROLE.get(grant.role, "*") if verb in OWN_KEY_VERBS else "*",
+    }
+    ids = {f: b.get(f, fill.get(f, "*")) for f in stream.fields}
+    return stream.key_template.format(**ids)
+
+
+def wide_key(stream: Stream) -> str:
+    """The stream's whole key space: every placeholder `*`, trailing ones `**`
+    (`rmmdet/@v1/{scope}/@health/{service}/{instance}` -> `rmmdet/@v1/*/@health/**`)."""
+    chunks = stream.key_template.split("/")
+    while chunks and chunks[-1].startswith("{"):
+        chunks.pop()
+    wide = "/".join("*" if c.startswith("{") else c for c in chunks)
+    return wide + "/**" if len(chunks) < len(stream.key_template.split("/")) else wide
+
+
+def grant_permissions(grants: Iterable[Grant]) -> dict[tuple[str, str], set[str]]:
+    """(message, flow) -> key expressions the grants allow. A reader role (streams.yaml `readers`) may
+    also subscribe to the whole data space at once (`rmmdet/@v1/**`: Zenoh checks a declared key
+    expression against the allowed ones as a whole, not stream by stream)."""
+    out: dict[tuple[str, str], set[str]] = defaultdict(set)
+    grants = list(grants)
+    if any(g.role in readers() for g in grants):
+        for pair in VERB_MESSAGES["subscribe"]:
+            out[pair].add(f"{key_prefix()}/**")
+    for stream in streams().values():
+        for verb, tokens in stream.access.items():
+            for grant in grants:
+                if any(role_matches(t, grant) for t in tokens):
+                    for pair in VERB_MESSAGES[verb]:
+                        out[pair].add(key_for(stream, grant, verb))
+                    for pair in VERB_INTEREST.get(verb, ()):
+                        out[pair] |= {wide_key(stream), f"{key_prefix()}/**"}
+    return out
+
+
+def identity_grants(names: Iterable[str]) -> list[Grant]:
+    return sorted(
+        {g for n in names for g in parse_identity(n).grants}, key=lambda g: (g.role, str(g.bindings))
+    )
+
+
+def access_control(subjects: dict[str, list[str]]) -> dict[str, Any]:
+    """The router's `access_control` section: `subjects` maps each certificate common name that may
+    connect to the identities whose grants it holds (itself, or a whole site for a router)."""
+    rules: list[dict[str, Any]] = []
+    zsubjects: list[dict[str, Any]] = []
+    policies: list[dict[str, Any]] = []
+    for cn in sorted(subjects):
+        perms = grant_permissions(identity_grants(subjects[cn]))
+        by_keys: dict[tuple[str, tuple[str, ...]], list[str]] = defaultdict(list)
+        for (message, flow), key_set in perms.items():
+            by_keys[(flow, tuple(sorted(key_set)))].append(message)
+        rule_ids = []
+        for i, ((flow, keys), messages) in enumerate(sorted(by_keys.items())):
+            rule_id = f"{cn}-{i}"
+            rules.append(
+                {
+                    "id": rule_id,
+                    "messages": sorted(messages),
+                    "flows": [flow],
+                    "permission": "allow",
+                    "key_exprs": list(keys),
+                }
+            )
+            rule_ids.append(rule_id)
+        zsubjects.append({"id": cn, "cert_common_names": [cn]})
+        if rule_ids:
+            policies.append({"id": f"{cn}-policy", "rules": rule_ids, "subjects": [cn]})
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": zsubjects,
+        "policies": policies,
+    }

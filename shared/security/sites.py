@@ -1,0 +1,284 @@
+"""A multi-host deployment (`deploy/sites/*.yaml`) rendered into each identity's Zenoh config.
+
+Topology: the cloud host's router (`router-cloud`) listens on the cloud address; a roadside site's
+router listens on loopback for its own sensor groups and MEC and connects out to the cloud router; a
+host without a router (the vehicles) connects its clients to the cloud router. Every link is TLS with
+client certificates (mutual), names verified against the certificates' SANs; every router enforces the
+access control generated from proto/streams.yaml (`acl.access_control`), with the other router of a
+link as one subject holding its side's grants.
+
+The configs are complete JSON files (the base `deploy/zenoh/{router,client}.json5` with endpoints, TLS
+and access control filled in), passed to the services with the standard `--config` flag.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import shlex
+import sys
+from pathlib import Path
+from typing import Any
+
+import zenoh
+from cryptography import x509
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from shared.bus.zenoh_config import DEFAULT_CLIENT_CONFIG, DEFAULT_ROUTER_CONFIG
+from shared.config import ConfigError, read_yaml
+from shared.paths import REPO_ROOT
+from shared.security.acl import access_control
+from shared.security.identities import CLOUD_ROUTER, parse_identity
+from shared.security.pki import identity_paths
+
+#: Zenoh link settings of a deployment across hosts (router <-> router and client <-> router).
+LINK_SETTINGS: dict[str, Any] = {
+    # A silently dropped link (a cut cable, a firewall) is declared dead after `lease` with no
+    # traffic; keep-alives go out `keep_alive` times per lease. 1 s: an agent goes STALE at the
+    # coordinator within 1 s of a cut (its object lists stop), its presence token within ~1 s.
+    "transport/link/tx/lease": 1000,
+    "transport/link/tx/keep_alive": 4,
+}
+#: A router connecting out to the cloud retries quickly and forever (a site must come back by itself).
+RECONNECT: dict[str, Any] = {
+    "connect/timeout_ms": {"router": -1, "peer": -1, "client": 0},
+    "connect/exit_on_failure": {"router": False, "peer": False, "client": False},
+    "connect/retry": {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2},
+}
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class ServiceSpec(_Strict):
+    identity: str
+    command: list[str] | None = Field(None, description="python arguments; default from the identity")
+    env: dict[str, str] = Field({}, description="extra environment (settings overrides)")
+
+
+class HostSpec(_Strict):
+    address: str
+    router: str | None = None
+    services: list[str | ServiceSpec] = []
+
+    @model_validator(mode="after")
+    def _check(self) -> HostSpec:
+        ipaddress.ip_address(self.address)
+        if self.router is not None and parse_identity(self.router).grants[0].role != "router":
+            raise ValueError(f"router {self.router!r} is not a router identity")
+        return self
+
+    def service_specs(self) -> list[ServiceSpec]:
+        return [s if isinstance(s, ServiceSpec) else ServiceSpec(identity=s) for s in self.services]
+
+
+class Layout(_Strict):
+    port: int = Field(7447, gt=0, lt=65536)
+    hosts: dict[str, HostSpec]
+
+    @model_validator(mode="after")
+    def _check(self) -> Layout:
+        clouds = [h for h, spec in self.hosts.items() if spec.router == CLOUD_ROUTER]
+        if len(clouds) != 1:
+            raise ValueError(f"exactly one host must run {CLOUD_ROUTER}, got {clouds}")
+        seen: set[str] = set()
+        for spec in self.hosts.values():
+            for svc in spec.service_specs():
+                parse_identity(svc.identity)
+                if svc.identity in seen:
+                    raise ValueError(f"identity {svc.identity} on two hosts")
+                seen.add(svc.identity)
+        return self
+
+    @property
+    def cloud_host(self) -> str:
+        return next(h for h, spec in self.hosts.items() if spec.router == CLOUD_ROUTER)
+
+    def endpoint(self, address: str) -> str:
+        return f"tls/{address}:{self.port}"
+
+    def identities(self, host: str) -> list[str]:
+        spec = self.hosts[host]
+        return ([spec.router] if spec.router else []) + [s.identity for s in spec.service_specs()]
+
+    def all_identities(self) -> list[str]:
+        return ["operator", *(i for h in self.hosts for i in self.identities(h))]
+
+    def certificate_names(self) -> dict[str, tuple[str, ...]]:
+        """Extra SANs: the cloud router is reached by its address."""
+        return {CLOUD_ROUTER: (self.hosts[self.cloud_host].address,)}
+
+
+def load_layout(path: Path) -> Layout:
+    try:
+        return Layout.model_validate(read_yaml(path))
+    except (ValueError, ConfigError) as err:
+        raise ConfigError(f"{path}: invalid site layout: {err}") from None
+
+
+def router_subjects(layout: Layout, host: str) -> dict[str, list[str]]:
+    """Certificate CN -> the identities whose grants it holds, at `host`'s router."""
+    spec = layout.hosts[host]
+    subjects = {s.identity: [s.identity] for s in spec.service_specs()}
+    if host == layout.cloud_host:
+        subjects["operator"] = ["operator"]
+        for other, other_spec in layout.hosts.items():
+            if other == host:
+                continue
+            if other_spec.router:  # a site: its router speaks for its identities
+                subjects[other_spec.router] = layout.identities(other)
+            else:
+                subjects.update({s.identity: [s.identity] for s in other_spec.service_specs()})
+    else:  # the cloud router speaks for everyone not at this site
+        subjects[CLOUD_ROUTER] = [i for i in layout.all_identities() if i not in layout.identities(host)]
+    return subjects
+
+
+def tls_settings(pki_dir: Path, identity: str) -> dict[str, Any]:
+    paths = identity_paths(pki_dir, identity)
+    return {
+        "root_ca_certificate": str(pki_dir / "ca.pem"),
+        "enable_mtls": True,
+        "listen_certificate": str(paths.cert),
+        "listen_private_key": str(paths.key),
+        "connect_certificate": str(paths.cert),
+        "connect_private_key": str(paths.key),
+        "verify_name_on_connect": True,
+        "close_link_on_expiration": True,
+    }
+
+
+def _config(base: Path, settings: dict[str, Any]) -> str:
+    conf = zenoh.Config.from_file(str(base))
+    for key, value in settings.items():
+        conf.insert_json5(key, json.dumps(value))
+    return str(conf)
+
+
+def identity_config(layout: Layout, host: str, identity: str, pki_dir: Path) -> str:
+    """The complete Zenoh config (JSON) of `identity` on `host`."""
+    spec = layout.hosts[host]
+    cloud = layout.hosts[layout.cloud_host]
+    settings: dict[str, Any] = {**LINK_SETTINGS, "transport/link/tls": tls_settings(pki_dir, identity)}
+    if identity == spec.router:
+        listen = [layout.endpoint("127.0.0.1")]
+        if host == layout.cloud_host and spec.address != "127.0.0.1":
+            listen.insert(0, layout.endpoint(spec.address))
+        settings["listen/endpoints"] = listen
+        if host != layout.cloud_host:
+            settings["connect/endpoints"] = [layout.endpoint(cloud.address)]
+            settings.update(RECONNECT)
+        settings["access_control"] = access_control(router_subjects(layout, host))
+        return _config(DEFAULT_ROUTER_CONFIG, settings)
+    router_address = "127.0.0.1" if spec.router else cloud.address
+    settings["connect/endpoints"] = [layout.endpoint(router_address)]
+    return _config(DEFAULT_CLIENT_CONFIG, settings)
+
+
+def default_command(identity: str) -> list[str]:
+    """`python` arguments of the service an identity names."""
+    grant = parse_identity(identity).grants[0]
+    b = grant.bindings
+    if grant.role == "sensors":
+        return ["-m", "services.sensor", "--group", f"{b['agent']}-{b['kind']}s"]
+    if grant.role == "mec":
+        return ["-m", "services.mec", "--instance", b["agent"]]
+    if grant.role == "router":
+        return ["-m", "services.router"]
+    if identity in ("sim", "coordinator", "recorder"):
+        return ["-m", f"services.{identity}"]
+    raise ConfigError(f"identity {identity}: no service to run (give `command` in the layout)")
+
+
+def service_environment(identity: str, pki_dir: Path) -> dict[str, str]:
+    """Settings a service needs from the PKI besides its TLS identity (plan keys)."""
+    if identity == "coordinator":
+        return {"RMMDET_COORD_PLAN_SIGNING_KEY": str(pki_dir / "plan-signing.key")}
+    if identity == "sim":
+        return {"RMMDET_SIM_PLAN_VERIFY_KEYS": json.dumps([str(pki_dir / "plan-signing.pub")])}
+    return {}
+
+
+def check_certificate(pki_dir: Path, identity: str, address: str | None = None) -> None:
+    """The identity's certificate exists, and names `address` when peers reach it there."""
+    path = identity_paths(pki_dir, identity).cert
+    try:
+        cert = x509.load_pem_x509_certificate(path.read_bytes())
+    except (OSError, ValueError) as err:
+        raise ConfigError(f"{path}: no certificate for {identity} ({err}); run `rmmdet pki init`") from None
+    if address is not None:
+        san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+        if ipaddress.ip_address(address) not in san.get_values_for_type(x509.IPAddress):
+            fix = f"rmmdet pki init --renew --name {identity}={address}"
+            raise ConfigError(f"{path}: does not name {address}; reissue it: {fix}")
+
+
+def _supervisor_value(value: str) -> str:
+    """A value quoted for supervisord's `environment=` (shell-like quoting; `%` is its interpolation)."""
+    value = value.replace("%", "%%")
+    return f"'{value}'" if '"' in value else f'"{value}"'
+
+
+def supervisor_program(name: str, args: list[str], config: Path, env: dict[str, str], logs: Path) -> str:
+    environment = ",".join(f"{k}={_supervisor_value(v)}" for k, v in {**env, "PYTHONUNBUFFERED": "1"}.items())
+    return f"""[program:{name}]
+command={shlex.join([sys.executable, *args, "--config", str(config)])}
+directory={REPO_ROOT}
+autorestart=true
+startsecs=1
+startretries=1000
+stopsignal=INT
+stopwaitsecs=5
+stopasgroup=true
+killasgroup=true
+redirect_stderr=true
+stdout_logfile={logs / f"{name}.log"}
+stdout_logfile_maxbytes=10MB
+stdout_logfile_backups=2
+environment={environment}
+"""
+
+
+def render_host(layout: Layout, host: str, pki_dir: Path, out_dir: Path) -> Path:
+    """Write `host`'s configs and its supervisord.conf under `out_dir`; returns the latter."""
+    if host not in layout.hosts:
+        raise ConfigError(f"no host {host!r} in the layout (hosts: {sorted(layout.hosts)})")
+    spec = layout.hosts[host]
+    for identity in layout.identities(host):
+        address = spec.address if identity == CLOUD_ROUTER else None
+        check_certificate(pki_dir, identity, address)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    logs = out_dir / "logs"
+    logs.mkdir(exist_ok=True)
+    programs = []
+    runs = ([ServiceSpec(identity=spec.router)] if spec.router else []) + spec.service_specs()
+    for svc in runs:
+        config = out_dir / f"{svc.identity}.json"
+        config.write_text(identity_config(layout, host, svc.identity, pki_dir))
+        env = {**service_environment(svc.identity, pki_dir), **svc.env}
+        args = svc.command or default_command(svc.identity)
+        programs.append(supervisor_program(svc.identity, args, config, env, logs))
+    conf = out_dir / "supervisord.conf"
+    conf.write_text(
+        f"""; generated by `python -m deploy.sites.launch --host {host}`: do not edit, edit the layout
+[unix_http_server]
+file={out_dir / "supervisor.sock"}
+
+[supervisord]
+logfile={logs / "supervisord.log"}
+pidfile={out_dir / "supervisord.pid"}
+childlogdir={logs}
+directory={REPO_ROOT}
+nodaemon=true
+
+[rpcinterface:supervisor]
+supervisor.rpcinterface_factory = supervisor.rpcinterface:make_main_rpcinterface
+
+[supervisorctl]
+serverurl=unix://{out_dir / "supervisor.sock"}
+
+"""
+        + "\n".join(programs)
+    )
+    return conf

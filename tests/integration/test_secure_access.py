@@ -1,0 +1,152 @@
+"""Mutual TLS and access control on one host (issue 16): a router-cloud rendered from a layout with a
+fresh CA, and sessions holding the identities' certificates.
+
+- a client without a certificate, with one from another CA, or over plain TCP cannot connect;
+- each identity can do only what proto/streams.yaml grants its role, with its own bindings: a put
+  outside them is not delivered to a subscriber that may read everything (counted at the receiver),
+  a rogue queryable on the route RPC key never answers a vehicle, and an unknown common name can do
+  nothing at all.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from shared.bus.session import SessionUnavailable, open_session
+from shared.bus.zenoh_config import DEFAULT_CLIENT_CONFIG
+from shared.security.pki import init_pki
+from tests.helpers import free_port, spawn, stop, wait_port
+from tests.integration.secure_sites import Deployment, Inbox, make_deployment, wait_for
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
+
+#: Time for a denied put to have arrived if it were going to (deliveries on loopback take < 10 ms).
+SETTLE_S = 0.5
+REFUSED_WITHIN_S = 3.0
+
+
+@pytest.fixture(scope="module")
+def deployment(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Deployment]:
+    tmp = tmp_path_factory.mktemp("secure")
+    services = ["coordinator", "recorder", "mec-agent1", "sensor-agent1-cameras", "vehicle-v1", "sim"]
+    layout = {
+        "port": free_port(),
+        "hosts": {
+            "cloud": {
+                "address": "127.0.0.1",
+                "router": "router-cloud",
+                "services": [{"identity": s, "command": ["-c", "pass"]} for s in services],
+            }
+        },
+    }
+    dep = make_deployment(tmp, layout, extra_identities=("mallory",))
+    config = tmp / "router-cloud.json"
+    config.write_text(str(dep.config("router-cloud")))
+    router = spawn(["-m", "services.router", "--config", str(config)])
+    try:
+        wait_port(dep.layout.port)
+        yield dep
+    finally:
+        stop(router)
+
+
+def tls_client(dep: Deployment, *, cert_dir: Path | None, identity: str = "operator") -> zenoh.Config:
+    """A client config like the operator's, with another (or no) client certificate."""
+    conf = dep.config("operator")
+    tls = json.loads(conf.get_json("transport/link/tls"))
+    if cert_dir is None:
+        tls["enable_mtls"] = False
+        for k in ("connect_certificate", "connect_private_key", "listen_certificate", "listen_private_key"):
+            tls[k] = None
+    else:
+        for side in ("connect", "listen"):
+            tls[f"{side}_certificate"] = str(cert_dir / f"{identity}.pem")
+            tls[f"{side}_private_key"] = str(cert_dir / f"{identity}.key")
+    conf.insert_json5("transport/link/tls", json.dumps(tls))
+    return conf
+
+
+def test_only_clients_with_a_certificate_of_the_deployment_ca_connect(
+    deployment: Deployment, tmp_path: Path
+) -> None:
+    with open_session(deployment.config("operator"), timeout_s=10) as session:
+        assert session.info.routers_zid()
+    foreign = tmp_path / "foreign"
+    init_pki(foreign, ["operator"])  # same name, another CA
+    plain_tcp = zenoh.Config.from_file(str(DEFAULT_CLIENT_CONFIG))
+    plain_tcp.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{deployment.layout.port}"]))
+    for conf in (tls_client(deployment, cert_dir=None), tls_client(deployment, cert_dir=foreign), plain_tcp):
+        t0 = time.monotonic()
+        with pytest.raises(SessionUnavailable):
+            open_session(conf, timeout_s=REFUSED_WITHIN_S)
+        assert time.monotonic() - t0 < REFUSED_WITHIN_S + 2
+
+
+# (identity, key, delivered?) — each put is made by `identity` and watched by the operator.
+PUTS = [
+    ("mec-agent1", "rmmdet/@v1/agent1/objects", True),
+    ("mec-agent1", "rmmdet/@v1/agent2/objects", False),  # agent1's MEC cannot speak for agent2
+    ("mec-agent1", "rmmdet/@v1/agent1/sensor/camera/cam_11", False),  # nor for its own sensors
+    ("mec-agent1", "rmmdet/@v1/cloud/plans/v1", False),
+    ("sensor-agent1-cameras", "rmmdet/@v1/agent1/sensor/camera/cam_11", True),
+    ("sensor-agent1-cameras", "rmmdet/@v1/agent1/sensor/lidar/lidar_1", False),  # another kind
+    ("sensor-agent1-cameras", "rmmdet/@v1/agent2/sensor/camera/cam_21", False),  # another agent
+    ("sensor-agent1-cameras", "rmmdet/@v1/sim/ground_truth", False),
+    ("vehicle-v1", "rmmdet/@v1/vehicles/v1/plan_ack", True),
+    ("vehicle-v1", "rmmdet/@v1/vehicles/v2/plan_ack", False),  # a vehicle acks only its own plans
+    ("vehicle-v1", "rmmdet/@v1/cloud/plans/v1", False),  # forged plan
+    ("coordinator", "rmmdet/@v1/cloud/plans/v1", True),  # only the coordinator publishes plans
+    ("coordinator", "rmmdet/@v1/vehicles/v1/plan_ack", False),  # forged ack
+    ("recorder", "rmmdet/@v1/agent1/objects", False),  # the recorder reads only
+    ("sim", "rmmdet/@v1/sim/ground_truth", True),
+    ("mallory", "rmmdet/@v1/agent1/objects", False),  # a certificate of the CA, but no role
+]
+
+
+def test_each_identity_puts_only_on_its_own_keys(deployment: Deployment) -> None:
+    inbox = Inbox()
+    with deployment.session("operator") as watcher:
+        sub = watcher.declare_subscriber("rmmdet/@v1/**", inbox)
+        sessions = {ident: deployment.session(ident) for ident in {p[0] for p in PUTS}}
+        try:
+            time.sleep(SETTLE_S)  # subscriptions propagated
+            for i, (ident, key, _) in enumerate(PUTS):
+                sessions[ident].put(key, f"{i}".encode())
+            allowed = [(k, f"{i}".encode()) for i, (_, k, ok) in enumerate(PUTS) if ok]
+            wait_for(lambda: all(p in inbox.payloads(k) for k, p in allowed), 5, "authorized puts")
+            time.sleep(SETTLE_S)
+        finally:
+            sub.undeclare()
+            for s in sessions.values():
+                s.close()
+    delivered = {(k, p) for k, p in inbox.samples}
+    unauthorized = [
+        (ident, key)
+        for i, (ident, key, ok) in enumerate(PUTS)
+        if not ok and (key, f"{i}".encode()) in delivered
+    ]
+    assert unauthorized == [], f"unauthorized puts delivered: {unauthorized}"
+
+
+def test_a_rogue_queryable_never_answers_a_vehicle(deployment: Deployment) -> None:
+    key = "rmmdet/@v1/cloud/@rpc/route/coordinator"
+    with (
+        deployment.session("coordinator") as coordinator,
+        deployment.session("mec-agent1") as rogue,
+        deployment.session("vehicle-v1") as vehicle,
+    ):
+        genuine = coordinator.declare_queryable(key, lambda q: q.reply(key, b"genuine"))
+        forged = rogue.declare_queryable(key, lambda q: q.reply(key, b"forged"))
+        time.sleep(SETTLE_S)
+        try:
+            replies = [r.ok.payload.to_bytes() for r in vehicle.get(key, timeout=2.0) if r.ok is not None]
+        finally:
+            genuine.undeclare()
+            forged.undeclare()
+    assert replies == [b"genuine"]

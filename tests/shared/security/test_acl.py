@@ -1,0 +1,98 @@
+"""Access-control rules generated from proto/streams.yaml: known answers per identity."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import zenoh
+
+from shared.bus.streams import get_stream, streams
+from shared.paths import DEFAULT_SCENE
+from shared.scene.scene import Scene
+from shared.security.acl import access_control, grant_permissions, identity_grants, wide_key
+from shared.security.identities import deployment_identities
+
+PUT_IN = ("put", "ingress")
+
+
+def perms(*names: str) -> dict[tuple[str, str], set[str]]:
+    return grant_permissions(identity_grants(names))
+
+
+@pytest.mark.parametrize(
+    ("identity", "puts"),
+    [
+        (
+            "mec-agent1",
+            {
+                "rmmdet/@v1/agent1/objects",
+                "rmmdet/@v1/agent1/capture_demand/*",
+                "rmmdet/@v1/agent1/perception/detections_2d/*",
+                "rmmdet/@v1/agent1/perception/detections_3d/*",
+            },
+        ),
+        ("sensor-agent1-cameras", {"rmmdet/@v1/agent1/sensor/camera/*"}),
+        ("sensor-agent2-radars", {"rmmdet/@v1/agent2/sensor/radar/*"}),
+        ("vehicle-v7", {"rmmdet/@v1/vehicles/v7/plan_ack"}),
+        ("coordinator", {"rmmdet/@v1/cloud/plans/*", "rmmdet/@v1/cloud/maps/traffic"}),
+        ("recorder", set()),
+        ("operator", set()),
+    ],
+)
+def test_each_identity_publishes_only_its_own_keys(identity: str, puts: set[str]) -> None:
+    assert perms(identity).get(PUT_IN, set()) == puts
+
+
+def test_only_the_coordinator_publishes_plans_and_serves_the_route_rpc(test_scene: Scene) -> None:
+    plan = zenoh.KeyExpr(get_stream("route_plan").key(vehicle="v1"))
+    rpc = get_stream("route_rpc").key()
+    for name in [*deployment_identities(test_scene), "vehicle-v1"]:
+        p = perms(name)
+        may_put_plan = any(zenoh.KeyExpr(k).intersects(plan) for k in p.get(PUT_IN, set()))
+        may_serve = rpc in p.get(("declare_queryable", "ingress"), set())
+        assert may_put_plan == may_serve == (name == "coordinator"), name
+
+
+def test_a_vehicle_queries_the_route_rpc_and_reads_only_its_plans() -> None:
+    p = perms("vehicle-v7")
+    assert p[("query", "ingress")] == {get_stream("route_rpc").key()}
+    assert p[("declare_subscriber", "ingress")] == {"rmmdet/@v1/cloud/plans/v7"}
+
+
+def test_readers_subscribe_to_the_whole_data_space_and_query_health() -> None:
+    p = perms("operator")
+    assert "rmmdet/@v1/**" in p[("declare_subscriber", "ingress")]
+    assert p[("query", "ingress")] == {"rmmdet/@v1/*/@health/*/*"}
+    assert "rmmdet/@v1/**" in perms("recorder")[("declare_subscriber", "ingress")]
+
+
+def test_a_site_router_holds_the_union_of_its_site() -> None:
+    site = perms("router-agent1", "sensor-agent1-lidars", "mec-agent1")
+    assert site[PUT_IN] == perms("mec-agent1")[PUT_IN] | {"rmmdet/@v1/agent1/sensor/lidar/*"}
+
+
+def test_wide_keys() -> None:
+    assert wide_key(get_stream("objects")) == "rmmdet/@v1/*/objects"
+    assert wide_key(get_stream("health")) == "rmmdet/@v1/*/@health/**"
+    assert wide_key(get_stream("route_rpc")) == get_stream("route_rpc").key()
+
+
+def test_access_control_section_is_default_deny_with_one_policy_per_subject() -> None:
+    acl = access_control({"mec-agent1": ["mec-agent1"], "router-agent2": ["router-agent2", "mec-agent2"]})
+    assert acl["enabled"] and acl["default_permission"] == "deny"
+    ids = [r["id"] for r in acl["rules"]]
+    assert len(ids) == len(set(ids))
+    assert {s["id"]: s["cert_common_names"] for s in acl["subjects"]} == {
+        "mec-agent1": ["mec-agent1"],
+        "router-agent2": ["router-agent2"],
+    }
+    assert sorted(p["subjects"][0] for p in acl["policies"]) == ["mec-agent1", "router-agent2"]
+    assert all(r["permission"] == "allow" and len(r["flows"]) == 1 for r in acl["rules"])
+    zenoh.Config().insert_json5("access_control", json.dumps(acl))  # Zenoh accepts it
+
+
+def test_every_stream_names_known_roles_only() -> None:
+    for stream in streams().values():
+        assert stream.access, stream.name
+    perms(*deployment_identities(Scene.load(DEFAULT_SCENE)))  # role_matches raises on an unknown role

@@ -1,0 +1,117 @@
+"""Site layouts rendered into Zenoh configs and supervisord programs."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+import zenoh
+from supervisor.datatypes import dict_of_key_value_pairs
+
+from shared.config import ConfigError
+from shared.paths import DEPLOY_DIR
+from shared.security.pki import init_pki
+from shared.security.sites import (
+    identity_config,
+    load_layout,
+    render_host,
+    router_subjects,
+    supervisor_program,
+)
+
+THREE_SITES = DEPLOY_DIR / "sites" / "three-sites.yaml"
+
+
+@pytest.fixture(scope="module")
+def pki(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    layout = load_layout(THREE_SITES)
+    path = tmp_path_factory.mktemp("pki")
+    init_pki(path, layout.all_identities(), layout.certificate_names())
+    return path
+
+
+def config(pki: Path, host: str, identity: str) -> zenoh.Config:
+    return zenoh.Config.from_json5(identity_config(load_layout(THREE_SITES), host, identity, pki))
+
+
+def get(conf: zenoh.Config, key: str):
+    return json.loads(conf.get_json(key))
+
+
+def test_routers_see_each_other_as_their_side_of_the_link() -> None:
+    layout = load_layout(THREE_SITES)
+    cloud = router_subjects(layout, "cloud")
+    assert cloud["router-agent1"] == [
+        "router-agent1",
+        "sensor-agent1-cameras",
+        "sensor-agent1-lidars",
+        "mec-agent1",
+    ]
+    assert cloud["sim"] == ["sim"] and cloud["coordinator"] == ["coordinator"] and "operator" in cloud
+    assert "mec-agent1" not in cloud  # it reaches the cloud only through its site's router
+    site = router_subjects(layout, "site1")
+    assert set(site) == {"sensor-agent1-cameras", "sensor-agent1-lidars", "mec-agent1", "router-cloud"}
+    assert "mec-agent1" not in site["router-cloud"] and "coordinator" in site["router-cloud"]
+
+
+def test_endpoints_and_tls(pki: Path) -> None:
+    mec = config(pki, "site1", "mec-agent1")
+    assert get(mec, "connect/endpoints") == ["tls/127.0.0.1:7447"]  # its site's router
+    tls = get(mec, "transport/link/tls")
+    assert tls["enable_mtls"] and tls["verify_name_on_connect"]
+    assert tls["connect_certificate"] == str(pki / "mec-agent1.pem")
+    assert get(mec, "access_control/enabled") is False  # clients do not filter; routers do
+    site_router = config(pki, "site1", "router-agent1")
+    assert get(site_router, "listen/endpoints") == ["tls/127.0.0.1:7447"]  # no inbound port on a site
+    assert get(site_router, "connect/endpoints") == ["tls/10.77.0.10:7447"]
+    assert get(site_router, "access_control/default_permission") == "deny"
+    cloud = config(pki, "cloud", "router-cloud")
+    assert get(cloud, "listen/endpoints") == ["tls/10.77.0.10:7447", "tls/127.0.0.1:7447"]
+    assert get(config(pki, "vehicles", "sim"), "connect/endpoints") == ["tls/10.77.0.10:7447"]
+    assert get(cloud, "transport/link/tx/lease") == 1000
+
+
+def test_render_host_writes_configs_and_a_supervisord_conf(pki: Path, tmp_path: Path) -> None:
+    conf = render_host(load_layout(THREE_SITES), "cloud", pki, tmp_path)
+    text = conf.read_text()
+    assert "[program:router-cloud]" in text and "[program:coordinator]" in text
+    assert (tmp_path / "coordinator.json").exists() and "RMMDET_COORD_PLAN_SIGNING_KEY" in text
+    with pytest.raises(ConfigError, match="no host"):
+        render_host(load_layout(THREE_SITES), "mars", pki, tmp_path)
+
+
+def test_environment_values_survive_supervisord_quoting(tmp_path: Path) -> None:
+    env = {"A": json.dumps(["/p/plan-signing.pub"]), "B": "50%"}
+    program = supervisor_program("x", ["-c", "pass"], tmp_path / "x.json", env, tmp_path)
+    line = next(ln for ln in program.splitlines() if ln.startswith("environment="))
+    parsed = dict_of_key_value_pairs(line.removeprefix("environment=").replace("%%", "%"))
+    assert parsed == {**env, "PYTHONUNBUFFERED": "1"}
+
+
+def test_the_cloud_certificate_must_name_its_address(tmp_path: Path) -> None:
+    layout = load_layout(THREE_SITES)
+    init_pki(tmp_path, layout.identities("cloud"))  # no --name router-cloud=10.77.0.10
+    with pytest.raises(ConfigError, match=re.escape("pki init --renew --name router-cloud=10.77.0.10")):
+        render_host(layout, "cloud", tmp_path, tmp_path / "out")
+
+
+@pytest.mark.parametrize(
+    "hosts",
+    [
+        {"a": {"address": "10.0.0.1", "services": ["coordinator"]}},  # no cloud router
+        {
+            "a": {"address": "10.0.0.1", "router": "router-cloud", "services": ["coordinator"]},
+            "b": {"address": "10.0.0.2", "services": ["coordinator"]},  # one identity on two hosts
+        },
+        {"a": {"address": "not-an-ip", "router": "router-cloud"}},
+        {"a": {"address": "10.0.0.1", "router": "router-cloud", "services": ["mallory"]}},
+        {"a": {"address": "10.0.0.1", "router": "mec-agent1"}},  # not a router
+    ],
+)
+def test_bad_layouts_are_config_errors(tmp_path: Path, hosts: dict) -> None:
+    path = tmp_path / "layout.yaml"
+    path.write_text(json.dumps({"hosts": hosts}))
+    with pytest.raises(ConfigError):
+        load_layout(path)
