@@ -6,7 +6,7 @@ A shell around `CoordinatorCore` (shared/traffic/core.py: coverage, maps, planni
 plan delivery; the flow experiment drives the same core). Here: the bus. Inputs: every agent's
 `objects`, the MECs' presence tokens and the vehicles' `plan_ack`s. Outputs: the TrafficMap
 (`rmmdet/@v1/cloud/maps/traffic`, periodically and at once on a coverage change), the route RPC
-(`rmmdet/@v1/cloud/@rpc/route/coordinator`, errors as ErrorResponse) and pushed plans
+(`rmmdet/@v1/cloud/@rpc/route/<vehicle>`, errors as ErrorResponse) and pushed plans
 (`rmmdet/@v1/cloud/plans/<vehicle>`, resent until acknowledged). Health is DEGRADED while an agent is
 not LIVE (the message names it). Maps and plans carry the stamp of the newest object list they derive
 from, so object -> plan latency can be measured.
@@ -88,6 +88,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             stage=f"{STAGE}/plan",
             embed_header=messages.embed_plan_header,
             served="plans/served",
+            bind={"vehicle": "vehicle_id"},
         )
         node.queryable(rpc.key, rpc)
         log.info(

@@ -72,18 +72,22 @@ class PlanClient:
         self.counters = node.counters
         self.check = check
         rpc = get_stream("route_rpc")
-        # One querier declared for the whole run (declaring per request would churn declarations).
-        # Every queryable on the key is asked (target ALL: Zenoh's default asks only a "complete" one
-        # when there is one, which any client may declare) and every reply is delivered as it comes
-        # (no consolidation: by default replies on one key are held and only the newest is delivered,
-        # so a rogue replying last would hide the coordinator's): the first valid reply is taken.
-        self.querier = node.session.declare_querier(
-            rpc.key(),
-            target=zenoh.QueryTarget.ALL,
-            consolidation=zenoh.ConsolidationMode.NONE,
-            timeout=request_timeout_s,
-            **rpc.qos.publisher_kwargs(),
-        )
+        # One querier per vehicle, on its own key, declared for the whole run (declaring per request
+        # would churn declarations). Every queryable on the key is asked (target ALL: Zenoh's default
+        # asks only a "complete" one when there is one, which any client may declare) and every reply
+        # is delivered as it comes (no consolidation: by default replies on one key are held and only
+        # the newest is delivered, so a rogue replying last would hide the coordinator's): the first
+        # valid reply is taken.
+        self.queriers = {
+            v.id: node.session.declare_querier(
+                rpc.key(vehicle=v.id),
+                target=zenoh.QueryTarget.ALL,
+                consolidation=zenoh.ConsolidationMode.NONE,
+                timeout=request_timeout_s,
+                **rpc.qos.publisher_kwargs(),
+            )
+            for v in traffic.vehicles
+        }
         self.decoder = MessageDecoder(RouteResponse, node.counters)
         self.outcomes: BoundedQueue[Outcome] = BoundedQueue(
             REPLY_QUEUE_PER_VEHICLE * max(1, len(traffic.vehicles)), OverflowPolicy.DROP_OLDEST
@@ -96,7 +100,8 @@ class PlanClient:
         self._request_seq: dict[str, int] = dict.fromkeys(self.ack_pubs, 0)
 
     def close(self) -> None:
-        self.querier.undeclare()
+        for querier in self.queriers.values():
+            querier.undeclare()
 
     def summary(self) -> dict[str, int]:
         """Request and acknowledgement counters, for the periodic log."""
@@ -136,7 +141,7 @@ class PlanClient:
         req.header.frame_id = "world"
         encoded = encode(req)
         handler = _ReplyHandler(v.id, self.decoder, self.outcomes, self.check)
-        self.querier.get(
+        self.queriers[v.id].get(
             zenoh.handlers.Callback(handler.on_reply, handler.on_done),
             payload=encoded.payload,
             encoding=encoded.encoding,

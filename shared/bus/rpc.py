@@ -64,6 +64,10 @@ class RpcServer(Generic[Req]):
         (the header always travels in the attachment).
     served : str
         Counter of the requests answered with a response.
+    bind : dict, optional
+        Key id -> request field that must equal it (`{"vehicle": "vehicle_id"}`): the queryable serves
+        every id of the stream's key, and a request on another id's key is refused (`key_mismatch`), so
+        access control on the key confines each identity to its own requests.
     """
 
     def __init__(
@@ -76,10 +80,13 @@ class RpcServer(Generic[Req]):
         stage: str,
         embed_header: Callable[[Message, Header], None] | None = None,
         served: str = "replies",
+        bind: dict[str, str] | None = None,
     ) -> None:
         self.node = node
         stream = get_stream(stream_name)
-        self.key = stream.key()
+        self._stream = stream
+        self._bind = bind or {}
+        self.key = stream.pattern()  # every id a wildcard: one queryable serves them all
         self._qos = stream.qos.publisher_kwargs()
         self._decoder = MessageDecoder(request_type, node.counters)
         self._handle = handle
@@ -98,6 +105,7 @@ class RpcServer(Generic[Req]):
                 raise Rejected(RejectReason.DECODE, "query without payload")
             attachment = query.attachment.to_bytes() if query.attachment is not None else None
             decoded = self._decoder.decode_or_raise(query.payload.to_bytes(), str(query.encoding), attachment)
+            self._check_key(str(query.key_expr), decoded.message)
             response, stamp_ns = self._handle(cast(Req, decoded.message), start_ns)
         except Rejected as err:
             counters.inc(f"rejected/{err.reason}")
@@ -122,9 +130,23 @@ class RpcServer(Generic[Req]):
             self._embed_header(response, header)
         encoded = encode(response, header)
         query.reply(
-            self.key, encoded.payload, encoding=encoded.encoding, attachment=encoded.attachment, **self._qos
+            query.key_expr,
+            encoded.payload,
+            encoding=encoded.encoding,
+            attachment=encoded.attachment,
+            **self._qos,
         )
         counters.inc(self._served)
+
+    def _check_key(self, key: str, request: Message) -> None:
+        ids = self._stream.ids(key) or {}
+        for field, attr in self._bind.items():
+            if ids.get(field) != getattr(request, attr):
+                raise RpcRejected(
+                    "key_mismatch",
+                    ErrorCode.ERROR_CODE_INVALID_REQUEST,
+                    f"{attr} {getattr(request, attr)!r} asked on {key}",
+                )
 
     @staticmethod
     def _error(query: zenoh.Query, code: ErrorCode.ValueType, message: str) -> None:

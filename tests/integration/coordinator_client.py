@@ -24,16 +24,23 @@ HEALTH_KEY = get_stream("health").key(scope="cloud", service="coordinator", inst
 
 
 class RouteClient:
-    """Blocking route requests on one querier (tests only; vehicles use non-blocking gets)."""
+    """Blocking route requests, one querier per vehicle id (tests only; vehicles use non-blocking gets)."""
 
     def __init__(self, node: Node, source_id: str = "test/route-client") -> None:
-        self.querier = node.session.declare_querier(get_stream("route_rpc").key(), timeout=RPC_TIMEOUT_S)
+        self.session = node.session
+        self.queriers: dict[str, zenoh.Querier] = {}
         self.source_id = source_id
         self.seq = 0
 
-    def wait_ready(self, timeout_s: float) -> None:
+    def querier(self, vehicle_id: str) -> zenoh.Querier:
+        if vehicle_id not in self.queriers:
+            key = get_stream("route_rpc").key(vehicle=vehicle_id)
+            self.queriers[vehicle_id] = self.session.declare_querier(key, timeout=RPC_TIMEOUT_S)
+        return self.queriers[vehicle_id]
+
+    def wait_ready(self, timeout_s: float, vehicle_id: str = "v01") -> None:
         deadline = time.monotonic() + timeout_s
-        while not getattr(self.querier.matching_status, "matching", False):
+        while not getattr(self.querier(vehicle_id).matching_status, "matching", False):
             if time.monotonic() > deadline:
                 raise TimeoutError("no route queryable")
             time.sleep(0.05)
@@ -53,7 +60,7 @@ class RouteClient:
         req.header.seq = self.seq
         req.header.stamp.FromNanoseconds(time.time_ns())
         encoded = encode(req)
-        for reply in self.querier.get(payload=encoded.payload, encoding=encoded.encoding):
+        for reply in self.querier(vehicle_id).get(payload=encoded.payload, encoding=encoded.encoding):
             if reply.ok is not None:
                 response = RouteResponse()
                 response.ParseFromString(reply.ok.payload.to_bytes())
@@ -65,7 +72,8 @@ class RouteClient:
         return None
 
     def close(self) -> None:
-        self.querier.undeclare()
+        for querier in self.queriers.values():
+            querier.undeclare()
 
 
 def coordinator_health(session: zenoh.Session, timeout_s: float = 2.0) -> ServiceHealth | None:

@@ -4,8 +4,8 @@ fresh CA, and sessions holding the identities' certificates.
 - a client without a certificate, with one from another CA, or over plain TCP cannot connect;
 - each identity can do only what proto/streams.yaml grants its role, with its own bindings: a put
   outside them is not delivered to a subscriber that may read everything (counted at the receiver),
-  a rogue queryable on the route RPC key never answers a vehicle, and an unknown common name can do
-  nothing at all.
+  a rogue queryable on the route RPC key never answers a vehicle, a vehicle cannot ask for another
+  vehicle's plans, and an unknown common name can do nothing at all.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ import pytest
 import zenoh
 
 from shared.bus.session import SessionUnavailable, open_session
+from shared.bus.streams import get_stream
 from shared.bus.zenoh_config import DEFAULT_CLIENT_CONFIG
 from shared.security.pki import init_pki
 from tests.helpers import free_port, spawn, stop, wait_port
@@ -134,19 +135,23 @@ def test_each_identity_puts_only_on_its_own_keys(deployment: Deployment) -> None
     assert unauthorized == [], f"unauthorized puts delivered: {unauthorized}"
 
 
-def test_a_rogue_queryable_never_answers_a_vehicle(deployment: Deployment) -> None:
-    key = "rmmdet/@v1/cloud/@rpc/route/coordinator"
+def test_a_rogue_queryable_never_answers_a_vehicle_and_a_vehicle_asks_only_for_itself(
+    deployment: Deployment,
+) -> None:
+    rpc = get_stream("route_rpc")
     with (
         deployment.session("coordinator") as coordinator,
         deployment.session("mec-agent1") as rogue,
         deployment.session("vehicle-v1") as vehicle,
     ):
-        genuine = coordinator.declare_queryable(key, lambda q: q.reply(key, b"genuine"))
-        forged = rogue.declare_queryable(key, lambda q: q.reply(key, b"forged"))
+        genuine = coordinator.declare_queryable(rpc.pattern(), lambda q: q.reply(q.key_expr, b"genuine"))
+        forged = rogue.declare_queryable(rpc.pattern(), lambda q: q.reply(q.key_expr, b"forged"))
         time.sleep(SETTLE_S)
         try:
-            replies = [r.ok.payload.to_bytes() for r in vehicle.get(key, timeout=2.0) if r.ok is not None]
+            own = [r.ok.payload.to_bytes() for r in vehicle.get(rpc.key(vehicle="v1"), timeout=2.0) if r.ok]
+            other = [r for r in vehicle.get(rpc.key(vehicle="v2"), timeout=1.0)]
         finally:
             genuine.undeclare()
             forged.undeclare()
-    assert replies == [b"genuine"]
+    assert own == [b"genuine"]
+    assert other == []  # vehicle-v1 may not ask for v2's plans (one plan-book entry per identity)

@@ -108,7 +108,7 @@ def test_header_stamp_and_control_keys() -> None:
     assert header_stamp_ns(gt.encoding, gt.payload, None) == gt.stamp_ns
     assert header_stamp_ns(cam.encoding, cam.payload, None) is None  # foxglove type, no header
     assert is_control_key("rmmdet/@v1/site/@alive/router/main")
-    assert is_control_key("rmmdet/@v1/cloud/@rpc/route/coordinator")
+    assert is_control_key("rmmdet/@v1/cloud/@rpc/route/v1")
     assert not is_control_key(CAMERA_KEY)
 
 

@@ -46,7 +46,7 @@ def test_each_identity_publishes_only_its_own_keys(identity: str, puts: set[str]
 
 def test_only_the_coordinator_publishes_plans_and_serves_the_route_rpc(test_scene: Scene) -> None:
     plan = zenoh.KeyExpr(get_stream("route_plan").key(vehicle="v1"))
-    rpc = get_stream("route_rpc").key()
+    rpc = get_stream("route_rpc").pattern()
     for name in [*deployment_identities(test_scene), "vehicle-v1"]:
         p = perms(name)
         may_put_plan = any(zenoh.KeyExpr(k).intersects(plan) for k in p.get(PUT_IN, set()))
@@ -56,7 +56,7 @@ def test_only_the_coordinator_publishes_plans_and_serves_the_route_rpc(test_scen
 
 def test_a_vehicle_queries_the_route_rpc_and_reads_only_its_plans() -> None:
     p = perms("vehicle-v7")
-    assert p[("query", "ingress")] == {get_stream("route_rpc").key()}
+    assert p[("query", "ingress")] == {get_stream("route_rpc").key(vehicle="v7")}
     assert p[("declare_subscriber", "ingress")] == {"rmmdet/@v1/cloud/plans/v7"}
 
 
@@ -75,7 +75,7 @@ def test_a_site_router_holds_the_union_of_its_site() -> None:
 def test_wide_keys() -> None:
     assert wide_key(get_stream("objects")) == "rmmdet/@v1/*/objects"
     assert wide_key(get_stream("health")) == "rmmdet/@v1/*/@health/**"
-    assert wide_key(get_stream("route_rpc")) == get_stream("route_rpc").key()
+    assert wide_key(get_stream("route_rpc")) == "rmmdet/@v1/cloud/@rpc/route/**"
 
 
 def test_access_control_section_is_default_deny_with_one_policy_per_subject() -> None:
