@@ -19,6 +19,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 
+from shared.bus.streams import sensor_group
 from shared.config import ConfigError
 from shared.scene.scene import Scene
 
@@ -84,7 +85,8 @@ def sensor_group_identity(group: str) -> str:
 def site_identities(scene: Scene, agent: str) -> list[str]:
     """The identities at one roadside site: its router, its sensor groups and its MEC."""
     kinds = sorted({s.kind for s in scene.sensors_of(agent)})
-    return [f"router-{agent}", *(sensor_group_identity(f"{agent}-{k}s") for k in kinds), f"mec-{agent}"]
+    groups = [sensor_group_identity(sensor_group(agent, k)) for k in kinds]
+    return [f"router-{agent}", *groups, f"mec-{agent}"]
 
 
 def deployment_identities(scene: Scene) -> list[str]:

@@ -24,6 +24,7 @@ import zenoh
 from cryptography import x509
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from shared.bus.streams import sensor_group
 from shared.bus.zenoh_config import DEFAULT_CLIENT_CONFIG, DEFAULT_ROUTER_CONFIG
 from shared.config import ConfigError, read_yaml
 from shared.paths import REPO_ROOT
@@ -181,7 +182,7 @@ def default_command(identity: str) -> list[str]:
     grant = parse_identity(identity).grants[0]
     b = grant.bindings
     if grant.role == "sensors":
-        return ["-m", "services.sensor", "--group", f"{b['agent']}-{b['kind']}s"]
+        return ["-m", "services.sensor", "--group", sensor_group(b["agent"], b["kind"])]
     if grant.role == "mec":
         return ["-m", "services.mec", "--instance", b["agent"]]
     if grant.role == "router":
