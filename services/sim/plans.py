@@ -191,6 +191,7 @@ class _ReplyHandler:
         self.outcomes = outcomes
         self.check = check
         self.answered = False
+        self.failed = False  # an error or bad reply was reported: no `no_reply` on top of it
 
     def on_reply(self, reply: zenoh.Reply) -> None:
         if self.answered:
@@ -201,7 +202,7 @@ class _ReplyHandler:
                 attachment = sample.attachment.to_bytes() if sample.attachment is not None else None
                 decoded = self.decoder.decode(sample.payload.to_bytes(), str(sample.encoding), attachment)
                 if decoded is None:  # counted by the decoder as rejected/<reason>
-                    self.outcomes.put(Outcome(self.vehicle_id, None, "bad_reply"))
+                    self._fail("bad_reply")
                     return
                 response = cast(RouteResponse, decoded.message)
                 if response.plan.vehicle_id != self.vehicle_id:
@@ -215,11 +216,17 @@ class _ReplyHandler:
                 error.ParseFromString(reply.err.payload.to_bytes() if reply.err is not None else b"")
             except DecodeError:
                 error.code = ErrorCode.ERROR_CODE_UNSPECIFIED
-            self.outcomes.put(Outcome(self.vehicle_id, None, f"error_{ERROR_NAMES.get(error.code, 'other')}"))
+            self._fail(f"error_{ERROR_NAMES.get(error.code, 'other')}")
         except Exception:  # never raise into Zenoh's thread
             log.exception("route reply for %s failed", self.vehicle_id)
-            self.outcomes.put(Outcome(self.vehicle_id, None, "bad_reply"))
+            self._fail("bad_reply")
+
+    def _fail(self, error: str) -> None:
+        """Report the first failure only (a valid reply may still come and is taken then)."""
+        if not self.failed:
+            self.failed = True
+            self.outcomes.put(Outcome(self.vehicle_id, None, error))
 
     def on_done(self) -> None:
-        if not self.answered:
+        if not self.answered and not self.failed:
             self.outcomes.put(Outcome(self.vehicle_id, None, "no_reply"))

@@ -1,0 +1,89 @@
+"""The vehicles' reply handling (services/sim/plans.py `_ReplyHandler`): the first valid reply wins,
+refusals are counted, each request ends in exactly one outcome when nothing valid came."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import pytest
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+from rmmdet.v1.common_pb2 import ErrorCode, ErrorResponse, Header
+from rmmdet.v1.planning_pb2 import RoutePlan, RouteResponse
+
+from services.sim.plans import Outcome, PlanCheck, _ReplyHandler
+from shared.bus.codec import Counters, MessageDecoder, encode
+from shared.bus.queues import BoundedQueue, OverflowPolicy
+from shared.security.plan_signing import PlanSigner, PlanVerifier
+
+GENUINE = PlanSigner(Ed25519PrivateKey.generate())
+ROGUE = PlanSigner(Ed25519PrivateKey.generate())
+
+
+class Bytes:
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+
+    def to_bytes(self) -> bytes:
+        return self.data
+
+
+@dataclass
+class Sample:
+    payload: Bytes
+    encoding: str
+    attachment: Bytes | None
+
+
+@dataclass
+class Reply:
+    ok: Sample | None = None
+    err: Sample | None = None
+
+
+def plan_reply(signer: PlanSigner, plan_id: str = "a" * 32) -> Reply:
+    plan = RoutePlan(vehicle_id="v1", plan_id=plan_id, version=1, lane_ids=["l0"])
+    plan.valid_until.FromNanoseconds(2**62)  # checked against max_ttl below: use a huge bound
+    header = Header(source_id="cloud/coordinator", seq=1)
+    header.stamp.FromNanoseconds(1)
+    encoded = encode(RouteResponse(plan=signer.sign(plan)), header)
+    attachment = Bytes(encoded.attachment) if encoded.attachment is not None else None
+    return Reply(ok=Sample(Bytes(encoded.payload), str(encoded.encoding), attachment))
+
+
+def error_reply() -> Reply:
+    encoded = encode(ErrorResponse(code=ErrorCode.ERROR_CODE_INTERNAL, message="x"))
+    return Reply(err=Sample(Bytes(encoded.payload), str(encoded.encoding), None))
+
+
+@pytest.fixture
+def handler() -> tuple[_ReplyHandler, BoundedQueue[Outcome], Counters]:
+    counters = Counters()
+    check = PlanCheck(PlanVerifier([GENUINE._key.public_key()]), max_ttl_s=1e12, counters=counters)
+    outcomes: BoundedQueue[Outcome] = BoundedQueue(16, OverflowPolicy.DROP_OLDEST)
+    return _ReplyHandler("v1", MessageDecoder(RouteResponse, counters), outcomes, check), outcomes, counters
+
+
+def test_a_forged_reply_first_does_not_hide_the_genuine_one(handler) -> None:
+    h, outcomes, counters = handler
+    h.on_reply(plan_reply(ROGUE, "b" * 32))  # type: ignore[arg-type]
+    h.on_reply(plan_reply(GENUINE))  # type: ignore[arg-type]
+    h.on_reply(plan_reply(GENUINE, "c" * 32))  # type: ignore[arg-type]  # after the first valid: ignored
+    h.on_done()
+    got = outcomes.drain()
+    assert [(o.plan.plan_id if o.plan else None, o.error) for o in got] == [("a" * 32, "")]
+    assert counters.get("rejected/plan_unknown_key") == 1
+
+
+def test_an_error_reply_is_reported_once_not_again_as_no_reply(handler) -> None:
+    h, outcomes, _ = handler
+    h.on_reply(error_reply())  # type: ignore[arg-type]
+    h.on_reply(error_reply())  # type: ignore[arg-type]
+    h.on_done()
+    assert [o.error for o in outcomes.drain()] == ["error_internal"]
+
+
+def test_nothing_valid_is_no_reply(handler) -> None:
+    h, outcomes, _ = handler
+    h.on_reply(plan_reply(ROGUE))  # type: ignore[arg-type]
+    h.on_done()
+    assert [o.error for o in outcomes.drain()] == ["no_reply"]
