@@ -86,6 +86,7 @@ bench: install pki ## benchmarks: the whole system as `make up` runs it (10 min)
 	$(BIN)/python -m tests.bench.mec_bench
 	$(BIN)/python -m tests.bench.coordinator_bench
 	$(BIN)/python -m tests.bench.sites_bench --readme
+	$(BIN)/python -m tests.shared.bus.fuzz --inputs 1000000 --out tests/bench/results/fuzz.json
 
 DATASET ?= data/datasets/default
 MODEL_RUNS ?= data/models

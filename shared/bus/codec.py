@@ -169,6 +169,43 @@ def find_non_finite(msg: Message, path: str = "") -> str | None:
     return None
 
 
+#: Valid google.protobuf.Timestamp values (its own definition: 0001-01-01 .. 9999-12-31; we need no
+#: time before the Unix epoch). Outside them `ToNanoseconds` and friends raise.
+TIMESTAMP_SECONDS_MAX = 253_402_300_799
+NANOS_PER_S = 1_000_000_000
+
+
+@functools.cache
+def _timestamp_plan(descriptor: Descriptor) -> tuple[tuple[FieldDescriptor, bool], ...]:
+    """Fields that are Timestamps or (transitively) contain one, flagged when they are one."""
+    plan: list[tuple[FieldDescriptor, bool]] = []
+    for field in descriptor.fields:
+        if field.type != FieldDescriptor.TYPE_MESSAGE or field.message_type is None:
+            continue
+        if field.message_type.full_name == "google.protobuf.Timestamp":
+            plan.append((field, True))
+        elif not field.message_type.GetOptions().map_entry and (
+            field.message_type is descriptor or _timestamp_plan(field.message_type)
+        ):
+            plan.append((field, False))
+    return tuple(plan)
+
+
+def find_bad_timestamp(msg: Message, path: str = "") -> str | None:
+    """Path of the first Timestamp in `msg` outside [1970, 9999] or with nanos outside [0, 1e9)."""
+    for field, is_stamp in _timestamp_plan(msg.DESCRIPTOR):
+        value = getattr(msg, field.name)
+        children = value if field.is_repeated else ([value] if msg.HasField(field.name) else [])
+        for i, child in enumerate(children):
+            name = (f"{path}." if path else "") + (f"{field.name}[{i}]" if field.is_repeated else field.name)
+            if is_stamp:
+                if not (0 <= child.seconds <= TIMESTAMP_SECONDS_MAX and 0 <= child.nanos < NANOS_PER_S):
+                    return name
+            elif found := find_bad_timestamp(child, name):
+                return found
+    return None
+
+
 Validator = Callable[[Message], str | None]
 _VALIDATORS: dict[str, list[Validator]] = {}
 
@@ -199,6 +236,9 @@ def validate(msg: Message) -> None:
     bad = find_non_finite(msg)
     if bad:
         raise Rejected(RejectReason.NON_FINITE, f"non-finite value in {bad}")
+    bad = find_bad_timestamp(msg)
+    if bad:
+        raise Rejected(RejectReason.RANGE, f"invalid timestamp in {bad}")
     problem = range_problem(msg)
     if problem:
         raise Rejected(RejectReason.RANGE, problem)

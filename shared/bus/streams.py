@@ -136,13 +136,16 @@ class Limits:
     max_clock_skew_s: float
     order_reset_s: float
     max_objects_per_list: int
+    min_tick_hz: float
     max_tick_hz: float
     max_plan_version: int
     max_claimed_plan_version: int
 
     def __post_init__(self) -> None:
-        if min(self.max_clock_skew_s, self.order_reset_s, self.max_tick_hz) <= 0:
+        if min(self.max_clock_skew_s, self.order_reset_s, self.min_tick_hz) <= 0:
             raise ValueError("limits: times and rates must be > 0")
+        if self.min_tick_hz > self.max_tick_hz:
+            raise ValueError("limits: min_tick_hz > max_tick_hz")
         if self.max_objects_per_list < 1 or not 1 <= self.max_plan_version < 2**63:
             raise ValueError("limits: max_objects_per_list >= 1, max_plan_version in [1, 2^63)")
         if not 0 <= self.max_claimed_plan_version < self.max_plan_version:

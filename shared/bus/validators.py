@@ -54,8 +54,8 @@ def _count(name: str, items: Sized) -> str | None:
 
 
 def _tick_rate(tick_hz: float) -> str | None:
-    cap = limits().max_tick_hz
-    return None if 0 < tick_hz <= cap else f"tick_hz={tick_hz} outside (0, {cap}]"
+    low, high = limits().min_tick_hz, limits().max_tick_hz
+    return None if low <= tick_hz <= high else f"tick_hz={tick_hz} outside [{low}, {high}]"
 
 
 def _tick_stamp(header: Message, tick_hz: float) -> str | None:

@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import itertools
 import math
 
 import pytest
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
-from google.protobuf.descriptor import FieldDescriptor
 from google.protobuf.message import Message
 from rmmdet.v1.common_pb2 import Header
 from rmmdet.v1.perception_pb2 import TrackedObject, TrackedObjects
@@ -26,55 +24,7 @@ from shared.bus.codec import (
     schema_of,
 )
 from shared.bus.streams import all_rmmdet_message_types
-from shared.timebase import tick_stamp_ns
-
-_counter = itertools.count(1)
-
-
-def fill(msg: Message, depth: int = 0) -> Message:
-    """Set every field of `msg` to a valid, distinct value (2 elements per repeated message,
-    9 per repeated scalar: a 3x3 covariance, a 3x3 grid)."""
-    for field in msg.DESCRIPTOR.fields:
-        if field.containing_oneof is not None and msg.WhichOneof(field.containing_oneof.name):
-            continue  # one member of each oneof
-        if field.type == FieldDescriptor.TYPE_MESSAGE:
-            if depth > 4:
-                continue
-            if field.is_repeated:
-                for _ in range(2):
-                    fill(getattr(msg, field.name).add(), depth + 1)
-            else:
-                fill(getattr(msg, field.name), depth + 1)
-            continue
-        value = _scalar(field)
-        if field.is_repeated:
-            getattr(msg, field.name).extend(
-                [value] * 9
-                if field.type != FieldDescriptor.TYPE_STRING
-                else [f"{value}_{i}" for i in range(9)]
-            )
-        else:
-            setattr(msg, field.name, value)
-    return msg
-
-
-def _scalar(field: FieldDescriptor):
-    if field.type in (FieldDescriptor.TYPE_DOUBLE, FieldDescriptor.TYPE_FLOAT):
-        return 0.5  # a valid probability; four of them make a unit quaternion
-    if field.type == FieldDescriptor.TYPE_BOOL:
-        return True
-    if field.type == FieldDescriptor.TYPE_STRING:
-        return f"{field.name}_{next(_counter)}"
-    if field.type == FieldDescriptor.TYPE_BYTES:
-        return b"\x01\x02"
-    if field.type == FieldDescriptor.TYPE_ENUM:
-        return field.enum_type.values[-1].number
-    if field.name.endswith("_count"):
-        return 3  # grid 3 x 3 = the 9 repeated cells
-    # Distinct, increasing ids (a processing stage's end stays after its start), below 1e9: valid
-    # Timestamp nanos. (A modulus of 1000 wrapped as message types were added and broke that order.)
-    return next(_counter) % 999_999_999
-
+from tests.shared.bus.samples import fill, on_its_tick
 
 MESSAGE_TYPES = all_rmmdet_message_types()
 
@@ -88,17 +38,6 @@ def test_all_message_types_are_listed() -> None:
         "rmmdet.v1.GroundTruth",
     } <= names
     assert len(names) >= 40
-
-
-def on_its_tick(msg: Message) -> Message:
-    """A filled sim message stamped at its tick's time (validators check sim stamps against ticks)."""
-    name = msg.DESCRIPTOR.full_name
-    if name in ("rmmdet.v1.SimClock", "rmmdet.v1.GroundTruth"):
-        tick_hz = 1.0 / msg.step_s if name == "rmmdet.v1.SimClock" else msg.tick_hz
-        msg.header.stamp.FromNanoseconds(tick_stamp_ns(msg.header.epoch, msg.header.tick, tick_hz))
-        if name == "rmmdet.v1.SimClock":
-            msg.sim_time.CopyFrom(msg.header.stamp)
-    return msg
 
 
 @pytest.mark.parametrize("msg_type", MESSAGE_TYPES, ids=lambda t: t.DESCRIPTOR.full_name)
@@ -249,6 +188,7 @@ def _gt(tick: int = 120, tick_hz: float = 60.0, epoch: int = 10**18) -> GroundTr
         (_gt(), None),
         (_gt(tick_hz=0.0), "tick_hz"),  # crashed every sensor (ZeroDivisionError)
         (_gt(tick_hz=1e6), "tick_hz"),
+        (GroundTruth(tick_hz=1e-310), "tick_hz"),  # tick times overflowed (found by fuzzing)
         (lambda m: (m.header.stamp.FromNanoseconds(m.header.stamp.ToNanoseconds() + 10**9), m)[1], "stamp"),
         (RoutePlan(vehicle_id="v", plan_id="p", version=2**53, lane_ids=["a"]), "version"),
         (RoutePlan(vehicle_id="v", plan_id="p", version=2**53 - 1, lane_ids=["a"]), None),
@@ -258,7 +198,7 @@ def _gt(tick: int = 120, tick_hz: float = 60.0, epoch: int = 10**18) -> GroundTr
     ],
 )
 def test_physical_ranges_and_caps(msg, problem: str | None) -> None:
-    """streams.yaml `limits`: tick rate in (0, 1000] Hz, stamps on their tick, 512 objects, plan
+    """streams.yaml `limits`: tick rate in [1, 1000] Hz, stamps on their tick, 512 objects, plan
     versions <= 2^53 - 1 and claimed versions <= 2^52 - 1."""
     if callable(msg):
         msg = msg(_gt())
@@ -267,3 +207,13 @@ def test_physical_ranges_and_caps(msg, problem: str | None) -> None:
         assert found is None
     else:
         assert found is not None and problem in found
+
+
+def test_invalid_timestamps_are_rejected_not_raised() -> None:
+    """Timestamp.ToNanoseconds raises on nanos outside [0, 1e9): found by fuzzing a SimClock."""
+    dec = MessageDecoder(TrackedObjects)
+    enc = str(encoding_for(TrackedObjects))
+    for seconds, nanos in ((1, -5), (1, 10**9), (-1, 0), (10**12, 0)):
+        bad = _objects()
+        bad.header.stamp.seconds, bad.header.stamp.nanos = seconds, nanos
+        assert _reject(dec, bad.SerializeToString(), enc) == RejectReason.RANGE
