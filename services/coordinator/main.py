@@ -149,6 +149,7 @@ class CoordinatorService:
         interval_s = self.settings.report_interval_s
         next_log_s = self.clock.now_s() + interval_s
         while not shutdown.requested:
+            self.node.health.beat()
             self.ingest(min(POLL_S, self.core.next_map_s - self.clock.now_s()))
             now = self.clock.now_s()
             tick = self.core.tick(now, time.time_ns())

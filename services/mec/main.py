@@ -89,6 +89,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         node.health.set_status(lambda: core.health(sim_time.now_s()))
         last_log = time.monotonic()
         while not shutdown.requested:
+            node.health.beat()
             # The join waits on the clock of record: a sim held back by a slow consumer holds the
             # wait too, so an input late only because the host is busy is not dropped.
             received = queue.get(timeout=core.wait_s(sim_time.now_s(), sim_time.speed, IDLE_WAIT_S))

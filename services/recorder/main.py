@@ -88,6 +88,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             subscribers = subscribe_recorder(node.session, keys, recorder, monitors)
             log.info("recording %s to %s", " ".join(keys), out)
             while not shutdown.wait(LOOP_S):
+                node.health.beat()
                 now_s = time.monotonic()
                 if recorder.failed:
                     status = (CRITICAL, f"write failed: {recorder.error}")

@@ -38,6 +38,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         last_report_s = 0.0
         last_count = -1
         while not shutdown.wait(TRANSPORT_POLL_S):
+            node.health.beat()
             transports = len(node.session.info.transports())
             now_s = time.monotonic()
             if transports != last_count and now_s - last_report_s >= args.report_interval_s:

@@ -119,6 +119,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         node.health.set_status(status)
         last_log = time.monotonic()
         while not shutdown.requested:
+            node.health.beat()
             received = gt_sub.recv(timeout=0.1)
             if received is None:
                 continue

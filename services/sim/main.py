@@ -111,6 +111,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             f"to {settings.pacing.streams} within {settings.pacing.max_lag_s} s" if pacing else "off",
         )
         while not shutdown.requested:
+            node.health.beat()
             if plans is not None:  # replies and pushes that arrived, then this tick's requests
                 plans.tick(tick_stamp_ns(epoch, traffic.tick, settings.tick_hz))
             t0 = time.time_ns()

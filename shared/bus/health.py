@@ -122,6 +122,10 @@ class InputMonitor:
 
 
 StatusFn = Callable[[], tuple["HealthLevel.ValueType", str]]
+#: A main loop that has not gone round for this long is stalled: CRITICAL in its health, and the
+#: watchdog (services/watchdog) restarts the process (its `--stall-after-s` defaults to this). Every
+#: service loop wakes at least once a second, busy or idle.
+LOOP_STALLED_AFTER_S = 3.0
 
 
 class HealthTracker:
@@ -133,6 +137,7 @@ class HealthTracker:
         self.counters = counters
         self.version = version
         self.started_s = time.monotonic()
+        self._beat_s: float | None = None  # monotonic time of the main loop's last round
         self._inputs: list[InputMonitor] = []
         self._status_fn: StatusFn | None = None
         self._lock = threading.Lock()
@@ -148,11 +153,24 @@ class HealthTracker:
         never call Zenoh APIs (that can deadlock the session) or block."""
         self._status_fn = fn
 
+    def beat(self) -> None:
+        """The main loop went round: called once per iteration (a store; no lock needed)."""
+        self._beat_s = time.monotonic()
+
+    def loop_age_s(self) -> float:
+        """Seconds since the last `beat`; -1 before the first."""
+        beat_s = self._beat_s
+        return -1.0 if beat_s is None else time.monotonic() - beat_s
+
     def report(self) -> ServiceHealth:
         with self._lock:
             inputs = [m.to_proto() for m in self._inputs]
         level = worst(*(i.level for i in inputs))
         messages = [f"{i.key_expr}: {HealthLevel.Name(i.level)}" for i in inputs if i.level != NOMINAL]
+        loop_age_s = self.loop_age_s()
+        if loop_age_s > LOOP_STALLED_AFTER_S:  # the loop is stuck; Zenoh's threads still answer this
+            level = worst(level, CRITICAL)
+            messages.insert(0, f"main loop stalled for {loop_age_s:.1f} s")
         if self._status_fn is not None:
             own_level, own_message = self._status_fn()
             level = worst(level, own_level)
@@ -168,6 +186,7 @@ class HealthTracker:
             version=self.version,
             inputs=inputs,
             counters=[Counter(name=k, value=v) for k, v in sorted(self.counters.snapshot().items())],
+            loop_age_s=loop_age_s,
         )
         health.header.stamp.GetCurrentTime()
         return health

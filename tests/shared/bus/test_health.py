@@ -7,7 +7,16 @@ from rmmdet.v1.common_pb2 import Header
 from rmmdet.v1.health_pb2 import HealthLevel
 
 from shared.bus.codec import Counters
-from shared.bus.health import CRITICAL, DEGRADED, NOMINAL, HealthTracker, InputMonitor, RateThresholds, worst
+from shared.bus.health import (
+    CRITICAL,
+    DEGRADED,
+    LOOP_STALLED_AFTER_S,
+    NOMINAL,
+    HealthTracker,
+    InputMonitor,
+    RateThresholds,
+    worst,
+)
 
 
 class FakeClock:
@@ -81,3 +90,19 @@ def test_worst() -> None:
     assert worst(NOMINAL, DEGRADED, NOMINAL) == DEGRADED
     assert worst(DEGRADED, CRITICAL) == CRITICAL
     assert worst() == NOMINAL
+
+
+def test_a_stalled_main_loop_is_critical(monkeypatch: pytest.MonkeyPatch) -> None:
+    now = [100.0]
+    monkeypatch.setattr("shared.bus.health.time.monotonic", lambda: now[0])
+    tracker = HealthTracker("mec", "agent1", Counters())
+    assert tracker.report().loop_age_s == -1.0 and tracker.report().level == NOMINAL  # no loop yet
+    tracker.beat()
+    now[0] += LOOP_STALLED_AFTER_S
+    report = tracker.report()
+    assert report.loop_age_s == LOOP_STALLED_AFTER_S and report.level == NOMINAL
+    now[0] += 0.5
+    report = tracker.report()
+    assert report.level == CRITICAL and report.message.startswith("main loop stalled for 3.5 s")
+    tracker.beat()
+    assert tracker.report().level == NOMINAL

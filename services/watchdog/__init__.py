@@ -1,0 +1,1 @@
+"""Watchdog: restarts supervised services whose main loop stalled, holds back crash loops."""

@@ -1,0 +1,5 @@
+import sys
+
+from services.watchdog.main import cli
+
+sys.exit(cli())

@@ -1,0 +1,1 @@
+"""Process supervision beyond supervisord's restart-on-exit: stalled loops and crash loops (`watchdog`)."""

@@ -1,0 +1,112 @@
+"""The watchdog's decisions: which supervised program to restart (its main loop stalled) and which to
+hold back (it crash-loops), from what supervisord and the services' health reports say.
+
+supervisord restarts a program that exits, but not one that is alive and stuck (its loop blocked; its
+Zenoh threads still answer health queries, reporting the loop's heartbeat age), and it retries a
+crash-looping one with a short linear backoff forever. `Watchdog.observe` is called at every poll with
+the programs' states and each pid's loop age and returns the actions to take:
+
+- `restart`: RUNNING with its loop not gone round for `stall_after_s` (the supervisor kills it; its
+  autorestart starts it afresh);
+- `hold`: started `crash_starts` times within `crash_window_s` (exits and watchdog restarts alike):
+  stopped for `backoff_s`, doubling on every further hold up to `backoff_max_s`, reset once it has run
+  a whole window without a new start;
+- `release`: a hold has run out: start it again.
+Pure logic (times in seconds on any one clock); `services/watchdog` applies the actions.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Literal
+
+from shared.bus.health import LOOP_STALLED_AFTER_S
+
+RUNNING = "RUNNING"
+
+
+@dataclass(frozen=True)
+class WatchdogConfig:
+    stall_after_s: float = LOOP_STALLED_AFTER_S
+    crash_starts: int = 3
+    crash_window_s: float = 60.0
+    backoff_s: float = 30.0
+    backoff_max_s: float = 300.0
+
+    def __post_init__(self) -> None:
+        if min(self.stall_after_s, self.crash_window_s, self.backoff_s) <= 0 or self.crash_starts < 2:
+            raise ValueError("watchdog: times must be > 0 and crash_starts >= 2")
+        if self.backoff_max_s < self.backoff_s:
+            raise ValueError("watchdog: backoff_max_s < backoff_s")
+
+
+@dataclass(frozen=True)
+class Program:
+    """One program as supervisord reports it (`supervisor.getAllProcessInfo`)."""
+
+    name: str
+    state: str  # supervisord's statename: RUNNING, STARTING, BACKOFF, STOPPED, EXITED, FATAL, ...
+    pid: int
+    start_s: float  # when its current (or last) process started; 0 if never
+
+
+@dataclass(frozen=True)
+class Action:
+    kind: Literal["restart", "hold", "release"]
+    program: str
+    reason: str
+
+
+@dataclass
+class _State:
+    starts: deque[float] = field(default_factory=deque)
+    last_start_s: float = 0.0
+    held_until_s: float | None = None
+    backoff_s: float = 0.0
+    killed_pid: int = 0  # restarted already: not again while the same process lingers
+
+
+class Watchdog:
+    def __init__(self, cfg: WatchdogConfig | None = None) -> None:
+        self.cfg = cfg or WatchdogConfig()
+        self._programs: dict[str, _State] = {}
+        self.restarts = 0
+        self.holds = 0
+
+    def held(self, now_s: float) -> dict[str, float]:
+        """Programs held back now, with the seconds left."""
+        return {n: s.held_until_s - now_s for n, s in self._programs.items() if s.held_until_s is not None}
+
+    def observe(self, now_s: float, programs: list[Program], loop_age_s: dict[int, float]) -> list[Action]:
+        """The actions to take now. `loop_age_s`: each pid's reported loop heartbeat age (-1: no loop
+        yet; a pid that did not report is not judged)."""
+        cfg, actions = self.cfg, []
+        for p in programs:
+            st = self._programs.setdefault(p.name, _State(backoff_s=cfg.backoff_s))
+            if p.start_s and p.start_s != st.last_start_s:
+                st.last_start_s = p.start_s
+                st.starts.append(p.start_s)
+            while st.starts and st.starts[0] < now_s - cfg.crash_window_s:
+                st.starts.popleft()
+            if st.held_until_s is not None:
+                if now_s >= st.held_until_s:
+                    st.held_until_s = None
+                    actions.append(Action("release", p.name, "crash-loop hold over"))
+                continue
+            if len(st.starts) >= cfg.crash_starts:
+                st.held_until_s = now_s + st.backoff_s
+                reason = f"{len(st.starts)} starts in {cfg.crash_window_s:g} s: held {st.backoff_s:g} s"
+                st.backoff_s = min(2 * st.backoff_s, cfg.backoff_max_s)
+                st.starts.clear()
+                self.holds += 1
+                actions.append(Action("hold", p.name, reason))
+                continue
+            if not st.starts and p.state == RUNNING and now_s - st.last_start_s > cfg.crash_window_s:
+                st.backoff_s = cfg.backoff_s  # ran a whole window without a new start: forgiven
+            age = loop_age_s.get(p.pid, -1.0)
+            if p.state == RUNNING and age > cfg.stall_after_s and p.pid != st.killed_pid:
+                st.killed_pid = p.pid
+                self.restarts += 1
+                actions.append(Action("restart", p.name, f"main loop stalled for {age:.1f} s"))
+        return actions

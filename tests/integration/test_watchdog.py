@@ -1,0 +1,144 @@
+"""The watchdog under a real supervisord (issue 17: stall detection, crash-loop backoff).
+
+supervisord runs a router, a service whose loop hangs 1.5 s after it starts (alive to Zenoh:
+tests/integration/hang_service.py), a program that crashes 1.5 s after every start, and the watchdog
+(`services/watchdog`, backoff shortened to 8 s for the test; its default of 30 s is unit-tested):
+- the stuck service is restarted within 5 s of its loop stopping;
+- the crash loop is held (not running) for the whole backoff once it started 3 times, the watchdog's
+  health is DEGRADED naming it meanwhile, and it is started again afterwards.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from rmmdet.v1.health_pb2 import HealthLevel
+
+from services.cli.health import query_health
+from services.watchdog.main import supervisor_proxy
+from shared.bus.session import open_session
+from shared.bus.zenoh_config import DEFAULT_CLIENT_CONFIG, zenoh_config
+from tests.helpers import REPO_ROOT, free_port, stop
+
+pytestmark = [pytest.mark.integration, pytest.mark.fault, pytest.mark.timeout(120)]
+
+SCALE = float(os.environ.get("RSP_TIME_SCALE", "1"))
+HANG_AFTER_S = 1.5
+BACKOFF_S = 8.0
+RESTART_WITHIN_S = 5.0 * SCALE
+
+
+def program(name: str, command: str, logs: Path) -> str:
+    return f"""[program:{name}]
+command={command}
+directory={REPO_ROOT}
+autorestart=true
+startsecs=1
+startretries=1000
+stopsignal=INT
+stopwaitsecs=3
+stopasgroup=true
+killasgroup=true
+redirect_stderr=true
+stdout_logfile={logs / f"{name}.log"}
+environment=PYTHONUNBUFFERED="1"
+"""
+
+
+@pytest.fixture
+def supervised(tmp_path: Path) -> Iterator[tuple[str, str, Path]]:
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    sock = tmp_path / "supervisor.sock"
+    py = sys.executable
+    conf = tmp_path / "supervisord.conf"
+    conf.write_text(
+        f"""[unix_http_server]
+file={sock}
+
+[supervisord]
+logfile={tmp_path / "supervisord.log"}
+pidfile={tmp_path / "supervisord.pid"}
+nodaemon=true
+
+[rpcinterface:supervisor]
+supervisor.rpcinterface_factory = supervisor.rpcinterface:make_main_rpcinterface
+
+"""
+        + program("router", f"{py} -m services.router --listen {endpoint}", tmp_path)
+        + program(
+            "hang",
+            f"{py} -m tests.integration.hang_service --hang-after-s {HANG_AFTER_S} --connect {endpoint}",
+            tmp_path,
+        )
+        + program("crasher", f"{py} -c 'import time, sys; time.sleep({HANG_AFTER_S}); sys.exit(3)'", tmp_path)
+        + program(
+            "watchdog",
+            f"{py} -m services.watchdog --supervisor-url unix://{sock} --backoff-s {BACKOFF_S} "
+            f"--connect {endpoint}",
+            tmp_path,
+        )
+    )
+    proc = subprocess.Popen(
+        [str(Path(py).parent / "supervisord"), "-c", str(conf)], cwd=REPO_ROOT, start_new_session=True
+    )
+    try:
+        yield f"unix://{sock}", endpoint, tmp_path
+    finally:
+        stop(proc, signal.SIGTERM, timeout_s=20)
+
+
+def hang_events(logs: Path) -> list[dict]:
+    path = logs / "hang.log"
+    lines = path.read_text().splitlines() if path.exists() else []
+    return [json.loads(line) for line in lines if line.startswith('{"event"')]
+
+
+def test_a_stuck_service_is_restarted_and_a_crash_loop_held(supervised: tuple[str, str, Path]) -> None:
+    url, endpoint, logs = supervised
+    deadline = time.monotonic() + 30
+    while True:
+        try:
+            proxy = supervisor_proxy(url)
+            first = proxy.supervisor.getProcessInfo("hang")
+            if first["statename"] == "RUNNING":
+                break
+        except OSError:
+            pass
+        assert time.monotonic() < deadline, "supervisord did not start the programs"
+        time.sleep(0.2)
+    # The stuck service: a new process within 5 s of the loop stopping (its log says when, exactly).
+    while len(events := hang_events(logs)) < 3:
+        assert time.monotonic() < deadline + 30, f"the stuck service was not restarted: {events}"
+        time.sleep(0.1)
+    assert [e["event"] for e in events[:3]] == ["start", "hanging", "start"]
+    restart_s = events[2]["t"] - events[1]["t"]
+    print(f"stuck service restarted {restart_s:.2f} s after its loop stopped")
+    assert restart_s <= RESTART_WITHIN_S
+    # The crash loop: held (not running) for the backoff, reported meanwhile, then started again.
+    conf = zenoh_config(DEFAULT_CLIENT_CONFIG, connect=[endpoint])
+    with open_session(conf, timeout_s=10) as session:
+        while (held := proxy.supervisor.getProcessInfo("crasher"))["statename"] != "STOPPED":
+            assert time.monotonic() < deadline + 60, "the crash loop was not held"
+            time.sleep(0.1)
+        held_at = time.monotonic()
+        time.sleep(1.0)
+        reports, _ = query_health(session, timeout_s=2.0)
+        (watchdog,) = [r for r in reports if r.service == "watchdog"]
+        assert watchdog.level == HealthLevel.HEALTH_LEVEL_DEGRADED and "crasher" in watchdog.message
+        while (again := proxy.supervisor.getProcessInfo("crasher"))["start"] == held["start"]:
+            assert time.monotonic() < held_at + BACKOFF_S + 5, "the crash loop was never started again"
+            time.sleep(0.1)
+    gap_s = again["start"] - held["start"]  # from its last start before the hold to the next
+    print(
+        f"crash loop: no start for {gap_s:.1f} s (backoff {BACKOFF_S} s); watchdog said: {watchdog.message}"
+    )
+    assert gap_s >= BACKOFF_S

@@ -1,0 +1,70 @@
+"""Watchdog decisions (shared/supervision/watchdog.py): known answers on a scripted timeline."""
+
+from __future__ import annotations
+
+import pytest
+
+from shared.bus.health import LOOP_STALLED_AFTER_S
+from shared.supervision.watchdog import Program, Watchdog, WatchdogConfig
+
+
+def running(name: str, pid: int, start_s: float) -> Program:
+    return Program(name, "RUNNING", pid, start_s)
+
+
+def test_defaults_are_the_documented_ones() -> None:
+    cfg = WatchdogConfig()
+    assert cfg.stall_after_s == LOOP_STALLED_AFTER_S == 3.0
+    assert cfg.backoff_s == 30.0 and cfg.crash_starts == 3 and cfg.crash_window_s == 60.0
+
+
+def test_a_stalled_loop_is_restarted_once_per_process() -> None:
+    w = Watchdog()
+    assert w.observe(10.0, [running("mec", 7, 1.0)], {7: 0.2}) == []
+    assert w.observe(11.0, [running("mec", 7, 1.0)], {7: -1.0}) == []  # no loop yet: not judged
+    assert w.observe(12.0, [running("mec", 7, 1.0)], {}) == []  # no report: not judged
+    (action,) = w.observe(13.0, [running("mec", 7, 1.0)], {7: 3.2})
+    assert (action.kind, action.program) == ("restart", "mec") and "3.2 s" in action.reason
+    assert w.observe(13.5, [running("mec", 7, 1.0)], {7: 3.7}) == []  # still dying: not twice
+    assert w.observe(15.0, [running("mec", 8, 14.0)], {8: 0.1}) == []  # its successor is fine
+    assert w.restarts == 1
+
+
+def test_a_crash_loop_is_held_with_doubling_backoff_then_forgiven() -> None:
+    w = Watchdog(WatchdogConfig(backoff_s=30.0, backoff_max_s=100.0))
+    starts = [1.0, 5.0, 10.0]
+    actions = []
+    for t in starts:
+        actions += w.observe(t + 0.5, [running("cam", int(t) + 1, t)], {})
+    assert [a.kind for a in actions] == ["hold"] and w.held(10.5) == {"cam": pytest.approx(30.0)}
+    stopped = Program("cam", "STOPPED", 0, 10.0)
+    assert w.observe(40.0, [stopped], {}) == []  # held
+    (release,) = w.observe(40.6, [stopped], {})
+    assert release.kind == "release"
+    for t in (41.0, 45.0, 49.0):  # crashes on at once: held again, twice as long
+        actions = w.observe(t + 0.5, [running("cam", int(t), t)], {})
+    assert [a.kind for a in actions] == ["hold"] and w.held(49.5) == {"cam": pytest.approx(60.0)}
+    w.observe(109.6, [stopped], {})  # released
+    w.observe(110.0, [running("cam", 200, 110.0)], {})
+    w.observe(171.0, [running("cam", 200, 110.0)], {})  # a whole window up: the backoff is forgiven
+    for t in (180.0, 181.0, 182.0):
+        actions = w.observe(t + 0.5, [running("cam", int(t), t)], {})
+    assert [a.kind for a in actions] == ["hold"] and w.held(182.5) == {"cam": pytest.approx(30.0)}
+    assert w.holds == 3
+
+
+def test_restarts_of_a_hanging_program_count_as_starts() -> None:
+    w = Watchdog(WatchdogConfig(crash_starts=3))
+    kinds = []
+    for i, t in enumerate((1.0, 5.0, 10.0)):
+        kinds += [a.kind for a in w.observe(t, [running("hang", i + 1, t)], {i + 1: 0.1})]
+        kinds += [a.kind for a in w.observe(t + 4.0, [running("hang", i + 1, t)], {i + 1: 4.0})]
+    assert kinds == ["restart", "restart", "hold"]  # the third start is a crash loop: held, not judged
+
+
+@pytest.mark.parametrize(
+    "kwargs", [{"stall_after_s": 0}, {"crash_starts": 1}, {"backoff_s": 10, "backoff_max_s": 5}]
+)
+def test_bad_configs_are_refused(kwargs: dict) -> None:
+    with pytest.raises(ValueError):
+        WatchdogConfig(**kwargs)
