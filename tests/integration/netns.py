@@ -8,7 +8,8 @@
 Each namespace gets a veth into a bridge in the root namespace (which holds .1, so the test process can
 reach every host); the /24 is chosen from the process id so concurrent runs do not collide. A cut is an
 nftables table in the host's namespace dropping everything on its veth both ways (a pulled cable
-that the kernel does not report: no RST, no ICMP). Needs root, `ip` (iproute2) and `nft` (nftables).
+that the kernel does not report: no RST, no ICMP); a lossy link drops a share of the packets at random
+(`nft numgen`, as `tc netem` is not available). Needs root, `ip` (iproute2) and `nft` (nftables).
 """
 
 from __future__ import annotations
@@ -92,7 +93,20 @@ class NetHosts:
         )
         subprocess.run(["ip", "netns", "exec", ns, "nft", "-f", "-"], input=rules, check=True, text=True)
 
+    def lossy(self, name: str, percent: int) -> None:
+        """Drop `percent` % of the packets on the host's link, each way, at random (no tc netem here)."""
+        ns = self.namespace(name)
+        drop = f"numgen random mod 100 < {int(percent)} drop"
+        rules = (
+            f"table inet {CUT_TABLE} {{\n"
+            f"  chain in {{ type filter hook input priority 0; iifname {VETH} {drop}; }}\n"
+            f"  chain out {{ type filter hook output priority 0; oifname {VETH} {drop}; }}\n"
+            "}\n"
+        )
+        subprocess.run(["ip", "netns", "exec", ns, "nft", "-f", "-"], input=rules, check=True, text=True)
+
     def restore(self, name: str) -> None:
+        """Undo `cut` or `lossy`."""
         _run("ip", "netns", "exec", self.namespace(name), "nft", "delete", "table", "inet", CUT_TABLE)
 
     def destroy(self) -> None:

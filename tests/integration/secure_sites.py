@@ -207,6 +207,7 @@ class Sites:
     deployment: Deployment
     watch: Watch
     out: Path
+    session: zenoh.Session  # the operator's, on the bridge
 
 
 def dump_logs(out: Path, lines: int = 15) -> str:
@@ -255,7 +256,7 @@ def five_hosts(
             watch.maps.wait(lambda s: all(s.get(a) == "LIVE" for a in AGENTS), startup_s, since=0.0)
         except AssertionError as err:
             raise AssertionError(f"{err}\n{dump_logs(out)}") from None
-        yield Sites(hosts, dep, watch, out)
+        yield Sites(hosts, dep, watch, out, node.session)
         exited = [h for h, p in launchers.items() if p.poll() is not None]
         assert not exited, f"launchers exited: {exited}\n{dump_logs(out)}"
     finally:

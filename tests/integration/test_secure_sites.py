@@ -12,7 +12,8 @@ router enforces the generated access control. The test process watches from the 
   same stand-in through one plain loopback router;
 - cutting site2's link for 10 s (nftables drop, both ways): agent2 STALE within 1 s, the others LIVE
   throughout, agent2 LIVE again within 3 s of the link's return; the plans the coordinator pushes on
-  the coverage changes are all acknowledged.
+  the coverage changes are all acknowledged;
+- 20 % packet loss on the vehicles' link: every plan pushed meanwhile is acknowledged, none given up.
 
 Needs root, iproute2 and nftables (`.ci/run` installs them); skipped elsewhere.
 """
@@ -28,6 +29,7 @@ import pytest
 
 from tests.helpers import Router
 from tests.integration import netns
+from tests.integration.coordinator_client import coordinator_health, counters
 from tests.integration.secure_sites import AGENTS, Sites, five_hosts, loopback_transits, wait_for
 
 UNAVAILABLE = netns.available()
@@ -45,6 +47,7 @@ CUT_S = 10.0
 STALE_WITHIN_S = 1.0 * SCALE
 LIVE_WITHIN_S = 3.0 * SCALE
 TRANSIT_SAMPLES = 150
+LOSS_PERCENT = 20
 MIN_ACCEPTED = 3
 
 
@@ -100,3 +103,32 @@ def test_a_cut_site_goes_stale_and_comes_back(sites: Sites) -> None:
     assert pushed >= 1
     during = [states for t, states in maps.since(cut_at) if t <= live_at]
     assert all(states.get(a) == "LIVE" for states in during for a in others), "other agents flipped"
+
+
+def test_plans_are_all_delivered_over_a_lossy_link(sites: Sites) -> None:
+    """20 % packet loss each way on the vehicles' link while site3 drops out and returns (so the
+    coordinator pushes new plans): every pushed plan is acknowledged, none given up (TCP retransmits
+    under Zenoh's reliable channel; the coordinator resends until acknowledged)."""
+    watch = sites.watch
+    with watch.lock:
+        before = set(watch.pushed)
+    sites.hosts.lossy("vehicles", LOSS_PERCENT)
+    try:
+        sites.hosts.cut("site3")
+        watch.maps.wait(lambda s: s.get("agent3") != "LIVE", 5 * SCALE, since=time.monotonic())
+        sites.hosts.restore("site3")
+        watch.maps.wait(lambda s: s.get("agent3") == "LIVE", 10 * SCALE, since=time.monotonic())
+        wait_for(lambda: len(watch.pushed - before) >= 1, 20 * SCALE, "plans pushed over the lossy link")
+        wait_for(lambda: not watch.unacknowledged_pushes(), 20 * SCALE, "every pushed plan acknowledged")
+    finally:
+        sites.hosts.restore("vehicles")
+    with watch.lock:
+        pushed = len(watch.pushed - before)
+    coordinator = coordinator_health(sites.session)
+    assert coordinator is not None
+    given_up = counters(coordinator).get("plans/given_up", 0)
+    print(
+        f"{LOSS_PERCENT} % loss on the vehicles' link: {pushed} plans pushed, all acknowledged, "
+        f"{given_up} given up"
+    )
+    assert given_up == 0
