@@ -59,7 +59,9 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     )
     with Node(conf, service="mec", instance=agent, scope=agent, stop=shutdown.event) as node:
         objects_pub = node.publisher("objects", agent=agent, source_id=f"{agent}/mec")
-        queue = BoundedQueue[Received](QUEUE_PER_SENSOR * len(core.kinds), OverflowPolicy.DROP_OLDEST)
+        queue = BoundedQueue[Received](
+            QUEUE_PER_SENSOR * len(core.kinds), OverflowPolicy.DROP_OLDEST, node.counters
+        )
         # No expected rate on the bus-level monitors: a missing sensor makes this MEC DEGRADED (its
         # status below names it), not CRITICAL; the rates are still reported per input.
         # Input health is judged on the clock of record (sim time when a sim runs): a slow host slows

@@ -62,7 +62,9 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         gt_pub, clock_pub = node.publisher("ground_truth"), node.publisher("sim_clock")
         # The scene is fixed: each agent's calibration is made once.
         calibs = {node.publisher("calibration", agent=a): calibration_set(scene, a) for a in scene.agents}
-        outputs = BoundedQueue[Received](PACING_QUEUE, OverflowPolicy.DROP_OLDEST)
+        outputs = BoundedQueue[Received](
+            PACING_QUEUE, OverflowPolicy.DROP_OLDEST, node.counters, "dropped/pacing"
+        )
         for stream in settings.pacing.streams if pacing else []:
             node.subscribe_stream(stream, queue=outputs)
         presence = node.presence(get_stream("alive").pattern()) if pacing else None

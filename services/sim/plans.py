@@ -90,7 +90,10 @@ class PlanClient:
         }
         self.decoder = MessageDecoder(RouteResponse, node.counters)
         self.outcomes: BoundedQueue[Outcome] = BoundedQueue(
-            REPLY_QUEUE_PER_VEHICLE * max(1, len(traffic.vehicles)), OverflowPolicy.DROP_OLDEST
+            REPLY_QUEUE_PER_VEHICLE * max(1, len(traffic.vehicles)),
+            OverflowPolicy.DROP_OLDEST,
+            node.counters,
+            "dropped/plan_outcomes",
         )
         self.pushed = node.subscribe_stream("route_plan", maxsize=1024)
         self.ack_pubs: dict[str, Publisher] = {

@@ -14,6 +14,7 @@ from collections.abc import Callable
 
 import zenoh
 
+from shared.bus.codec import Counters
 from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.bus.streams import get_stream
 
@@ -40,12 +41,15 @@ class LivelinessMonitor:
         on_change: ChangeFn | None = None,
         *,
         queue_changes: bool = False,
+        counters: Counters | None = None,
     ) -> None:
         self._lock = threading.Lock()
         self._alive: dict[str, float] = {}
         self._on_change = on_change
         self._changes: BoundedQueue[tuple[str, bool]] | None = (
-            BoundedQueue(CHANGE_QUEUE, OverflowPolicy.DROP_OLDEST) if queue_changes else None
+            BoundedQueue(CHANGE_QUEUE, OverflowPolicy.DROP_OLDEST, counters, "dropped/presence_changes")
+            if queue_changes
+            else None
         )
         self.joins = 0
         self.leaves = 0

@@ -98,8 +98,7 @@ class Subscription:
             item = Received(
                 str(sample.key_expr), decoded.message, decoded.header, len(payload), time.time_ns()
             )
-            if not self.queue.put(item):
-                self._counters.inc("dropped/queue_full")
+            self.queue.put(item)  # a full queue counts its own drops (made with the node's counters)
         except Exception:  # a bug here must not kill Zenoh's dispatch thread
             self._counters.inc("rejected/internal")
             log.exception("subscriber callback failed on %s", self.key_expr)
@@ -315,7 +314,8 @@ class Node:
     ) -> Subscription:
         """Subscribe to `key_expr`; `expected_type=None` accepts any known schema (tools). Several
         subscriptions may share one `queue` (a service that waits on all its inputs at once); then
-        `maxsize` and `policy` are the queue's own. `max_age_s` and `max_future_s` are judged on
+        `maxsize` and `policy` are the queue's own (make it with the node's counters: it counts its drops).
+        `max_age_s` and `max_future_s` are judged on
         `clock_s` (the clock of record: `SimTime.now_s` where a sim runs)."""
         decoder = MessageDecoder(
             expected_type, self.counters, max_payload_bytes, max_age_s, clock_s, max_future_s
@@ -323,7 +323,7 @@ class Node:
         monitor = InputMonitor(key_expr, expected_rate_hz, self.thresholds)
         self.health.add_input(monitor)
         if queue is None:
-            queue = BoundedQueue(maxsize, policy)
+            queue = BoundedQueue(maxsize, policy, self.counters)
         sub = Subscription(self.session, key_expr, decoder, queue, monitor, self.counters)
         self._declared.append(sub)
         return sub
@@ -358,7 +358,7 @@ class Node:
 
     def presence(self, key_expr: str) -> LivelinessMonitor:
         """Watch the presence tokens under `key_expr`; the loop takes joins/leaves with `changes()`."""
-        monitor = LivelinessMonitor(self.session, key_expr, queue_changes=True)
+        monitor = LivelinessMonitor(self.session, key_expr, queue_changes=True, counters=self.counters)
         self._declared.append(monitor)
         return monitor
 

@@ -6,6 +6,9 @@ so every subscription feeds one of these. Nothing is lost silently: every drop i
 - `DROP_OLDEST`: latest-wins streams (frames, object lists): a full queue discards its oldest item.
 - `REJECT_NEWEST`: must-deliver streams where order matters and the producer can retry: a full
   queue refuses the new item (`put` returns False).
+
+Given `counters`, a queue exports its drops itself (`counters.inc(drop_counter)`, both policies), so a
+service's health accounts for every item: what was put = what was taken + what was counted dropped.
 """
 
 from __future__ import annotations
@@ -14,9 +17,14 @@ import threading
 import time
 from collections import deque
 from enum import StrEnum
-from typing import Generic, TypeVar
+from typing import TYPE_CHECKING, Generic, TypeVar
+
+if TYPE_CHECKING:
+    from shared.bus.codec import Counters
 
 T = TypeVar("T")
+#: The counter a queue's drops go to unless it is given another name.
+DROPPED = "dropped/queue_full"
 
 
 class OverflowPolicy(StrEnum):
@@ -27,11 +35,19 @@ class OverflowPolicy(StrEnum):
 class BoundedQueue(Generic[T]):
     """Thread-safe FIFO with a hard capacity and drop accounting."""
 
-    def __init__(self, maxsize: int, policy: OverflowPolicy = OverflowPolicy.DROP_OLDEST) -> None:
+    def __init__(
+        self,
+        maxsize: int,
+        policy: OverflowPolicy = OverflowPolicy.DROP_OLDEST,
+        counters: Counters | None = None,
+        drop_counter: str = DROPPED,
+    ) -> None:
         if maxsize < 1:
             raise ValueError("maxsize must be >= 1")
         self.maxsize = maxsize
         self.policy = policy
+        self._counters = counters
+        self._drop_counter = drop_counter
         self._items: deque[T] = deque()
         self._cond = threading.Condition()
         self._closed = False
@@ -45,6 +61,8 @@ class BoundedQueue(Generic[T]):
                 return False
             if len(self._items) >= self.maxsize:
                 self.dropped += 1
+                if self._counters is not None:
+                    self._counters.inc(self._drop_counter)
                 if self.policy is OverflowPolicy.REJECT_NEWEST:
                     return False
                 self._items.popleft()

@@ -7,6 +7,7 @@ import time
 
 import pytest
 
+from shared.bus.codec import Counters
 from shared.bus.queues import BoundedQueue, OverflowPolicy
 
 
@@ -56,3 +57,14 @@ def test_close_wakes_waiters_and_refuses_puts() -> None:
 def test_invalid_size() -> None:
     with pytest.raises(ValueError):
         BoundedQueue(0)
+
+
+def test_a_queue_with_counters_exports_every_drop() -> None:
+    counters = Counters()
+    oldest: BoundedQueue[int] = BoundedQueue(2, OverflowPolicy.DROP_OLDEST, counters)
+    newest: BoundedQueue[int] = BoundedQueue(2, OverflowPolicy.REJECT_NEWEST, counters, "dropped/acks")
+    for i in range(5):
+        oldest.put(i)
+        newest.put(i)
+    assert counters.snapshot() == {"dropped/queue_full": 3, "dropped/acks": 3}
+    assert oldest.drain() == [3, 4] and newest.drain() == [0, 1]
