@@ -254,6 +254,15 @@ class TrafficSim:
         v.plan_id = plan_id
         return Ack.ACCEPTED
 
+    def drop_plan(self, vehicle_id: str) -> bool:
+        """Stop following the vehicle's plan (its TTL ran out): it routes itself again, by the shortest
+        route, as without a coordinator. Its version is kept, so the same plan cannot come back. True if
+        it had lanes left to follow."""
+        v = self._by_id[vehicle_id]
+        had = bool(v.plan)
+        v.plan.clear()
+        return had
+
     def routing_destination(self, v: Vehicle) -> str:
         """The junction a plan made now should aim at: the next trip's when this lane ends the current."""
         if v.path.lane_id is not None and self.net.lane_end_junction(v.lane_id) == v.destination:

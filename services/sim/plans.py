@@ -10,7 +10,7 @@ and its TTL is within `plan_max_ttl_s` (`plan_problem`); anything else is counte
 vehicle from taking a later, genuine reply to the same request (a rogue second queryable cannot answer
 for the coordinator). Every plan considered is answered with a RouteAck carrying the vehicle's decision
 (ACCEPTED, DUPLICATE, REJECTED_STALE, REJECTED_INVALID). Without a coordinator vehicles keep driving:
-no plan means the shortest route.
+no plan means the shortest route, and a plan is followed only until its TTL (`PlanExpiry`).
 """
 
 from __future__ import annotations
@@ -65,6 +65,26 @@ class PlanCheck:
         return problem is None
 
 
+class PlanExpiry:
+    """When each vehicle's followed plan runs out (`valid_until`, wall ns): the plan is dropped then and
+    the vehicle routes itself by the shortest route, as with no coordinator, until a new plan comes (it
+    asks at its next lane as always). A coordinator that is gone therefore steers nobody for longer than
+    its plans' TTL (`plan_ttl_s`, 120 s)."""
+
+    def __init__(self) -> None:
+        self._until_ns: dict[str, int] = {}
+
+    def followed(self, vehicle_id: str, valid_until_ns: int) -> None:
+        self._until_ns[vehicle_id] = valid_until_ns
+
+    def expired(self, now_ns: int) -> list[str]:
+        """Vehicles whose plan ran out by `now_ns` (each reported once)."""
+        out = [v for v, until in self._until_ns.items() if until <= now_ns]
+        for v in out:
+            del self._until_ns[v]
+        return out
+
+
 class PlanClient:
     def __init__(self, node: Node, traffic: TrafficSim, request_timeout_s: float, check: PlanCheck) -> None:
         self.node = node
@@ -101,6 +121,7 @@ class PlanClient:
             for v in traffic.vehicles
         }
         self._request_seq: dict[str, int] = dict.fromkeys(self.ack_pubs, 0)
+        self.expiry = PlanExpiry()
 
     def close(self) -> None:
         for querier in self.queriers.values():
@@ -123,6 +144,9 @@ class PlanClient:
         for received in self.pushed.drain():
             self.counters.inc("plans/pushed_received")
             self.apply_pushed(received)
+        for vehicle_id in self.expiry.expired(time.time_ns()):
+            self.counters.inc("plans/expired")
+            self.traffic.drop_plan(vehicle_id)
         for v in self.traffic.vehicles:
             if self.traffic.needs_plan(v):
                 v.planned_lane = v.lane_id  # one request per lane, answered or not
@@ -170,6 +194,8 @@ class PlanClient:
         else:
             lanes = list(plan.lane_ids)
             status = self.traffic.set_plan(plan.vehicle_id, lanes, int(plan.version), plan.plan_id)
+            if status is Ack.ACCEPTED:
+                self.expiry.followed(plan.vehicle_id, plan.valid_until.ToNanoseconds())
             if status is Ack.REJECTED_INVALID:
                 reason = "route does not continue from the vehicle's lane"
         self.counters.inc(f"acks/{status.name.lower()}")

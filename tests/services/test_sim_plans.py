@@ -10,7 +10,7 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from rmmdet.v1.common_pb2 import ErrorCode, ErrorResponse, Header
 from rmmdet.v1.planning_pb2 import RoutePlan, RouteResponse
 
-from services.sim.plans import Outcome, PlanCheck, _ReplyHandler
+from services.sim.plans import Outcome, PlanCheck, PlanExpiry, _ReplyHandler
 from shared.bus.codec import Counters, MessageDecoder, encode
 from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.security.plan_signing import PlanSigner, PlanVerifier
@@ -87,3 +87,14 @@ def test_nothing_valid_is_no_reply(handler) -> None:
     h.on_reply(plan_reply(ROGUE))  # type: ignore[arg-type]
     h.on_done()
     assert [o.error for o in outcomes.drain()] == ["no_reply"]
+
+
+def test_plans_expire_at_their_ttl_once() -> None:
+    expiry = PlanExpiry()
+    expiry.followed("v1", 1_000)
+    expiry.followed("v2", 2_000)
+    expiry.followed("v1", 3_000)  # a newer plan replaces the older's deadline
+    assert expiry.expired(1_500) == []
+    assert expiry.expired(2_000) == ["v2"]
+    assert expiry.expired(2_500) == []  # reported once
+    assert expiry.expired(10_000) == ["v1"]

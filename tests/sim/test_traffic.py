@@ -135,6 +135,18 @@ def test_plans_are_followed_versioned_and_validated(scene: Scene, network: RoadN
     assert v.lane_id == target
 
 
+def test_a_dropped_plan_is_not_followed_and_cannot_come_back(scene: Scene, network: RoadNetwork) -> None:
+    sim = TrafficSim(
+        scene, network, TrafficSettings(vehicles=1, route_policy="plan"), seed=4, tick_hz=TICK_HZ
+    )
+    v = sim.vehicles[0]
+    target = network.successors[v.lane_id][-1]
+    assert sim.set_plan(v.id, [v.lane_id, target], version=3, plan_id="a") is Ack.ACCEPTED
+    assert sim.drop_plan(v.id) and v.plan == [] and not sim.drop_plan(v.id)
+    assert sim.set_plan(v.id, [v.lane_id, target], version=3, plan_id="a") is Ack.DUPLICATE  # no replay
+    assert sim.set_plan(v.id, [v.lane_id, target], version=4, plan_id="b") is Ack.ACCEPTED
+
+
 def _trips_by_vehicle(sim: TrafficSim) -> dict[str, list[tuple[int, str, str]]]:
     out: dict[str, list[tuple[int, str, str]]] = {}
     for t in sim.trips:
