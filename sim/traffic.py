@@ -95,6 +95,7 @@ class Vehicle:
     plan_version: int = 0
     plan_id: str = ""
     planned_lane: str = ""  # lane on which the latest plan was asked for (one request per lane)
+    ask_now: bool = False  # ask for a plan at once, wherever on the lane (a coordinator came back)
     connected: bool = True
     requested_at_s: float = 0.0
     detours: int = 0
@@ -270,14 +271,28 @@ class TrafficSim:
         return v.destination
 
     def needs_plan(self, v: Vehicle) -> bool:
-        """A connected vehicle asks for a plan once per lane, `plan_request_m` before the lane's end."""
+        """A connected vehicle asks for a plan once per lane, `plan_request_m` before the lane's end, or
+        at once when told to (`ask_now`; one already committed to a junction asks from its next lane,
+        `plan_origin`)."""
+        if not v.connected:
+            return False
+        if v.ask_now:
+            return (v.requested and v.next_lane is not None) or (
+                v.path.lane_id is not None and not v.requested
+            )
         return (
-            v.connected
-            and v.path.lane_id is not None
+            v.path.lane_id is not None
             and not v.requested
             and v.planned_lane != v.lane_id
             and v.path.length_m - v.s <= self.cfg.plan_request_m
         )
+
+    def plan_origin(self, v: Vehicle) -> tuple[str, float]:
+        """Where a plan asked for now starts (lane, progress on it in m): the vehicle's lane, or the lane
+        it has committed to at the junction ahead (a plan must continue from there)."""
+        if v.requested and v.next_lane is not None:
+            return v.next_lane, 0.0
+        return v.lane_id, max(0.0, v.s)
 
     def step(self) -> None:
         """Advance every vehicle by one tick."""

@@ -10,7 +10,8 @@ and its TTL is within `plan_max_ttl_s` (`plan_problem`); anything else is counte
 vehicle from taking a later, genuine reply to the same request (a rogue second queryable cannot answer
 for the coordinator). Every plan considered is answered with a RouteAck carrying the vehicle's decision
 (ACCEPTED, DUPLICATE, REJECTED_STALE, REJECTED_INVALID). Without a coordinator vehicles keep driving:
-no plan means the shortest route, and a plan is followed only until its TTL (`PlanExpiry`).
+no plan means the shortest route, and a plan is followed only until its TTL (`PlanExpiry`). When a
+coordinator's presence token appears (it started, or came back), every vehicle asks at once.
 """
 
 from __future__ import annotations
@@ -37,6 +38,9 @@ log = logging.getLogger("services.sim.plans")
 
 #: Outstanding replies held between ticks; more than one per vehicle only if ticks stall.
 REPLY_QUEUE_PER_VEHICLE = 4
+#: After a coordinator's presence token appears, every vehicle asks for a plan this much later, wall s:
+#: the token comes with its session, the route queryable a moment after.
+REASK_AFTER_JOIN_S = 0.3
 ERROR_NAMES = {v: ErrorCode.Name(v).removeprefix("ERROR_CODE_").lower() for v in ErrorCode.values()}
 
 
@@ -122,6 +126,10 @@ class PlanClient:
         }
         self._request_seq: dict[str, int] = dict.fromkeys(self.ack_pubs, 0)
         self.expiry = PlanExpiry()
+        # A coordinator that (re)appears serves every vehicle at once, from the vehicles' own state
+        # (current lane, destination, followed version): nobody waits for its next lane to be re-planned.
+        self.coordinators = node.presence(get_stream("alive").pattern(scope="cloud", service="coordinator"))
+        self._ask_all_at: float | None = None
 
     def close(self) -> None:
         for querier in self.queriers.values():
@@ -147,16 +155,25 @@ class PlanClient:
         for vehicle_id in self.expiry.expired(time.time_ns()):
             self.counters.inc("plans/expired")
             self.traffic.drop_plan(vehicle_id)
+        if any(alive for _, alive in self.coordinators.changes()):
+            self.counters.inc("plans/coordinator_joined")
+            self._ask_all_at = time.monotonic() + REASK_AFTER_JOIN_S
+        if self._ask_all_at is not None and time.monotonic() >= self._ask_all_at:
+            self._ask_all_at = None
+            for v in self.traffic.vehicles:
+                v.ask_now = True
         for v in self.traffic.vehicles:
             if self.traffic.needs_plan(v):
                 v.planned_lane = v.lane_id  # one request per lane, answered or not
+                v.ask_now = False
                 self.request(v, stamp_ns)
 
     def request(self, v: Vehicle, stamp_ns: int) -> None:
+        lane, progress_m = self.traffic.plan_origin(v)
         req = RouteRequest(
             vehicle_id=v.id,
-            current_lane_id=v.lane_id,
-            lane_progress_m=max(0.0, v.s),
+            current_lane_id=lane,
+            lane_progress_m=progress_m,
             destination_junction_id=self.traffic.routing_destination(v),
             current_plan_version=v.plan_version,
         )

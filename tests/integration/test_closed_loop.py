@@ -10,15 +10,18 @@ RMMDET_COORD_REPLAN_INTERVAL_S), and the vehicles acknowledge them.
 from __future__ import annotations
 
 import os
+import signal
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from dataclasses import dataclass, field
 
 import pytest
 from rmmdet.v1.planning_pb2 import AckStatus
 
+from shared.bus.liveliness import alive_tokens
 from shared.bus.node import Node
+from shared.bus.streams import get_stream
 from tests.helpers import Router, spawn, stop
 from tests.integration.coordinator_client import coordinator_health, counters
 
@@ -32,6 +35,7 @@ STARTUP_S = 45.0
 MIN_ACCEPTED = 3
 PUSH_WITHIN_S = 10.0 * SCALE
 MEC_AGENT = "agent3"  # the roundabout: most routes pass it
+REPLANNED_WITHIN_S = 2.0 * SCALE
 
 
 @dataclass
@@ -39,12 +43,19 @@ class Bus:
     """Acks (plan id -> status) and pushed plans (plan id -> vehicle) seen by the test."""
 
     acks: dict[str, int] = field(default_factory=dict)
+    ack_vehicle: dict[str, str] = field(default_factory=dict)  # plan id -> the vehicle that acked it
     pushed: dict[str, str] = field(default_factory=dict)
     lock: threading.Lock = field(default_factory=threading.Lock)
 
     def accepted(self) -> int:
         with self.lock:
             return sum(s == AckStatus.ACK_STATUS_ACCEPTED for s in self.acks.values())
+
+    def vehicles_following(self, exclude: Collection[str] = ()) -> set[str]:
+        """Vehicles that acknowledged a plan (ACCEPTED or DUPLICATE) not in `exclude`."""
+        ok = (AckStatus.ACK_STATUS_ACCEPTED, AckStatus.ACK_STATUS_DUPLICATE)
+        with self.lock:
+            return {self.ack_vehicle[p] for p, s in self.acks.items() if s in ok and p not in exclude}
 
     def pushed_acks(self) -> dict[str, int]:
         with self.lock:
@@ -81,6 +92,7 @@ def loop(router: Router) -> Iterator[tuple[Router, Node, Bus, dict]]:
             for item in acks.drain():
                 with bus.lock:
                     bus.acks[item.message.plan_id] = item.message.status
+                    bus.ack_vehicle[item.message.plan_id] = item.message.vehicle_id
             for item in plans.drain():
                 with bus.lock:
                     bus.pushed[item.message.plan_id] = item.message.vehicle_id
@@ -119,3 +131,26 @@ def test_vehicles_follow_and_acknowledge_plans(loop) -> None:
     assert report is not None
     c = counters(report)
     assert c["plans/pushed"] >= 1 and c["acks/accepted"] >= MIN_ACCEPTED, c
+
+
+def test_a_restarted_coordinator_serves_every_vehicle_at_once(loop) -> None:
+    """Kill the coordinator, restart it: every vehicle has a plan of the new one within 2 s of its
+    presence token (vehicles ask at once when a coordinator appears, from their own state)."""
+    router, node, bus, procs = loop
+    every = int(VEHICLES)
+    wait_until(lambda: len(bus.vehicles_following()) == every, STARTUP_S, "a plan for every vehicle")
+    stop(procs["coordinator"], signal.SIGKILL)
+    time.sleep(2.0)
+    with bus.lock:
+        before = set(bus.acks)
+    procs["coordinator"] = spawn(
+        ["-m", "services.coordinator", *router.client_args()],
+        env={"RMMDET_COORD_REPLAN_INTERVAL_S": REPLAN_INTERVAL_S},
+    )
+    key = get_stream("alive").pattern(scope="cloud", service="coordinator")
+    wait_until(lambda: bool(alive_tokens(node.session, key, timeout_s=0.5)), 30, "the coordinator back")
+    back = time.monotonic()
+    wait_until(lambda: len(bus.vehicles_following(before)) == every, REPLANNED_WITHIN_S + 5, "every vehicle")
+    took = time.monotonic() - back
+    print(f"restarted coordinator: every one of {every} vehicles re-planned {took:.2f} s after its token")
+    assert took <= REPLANNED_WITHIN_S

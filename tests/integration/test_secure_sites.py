@@ -61,7 +61,7 @@ def test_objects_maps_and_plans_flow_across_hosts(sites: Sites) -> None:
     watch = sites.watch
     t0 = time.monotonic()
     wait_for(lambda: watch.accepted() >= MIN_ACCEPTED, 60 * SCALE, "accepted plans")
-    assert len(watch.maps.since(t0)) >= 2, "maps keep coming"
+    wait_for(lambda: len(watch.maps.since(t0)) >= 2, 5 * SCALE, "maps keep coming (2 Hz)")
 
 
 def test_transit_against_one_loopback_router(sites: Sites, router: Router) -> None:

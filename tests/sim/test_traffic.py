@@ -147,6 +147,24 @@ def test_a_dropped_plan_is_not_followed_and_cannot_come_back(scene: Scene, netwo
     assert sim.set_plan(v.id, [v.lane_id, target], version=4, plan_id="b") is Ack.ACCEPTED
 
 
+def test_ask_now_plans_from_the_lane_the_vehicle_is_committed_to(scene: Scene, network: RoadNetwork) -> None:
+    sim = TrafficSim(
+        scene, network, TrafficSettings(vehicles=1, route_policy="plan"), seed=4, tick_hz=TICK_HZ
+    )
+    v = sim.vehicles[0]
+    v.planned_lane = v.lane_id  # asked on this lane already: not again by itself
+    assert not sim.needs_plan(v)
+    v.ask_now = True
+    assert sim.needs_plan(v) and sim.plan_origin(v) == (v.lane_id, max(0.0, v.s))
+    while not v.requested:  # up to the junction: its next lane is reserved
+        sim.step()
+    assert sim.needs_plan(v) and sim.plan_origin(v) == (v.next_lane, 0.0)
+    nxt = v.next_lane
+    assert nxt is not None
+    onward = network.successors[nxt][0]
+    assert sim.set_plan(v.id, [nxt, onward], version=1, plan_id="a") is Ack.ACCEPTED  # it continues there
+
+
 def _trips_by_vehicle(sim: TrafficSim) -> dict[str, list[tuple[int, str, str]]]:
     out: dict[str, list[tuple[int, str, str]]] = {}
     for t in sim.trips:
