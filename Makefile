@@ -12,7 +12,7 @@ SUPERVISOR_CONF := deploy/local/supervisord.conf
 RUN_DIR := .run
 PYTEST_ARGS ?=
 
-.PHONY: help install proto pki up down status logs test test-unit test-integration test-fault bench models eval eval-fusion eval-robustness experiments lint typecheck fmt clean
+.PHONY: help install proto pki up down status logs test test-unit test-integration test-fault bench soak models eval eval-fusion eval-robustness experiments lint typecheck fmt clean
 
 help: ## list targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-18s %s\n", $$1, $$2}'
@@ -87,6 +87,10 @@ bench: install pki ## benchmarks: the whole system as `make up` runs it (10 min)
 	$(BIN)/python -m tests.bench.coordinator_bench
 	$(BIN)/python -m tests.bench.sites_bench --readme
 	$(BIN)/python -m tests.shared.bus.fuzz --inputs 1000000 --out tests/bench/results/fuzz.json
+
+soak: install pki ## the whole system for 1 h: RSS slope (MB/h), threads and fds per process -> tests/bench/results/system.json (label soak)
+	$(MAKE) down
+	$(BIN)/python -m tests.bench.system_bench --minutes 60 --label soak
 
 DATASET ?= data/datasets/default
 MODEL_RUNS ?= data/models

@@ -139,6 +139,7 @@ class ProcessSampler:
                 with proc.oneshot():
                     self.samples[name].append(
                         {
+                            "t_s": time.monotonic(),
                             "rss_mb": proc.memory_info().rss / 1e6,
                             "threads": proc.num_threads(),
                             "fds": proc.num_fds(),
@@ -390,6 +391,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "rss_mb_max": round(max((s["rss_mb"] for s in sampler.samples[name]), default=0.0), 1),
             "threads_max": max((int(s["threads"]) for s in sampler.samples[name]), default=0),
             "fds_max": max((int(s["fds"]) for s in sampler.samples[name]), default=0),
+            **drift(sampler.samples[name]),
             "restarts": sampler.restarts[name],
         }
         for name in sorted(cpu)
@@ -480,14 +482,36 @@ def readme_table(runs: list[dict[str, Any]]) -> str:
         f"({last['machine']['cpu_model']}, "
         f"{last['machine']['cpu_count']} cores, flags {' '.join(last['machine']['cpu_vector_flags'])}):",
         "",
-        "| process | CPU (cores) | RSS max MB | threads | fds |",
-        "|---|---|---|---|---|",
+        "| process | CPU (cores) | RSS max MB | RSS slope MB/h | threads (spread) | fds (spread) |",
+        "|---|---|---|---|---|---|",
     ]
     for name, p in sorted(last["result"]["processes"].items(), key=lambda kv: -kv[1]["cpu_cores"]):
+        slope = f"{p['rss_slope_mb_per_h']:+.1f}" if "rss_slope_mb_per_h" in p else "–"
+        threads = (
+            f"{p['threads_max']} ({p['threads_spread']})" if "threads_spread" in p else f"{p['threads_max']}"
+        )
+        fds = f"{p['fds_max']} ({p['fds_spread']})" if "fds_spread" in p else f"{p['fds_max']}"
         lines.append(
-            f"| {name} | {p['cpu_cores']:.3f} | {p['rss_mb_max']:.0f} | {p['threads_max']} | {p['fds_max']} |"
+            f"| {name} | {p['cpu_cores']:.3f} | {p['rss_mb_max']:.0f} | {slope} | {threads} | {fds} |"
         )
     return "\n".join(lines)
+
+
+def drift(samples: list[dict[str, float]]) -> dict[str, float | int]:
+    """What a leak looks like over the window (the soak criteria, reliability.md M1): the least-squares
+    slope of RSS in MB per hour, and the spread (max - min) of threads and file descriptors."""
+    if len(samples) < 2:
+        return {"rss_slope_mb_per_h": 0.0, "threads_spread": 0, "fds_spread": 0}
+    t_h = np.array([s["t_s"] for s in samples]) / 3600.0
+    rss = np.array([s["rss_mb"] for s in samples])
+    slope = float(np.polyfit(t_h - t_h[0], rss, 1)[0]) if np.ptp(t_h) > 0 else 0.0
+    threads = [int(s["threads"]) for s in samples]
+    fds = [int(s["fds"]) for s in samples]
+    return {
+        "rss_slope_mb_per_h": round(slope, 2),
+        "threads_spread": max(threads) - min(threads),
+        "fds_spread": max(fds) - min(fds),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -54,3 +54,14 @@ def test_runs_without_acks_fall_back_to_pushed_plans() -> None:
     pushed = {"count": 2, "sim_p95_ms": 170.0}
     assert plan_latency({"objects_to_pushed_plan": pushed}) is pushed
     assert plan_latency({"objects_to_plan": {"count": 0}, "objects_to_pushed_plan": pushed}) is pushed
+
+
+def test_drift_known_answer() -> None:
+    from tests.bench.system_bench import drift
+
+    # 10 MB over half an hour: a slope of 20 MB/h; threads 5-7, fds constant.
+    samples = [
+        {"t_s": 1800.0 * i / 10, "rss_mb": 100.0 + i, "threads": 5 + (i % 3), "fds": 40} for i in range(11)
+    ]
+    assert drift(samples) == {"rss_slope_mb_per_h": 20.0, "threads_spread": 2, "fds_spread": 0}
+    assert drift(samples[:1]) == {"rss_slope_mb_per_h": 0.0, "threads_spread": 0, "fds_spread": 0}
