@@ -98,3 +98,13 @@ def wait_ready(router: Router, timeout_s: float = 15.0) -> None:
                 return
             time.sleep(0.05)
     raise TimeoutError(f"router on {router.port} not ready after {timeout_s} s")
+
+
+class FakeZBytes:
+    """Stands in for zenoh.ZBytes in tests that call Zenoh callbacks directly (payloads, attachments)."""
+
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+
+    def to_bytes(self) -> bytes:
+        return self.data

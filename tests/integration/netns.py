@@ -84,25 +84,21 @@ class NetHosts:
 
     def cut(self, name: str) -> None:
         """Drop every packet on the host's link, both ways, silently."""
-        ns = self.namespace(name)
-        rules = (
-            f"table inet {CUT_TABLE} {{\n"
-            f"  chain in {{ type filter hook input priority 0; iifname {VETH} drop; }}\n"
-            f"  chain out {{ type filter hook output priority 0; oifname {VETH} drop; }}\n"
-            "}\n"
-        )
-        subprocess.run(["ip", "netns", "exec", ns, "nft", "-f", "-"], input=rules, check=True, text=True)
+        self._filter(name, "drop")
 
     def lossy(self, name: str, percent: int) -> None:
         """Drop `percent` % of the packets on the host's link, each way, at random (no tc netem here)."""
-        ns = self.namespace(name)
-        drop = f"numgen random mod 100 < {int(percent)} drop"
+        self._filter(name, f"numgen random mod 100 < {int(percent)} drop")
+
+    def _filter(self, name: str, verdict: str) -> None:
+        """One nftables table in the host's namespace applying `verdict` to its link, in and out."""
         rules = (
             f"table inet {CUT_TABLE} {{\n"
-            f"  chain in {{ type filter hook input priority 0; iifname {VETH} {drop}; }}\n"
-            f"  chain out {{ type filter hook output priority 0; oifname {VETH} {drop}; }}\n"
+            f"  chain in {{ type filter hook input priority 0; iifname {VETH} {verdict}; }}\n"
+            f"  chain out {{ type filter hook output priority 0; oifname {VETH} {verdict}; }}\n"
             "}\n"
         )
+        ns = self.namespace(name)
         subprocess.run(["ip", "netns", "exec", ns, "nft", "-f", "-"], input=rules, check=True, text=True)
 
     def restore(self, name: str) -> None:

@@ -14,24 +14,17 @@ from services.sim.plans import Outcome, PlanCheck, PlanExpiry, _ReplyHandler
 from shared.bus.codec import Counters, MessageDecoder, encode
 from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.security.plan_signing import PlanSigner, PlanVerifier
+from tests.helpers import FakeZBytes
 
 GENUINE = PlanSigner(Ed25519PrivateKey.generate())
 ROGUE = PlanSigner(Ed25519PrivateKey.generate())
 
 
-class Bytes:
-    def __init__(self, data: bytes) -> None:
-        self.data = data
-
-    def to_bytes(self) -> bytes:
-        return self.data
-
-
 @dataclass
 class Sample:
-    payload: Bytes
+    payload: FakeZBytes
     encoding: str
-    attachment: Bytes | None
+    attachment: FakeZBytes | None
 
 
 @dataclass
@@ -46,13 +39,13 @@ def plan_reply(signer: PlanSigner, plan_id: str = "a" * 32) -> Reply:
     header = Header(source_id="cloud/coordinator", seq=1)
     header.stamp.FromNanoseconds(1)
     encoded = encode(RouteResponse(plan=signer.sign(plan)), header)
-    attachment = Bytes(encoded.attachment) if encoded.attachment is not None else None
-    return Reply(ok=Sample(Bytes(encoded.payload), str(encoded.encoding), attachment))
+    attachment = FakeZBytes(encoded.attachment) if encoded.attachment is not None else None
+    return Reply(ok=Sample(FakeZBytes(encoded.payload), str(encoded.encoding), attachment))
 
 
 def error_reply() -> Reply:
     encoded = encode(ErrorResponse(code=ErrorCode.ERROR_CODE_INTERNAL, message="x"))
-    return Reply(err=Sample(Bytes(encoded.payload), str(encoded.encoding), None))
+    return Reply(err=Sample(FakeZBytes(encoded.payload), str(encoded.encoding), None))
 
 
 @pytest.fixture

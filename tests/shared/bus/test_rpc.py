@@ -11,6 +11,7 @@ from rmmdet.v1.planning_pb2 import RoutePlan, RouteRequest, RouteResponse
 from shared.bus.codec import Counters, encode
 from shared.bus.rpc import RpcServer
 from shared.bus.streams import get_stream
+from tests.helpers import FakeZBytes
 
 
 @dataclass
@@ -19,22 +20,14 @@ class FakeNode:
     source_id: str = "cloud/coordinator"
 
 
-class Bytes:
-    def __init__(self, data: bytes) -> None:
-        self.data = data
-
-    def to_bytes(self) -> bytes:
-        return self.data
-
-
 @dataclass
 class FakeQuery:
     """The part of zenoh.Query the server uses; records its replies."""
 
     key_expr: str
-    payload: Bytes | None
+    payload: FakeZBytes | None
     encoding: str
-    attachment: Bytes | None = None
+    attachment: FakeZBytes | None = None
     replies: list[tuple[str, bytes]] = field(default_factory=list)
     errors: list[ErrorResponse] = field(default_factory=list)
 
@@ -51,7 +44,7 @@ def request_on(key: str, vehicle_id: str) -> FakeQuery:
     req = RouteRequest(vehicle_id=vehicle_id, current_lane_id="l0", destination_junction_id="j1")
     req.header.stamp.FromNanoseconds(1)
     encoded = encode(req)
-    return FakeQuery(key, Bytes(encoded.payload), str(encoded.encoding))
+    return FakeQuery(key, FakeZBytes(encoded.payload), str(encoded.encoding))
 
 
 def server(node: FakeNode) -> RpcServer:
@@ -86,14 +79,14 @@ def test_a_request_for_another_vehicle_than_the_key_is_refused() -> None:
 def test_garbage_and_handler_bugs_get_error_replies() -> None:
     node = FakeNode()
     rpc = server(node)
-    garbage = FakeQuery(get_stream("route_rpc").key(vehicle="v1"), Bytes(b"\xff\xff"), "text/plain")
+    garbage = FakeQuery(get_stream("route_rpc").key(vehicle="v1"), FakeZBytes(b"\xff\xff"), "text/plain")
     rpc(garbage)  # type: ignore[arg-type]
     assert garbage.errors and not garbage.replies
     q = request_on(get_stream("route_rpc").key(vehicle="v1"), "v1")
     req = RouteRequest()
     req.ParseFromString(q.payload.to_bytes())  # type: ignore[union-attr]
     req.destination_junction_id = "boom"
-    q.payload = Bytes(encode(req).payload)
+    q.payload = FakeZBytes(encode(req).payload)
     rpc(q)  # type: ignore[arg-type]
     assert q.errors[0].code == ErrorCode.ERROR_CODE_INTERNAL
     assert node.counters.get("rejected/internal") == 1
