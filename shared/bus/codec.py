@@ -220,6 +220,25 @@ def register_validator(full_name: str) -> Callable[[Validator], Validator]:
     return wrap
 
 
+#: Message type -> its repeated field whose length is capped (`register_count_cap`); checked first.
+_COUNT_CAPS: dict[str, tuple[str, Callable[[], int]]] = {}
+
+
+def register_count_cap(full_name: str, field_name: str, cap: Callable[[], int]) -> None:
+    """Cap the length of one repeated field of a message type (checked before anything iterates it)."""
+    _COUNT_CAPS[full_name] = (field_name, cap)
+
+
+def count_problem(msg: Message) -> str | None:
+    """The capped list of `msg` over its cap, or None: one `len`, before any scan of the elements."""
+    entry = _COUNT_CAPS.get(msg.DESCRIPTOR.full_name)
+    if entry is None:
+        return None
+    field_name, cap = entry
+    n = len(getattr(msg, field_name))
+    return f"{n} {field_name} > {cap()}" if n > cap() else None
+
+
 def range_problem(msg: Message) -> str | None:
     """First registered range-check failure of `msg` (and of its body header), or None."""
     for check in _VALIDATORS.get(msg.DESCRIPTOR.full_name, ()):
@@ -232,7 +251,11 @@ def range_problem(msg: Message) -> str | None:
 
 
 def validate(msg: Message) -> None:
-    """Raise Rejected if `msg` holds NaN/Inf or out-of-range values."""
+    """Raise Rejected if `msg` holds NaN/Inf or out-of-range values. Capped lists first: a forged list of
+    100k objects is refused by its length, not after every element was scanned."""
+    problem = count_problem(msg)
+    if problem:
+        raise Rejected(RejectReason.RANGE, problem)
     bad = find_non_finite(msg)
     if bad:
         raise Rejected(RejectReason.NON_FINITE, f"non-finite value in {bad}")

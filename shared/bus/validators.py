@@ -5,11 +5,11 @@ Each check returns a short description of the first problem, or None.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sized
+from collections.abc import Iterable
 
 from google.protobuf.message import Message
 
-from shared.bus.codec import register_validator
+from shared.bus.codec import register_count_cap, register_validator
 from shared.bus.streams import limits
 from shared.timebase import NS_PER_S, tick_stamp_ns
 
@@ -47,10 +47,19 @@ def _first(problems: Iterable[str | None]) -> str | None:
     return next((p for p in problems if p), None)
 
 
-def _count(name: str, items: Sized) -> str | None:
-    """Checked before anything iterates the list: a forged list of 100k objects costs nothing more."""
-    cap = limits().max_objects_per_list
-    return f"{len(items)} {name} > {cap}" if len(items) > cap else None
+def _max_objects_per_list() -> int:
+    return limits().max_objects_per_list
+
+
+# Lists capped at `limits.max_objects_per_list`; the codec checks them before anything iterates them.
+for _type, _field in (
+    ("rmmdet.v1.Detection2DArray", "detections"),
+    ("rmmdet.v1.DetectedObjects", "objects"),
+    ("rmmdet.v1.TrackedObjects", "objects"),
+    ("rmmdet.v1.RadarScan", "targets"),
+    ("rmmdet.v1.GroundTruth", "vehicles"),
+):
+    register_count_cap(_type, _field, _max_objects_per_list)
 
 
 def _tick_rate(tick_hz: float) -> str | None:
@@ -82,8 +91,6 @@ def _header(m: Message) -> str | None:
 
 @register_validator("rmmdet.v1.Detection2DArray")
 def _detections_2d(m: Message) -> str | None:
-    if problem := _count("detections", m.detections):  # type: ignore[attr-defined]
-        return problem
     for i, d in enumerate(m.detections):  # type: ignore[attr-defined]
         if d.box.width_px < 0 or d.box.height_px < 0:
             return f"detections[{i}]: negative box size"
@@ -97,8 +104,6 @@ def _detections_2d(m: Message) -> str | None:
 
 @register_validator("rmmdet.v1.DetectedObjects")
 def _detected(m: Message) -> str | None:
-    if problem := _count("objects", m.objects):  # type: ignore[attr-defined]
-        return problem
     for i, o in enumerate(m.objects):  # type: ignore[attr-defined]
         problem = (
             _probability(f"objects[{i}].existence_probability", o.existence_probability)
@@ -112,8 +117,6 @@ def _detected(m: Message) -> str | None:
 
 @register_validator("rmmdet.v1.TrackedObjects")
 def _tracked(m: Message) -> str | None:
-    if problem := _count("objects", m.objects):  # type: ignore[attr-defined]
-        return problem
     seen: set[int] = set()
     for i, o in enumerate(m.objects):  # type: ignore[attr-defined]
         if o.track_id in seen:
@@ -142,8 +145,6 @@ def _tracked(m: Message) -> str | None:
 
 @register_validator("rmmdet.v1.RadarScan")
 def _radar(m: Message) -> str | None:
-    if problem := _count("targets", m.targets):  # type: ignore[attr-defined]
-        return problem
     for i, t in enumerate(m.targets):  # type: ignore[attr-defined]
         if t.range_m < 0:
             return f"targets[{i}]: negative range"
@@ -215,8 +216,7 @@ def _route_request(m: Message) -> str | None:
 @register_validator("rmmdet.v1.GroundTruth")
 def _ground_truth(m: Message) -> str | None:
     if problem := (
-        _count("vehicles", m.vehicles)  # type: ignore[attr-defined]
-        or _tick_rate(m.tick_hz)  # type: ignore[attr-defined]
+        _tick_rate(m.tick_hz)  # type: ignore[attr-defined]
         or _tick_stamp(m.header, m.tick_hz)  # type: ignore[attr-defined]
     ):
         return problem

@@ -84,7 +84,7 @@ class CoordinatorCore:
     scene, settings
         The table and the coordinator settings (`planner.policy` is the policy served).
     max_vehicles : int
-        Vehicles served at once; requests of further ones are rejected.
+        Vehicles whose plans are tracked at once; a further one evicts the longest idle (`PlanBook.heard`).
     ground_truth : bool
         Studies only: one object source, `GROUND_TRUTH`, that sees every lane (the oracle maps of the
         `dynamic_ground_truth` baseline) instead of the scene's agents and their areas.
@@ -94,7 +94,6 @@ class CoordinatorCore:
         self, scene: Scene, settings: CoordinatorSettings, max_vehicles: int, ground_truth: bool = False
     ) -> None:
         self.settings = settings
-        self.max_vehicles = max_vehicles
         self.ground_truth = ground_truth
         self.agents = [GROUND_TRUTH] if ground_truth else list(scene.agents)
         network = RoadNetwork(scene)
