@@ -66,13 +66,16 @@ def apply(proxy: xmlrpc.client.ServerProxy, action: Action) -> None:
 
 
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
-    cfg = WatchdogConfig(
-        stall_after_s=args.stall_after_s,
-        crash_starts=args.crash_starts,
-        crash_window_s=args.crash_window_s,
-        backoff_s=args.backoff_s,
-        backoff_max_s=max(args.backoff_s, args.backoff_max_s),
-    )
+    try:
+        cfg = WatchdogConfig(
+            stall_after_s=args.stall_after_s,
+            crash_starts=args.crash_starts,
+            crash_window_s=args.crash_window_s,
+            backoff_s=args.backoff_s,
+            backoff_max_s=max(args.backoff_s, args.backoff_max_s),
+        )
+    except ValueError as err:  # bad flags: one clear line, not a traceback
+        raise SystemExit(f"watchdog: {err}") from None
     watchdog = Watchdog(cfg)
     proxy = supervisor_proxy(args.supervisor_url)
     own_pid = os.getpid()
