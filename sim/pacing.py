@@ -10,10 +10,14 @@ slow or uneven cadence run at it without holding the sim: a lidar agent's camera
 every 10th frame publish on 4 consecutive frames, then on none for 6 (gaps 0.1, 0.1, 0.1, 0.7 s),
 and must not hold the tick of their next turn; a 10 Hz consumer's lag stays bounded to 0.2 s.
 
-A consumer whose process is gone (`forget`, on its liveliness token vanishing) or that has not reported
-for `timeout_s` of wall time (hung) no longer holds the sim: a killed MEC or sensor service must not
-stop the world. Before its first report a consumer holds nothing (models
-still loading). Times: sim stamps in ns, wall times in monotonic seconds.
+A consumer whose process is gone (`forget`, on its liveliness token vanishing) or that is silent (hung,
+or stopped: a SIGSTOPped process keeps its token until the router's lease runs out) no longer holds the
+sim: a killed, hung or frozen MEC or sensor service must not stop the world. Silent means no report for
+`SILENCE_PERIODS` of the consumer's own wall cadence (the longest wall gap between its recent reports,
+so a consumer that is slow because the host is slow keeps holding), at least `MIN_TIMEOUT_S` and at most
+`timeout_s`: a frozen 10 Hz sensor group holds the sim for ~0.2 s, not 1 s. A silent consumer that
+reports again holds again at once. Before its first report a consumer holds nothing (models still
+loading). Times: sim stamps in ns, wall times in monotonic seconds.
 """
 
 from __future__ import annotations
@@ -27,6 +31,8 @@ from shared.timebase import NS_PER_S
 
 MAX_PERIOD_S = 1.0  # a gap longer than this (a restarted consumer) is not its cadence
 PERIOD_WINDOW = 8  # outputs whose gaps make up a consumer's period: one full round of cameras taking turns
+SILENCE_PERIODS = 2.0  # wall cadences without a report after which a consumer is silent
+MIN_TIMEOUT_S = 0.15  # ... but never sooner (wall s): one late frame of a 10 Hz consumer is not silence
 
 
 @dataclass
@@ -34,11 +40,17 @@ class _Consumer:
     stamp_ns: int
     heard_s: float
     gaps_ns: deque[int] = field(default_factory=lambda: deque(maxlen=PERIOD_WINDOW))
+    wall_gaps_s: deque[float] = field(default_factory=lambda: deque(maxlen=PERIOD_WINDOW))
 
     @property
     def period_ns(self) -> int:
-        """Longest recent gap between two outputs (0 until known)."""
+        """Longest recent gap between two outputs, sim ns (0 until known)."""
         return max(self.gaps_ns, default=0)
+
+    def silent(self, now_s: float, timeout_s: float) -> bool:
+        """No report for SILENCE_PERIODS of its wall cadence (clamped to [MIN_TIMEOUT_S, timeout_s])."""
+        cadence_s = max(self.wall_gaps_s, default=timeout_s)
+        return now_s - self.heard_s > min(timeout_s, max(MIN_TIMEOUT_S, SILENCE_PERIODS * cadence_s))
 
 
 class Pacer:
@@ -50,7 +62,8 @@ class Pacer:
         Largest lag of a consumer's newest output behind the tick about to be published beyond the
         consumer's own output period, s of sim time.
     timeout_s : float
-        Wall seconds without a report after which a consumer no longer holds the sim.
+        Longest wall time without a report after which a consumer no longer holds the sim, s (a consumer
+        with a short cadence is let go sooner, see the module doc).
     """
 
     def __init__(self, max_lag_s: float, timeout_s: float) -> None:
@@ -73,7 +86,10 @@ class Pacer:
             if stamp_ns > c.stamp_ns:
                 c.gaps_ns.append(min(stamp_ns - c.stamp_ns, self.max_period_ns))
                 c.stamp_ns = stamp_ns
-            c.heard_s = now_s
+                # Wall cadence of new outputs (several outputs of one burst, e.g. a group's sensors of
+                # one tick, are one report).
+                c.wall_gaps_s.append(min(now_s - c.heard_s, self.timeout_s))
+                c.heard_s = now_s
 
     def forget(self, consumer: str) -> None:
         """`consumer` is gone (its liveliness token vanished): it holds nothing until it reports again."""
@@ -83,7 +99,7 @@ class Pacer:
         """The most lagging live consumer if publishing `tick_stamp_ns` would exceed the lag bound."""
         worst: tuple[int, str] | None = None
         for name, c in self._consumers.items():
-            if now_s - c.heard_s > self.timeout_s:
+            if c.silent(now_s, self.timeout_s):
                 continue
             lag = tick_stamp_ns - c.stamp_ns - c.period_ns
             if lag > self.max_lag_ns and (worst is None or lag > worst[0]):
@@ -95,7 +111,7 @@ class Pacer:
         return {
             name: (tick_stamp_ns - c.stamp_ns) / NS_PER_S
             for name, c in self._consumers.items()
-            if now_s - c.heard_s <= self.timeout_s
+            if not c.silent(now_s, self.timeout_s)
         }
 
     def hold(

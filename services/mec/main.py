@@ -130,14 +130,13 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             out = core.step(clock_s)
             if out is None:
                 continue
-            if out.skipped:
-                node.counters.inc("frames/skipped", out.skipped)
             header = objects_pub.next_header(
                 stamp_ns=out.frame.stamp_ns, tick=out.frame.tick, frame_id="world"
             )
             objects_pub.put(
                 out.message, header, stages=[processing_stamp("mec/process", out.started_ns, time.time_ns())]
             )
+            node.counters.publish(core.counts())  # stale / late frames per sensor, skipped, coasted, ...
             if time.monotonic() - last_log >= settings.report_interval_s:
                 last_log = time.monotonic()
                 log.info(

@@ -78,6 +78,13 @@ class SyncConfig(_Model):
         description="longest wait for an agent frame's expected sensors after its first sample, s of the "
         "clock of record (sim time under a sim)",
     )
+    wait_factor: float = Field(
+        2.0,
+        ge=0,
+        description="tick: a frame waits for a sensor this many times the latest it arrived after its "
+        "tick's first sample over its recent ticks (within [min_wait_s, max_wait_s]); 0 = max_wait_s always",
+    )
+    min_wait_s: float = Field(0.03, ge=0, description="tick: shortest learnt wait for a sensor, s")
     max_pending_ticks: int = Field(4, ge=1, description="ticks held at once by the joiner")
 
 

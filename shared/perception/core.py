@@ -29,7 +29,7 @@ import logging
 import time
 from collections import Counter
 from collections.abc import Callable, Collection, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from rmmdet.v1.perception_pb2 import TrackedObjects
@@ -39,7 +39,7 @@ from shared.bus.ordering import reset_after_ticks
 from shared.detection.interface import CameraDetector, LidarDetector
 from shared.perception.config import MecSettings
 from shared.perception.decode import FrameDecoder
-from shared.perception.inputs import SensorMonitor, Status, StatusHysteresis
+from shared.perception.inputs import InputState, SensorMonitor, Status, StatusHysteresis
 from shared.perception.output import tracked_objects_message
 from shared.perception.pipeline import AgentInputs, AgentPipeline, AgentResult
 from shared.perception.sync import BoundedWaitCollector, JoinedFrame, Sample, TickJoiner
@@ -147,6 +147,7 @@ class MecCore:
         self.agent_id = agent_id
         self.settings = settings
         self.kinds = {s.id: s.kind for s in specs}
+        self._scene, self._specs = scene, specs
         self._rates_hz = {s.id: s.rate_hz for s in specs}
         self.camera_ids = frozenset(s.id for s in specs if s.kind == "camera")
         self.pipeline = AgentPipeline(
@@ -188,6 +189,11 @@ class MecCore:
                 sync.max_wait_s,
                 sync.max_pending_ticks,
                 reset_after_ticks(self.tick_hz),
+                sync.min_wait_s,
+                sync.wait_factor,
+                frame_tick=lambda tick, tick_hz: any(
+                    self._scene.captures_on(spec, tick, tick_hz) for spec in self._specs
+                ),
             )
         else:
             trigger = sync.trigger or default_trigger(self.kinds)
@@ -253,15 +259,15 @@ class MecCore:
         return None
 
     def wait_s(self, now_s: float, speed: float, idle_s: float) -> float:
-        """Wall seconds to wait for input before the next `step`: until the oldest pending frame times
+        """Wall seconds to wait for input before the next `step`: until the first pending frame times
         out (`now_s` and the deadline on the clock of record, which runs at `speed`), at most `idle_s`."""
-        deadline = self.next_deadline_s()
+        deadline = self.next_deadline_s(now_s)
         return idle_s if deadline is None else min(idle_s, max(0.0, (deadline - now_s) / speed))
 
-    def next_deadline_s(self) -> float | None:
-        """When the oldest pending frame times out (None if none pending), on the clock of record."""
+    def next_deadline_s(self, now_s: float) -> float | None:
+        """When the first pending frame times out (None if none pending), on the clock of record."""
         if isinstance(self._joiner, TickJoiner):
-            return self._joiner.next_deadline_s()
+            return self._joiner.next_deadline_s(self.expected(self.monitor.alive(now_s)), self.tick_hz)
         return None
 
     # --- one frame ------------------------------------------------------------------------------
@@ -294,7 +300,7 @@ class MecCore:
         alive = self.monitor.alive(now_s)
         self._detect_arrivals(alive)
         if isinstance(self._joiner, TickJoiner):
-            self._ready += self._joiner.poll(self.expected(alive), now_s)
+            self._ready += self._joiner.poll(self.expected(alive), now_s, self.tick_hz)
         else:
             self._ready += self._joiner.poll(now_s)
         if not self._ready:
@@ -329,8 +335,14 @@ class MecCore:
             missing = sorted(s for s, ok in fused.items() if not ok)
             log.warning("status %s -> %s (missing: %s)", before.value, state.value, missing or "none")
         self.counters[f"status/{state.value}"] += 1
+        # An input left out of this frame (it did not arrive in its wait) is named MISSING in it even
+        # before the monitor's missing_after_periods: the frame's status is DEGRADED because of it.
+        reports = [
+            r if fused[r.sensor_id] or r.state is not InputState.OK else replace(r, state=InputState.MISSING)
+            for r in self.monitor.report(now_s)
+        ]
         message = tracked_objects_message(
-            result, self.agent_id, state, self.monitor.report(now_s), self.kinds, self.pipeline.car_size_m
+            result, self.agent_id, state, reports, self.kinds, self.pipeline.car_size_m
         )
         self.counters["frames/published"] += 1
         self.last_tick = frame.tick

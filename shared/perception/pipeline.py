@@ -254,6 +254,11 @@ class AgentPipeline:
         lat: dict[str, float] = {}
         counts: Counter[str] = Counter()
         t0 = time.perf_counter()
+        if not (frame.images or frame.clouds or frame.radar):  # nothing arrived: the tracks coast
+            tracks = self.tracker.coast(frame.stamp_ns / NS_PER_S)
+            lat["track"] = time.perf_counter() - t0
+            self.counts["frames/coasted"] += 1
+            return AgentResult(frame.stamp_ns, tracks, [], np.zeros((0, 9)), {}, lat, counts, frozenset())
         lidar_live = self.lidar_live(frame.clouds)
         dets2d: dict[str, FloatArray] = {}
         due = self.cameras_due(lidar_live, frame.tick)

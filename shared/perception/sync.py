@@ -7,8 +7,17 @@ output instead of stalling it.
 
 `TickJoiner` (simulated sensors): every sensor of a sim tick carries that tick's id and stamp, so
 frames are joined exactly on the tick. A tick is ready when every sensor that is currently expected
-has delivered it, when `max_wait_s` has passed since its first sample arrived, or when a newer tick is
-ready (ticks are emitted in order). Which sensors are expected is the caller's choice per `poll`/`add`
+has delivered it, when its wait has passed since its first sample arrived, or when a newer tick is
+ready (ticks are emitted in order). The wait is learnt (`ArrivalSpread`): a tick is due by its stamp
+plus `wait_factor` times the latest that each awaited sensor arrived after its stamp over its recent
+ticks (at least `min_wait_s`), and never waits more than `max_wait_s` after its first sample. A frozen
+sensor (alive to the bus, sending nothing) then delays its agent's frames by about twice its usual
+latency, not `max_wait_s`, until its health monitor declares it missing; a sensor later than the wait
+is late (dropped, counted) and its lateness widens the next waits. Told which ticks are frame ticks
+(`frame_tick`) and the sim's tick rate, the joiner also emits a frame with no samples for a frame tick
+on which no expected sensor delivered by its deadline (`JoinedFrame.coasted`): a tick where only the
+frozen sensor was due must not become a gap in the agent's output.
+Which sensors are expected is the caller's choice per `poll`/`add`
 call, a set or a function of the tick (the MEC passes the inputs its health monitor thinks alive, less
 the cameras not due on that tick, so neither a dead camera nor a skipped frame is waited for).
 
@@ -30,6 +39,8 @@ from typing import Any
 
 from shared.bus.ordering import Order, Position, order
 from shared.timebase import NS_PER_S
+
+MAX_FRAME_TICKS = 10_000  # longest run of ticks searched for the next frame tick
 
 #: The sensors a tick waits for: one set for every tick, or a function of the tick.
 Expected = Collection[str] | Callable[[int], Collection[str]]
@@ -56,6 +67,37 @@ class JoinedFrame:
     samples: dict[str, Sample]
     missing: tuple[str, ...] = ()
     first_arrival_s: float = 0.0
+    coasted: bool = False  # no expected sensor delivered this frame tick by its deadline
+
+
+class ArrivalSpread:
+    """How late each sensor arrives after its stamp (on the join's clock), over its recent ticks.
+
+    Parameters
+    ----------
+    window : int
+        Arrivals remembered per sensor.
+    min_samples : int
+        Arrivals a sensor needs before its spread is trusted (until then it is waited for the most).
+    """
+
+    def __init__(self, window: int = 50, min_samples: int = 10) -> None:
+        if window < 1 or not 1 <= min_samples <= window:
+            raise ValueError("window >= 1 and 1 <= min_samples <= window")
+        self.min_samples = min_samples
+        self._offsets_s: dict[str, deque[float]] = {}
+        self._window = window
+
+    def record(self, sensor_id: str, lateness_s: float) -> None:
+        """A sample of `sensor_id` arrived `lateness_s` after its stamp."""
+        self._offsets_s.setdefault(sensor_id, deque(maxlen=self._window)).append(max(0.0, lateness_s))
+
+    def latest_s(self, sensor_id: str) -> float | None:
+        """The latest recent arrival of `sensor_id` after its stamp, s (None: too few arrivals yet)."""
+        offsets = self._offsets_s.get(sensor_id)
+        if offsets is None or len(offsets) < self.min_samples:
+            return None
+        return max(offsets)
 
 
 @dataclass
@@ -75,6 +117,13 @@ class TickJoiner:
         Every sensor this agent may fuse.
     max_wait_s : float
         Longest wait for the expected sensors of a tick after its first sample arrived, s.
+    min_wait_s, wait_factor : float
+        The learnt wait for a sensor after a tick's stamp: `wait_factor` x its latest recent arrival
+        after its stamp, at least `min_wait_s` (s); `wait_factor` 0 waits `max_wait_s` always.
+    frame_tick : callable, optional
+        ``frame_tick(tick, tick_hz)``: True if some sensor captures on `tick`. With the sim's tick rate
+        (`poll`), frame ticks no sensor delivered by their deadline are emitted empty (coasted). None:
+        never.
     max_pending : int
         Ticks held at once; when exceeded the oldest is emitted as it is.
     reset_after_ticks : int
@@ -83,12 +132,27 @@ class TickJoiner:
     """
 
     def __init__(
-        self, sensors: Collection[str], max_wait_s: float, max_pending: int = 4, reset_after_ticks: int = 120
+        self,
+        sensors: Collection[str],
+        max_wait_s: float,
+        max_pending: int = 4,
+        reset_after_ticks: int = 120,
+        min_wait_s: float = 0.0,
+        wait_factor: float = 0.0,
+        frame_tick: Callable[[int, float], bool] | None = None,
     ) -> None:
         if max_wait_s <= 0 or max_pending < 1 or reset_after_ticks < 1:
             raise ValueError("max_wait_s must be > 0, max_pending and reset_after_ticks >= 1")
+        if not 0 <= min_wait_s <= max_wait_s or wait_factor < 0:
+            raise ValueError("0 <= min_wait_s <= max_wait_s and wait_factor >= 0")
         self.sensors = frozenset(sensors)
         self.max_wait_s = max_wait_s
+        self.min_wait_s = min_wait_s
+        self.wait_factor = wait_factor
+        self.frame_tick = frame_tick
+        self.spread = ArrivalSpread()
+        self._last_emitted_ns = 0  # stamp of the last emitted tick
+        self.coasted = 0  # frame ticks emitted empty
         self.max_pending = max_pending
         self.reset_after_ticks = reset_after_ticks
         self._pending: dict[int, _Pending] = {}
@@ -112,6 +176,7 @@ class TickJoiner:
         if verdict is Order.OLDER:
             self.late += 1
             self.late_by_sensor[sample.sensor_id] += 1
+            self.spread.record(sample.sensor_id, now_s - sample.stamp_ns / NS_PER_S)
             return []
         if verdict is Order.RESTART:
             self.restarts += 1
@@ -126,17 +191,69 @@ class TickJoiner:
             self.duplicates += 1
             return []
         pending.samples[sample.sensor_id] = sample
+        self.spread.record(sample.sensor_id, now_s - sample.stamp_ns / NS_PER_S)
         return self.poll(expected, now_s)
 
     def _wanted(self, expected: Expected, tick: int) -> frozenset[str]:
         return self.sensors.intersection(expected(tick) if callable(expected) else expected)
 
-    def poll(self, expected: Expected, now_s: float) -> list[JoinedFrame]:
-        """Frames ready at `now_s`: complete, timed out, or older than a ready one; oldest first."""
+    def wait_s(self, awaited: Collection[str]) -> float | None:
+        """How long after its stamp a tick waits for the `awaited` sensors, s (None: not learnt yet)."""
+        if self.wait_factor == 0:
+            return None
+        wait = self.min_wait_s
+        for sensor_id in awaited:
+            latest = self.spread.latest_s(sensor_id)
+            if latest is None:
+                return None
+            wait = max(wait, self.wait_factor * latest)
+        return wait
+
+    def _deadline_s(self, p: _Pending, expected: Expected) -> float:
+        cap_s = p.first_arrival_s + self.max_wait_s
+        learnt = self.wait_s(self._wanted(expected, p.tick).difference(p.samples))
+        return cap_s if learnt is None else min(cap_s, p.stamp_ns / NS_PER_S + learnt)
+
+    def _next_frame(self, tick_hz: float | None) -> tuple[int, int] | None:
+        """The frame tick after the last emitted one and its stamp (None: unknown)."""
+        if self._last_emitted is None or self.frame_tick is None or not tick_hz:
+            return None
+        last = self._last_emitted.value
+        tick = next(
+            (t for t in range(last + 1, last + 1 + MAX_FRAME_TICKS) if self.frame_tick(t, tick_hz)), None
+        )
+        if tick is None:
+            return None
+        return tick, self._last_emitted_ns + round((tick - self._last_emitted.value) * NS_PER_S / tick_hz)
+
+    def _coast(self, expected: Expected, now_s: float, tick_hz: float | None) -> list[JoinedFrame]:
+        """Empty frames for the frame ticks after the last emitted one that nothing arrived for."""
+        out: list[JoinedFrame] = []
+        while len(out) < self.max_pending and (nxt := self._next_frame(tick_hz)) is not None:
+            tick, stamp_ns = nxt
+            if any(t <= tick for t in self._pending):
+                break
+            awaited = self._wanted(expected, tick)
+            learnt = self.wait_s(awaited)
+            wait = self.max_wait_s if learnt is None else min(learnt, self.max_wait_s)
+            if not awaited or now_s < stamp_ns / NS_PER_S + wait:
+                break
+            out.append(JoinedFrame(stamp_ns, tick, {}, tuple(sorted(awaited)), coasted=True))
+            self._emitted(tick, stamp_ns)
+            self.coasted += 1
+        return out
+
+    def _emitted(self, tick: int, stamp_ns: int) -> None:
+        self._last_emitted = Position(self._epoch or 0, tick)
+        self._last_emitted_ns = stamp_ns
+
+    def poll(self, expected: Expected, now_s: float, tick_hz: float | None = None) -> list[JoinedFrame]:
+        """Frames ready at `now_s`: complete, timed out, or older than a ready one, and the frame ticks
+        coasted (given the sim's `tick_hz`); oldest first."""
         ready_tick = -1
         for tick, p in self._pending.items():
             complete = self._wanted(expected, tick).issubset(p.samples)
-            if complete or now_s - p.first_arrival_s >= self.max_wait_s:
+            if complete or now_s >= self._deadline_s(p, expected):
                 ready_tick = max(ready_tick, tick)
         overflow = len(self._pending) - self.max_pending
         ticks = sorted(self._pending)
@@ -149,14 +266,19 @@ class TickJoiner:
             p = self._pending.pop(tick)
             missing = tuple(sorted(self._wanted(expected, tick).difference(p.samples)))
             out.append(JoinedFrame(p.stamp_ns, tick, p.samples, missing, p.first_arrival_s))
-            self._last_emitted = Position(self._epoch or 0, tick)
-        return out
+            self._emitted(tick, p.stamp_ns)
+        return out + self._coast(expected, now_s, tick_hz)
 
-    def next_deadline_s(self) -> float | None:
-        """Time (on the `now_s` clock) at which the oldest pending tick times out (None if none pending)."""
-        if not self._pending:
-            return None
-        return min(p.first_arrival_s for p in self._pending.values()) + self.max_wait_s
+    def next_deadline_s(self, expected: Expected, tick_hz: float | None = None) -> float | None:
+        """Time (on the `now_s` clock) at which the first pending tick times out, or the next frame tick
+        is coasted (None if neither)."""
+        deadlines = [self._deadline_s(p, expected) for p in self._pending.values()]
+        if not self._pending and (nxt := self._next_frame(tick_hz)) is not None:
+            learnt = self.wait_s(self._wanted(expected, nxt[0]))
+            deadlines.append(
+                nxt[1] / NS_PER_S + (self.max_wait_s if learnt is None else min(learnt, self.max_wait_s))
+            )
+        return min(deadlines, default=None)
 
 
 @dataclass

@@ -228,6 +228,22 @@ class MultiObjectTracker:
         self._resolve_yaw()
         return self.confirmed()
 
+    def coast(self, stamp_s: float) -> list[Track]:
+        """Advance the tracks to ``stamp_s`` on their motion model alone: a frame no sensor delivered
+        (every input late or missing) is no evidence against any track, so nothing is missed, aged,
+        born or deleted. Non-finite or out-of-order stamps are rejected and counted as in `step`."""
+        stamp = float(stamp_s)
+        if not math.isfinite(stamp):
+            self.rejected["non_finite_stamp"] += 1
+        elif self._last_stamp_s is not None and stamp < self._last_stamp_s:
+            self.rejected["out_of_order_stamp"] += 1
+        else:
+            t = self._tracks
+            if self._last_stamp_s is not None and stamp > self._last_stamp_s and len(t):
+                t.x, t.P = kalman.predict(t.x, t.P, stamp - self._last_stamp_s, self._model)
+            self._last_stamp_s = stamp
+        return self.confirmed()
+
     def confirmed(self) -> list[Track]:
         """Tracks to publish: CONFIRMED and COASTING (tentative ones are hidden, as in the paper)."""
         return self._snapshot(np.flatnonzero(self._tracks.state != TrackState.TENTATIVE))

@@ -33,6 +33,7 @@ import pytest
 from rmmdet.v1 import perception_pb2 as pb
 from rmmdet.v1.planning_pb2 import RoutePlan
 
+from services.cli.health import query_health
 from shared.bus.node import Node
 from shared.bus.streams import SENSOR_STREAM
 from shared.paths import DEFAULT_SCENE
@@ -58,6 +59,8 @@ STARTUP_S = 60.0
 WINDOW_S = 3.0
 COORDINATOR_STALE_WITHIN_S = 1.0 * SCALE  # reliability.md R4
 COORDINATOR_LIVE_WITHIN_S = 1.0 * SCALE
+FREEZE_S = 15.0  # SIGSTOP for this long (F3)
+FREEZE_DEGRADED_WITHIN_S = 0.3 * SCALE  # alive to Zenoh but silent: no presence change to go by
 
 
 @dataclass
@@ -66,6 +69,7 @@ class Outputs:
 
     rows: list[tuple[float, int, frozenset[str], float]] = field(default_factory=list)  # + stamp, sim s
     sensor_first: dict[str, float] = field(default_factory=dict)  # sensor id -> first frame after a mark
+    frames: list[tuple[float, str, float]] = field(default_factory=list)  # (arrival, sensor, stamp sim s)
     lock: threading.Lock = field(default_factory=threading.Lock)
 
     def since(self, t: float) -> list[tuple[float, int, frozenset[str], float]]:
@@ -150,6 +154,9 @@ def chain_factory(router: Router) -> Iterator:
                     sensor = item.key.rsplit("/", 1)[-1]
                     with chain.out.lock:
                         chain.out.sensor_first.setdefault(sensor, time.monotonic())
+                        chain.out.frames.append(
+                            (time.monotonic(), sensor, item.header.stamp.ToNanoseconds() / 1e9)
+                        )
 
         threads = [threading.Thread(target=consume_objects, daemon=True)]
         threads += [threading.Thread(target=consume_frames, args=(s,), daemon=True) for s in frames]
@@ -213,6 +220,66 @@ def check_kill_and_restart(chain: Chain, victim: str) -> None:
     assert t_full - t_first <= within_s, f"FULL {t_full - t_first:.3f} s after the sensor's first frame"
 
 
+def mec_dropped(chain: Chain, victim: str) -> int:
+    """The victim's frames the MEC dropped, counted: stale or late on arrival."""
+    reports, _ = query_health(chain.node.session)  # type: ignore[attr-defined]
+    (mec,) = [r for r in reports if r.service == "mec" and r.instance == chain.agent]
+    return sum(c.value for c in mec.counters if c.name in (f"stale/{victim}", f"late/{victim}"))
+
+
+def check_freeze_and_thaw(chain: Chain, victim: str) -> dict[str, float]:
+    """SIGSTOP the victim's sensor group for FREEZE_S (alive to Zenoh, sending nothing), then SIGCONT
+    (reliability.md F3). Returns the measured figures."""
+    out = chain.out
+    out.wait(status_ok, STARTUP_S, since=time.monotonic())
+    time.sleep(1.0 + WINDOW_S)  # steady FULL output first
+    group = chain.sensors[victim][0]
+    dropped_before = mec_dropped(chain, victim)
+    t_stop = time.monotonic()
+    chain.procs[group].send_signal(signal.SIGSTOP)
+    try:
+        t_degraded = out.wait(
+            lambda r: r[1] == pb.PERCEPTION_STATUS_DEGRADED and victim in r[2], 5.0 * SCALE, since=t_stop
+        )
+        time.sleep(max(0.0, t_stop + FREEZE_S - time.monotonic()))
+    finally:
+        chain.procs[group].send_signal(signal.SIGCONT)
+    t_cont = time.monotonic()
+    t_full = out.wait(status_ok, 5.0 * SCALE, since=t_cont)
+    time.sleep(1.0)
+    with out.lock:
+        before = [r for r in out.rows if r[0] < t_stop][-1:]
+    rows = before + [r for r in out.since(t_stop) if r[0] < t_cont]
+    stamp_gaps = [b[3] - a[3] for a, b in itertools.pairwise(rows)]
+    wall_gaps = [b[0] - a[0] for a, b in itertools.pairwise(rows)]
+    # Frames made from ground truth older than the output at SIGCONT by more than the MEC's age limit
+    # are stale whenever they arrive: each must be dropped and counted, never fused. (What the router
+    # dropped for the stopped process, latest-wins, never arrives.)
+    old_before_s = rows[-1][3] - MecSettings().health.max_age_s
+    with out.lock:
+        old = [f for f in out.frames if f[0] >= t_cont and f[1] == victim and f[2] < old_before_s]
+    dropped = mec_dropped(chain, victim) - dropped_before
+    figures = {
+        "degraded_s": t_degraded - t_stop,
+        "rate_hz": sim_rate_hz(rows[1:]),
+        "wall_rate_hz": (len(rows) - 2) / (rows[-1][0] - rows[1][0]),
+        "max_stamp_gap_s": max(stamp_gaps),
+        "max_wall_gap_s": max(wall_gaps),
+        "full_s": t_full - t_cont,
+        "old_frames_after_sigcont": len(old),
+        "counted_dropped": dropped,
+    }
+    print(f"F3 {victim} frozen {FREEZE_S} s: " + ", ".join(f"{k} {v:.3f}" for k, v in figures.items()))
+    assert figures["degraded_s"] <= FREEZE_DEGRADED_WITHIN_S, f"DEGRADED after {figures['degraded_s']:.3f} s"
+    assert figures["rate_hz"] >= MIN_RATE_FRACTION * RATE_HZ, f"output {figures['rate_hz']:.1f} Hz (sim)"
+    assert figures["wall_rate_hz"] >= MIN_RATE_FRACTION * RATE_HZ / SCALE, "output rate (wall) fell"
+    assert figures["max_stamp_gap_s"] <= MAX_GAP_S, f"largest gap {figures['max_stamp_gap_s']:.3f} s (sim)"
+    assert figures["max_wall_gap_s"] <= MAX_GAP_S, f"largest gap {figures['max_wall_gap_s']:.3f} s (wall)"
+    assert figures["full_s"] <= FULL_WITHIN_S, f"FULL {figures['full_s']:.3f} s after SIGCONT"
+    assert dropped >= len(old), f"{len(old)} stale {victim} frames after SIGCONT, {dropped} counted"
+    return figures
+
+
 CAMERA_LIDAR = {"cam_41": ("agent3-cameras", "camera"), "lidar_41": ("agent3-lidars", "lidar")}
 
 
@@ -220,6 +287,11 @@ def test_camera_and_lidar_faults_degrade_and_recover(chain_factory) -> None:
     chain = chain_factory("agent3", CAMERA_LIDAR)
     check_kill_and_restart(chain, "cam_41")
     check_kill_and_restart(chain, "lidar_41")
+
+
+def test_frozen_lidar_degrades_and_recovers(chain_factory) -> None:
+    chain = chain_factory("agent3", CAMERA_LIDAR)
+    check_freeze_and_thaw(chain, "lidar_41")
 
 
 def test_radar_fault_degrades_and_recovers(chain_factory) -> None:

@@ -121,3 +121,26 @@ def test_hold_stops_at_shutdown() -> None:
     pacer.on_progress("mec1", T0, 0.0)
     held = pacer.hold(T0 + 1000 * MS, lambda: None, lambda _s: True, poll_s=0.01, clock=lambda: 0.0)
     assert held == 0.0 and pacer.paced_by == ""
+
+
+def test_a_frozen_fast_consumer_is_let_go_after_two_of_its_cadences() -> None:
+    """A SIGSTOPped 10 Hz sensor group (alive to Zenoh, silent) holds the sim ~0.2 s, not timeout_s."""
+    pacer = Pacer(max_lag_s=0.1, timeout_s=1.0)
+    for k in range(10):  # 10 Hz, in step with the wall clock
+        pacer.on_progress("agent1/sensor/agent1-lidars", T0 + k * 100 * MS, now_s=10.0 + k * 0.1)
+    last_heard = 10.9
+    tick = T0 + 1300 * MS  # 0.4 s of sim time after its last output
+    assert pacer.holding(tick, now_s=last_heard + 0.2) == "agent1/sensor/agent1-lidars"
+    assert pacer.holding(tick, now_s=last_heard + 0.21) is None
+    # It reports again: it holds again at once if it lags.
+    pacer.on_progress("agent1/sensor/agent1-lidars", T0 + 1000 * MS, now_s=20.0)
+    assert pacer.holding(tick, now_s=20.0) == "agent1/sensor/agent1-lidars"
+
+
+def test_a_slow_consumer_keeps_holding_for_its_own_cadence() -> None:
+    """A consumer that is slow because the host is slow (one output per 0.4 s wall) is not silent."""
+    pacer = Pacer(max_lag_s=0.1, timeout_s=1.0)
+    for k in range(5):
+        pacer.on_progress("mec1", T0 + k * 100 * MS, now_s=10.0 + k * 0.4)
+    assert pacer.holding(T0 + 800 * MS, now_s=11.6 + 0.79) == "mec1"
+    assert pacer.holding(T0 + 800 * MS, now_s=11.6 + 0.81) is None  # 2 x 0.4 s

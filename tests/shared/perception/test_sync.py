@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 from shared.perception.sync import BoundedWaitCollector, Sample, TickJoiner
+from shared.scene.cadence import fires
 
 SENSORS = ("cam", "lidar", "radar")
 MS = 1_000_000  # ns
@@ -36,7 +37,7 @@ def test_timeout_emits_partial_frame_naming_the_missing_sensor() -> None:
     j.add(s("cam", 4), SENSORS, 1.0)
     j.add(s("lidar", 4), SENSORS, 1.01)
     assert j.poll(SENSORS, 1.049) == []
-    assert j.next_deadline_s() == pytest.approx(1.05)
+    assert j.next_deadline_s(SENSORS) == pytest.approx(1.05)
     (frame,) = j.poll(SENSORS, 1.05)
     assert frame.missing == ("radar",)
     # The radar's late sample of an emitted tick is dropped and counted, never joined.
@@ -129,3 +130,82 @@ def test_expected_sensors_may_depend_on_the_tick() -> None:
     assert j.add(s("radar", 4), expected, 0.101) == []  # waits for the camera on tick 4
     (frame,) = j.poll(expected, 0.16)
     assert frame.missing == ("cam",)
+
+
+# --- learnt waits and coasted frame ticks (a frozen sensor, reliability.md F3) -------------------------
+TICK_HZ = 60.0
+FRAME_HZ = 10.0  # sensors fire every 6th tick
+
+
+def frame_sample(sensor: str, frame: int) -> Sample:
+    """A sensor frame of frame index `frame` (tick 6 * frame), stamped on its tick."""
+    tick = frame * 6
+    return Sample(sensor, round(tick * 1e9 / TICK_HZ), f"{sensor}@{tick}", tick)
+
+
+def learnt_joiner(lateness_s: float = 0.04, frames: int = 12) -> TickJoiner:
+    """A joiner that saw `frames` frames of cam + lidar, each arriving `lateness_s` after its stamp."""
+    j = TickJoiner(
+        ("cam", "lidar"),
+        max_wait_s=0.2,
+        min_wait_s=0.03,
+        wait_factor=2.0,
+        frame_tick=lambda tick, tick_hz: fires(FRAME_HZ, tick, tick_hz),
+    )
+    for f in range(frames):
+        now = f / FRAME_HZ + lateness_s
+        j.add(frame_sample("cam", f), ("cam", "lidar"), now)
+        assert j.add(frame_sample("lidar", f), ("cam", "lidar"), now)
+    return j
+
+
+def test_the_wait_is_learnt_from_the_sensors_lateness() -> None:
+    j = learnt_joiner(lateness_s=0.04)
+    assert j.wait_s({"lidar"}) == pytest.approx(0.08)  # 2 x 40 ms
+    f = 12
+    j.add(frame_sample("cam", f), ("cam", "lidar"), f / FRAME_HZ + 0.04)
+    assert j.poll(("cam", "lidar"), f / FRAME_HZ + 0.079, TICK_HZ) == []
+    (frame,) = j.poll(("cam", "lidar"), f / FRAME_HZ + 0.08, TICK_HZ)  # not max_wait_s (0.2) later
+    assert frame.missing == ("lidar",) and not frame.coasted
+    # The lidar's frame comes later than that: dropped, counted, and the next waits are longer.
+    assert j.add(frame_sample("lidar", f), ("cam", "lidar"), f / FRAME_HZ + 0.09) == [] and j.late == 1
+    assert j.wait_s({"lidar"}) == pytest.approx(0.18)
+
+
+def test_learnt_wait_is_bounded_and_needs_a_history() -> None:
+    assert learnt_joiner(frames=3).wait_s({"lidar"}) is None  # too few arrivals: max_wait_s applies
+    assert learnt_joiner(lateness_s=0.001).wait_s({"lidar"}) == pytest.approx(0.03)  # min_wait_s
+    j = learnt_joiner(lateness_s=0.5)  # all late: still never more than max_wait_s after a first sample
+    j.add(frame_sample("cam", 12), ("cam", "lidar"), 1.2)
+    assert j.next_deadline_s(("cam", "lidar"), TICK_HZ) == pytest.approx(1.4)
+
+
+def test_a_frame_tick_nobody_delivered_is_coasted_once_due() -> None:
+    j = learnt_joiner(lateness_s=0.04)  # last emitted: frame 11 (tick 66)
+    only_lidar = ("lidar",)  # e.g. the camera is not due on these frames
+    assert j.poll(only_lidar, 1.2 + 0.079, TICK_HZ) == []
+    assert j.next_deadline_s(only_lidar, TICK_HZ) == pytest.approx(1.28)
+    (frame,) = j.poll(only_lidar, 1.2 + 0.08, TICK_HZ)
+    assert frame.coasted and frame.tick == 72 and frame.samples == {} and frame.missing == ("lidar",)
+    assert frame.stamp_ns == round(72 * 1e9 / TICK_HZ) and j.coasted == 1
+    # Two frame ticks overdue at once: both, in order; the frozen lidar's frames, when they come, are late.
+    frames = j.poll(only_lidar, 1.4 + 0.08, TICK_HZ)
+    assert [f.tick for f in frames] == [78, 84]
+    assert j.add(frame_sample("lidar", 12), only_lidar, 1.5) == [] and j.late == 1
+
+
+def test_no_coasting_without_rates_or_expected_sensors() -> None:
+    j = learnt_joiner()
+    assert j.poll((), 5.0, TICK_HZ) == []  # nothing alive: nothing to say
+    assert j.poll(("lidar",), 5.0, None) == []  # no sim tick rate known
+    plain = TickJoiner(("cam", "lidar"), max_wait_s=0.2)  # no frame ticks given
+    plain.add(frame_sample("cam", 0), ("cam",), 0.0)
+    assert plain.poll(("lidar",), 5.0, TICK_HZ) == []
+
+
+def test_a_pending_tick_is_waited_for_before_coasting_past_it() -> None:
+    j = learnt_joiner(lateness_s=0.04)
+    j.add(frame_sample("cam", 13), ("cam", "lidar"), 1.3 + 0.04)  # frame 12 nobody delivered, 13 pending
+    frames = j.poll(("cam", "lidar"), 1.3 + 0.06, TICK_HZ)
+    assert [f.tick for f in frames] == [72]  # frame 12 coasted, frame 13 still waits for its lidar
+    assert frames[0].coasted

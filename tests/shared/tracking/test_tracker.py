@@ -104,6 +104,25 @@ def test_coasting_track_is_predicted_and_recovers() -> None:
     assert t.state is TrackState.CONFIRMED and t.consecutive_misses == 0 and t.track_id == last.track_id
 
 
+def test_coast_predicts_without_missing_aging_or_deleting() -> None:
+    """A frame no sensor delivered: the tracks move on their model; no miss, so none is deleted."""
+    trk = MultiObjectTracker(TrackerConfig(max_misses=1, accel_std_mps2=0.05))
+    v = np.array([0.3, -0.2])
+    for f in range(10):
+        (last,) = trk.step(f * DT, [_m(v * f * DT)]) or [None]
+    assert last is not None
+    for k in range(1, 6):  # more frames than max_misses
+        (t,) = trk.coast((9 + k) * DT)
+        assert (
+            t.state is TrackState.CONFIRMED and t.consecutive_misses == 0 and t.age_frames == last.age_frames
+        )
+    np.testing.assert_allclose(t.position_m, last.position_m + 5 * DT * last.velocity_mps, atol=1e-12)
+    assert t.P[0, 0] > last.P[0, 0]
+    assert [x.track_id for x in trk.coast(DT)] == [t.track_id] and trk.rejected["out_of_order_stamp"] == 1
+    (t,) = trk.step(15 * DT, [_m(v * 15 * DT)])
+    assert t.track_id == last.track_id and t.consecutive_misses == 0
+
+
 def test_ids_count_from_one_and_are_never_reused() -> None:
     trk = MultiObjectTracker()
     trk.step(0.0, [_m((0.0, 0.0)), _m((2.0, 0.0))])
