@@ -44,6 +44,7 @@ from shared.perception.output import tracked_objects_message
 from shared.perception.pipeline import AgentInputs, AgentPipeline, AgentResult
 from shared.perception.sync import BoundedWaitCollector, JoinedFrame, Sample, TickJoiner
 from shared.scene.scene import Scene
+from shared.timebase import NS_PER_S
 
 log = logging.getLogger(__name__)
 
@@ -249,7 +250,7 @@ class MecCore:
         if not self.monitor.accept(sensor_id, stamp_ns, now_s, arrival_ns):
             self.counters[f"stale/{sensor_id}"] += 1
             return "stale"
-        sample = Sample(sensor_id, stamp_ns, message, tick, now_s, epoch)
+        sample = Sample(sensor_id, stamp_ns, message, tick, arrival_ns / NS_PER_S, epoch)
         if isinstance(self._joiner, TickJoiner):
             self._ready += self._joiner.add(sample, self.expected(self.monitor.alive(now_s)), now_s)
         else:

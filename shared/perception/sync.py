@@ -176,7 +176,7 @@ class TickJoiner:
         if verdict is Order.OLDER:
             self.late += 1
             self.late_by_sensor[sample.sensor_id] += 1
-            self.spread.record(sample.sensor_id, now_s - sample.stamp_ns / NS_PER_S)
+            self.spread.record(sample.sensor_id, self._lateness_s(sample, now_s))
             return []
         if verdict is Order.RESTART:
             self.restarts += 1
@@ -191,8 +191,15 @@ class TickJoiner:
             self.duplicates += 1
             return []
         pending.samples[sample.sensor_id] = sample
-        self.spread.record(sample.sensor_id, now_s - sample.stamp_ns / NS_PER_S)
-        return self.poll(expected, now_s)
+        self.spread.record(sample.sensor_id, self._lateness_s(sample, now_s))
+        # Only what this sample completed: timeouts are judged by `poll`, after the caller has added
+        # every sample it already holds (a busy loop must not time out a tick whose samples it has).
+        return self._take(expected, now_s, timeouts=False)
+
+    @staticmethod
+    def _lateness_s(sample: Sample, now_s: float) -> float:
+        """How long after its stamp `sample` arrived (its `arrival_s` if set, else `now_s`)."""
+        return (sample.arrival_s or now_s) - sample.stamp_ns / NS_PER_S
 
     def _wanted(self, expected: Expected, tick: int) -> frozenset[str]:
         return self.sensors.intersection(expected(tick) if callable(expected) else expected)
@@ -250,10 +257,13 @@ class TickJoiner:
     def poll(self, expected: Expected, now_s: float, tick_hz: float | None = None) -> list[JoinedFrame]:
         """Frames ready at `now_s`: complete, timed out, or older than a ready one, and the frame ticks
         coasted (given the sim's `tick_hz`); oldest first."""
+        return self._take(expected, now_s, timeouts=True) + self._coast(expected, now_s, tick_hz)
+
+    def _take(self, expected: Expected, now_s: float, timeouts: bool) -> list[JoinedFrame]:
         ready_tick = -1
         for tick, p in self._pending.items():
             complete = self._wanted(expected, tick).issubset(p.samples)
-            if complete or now_s >= self._deadline_s(p, expected):
+            if complete or (timeouts and now_s >= self._deadline_s(p, expected)):
                 ready_tick = max(ready_tick, tick)
         overflow = len(self._pending) - self.max_pending
         ticks = sorted(self._pending)
@@ -267,14 +277,18 @@ class TickJoiner:
             missing = tuple(sorted(self._wanted(expected, tick).difference(p.samples)))
             out.append(JoinedFrame(p.stamp_ns, tick, p.samples, missing, p.first_arrival_s))
             self._emitted(tick, p.stamp_ns)
-        return out + self._coast(expected, now_s, tick_hz)
+        return out
 
     def next_deadline_s(self, expected: Expected, tick_hz: float | None = None) -> float | None:
         """Time (on the `now_s` clock) at which the first pending tick times out, or the next frame tick
         is coasted (None if neither)."""
         deadlines = [self._deadline_s(p, expected) for p in self._pending.values()]
-        if not self._pending and (nxt := self._next_frame(tick_hz)) is not None:
-            learnt = self.wait_s(self._wanted(expected, nxt[0]))
+        if (
+            not self._pending
+            and (nxt := self._next_frame(tick_hz)) is not None
+            and (awaited := self._wanted(expected, nxt[0]))
+        ):
+            learnt = self.wait_s(awaited)
             deadlines.append(
                 nxt[1] / NS_PER_S + (self.max_wait_s if learnt is None else min(learnt, self.max_wait_s))
             )

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 
 from shared.perception.sync import BoundedWaitCollector, Sample, TickJoiner
@@ -209,3 +211,15 @@ def test_a_pending_tick_is_waited_for_before_coasting_past_it() -> None:
     frames = j.poll(("cam", "lidar"), 1.3 + 0.06, TICK_HZ)
     assert [f.tick for f in frames] == [72]  # frame 12 coasted, frame 13 still waits for its lidar
     assert frames[0].coasted
+
+
+def test_add_never_times_out_a_tick_the_caller_may_still_hold_samples_of() -> None:
+    """A busy MEC drains its queue after a long step: the deadlines are judged after every add."""
+    j = learnt_joiner(lateness_s=0.04)
+    both = ("cam", "lidar")
+    j.add(frame_sample("cam", 12), both, 1.2 + 0.04)
+    late_loop_s = 1.2 + 0.3  # the loop comes back long after the tick's deadline (1.28)
+    assert j.add(frame_sample("cam", 13), both, late_loop_s) == []  # no timeout judged here
+    (frame,) = j.add(replace(frame_sample("lidar", 12), arrival_s=1.2 + 0.05), both, late_loop_s)
+    assert frame.tick == 72 and frame.missing == ()  # the lidar had arrived in time
+    assert j.spread.latest_s("lidar") == pytest.approx(0.05)  # lateness from its arrival, not the loop
