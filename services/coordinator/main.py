@@ -28,6 +28,7 @@ from shared.bus.liveliness import agent_of_mec_token
 from shared.bus.node import Node, Received, processing_stamp
 from shared.bus.rpc import RpcRejected, RpcServer
 from shared.bus.streams import get_stream, limits
+from shared.bus.uplink import REJOIN_GRACE_S
 from shared.scene.scene import Scene
 from shared.security.plan_signing import PlanSigner
 from shared.service import run_service
@@ -152,6 +153,8 @@ class CoordinatorService:
             self.node.health.beat()
             self.ingest(min(POLL_S, self.core.next_map_s - self.clock.now_s()))
             now = self.clock.now_s()
+            # Cut off from the bus (a router restart) or only just back: the agents are not to blame.
+            self.core.hold_coverage(not self.node.uplink.settled(REJOIN_GRACE_S), now)
             tick = self.core.tick(now, time.time_ns())
             if tick.coverage is not None:
                 log.warning("coverage: %s", ", ".join(f"{a} {s.value}" for a, s in tick.coverage.items()))
@@ -200,6 +203,8 @@ class CoordinatorService:
         self.counters.inc("maps/published")
 
     def push(self, now: float) -> None:
+        if not self.node.uplink.connected:  # a send now goes nowhere: not an attempt, resent once back
+            return
         given_up = self.core.plans_given_up
         for plan, stamp_ns, first_send in self.core.due(now):
             pub = self.node.publisher("route_plan", vehicle=plan.vehicle_id)  # declared once per vehicle

@@ -67,7 +67,8 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         )
         for stream in settings.pacing.streams if pacing else []:
             node.subscribe_stream(stream, queue=outputs)
-        presence = node.presence(get_stream("alive").pattern()) if pacing else None
+        # Not held: a consumer forgotten early (e.g. in a router blip) holds again at its next output.
+        presence = node.presence(get_stream("alive").pattern(), hold_leaves=False) if pacing else None
         plans = None
         if settings.traffic.route_policy == "plan":
             check = PlanCheck(

@@ -128,7 +128,10 @@ class PlanClient:
         self.expiry = PlanExpiry()
         # A coordinator that (re)appears serves every vehicle at once, from the vehicles' own state
         # (current lane, destination, followed version): nobody waits for its next lane to be re-planned.
-        self.coordinators = node.presence(get_stream("alive").pattern(scope="cloud", service="coordinator"))
+        # Leaves are not held: the rejoin after a router restart re-serves what failed meanwhile.
+        self.coordinators = node.presence(
+            get_stream("alive").pattern(scope="cloud", service="coordinator"), hold_leaves=False
+        )
         self._ask_all_at: float | None = None
 
     def close(self) -> None:

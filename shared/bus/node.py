@@ -43,6 +43,7 @@ from shared.bus.liveliness import LivelinessMonitor
 from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.bus.session import open_session
 from shared.bus.streams import Stream, get_stream, validate_id
+from shared.bus.uplink import Uplink
 from shared.timebase import SimTime
 
 log = logging.getLogger(__name__)
@@ -234,6 +235,7 @@ class Node:
         self._stop = stop
         self._session: zenoh.Session | None = None
         self._declared: list[Any] = []
+        self.uplink = Uplink()  # this session's link to the bus (open transports)
         self._publishers: dict[tuple[str, str], Publisher] = {}
         self._lock = threading.Lock()
         self.alive_key = get_stream("alive").key(scope=scope, service=service, instance=instance)
@@ -253,6 +255,15 @@ class Node:
     def open(self) -> None:
         self._session = open_session(self._conf, timeout_s=self._open_timeout_s, stop=self._stop)
         try:
+            uplink = self.uplink
+            self._declared.append(
+                self._session.info.declare_transport_events_listener(
+                    lambda event: uplink.on_transport(
+                        str(event.transport.zid), event.kind == zenoh.SampleKind.PUT
+                    ),
+                    history=True,
+                )
+            )
             self._declared.append(self._session.liveliness().declare_token(self.alive_key))
             self._declared.append(self._session.declare_queryable(self.health_key, self._on_health_query))
         except Exception:
@@ -356,9 +367,17 @@ class Node:
             max_future_s=max_future_s,
         )
 
-    def presence(self, key_expr: str) -> LivelinessMonitor:
-        """Watch the presence tokens under `key_expr`; the loop takes joins/leaves with `changes()`."""
-        monitor = LivelinessMonitor(self.session, key_expr, queue_changes=True, counters=self.counters)
+    def presence(self, key_expr: str, *, hold_leaves: bool = True) -> LivelinessMonitor:
+        """Watch the presence tokens under `key_expr`; the loop takes joins/leaves with `changes()`.
+        Leaves are held while this node's own link is down or just back (`hold_leaves`, see
+        LivelinessMonitor): a router restart is not every other process leaving."""
+        monitor = LivelinessMonitor(
+            self.session,
+            key_expr,
+            queue_changes=True,
+            counters=self.counters,
+            uplink=self.uplink if hold_leaves else None,
+        )
         self._declared.append(monitor)
         return monitor
 

@@ -148,6 +148,12 @@ class CoordinatorCore:
         objects = messages.agent_objects(agent, msg, self.settings.maps.min_existence_probability)
         return self.on_objects(agent, objects, stamp_ns, now_s, epoch)
 
+    def hold_coverage(self, holding: bool, now_s: float) -> None:
+        """While `holding` (this process cut off from the bus, or only just back) no agent's coverage
+        is demoted (CoverageTracker.hold)."""
+        with self._lock:
+            self.coverage.hold(holding, now_s)
+
     def on_presence(self, agent: str, alive: bool) -> bool:
         if agent not in self.coverage.agents:
             return False

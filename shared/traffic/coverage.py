@@ -5,7 +5,9 @@
     LOST   no data for `lost_after_s` (or never any)
 
 Presence (a Zenoh liveliness token) vanishes within milliseconds of a killed process, so a dead MEC is
-STALE at once; data age alone also catches a hung one. Times are monotonic seconds.
+STALE at once; data age alone also catches a hung one. While the coordinator itself is cut off from
+the bus, and for a grace after its link returns (`hold`), no agent is demoted: a router restart is not
+every agent failing. Times are monotonic seconds.
 """
 
 from __future__ import annotations
@@ -31,10 +33,27 @@ class _Agent:
     object_count: int = 0
 
 
+#: Better states rank higher: a hold keeps an agent at least as good as it was.
+_RANK = {AgentState.LOST: 0, AgentState.STALE: 1, AgentState.LIVE: 2}
+
+
 class CoverageTracker:
     def __init__(self, agents: Iterable[str], cfg: CoverageConfig) -> None:
         self.cfg = cfg
         self._agents = {agent: _Agent() for agent in agents}
+        self._held: dict[str, AgentState] | None = None  # the states when a hold began
+
+    def hold(self, holding: bool, now_s: float) -> None:
+        """Start (or keep) a hold while `holding`: the states as of its start are the floor of every
+        state until it ends; an agent whose data comes back meanwhile is LIVE at once."""
+        if holding and self._held is None:
+            self._held = {a: self._state(a, now_s) for a in self._agents}
+        elif not holding:
+            self._held = None
+
+    @property
+    def holding(self) -> bool:
+        return self._held is not None
 
     @property
     def agents(self) -> list[str]:
@@ -55,6 +74,12 @@ class CoverageTracker:
         return self._agents[agent].object_count
 
     def state(self, agent: str, now_s: float) -> AgentState:
+        state = self._state(agent, now_s)
+        if self._held is not None and _RANK[self._held[agent]] > _RANK[state]:
+            return self._held[agent]
+        return state
+
+    def _state(self, agent: str, now_s: float) -> AgentState:
         a = self._agents[agent]
         age = now_s - a.last_data_s
         if age > self.cfg.lost_after_s:
