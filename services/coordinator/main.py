@@ -154,7 +154,7 @@ class CoordinatorService:
             self.ingest(min(POLL_S, self.core.next_map_s - self.clock.now_s()))
             now = self.clock.now_s()
             # Cut off from the bus (a router restart) or only just back: the agents are not to blame.
-            self.core.hold_coverage(not self.node.uplink.settled(REJOIN_GRACE_S), now)
+            self.core.hold_coverage(self.node.uplink.recovering(REJOIN_GRACE_S), now)
             tick = self.core.tick(now, time.time_ns())
             if tick.coverage is not None:
                 log.warning("coverage: %s", ", ".join(f"{a} {s.value}" for a, s in tick.coverage.items()))

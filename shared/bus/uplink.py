@@ -64,6 +64,13 @@ class Uplink:
         with self._lock:
             return bool(self._open) and now - self._changed_s >= grace_s
 
+    def recovering(self, grace_s: float, now_s: float | None = None) -> bool:
+        """Cut off now, or connected again after an outage for less than `grace_s` (never before the
+        first outage: a session that just started has lost nothing)."""
+        now = self._clock() if now_s is None else now_s
+        with self._lock:
+            return not self._open or (self.outages > 0 and now - self._changed_s < grace_s)
+
     def down_for_s(self, now_s: float | None = None) -> float:
         """How long the session has been cut off (0 while connected)."""
         now = self._clock() if now_s is None else now_s

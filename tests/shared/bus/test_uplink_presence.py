@@ -107,3 +107,19 @@ def test_without_an_uplink_leaves_are_reported_at_once() -> None:
     assert mon.changes() == [(MEC, True), (MEC, False)]
     with pytest.raises(ValueError):
         LivelinessMonitor(FakeSession(), "k/**", leave_hold_s=-1)  # type: ignore[arg-type]
+
+
+def test_recovering_covers_the_outage_and_the_grace_after_it_never_the_start() -> None:
+    clock = Clock()
+    up = Uplink(clock)
+    assert up.recovering(2.0)  # not connected yet
+    up.on_transport("router", True)
+    assert not up.recovering(2.0)  # just started: nothing was lost
+    up.on_transport("router", False)
+    assert up.recovering(2.0)
+    clock.now_s += 3.0
+    up.on_transport("router", True)
+    clock.now_s += 1.9
+    assert up.recovering(2.0)
+    clock.now_s += 0.2
+    assert not up.recovering(2.0)
