@@ -207,3 +207,55 @@ def test_recorder_stops_cleanly_on_sigterm_with_nothing_recorded(router: Router,
     finally:
         stop(recorder)
     assert list(read_records(out)) == []
+
+
+FLUSH_INTERVAL_S = 0.5
+
+
+@pytest.mark.fault
+def test_a_sigkilled_recorder_leaves_a_readable_file_losing_at_most_one_flush_interval(
+    router: Router, tmp_path: Path
+) -> None:
+    """reliability.md (recorder): SIGKILL mid-stream; the file reads back (linearly, no summary) and
+    holds every sample received more than one flush interval before the kill, in order."""
+    out = tmp_path / "killed.mcap"
+    samples = traffic(60)  # 180 samples over ~3.6 s
+    recorder = spawn(
+        [*RECORDER, "--out", str(out), "--flush-interval-s", str(FLUSH_INTERVAL_S), *router.client_args()]
+    )
+    sent_at: list[float] = []
+    try:
+        with open_session(router.client_config(), timeout_s=5) as session:
+            wait_until(lambda: health_counters(session) is not None, what="recorder health")
+            publishers = {}
+            for s in samples:
+                if s.key not in publishers:
+                    stream = stream_for_key(s.key)
+                    assert stream is not None
+                    publishers[s.key] = session.declare_publisher(s.key, **stream.qos.publisher_kwargs())
+            for pub in publishers.values():
+                wait_until(lambda pub=pub: pub.matching_status.matching, what="a subscriber")
+            for i, s in enumerate(samples):
+                publishers[s.key].put(s.payload, encoding=s.encoding, attachment=s.attachment)
+                sent_at.append(time.monotonic())
+                if i == len(samples) * 2 // 3:
+                    recorder.send_signal(signal.SIGKILL)
+                    t_kill = time.monotonic()
+                time.sleep(PUBLISH_PERIOD_S)
+        assert recorder.wait(5) == -signal.SIGKILL
+    finally:
+        stop(recorder)
+    records = list(read_records(out))  # a truncated file: no exception
+    got = [(r.key, r.encoding, r.payload, r.attachment) for r in records]
+    assert got == as_tuples(samples[: len(got)]), "what was written is an exact, in-order prefix"
+    # Everything sent a flush interval (plus the recorder's receive and write path) before the kill.
+    must_have = sum(1 for t in sent_at if t < t_kill - FLUSH_INTERVAL_S - 0.1)
+    lost_s = t_kill - sent_at[len(got) - 1] if got else float("inf")
+    print(
+        f"recorder SIGKILL: {len(got)} of {sum(1 for t in sent_at if t <= t_kill)} samples sent before "
+        f"the kill in the file; the newest {lost_s:.2f} s before the kill lost "
+        f"(flush interval {FLUSH_INTERVAL_S} s)"
+    )
+    assert len(got) >= must_have, (
+        f"{len(got)} samples in the file, {must_have} sent > one flush interval before"
+    )

@@ -101,10 +101,6 @@ def system() -> Iterator[tuple[Router, dict, Node, MapLog, Seen]]:
         for p in procs.values():
             stop(p)
         stop(box["router"].proc)
-            "\n".join(
-                ln[:300] for ln in out.splitlines() if "replan" in ln or "coverage" in ln or "link" in ln
-            )
-        )
 
 
 def coordinator_counters(node: Node) -> dict[str, int]:
