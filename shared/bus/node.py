@@ -22,10 +22,12 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
+from datetime import timedelta
 from types import TracebackType
 from typing import Any
 
 import zenoh
+import zenoh.ext as zext
 from google.protobuf.message import Message
 from rmmdet.v1.common_pb2 import Header, ProcessingStamp
 from rmmdet.v1.sim_pb2 import SimClock
@@ -42,7 +44,7 @@ from shared.bus.health import DEFAULT_THRESHOLDS, HealthTracker, InputMonitor, R
 from shared.bus.liveliness import LivelinessMonitor
 from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.bus.session import open_session
-from shared.bus.streams import Stream, get_stream, validate_id
+from shared.bus.streams import Stream, get_stream, must_deliver, validate_id
 from shared.bus.uplink import Uplink
 from shared.timebase import SimTime
 
@@ -79,13 +81,39 @@ class Subscription:
         queue: BoundedQueue[Received],
         monitor: InputMonitor,
         counters: Counters,
+        stream: Stream | None = None,
     ) -> None:
         self.key_expr = key_expr
         self.decoder = decoder
         self.queue = queue
         self.monitor = monitor
         self._counters = counters
-        self._subscriber = session.declare_subscriber(key_expr, self._on_sample)
+        self._miss_listener: Any = None
+        if stream is not None and stream.advanced:
+            # Must-deliver: what came after the last sample received is asked of each publisher's cache
+            # periodically (recovered), what can no longer be is counted; `history` streams also take
+            # the cached samples on joining (streams.yaml `must_deliver`).
+            settings = must_deliver()
+            history = (
+                zext.HistoryConfig(detect_late_publishers=True, max_samples=settings.cache_samples)
+                if stream.history
+                else None
+            )
+            sub = zext.declare_advanced_subscriber(
+                session,
+                key_expr,
+                self._on_sample,
+                history=history,
+                recovery=zext.RecoveryConfig(  # the stub says float: zenoh 1.10 takes a timedelta
+                    periodic_queries=timedelta(seconds=settings.recovery_query_s),  # type: ignore[arg-type]
+                    heartbeat=None,
+                ),
+            )
+            missed = f"missed/{stream.name}"
+            self._miss_listener = sub.sample_miss_listener(lambda miss: counters.inc(missed, miss.nb))
+            self._subscriber: Any = sub
+        else:
+            self._subscriber = session.declare_subscriber(key_expr, self._on_sample)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         # Runs on a Zenoh thread: never raise, never block.
@@ -118,6 +146,8 @@ class Subscription:
 
     def undeclare(self) -> None:
         self.queue.close()
+        if self._miss_listener is not None:
+            self._miss_listener.undeclare()
         self._subscriber.undeclare()
 
 
@@ -131,9 +161,25 @@ class Publisher:
         self._stage = stage
         self._message_type = stream.message_type
         self._body_header = has_body_header(self._message_type)
-        self._publisher = session.declare_publisher(
-            key, encoding=encoding_for(self._message_type), **stream.qos.publisher_kwargs()
-        )
+        self._session = session
+        self._matching: zenoh.Publisher | None = None
+        if stream.advanced:
+            # Must-deliver: sequenced and cached for recovery and late joiners (streams.yaml
+            # `must_deliver`); no heartbeat: the subscribers ask periodically.
+            settings = must_deliver()
+            self._publisher: Any = zext.declare_advanced_publisher(
+                session,
+                key,
+                encoding=encoding_for(self._message_type),
+                cache=zext.CacheConfig(max_samples=settings.cache_samples),
+                sample_miss_detection=zext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=None),
+                publisher_detection=True,
+                **stream.qos.publisher_kwargs(),
+            )
+        else:
+            self._publisher = session.declare_publisher(
+                key, encoding=encoding_for(self._message_type), **stream.qos.publisher_kwargs()
+            )
         self._lock = threading.Lock()
         self.seq = 0
 
@@ -188,7 +234,12 @@ class Publisher:
         return header
 
     def has_subscribers(self) -> bool:
-        status = self._publisher.matching_status  # a MatchingStatus at runtime (the stub says bool)
+        publisher = self._publisher
+        if not hasattr(publisher, "matching_status"):  # an advanced publisher has none of its own
+            if self._matching is None:
+                self._matching = self._session.declare_publisher(self.key)  # never puts: matching only
+            publisher = self._matching
+        status = publisher.matching_status  # a MatchingStatus at runtime (the stub says bool)
         return bool(getattr(status, "matching", status))
 
     def wait_for_subscribers(self, timeout_s: float, stop: threading.Event | None = None) -> bool:
@@ -201,6 +252,8 @@ class Publisher:
         return True
 
     def undeclare(self) -> None:
+        if self._matching is not None:
+            self._matching.undeclare()
         self._publisher.undeclare()
 
 
@@ -322,8 +375,10 @@ class Node:
         queue: BoundedQueue[Received] | None = None,
         clock_s: Callable[[], float] = time.time,
         max_future_s: float | None = None,
+        stream: Stream | None = None,
     ) -> Subscription:
-        """Subscribe to `key_expr`; `expected_type=None` accepts any known schema (tools). Several
+        """Subscribe to `key_expr` (of `stream`, if given: a must-deliver one is subscribed with the
+        advanced subscriber); `expected_type=None` accepts any known schema (tools). Several
         subscriptions may share one `queue` (a service that waits on all its inputs at once); then
         `maxsize` and `policy` are the queue's own (make it with the node's counters: it counts its drops).
         `max_age_s` and `max_future_s` are judged on
@@ -335,7 +390,7 @@ class Node:
         self.health.add_input(monitor)
         if queue is None:
             queue = BoundedQueue(maxsize, policy, self.counters)
-        sub = Subscription(self.session, key_expr, decoder, queue, monitor, self.counters)
+        sub = Subscription(self.session, key_expr, decoder, queue, monitor, self.counters, stream)
         self._declared.append(sub)
         return sub
 
@@ -365,6 +420,7 @@ class Node:
             queue=queue,
             clock_s=clock_s,
             max_future_s=max_future_s,
+            stream=stream,
         )
 
     def presence(self, key_expr: str, *, hold_leaves: bool = True) -> LivelinessMonitor:

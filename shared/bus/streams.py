@@ -73,6 +73,12 @@ class Stream:
     doc: str = ""
     #: verb (publish, subscribe, serve, query, token, watch) -> roles allowed (`role` or `role/kind`)
     access: dict[str, tuple[str, ...]] = dataclasses.field(default_factory=dict)
+    history: bool = False  # must-deliver: a late joiner gets the publisher's cached samples at once
+
+    @property
+    def advanced(self) -> bool:
+        """Carried by Zenoh's advanced publisher/subscriber (must-deliver pub/sub, `must_deliver:`)."""
+        return self.stream_class == "must-deliver" and self.kind == "pubsub"
 
     @property
     def fields(self) -> tuple[str, ...]:
@@ -157,6 +163,23 @@ def limits(path: Path = STREAMS_YAML) -> Limits:
     return Limits(**yaml.safe_load(path.read_text())["limits"])
 
 
+@dataclass(frozen=True)
+class MustDeliver:
+    """Advanced publisher/subscriber settings of the must-deliver streams (streams.yaml `must_deliver`)."""
+
+    cache_samples: int
+    recovery_query_s: float
+
+    def __post_init__(self) -> None:
+        if self.cache_samples < 1 or self.recovery_query_s <= 0:
+            raise ValueError("must_deliver: cache_samples must be >= 1 and recovery_query_s > 0")
+
+
+@functools.cache
+def must_deliver(path: Path = STREAMS_YAML) -> MustDeliver:
+    return MustDeliver(**yaml.safe_load(path.read_text())["must_deliver"])
+
+
 def validate_id(value: str, what: str = "id") -> str:
     if not isinstance(value, str) or not ID_PATTERN.match(value):
         raise ValueError(f"invalid {what} {value!r}: must match {ID_PATTERN.pattern}")
@@ -220,7 +243,10 @@ def load_streams(path: Path = STREAMS_YAML) -> dict[str, Stream]:
             reply_type_name=s.get("reply_type"),
             doc=s.get("doc", ""),
             access=_access(name, s.get("access", {}), spec.get("readers", []), s.get("kind", "pubsub")),
+            history=bool(s.get("history", False)),
         )
+        if streams[name].history and not streams[name].advanced:
+            raise ValueError(f"stream {name}: history needs a must-deliver pub/sub stream")
     return streams
 
 

@@ -46,6 +46,20 @@ VERB_INTEREST: dict[str, tuple[tuple[str, str], ...]] = {
 }
 
 
+#: A must-deliver stream rides Zenoh's advanced publisher/subscriber (`Stream.advanced`), whose publisher
+#: holds a token and serves its cache under `<key>/@adv/...`: a stream verb brings these verbs on
+#: that key space (`@adv` is a verbatim chunk: no `**` grant reaches it) ...
+ADVANCED_VERBS: dict[str, tuple[str, ...]] = {
+    "publish": ("publish", "token", "serve"),
+    "subscribe": ("subscribe", "watch", "query"),
+}
+#: ... and the cache's replies carry the samples' own keys: the publisher replies, the subscriber gets them.
+ADVANCED_REPLIES: dict[str, tuple[str, str]] = {
+    "publish": ("reply", "ingress"),
+    "subscribe": ("reply", "egress"),
+}
+
+
 def role_matches(token: str, grant: Grant) -> bool:
     """`token` from streams.yaml (`role` or `role/kind`) covers `grant`."""
     role, _, kind = token.partition("/")
@@ -97,7 +111,21 @@ def grant_permissions(grants: Iterable[Grant]) -> dict[tuple[str, str], set[str]
                         out[pair].add(key_for(stream, grant, verb))
                     for pair in VERB_INTEREST.get(verb, ()):
                         out[pair] |= {wide_key(stream), f"{key_prefix()}/**"}
+                    if stream.advanced:
+                        _grant_advanced(out, stream, key_for(stream, grant, verb), verb)
     return out
+
+
+def _grant_advanced(out: dict[tuple[str, str], set[str]], stream: Stream, key: str, verb: str) -> None:
+    # The cache is queried on `<key>/@adv/**` (history) and `<key>/@adv/pub/<zid>/<eid>/...` (recovery).
+    own, anyone = f"{key}/@adv/**", f"{stream.pattern()}/@adv/**"
+    if verb in ADVANCED_REPLIES:
+        out[ADVANCED_REPLIES[verb]].add(key)
+    for adv_verb in ADVANCED_VERBS.get(verb, ()):
+        for pair in VERB_MESSAGES[adv_verb]:
+            out[pair].add(own)
+        for pair in VERB_INTEREST.get(adv_verb, ()):
+            out[pair].add(anyone)
 
 
 def identity_grants(names: Iterable[str]) -> list[Grant]:

@@ -18,9 +18,13 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from shared.bus.node import Node
 from shared.bus.session import SessionUnavailable, open_session
 from shared.bus.streams import get_stream
 from shared.bus.zenoh_config import DEFAULT_CLIENT_CONFIG
+from shared.paths import DEFAULT_SCENE
+from shared.scene.calibration import calibration_set
+from shared.scene.scene import Scene
 from shared.security.pki import init_pki
 from tests.helpers import free_port, spawn, stop, wait_port
 from tests.integration.secure_sites import Deployment, Inbox, make_deployment, wait_for
@@ -155,3 +159,17 @@ def test_a_rogue_queryable_never_answers_a_vehicle_and_a_vehicle_asks_only_for_i
             forged.undeclare()
     assert own == [b"genuine"]
     assert other == []  # vehicle-v1 may not ask for v2's plans (one plan-book entry per identity)
+
+
+def test_must_deliver_history_works_under_access_control(deployment: Deployment) -> None:
+    """The advanced publisher/subscriber's own keys (`<key>/@adv/...`: token, cache queryable, queries)
+    are granted with the stream: a MEC joining late gets the sim's cached calibration at once."""
+    calibration = calibration_set(Scene.load(DEFAULT_SCENE), "agent1")
+    with Node(deployment.config("sim"), service="sim", instance="sim", scope="sim") as sim:
+        sim.publisher("calibration", agent="agent1").put(calibration)
+        time.sleep(SETTLE_S)  # long published before the MEC comes
+        with Node(deployment.config("mec-agent1"), service="mec", instance="agent1", scope="agent1") as mec:
+            sub = mec.subscribe_stream("calibration", agent="agent1")
+            item = sub.recv(timeout=REFUSED_WITHIN_S)
+            assert item is not None, "no calibration from the publisher's cache under access control"
+            assert item.message.SerializeToString() == calibration.SerializeToString()

@@ -34,8 +34,13 @@ def perms(*names: str) -> dict[tuple[str, str], set[str]]:
         ),
         ("sensor-agent1-cameras", {"rmmdet/@v1/agent1/sensor/camera/*"}),
         ("sensor-agent2-radars", {"rmmdet/@v1/agent2/sensor/radar/*"}),
-        ("vehicle-v7", {"rmmdet/@v1/vehicles/v7/plan_ack"}),
-        ("coordinator", {"rmmdet/@v1/cloud/plans/*", "rmmdet/@v1/cloud/maps/traffic"}),
+        # must-deliver streams: with their advanced publisher's own key space (heartbeat-free, but tokens
+        # and the cache live under `@adv`)
+        ("vehicle-v7", {"rmmdet/@v1/vehicles/v7/plan_ack", "rmmdet/@v1/vehicles/v7/plan_ack/@adv/**"}),
+        (
+            "coordinator",
+            {"rmmdet/@v1/cloud/plans/*", "rmmdet/@v1/cloud/plans/*/@adv/**", "rmmdet/@v1/cloud/maps/traffic"},
+        ),
         ("recorder", set()),
         ("operator", set()),
     ],
@@ -56,14 +61,19 @@ def test_only_the_coordinator_publishes_plans_and_serves_the_route_rpc(test_scen
 
 def test_a_vehicle_queries_the_route_rpc_and_reads_only_its_plans() -> None:
     p = perms("vehicle-v7")
-    assert p[("query", "ingress")] == {get_stream("route_rpc").key(vehicle="v7")}
-    assert p[("declare_subscriber", "ingress")] == {"rmmdet/@v1/cloud/plans/v7"}
+    own_plans = "rmmdet/@v1/cloud/plans/v7"
+    # ... and the plan publisher's cache for its own plans (recovery), nobody else's
+    assert p[("query", "ingress")] == {get_stream("route_rpc").key(vehicle="v7"), f"{own_plans}/@adv/**"}
+    assert p[("declare_subscriber", "ingress")] == {own_plans, f"{own_plans}/@adv/**"}
+    assert p[("reply", "egress")] >= {own_plans}  # the cache's replies carry the plans' own keys
 
 
 def test_readers_subscribe_to_the_whole_data_space_and_query_health() -> None:
     p = perms("operator")
     assert "rmmdet/@v1/**" in p[("declare_subscriber", "ingress")]
-    assert p[("query", "ingress")] == {"rmmdet/@v1/*/@health/*/*"}
+    # health, and the caches of the must-deliver streams (a reader's advanced subscriber recovers too)
+    adv = {f"{s.pattern()}/@adv/**" for s in streams().values() if s.advanced}
+    assert adv and p[("query", "ingress")] == {"rmmdet/@v1/*/@health/*/*", *adv}
     assert "rmmdet/@v1/**" in perms("recorder")[("declare_subscriber", "ingress")]
 
 
