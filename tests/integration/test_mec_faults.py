@@ -60,6 +60,7 @@ WINDOW_S = 3.0
 COORDINATOR_STALE_WITHIN_S = 1.0 * SCALE  # reliability.md R4
 COORDINATOR_LIVE_WITHIN_S = 1.0 * SCALE
 FREEZE_S = 15.0  # SIGSTOP for this long (F3)
+RESTART_WITHIN_S = 2.0 * SCALE  # a restarted sim's first tick -> sensors and MEC produce again
 FREEZE_DEGRADED_WITHIN_S = 0.3 * SCALE  # alive to Zenoh but silent: no presence change to go by
 
 
@@ -292,6 +293,37 @@ def test_camera_and_lidar_faults_degrade_and_recover(chain_factory) -> None:
 def test_frozen_lidar_degrades_and_recovers(chain_factory) -> None:
     chain = chain_factory("agent3", CAMERA_LIDAR)
     check_freeze_and_thaw(chain, "lidar_41")
+
+
+def test_a_restarted_sim_is_taken_by_sensors_and_mec_within_2_s(chain_factory) -> None:
+    """Stop the sim, start a new run: its ticks restart at 0 in a new epoch (Header.epoch); the sensor
+    group and the MEC's join take it at once instead of dropping every frame until the new ticks pass
+    the old ones (reliability: sim restart)."""
+    chain = chain_factory("agent3", CAMERA_LIDAR)
+    out = chain.out
+    out.wait(status_ok, STARTUP_S, since=time.monotonic())
+    ground_truth = chain.node.subscribe_stream("ground_truth", maxsize=100)  # type: ignore[attr-defined]
+    assert stop(chain.procs["sim"]) == 0
+    time.sleep(1.0)
+    new_run_s = time.time()  # the new run's stamps start at its start (wall clock)
+    chain.procs["sim"] = spawn(
+        ["-m", "services.sim", *chain.router.client_args(), "--speed", "1", "--vehicles", "16"]
+    )
+    deadline = time.monotonic() + STARTUP_S
+    t_tick = None
+    while t_tick is None:
+        assert time.monotonic() < deadline, "no ground truth of the new run"
+        item = ground_truth.recv(timeout=0.1)
+        if item is not None and item.header.stamp.ToNanoseconds() / 1e9 >= new_run_s:
+            t_tick = time.monotonic()
+    t_frames = out.wait(lambda r: r[3] >= new_run_s, RESTART_WITHIN_S + 1.0, since=t_tick)
+    with out.lock:
+        t_sensor = min(t for t, sensor, stamp in out.frames if stamp >= new_run_s)
+    print(
+        f"sim restart: first sensor frame {t_sensor - t_tick:.3f} s, first object list "
+        f"{t_frames - t_tick:.3f} s after the new run's first tick"
+    )
+    assert t_sensor - t_tick <= RESTART_WITHIN_S and t_frames - t_tick <= RESTART_WITHIN_S
 
 
 def test_radar_fault_degrades_and_recovers(chain_factory) -> None:
