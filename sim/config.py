@@ -93,7 +93,10 @@ class PacingSettings(_Model):
         "MECs' 0.2 s freshness limit on arrival only because the sim ran ahead",
     )
     consumer_timeout_s: float = Field(
-        1.0, gt=0, description="a consumer silent this long (wall s) no longer holds the sim"
+        1.0,
+        gt=0,
+        description="a consumer silent this long (wall s) no longer holds the sim; one with a short cadence "
+        "is let go after 2 of its own wall cadences (at least 0.15 s; sim/pacing.py)",
     )
 
 

@@ -16,10 +16,10 @@ latency, not `max_wait_s`, until its health monitor declares it missing; a senso
 is late (dropped, counted) and its lateness widens the next waits. Told which ticks are frame ticks
 (`frame_tick`) and the sim's tick rate, the joiner also emits a frame with no samples for a frame tick
 on which no expected sensor delivered by its deadline (`JoinedFrame.coasted`): a tick where only the
-frozen sensor was due must not become a gap in the agent's output.
-Which sensors are expected is the caller's choice per `poll`/`add`
-call, a set or a function of the tick (the MEC passes the inputs its health monitor thinks alive, less
-the cameras not due on that tick, so neither a dead camera nor a skipped frame is waited for).
+frozen sensor was due must not become a gap in the agent's output. Which sensors are expected is the
+caller's choice per `poll`/`add` call, a set or a function of the tick (the MEC passes the inputs its
+health monitor thinks alive, less the cameras not due on that tick, so neither a dead camera nor a
+skipped frame is waited for).
 
 `BoundedWaitCollector` (real, asynchronous sensors): a frame is triggered by each sample of the
 `trigger` sensor; every other sensor contributes its sample nearest to the trigger stamp within

@@ -52,8 +52,8 @@ def health_counters(session: zenoh.Session) -> dict[str, int] | None:
     return None
 
 
-def publish(session: zenoh.Session, samples: list[Sent]) -> None:
-    """Put the exact bytes of each sample with its stream's QoS, once something subscribes."""
+def matched_publishers(session: zenoh.Session, samples: list[Sent]) -> dict[str, zenoh.Publisher]:
+    """A publisher per key of `samples` with its stream's QoS, once something subscribes to each."""
     publishers: dict[str, zenoh.Publisher] = {}
     for s in samples:
         if s.key not in publishers:
@@ -62,6 +62,12 @@ def publish(session: zenoh.Session, samples: list[Sent]) -> None:
             publishers[s.key] = session.declare_publisher(s.key, **stream.qos.publisher_kwargs())
     for pub in publishers.values():
         wait_until(lambda pub=pub: pub.matching_status.matching, what="a subscriber")
+    return publishers
+
+
+def publish(session: zenoh.Session, samples: list[Sent]) -> None:
+    """Put the exact bytes of each sample with its stream's QoS, once something subscribes."""
+    publishers = matched_publishers(session, samples)
     for s in samples:
         publishers[s.key].put(s.payload, encoding=s.encoding, attachment=s.attachment)
         time.sleep(PUBLISH_PERIOD_S)
@@ -227,14 +233,7 @@ def test_a_sigkilled_recorder_leaves_a_readable_file_losing_at_most_one_flush_in
     try:
         with open_session(router.client_config(), timeout_s=5) as session:
             wait_until(lambda: health_counters(session) is not None, what="recorder health")
-            publishers = {}
-            for s in samples:
-                if s.key not in publishers:
-                    stream = stream_for_key(s.key)
-                    assert stream is not None
-                    publishers[s.key] = session.declare_publisher(s.key, **stream.qos.publisher_kwargs())
-            for pub in publishers.values():
-                wait_until(lambda pub=pub: pub.matching_status.matching, what="a subscriber")
+            publishers = matched_publishers(session, samples)
             for i, s in enumerate(samples):
                 publishers[s.key].put(s.payload, encoding=s.encoding, attachment=s.attachment)
                 sent_at.append(time.monotonic())
