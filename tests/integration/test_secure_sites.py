@@ -13,7 +13,8 @@ router enforces the generated access control. The test process watches from the 
 - cutting site2's link for 10 s (nftables drop, both ways): agent2 STALE within 1 s, the others LIVE
   throughout, agent2 LIVE again within 3 s of the link's return; the plans the coordinator pushes on
   the coverage changes are all acknowledged;
-- 20 % packet loss on the vehicles' link: every plan pushed meanwhile is acknowledged, none given up.
+- 20 % packet loss on the vehicles' link: every plan pushed meanwhile is acknowledged, none given up;
+- 30 % packet loss on a site's link for 10 s: the others stay LIVE, the site LIVE within 5 s after.
 
 Needs root, iproute2 and nftables (`.ci/run` installs them); skipped elsewhere.
 """
@@ -48,6 +49,8 @@ STALE_WITHIN_S = 1.0 * SCALE
 LIVE_WITHIN_S = 3.0 * SCALE
 TRANSIT_SAMPLES = 150
 LOSS_PERCENT = 20
+SITE_LOSS_PERCENT = 30
+RECOVER_WITHIN_S = 5.0 * SCALE
 MIN_ACCEPTED = 3
 
 
@@ -132,3 +135,28 @@ def test_plans_are_all_delivered_over_a_lossy_link(sites: Sites) -> None:
         f"{given_up} given up"
     )
     assert given_up == 0
+
+
+def test_a_lossy_site_link_degrades_and_recovers(sites: Sites) -> None:
+    """30 % packet loss each way on site1's link for 10 s (N2): the site's object lists come late or
+    not at all, nothing crashes, and agent1 is LIVE again within 5 s of the loss ending; the other
+    agents stay LIVE throughout."""
+    maps = sites.watch.maps
+    maps.wait(lambda s: all(s.get(a) == "LIVE" for a in AGENTS), 30 * SCALE, since=time.monotonic())
+    start = time.monotonic()
+    sites.hosts.lossy("site1", SITE_LOSS_PERCENT)
+    try:
+        time.sleep(CUT_S)
+    finally:
+        sites.hosts.restore("site1")
+    healed = time.monotonic()
+    live_at = maps.wait(lambda s: s.get("agent1") == "LIVE", RECOVER_WITHIN_S + 10.0, since=healed)
+    during = maps.since(start)
+    live_share = sum(s.get("agent1") == "LIVE" for t, s in during if t <= healed) / max(1, len(during))
+    print(
+        f"{SITE_LOSS_PERCENT} % loss on site1 for {CUT_S:.0f} s: agent1 LIVE in {100 * live_share:.0f} % of "
+        f"the maps meanwhile, LIVE {live_at - healed:.2f} s after the loss ended"
+    )
+    assert live_at - healed <= RECOVER_WITHIN_S
+    others = [states for t, states in during if t <= live_at]
+    assert all(states.get(a) == "LIVE" for states in others for a in ("agent2", "agent3")), "others flipped"
