@@ -1,0 +1,266 @@
+"""The live 3D view as Foxglove messages: pure functions from the scene and bus messages to Foxglove's
+protobuf schemas (`foxglove_schemas_protobuf`, the types the bus already uses for images and clouds;
+no bus, no server: the viewer service and MCAP export call them alike).
+
+Everything is drawn in the `world` frame of the table (metres, z up). Entity ids are stable per thing
+(`lane/<id>`, `<agent>/track/<id>`, `plan/<vehicle>`, ...) so an update replaces what it drew before,
+and every dynamic entity carries a `lifetime` so that what stops being published (a track dropped, an
+agent gone) disappears on its own instead of freezing in the view.
+
+Tracked boxes are coloured by the modalities that updated them in the latest frame (the paper's fusion
+branches): lidar + camera green, radar + camera orange, lidar alone blue, radar alone purple, camera
+alone yellow, none (coasting) grey; a coasting track is drawn translucent. Ids are text above the box,
+velocities arrows from its centre (length = 1 s of travel).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+
+from foxglove_schemas_protobuf.ArrowPrimitive_pb2 import ArrowPrimitive
+from foxglove_schemas_protobuf.Color_pb2 import Color
+from foxglove_schemas_protobuf.CubePrimitive_pb2 import CubePrimitive
+from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
+from foxglove_schemas_protobuf.Point3_pb2 import Point3
+from foxglove_schemas_protobuf.Pose_pb2 import Pose
+from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
+from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+from foxglove_schemas_protobuf.TextPrimitive_pb2 import TextPrimitive
+from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
+from google.protobuf.duration_pb2 import Duration
+from google.protobuf.timestamp_pb2 import Timestamp
+from rmmdet.v1 import perception_pb2 as pb
+from rmmdet.v1.planning_pb2 import RoutePlan
+
+from shared.scene.model import SensorSpec
+from shared.scene.road_network import RoadNetwork
+from shared.scene.scene import Scene
+
+FRAME = "world"
+NS_PER_S = 1_000_000_000
+DYNAMIC_LIFETIME_S = 0.5  # a track or vehicle not redrawn for this long disappears
+PLAN_LIFETIME_S = 5.0
+PLAN_LIFT_M = 0.02  # plans are drawn this far above the lanes they follow
+LANE_COLOR = Color(r=0.55, g=0.55, b=0.6, a=1.0)
+JUNCTION_COLOR = Color(r=1.0, g=1.0, b=1.0, a=1.0)
+FOV_COLOR = {"camera": Color(r=1.0, g=0.9, b=0.2, a=0.6), "lidar": Color(r=0.2, g=0.6, b=1.0, a=0.6)}
+FOV_COLOR["radar"] = Color(r=0.8, g=0.3, b=1.0, a=0.6)
+GROUND_TRUTH_COLOR = Color(r=0.85, g=0.85, b=0.85, a=0.35)
+PLAN_COLOR = Color(r=0.1, g=0.9, b=0.9, a=0.9)
+CAMERA_RANGE_M = 2.0  # cameras have no range: their field of view is drawn this long
+MODALITY_COLORS: dict[frozenset[int], Color] = {
+    frozenset({pb.MODALITY_LIDAR, pb.MODALITY_CAMERA}): Color(r=0.2, g=0.85, b=0.3, a=0.8),
+    frozenset({pb.MODALITY_RADAR, pb.MODALITY_CAMERA}): Color(r=1.0, g=0.55, b=0.1, a=0.8),
+    frozenset({pb.MODALITY_LIDAR}): Color(r=0.2, g=0.5, b=1.0, a=0.8),
+    frozenset({pb.MODALITY_RADAR}): Color(r=0.6, g=0.3, b=0.9, a=0.8),
+    frozenset({pb.MODALITY_CAMERA}): Color(r=1.0, g=0.9, b=0.2, a=0.8),
+}
+COASTING_COLOR = Color(r=0.6, g=0.6, b=0.6, a=0.35)
+
+
+def timestamp(stamp_ns: int) -> Timestamp:
+    t = Timestamp()
+    t.FromNanoseconds(stamp_ns)
+    return t
+
+
+def duration(seconds: float) -> Duration:
+    d = Duration()
+    d.FromNanoseconds(round(seconds * NS_PER_S))
+    return d
+
+
+def yaw_quaternion(yaw_rad: float) -> Quaternion:
+    return Quaternion(x=0.0, y=0.0, z=math.sin(yaw_rad / 2), w=math.cos(yaw_rad / 2))
+
+
+def pose(x: float, y: float, z: float, yaw_rad: float = 0.0) -> Pose:
+    return Pose(position=Vector3(x=x, y=y, z=z), orientation=yaw_quaternion(yaw_rad))
+
+
+def line_strip(points: Iterable[Sequence[float]], color: Color, thickness_m: float) -> LinePrimitive:
+    return LinePrimitive(
+        type=LinePrimitive.LINE_STRIP,
+        pose=pose(0.0, 0.0, 0.0),
+        thickness=thickness_m,
+        points=[Point3(x=float(p[0]), y=float(p[1]), z=float(p[2]) if len(p) > 2 else 0.0) for p in points],
+        color=color,
+    )
+
+
+def modality_color(modalities: Iterable[int], coasting: bool) -> Color:
+    """The colour of a track from the modalities that updated it (see the module doc)."""
+    if coasting:
+        return COASTING_COLOR
+    return MODALITY_COLORS.get(frozenset(modalities), COASTING_COLOR)
+
+
+# --- the table (static) -------------------------------------------------------------------------
+
+
+def table(scene: Scene, network: RoadNetwork, stamp_ns: int) -> SceneUpdate:
+    """Lanes (centrelines), junctions with their flow-count numbers, and every sensor with its field
+    of view (a wedge at its mounting height, as long as its range). Static: no lifetime."""
+    entities = []
+    for lane_id, path in network.lanes.items():
+        entities.append(
+            SceneEntity(
+                timestamp=timestamp(stamp_ns),
+                frame_id=FRAME,
+                id=f"lane/{lane_id}",
+                lines=[line_strip(path.points, LANE_COLOR, 0.01)],
+            )
+        )
+    for junction in scene.spec.junctions:
+        x, y, z = junction.position_m
+        entities.append(
+            SceneEntity(
+                timestamp=timestamp(stamp_ns),
+                frame_id=FRAME,
+                id=f"junction/{junction.id}",
+                texts=[
+                    TextPrimitive(
+                        pose=pose(x, y, z + 0.1),
+                        billboard=True,
+                        font_size=0.15,
+                        color=JUNCTION_COLOR,
+                        text=str(junction.number),
+                    )
+                ],
+            )
+        )
+    for spec in scene.spec.sensors:
+        entities.append(
+            SceneEntity(
+                timestamp=timestamp(stamp_ns),
+                frame_id=FRAME,
+                id=f"sensor/{spec.id}",
+                lines=[line_strip(fov_wedge(spec), FOV_COLOR[spec.kind], 0.005)],
+                texts=[
+                    TextPrimitive(
+                        pose=pose(*spec.pose.position_m),
+                        billboard=True,
+                        font_size=0.06,
+                        color=FOV_COLOR[spec.kind],
+                        text=spec.id,
+                    )
+                ],
+            )
+        )
+    return SceneUpdate(entities=entities)
+
+
+def fov_wedge(spec: SensorSpec, steps: int = 12) -> list[tuple[float, float, float]]:
+    """The horizontal field of view of a sensor as a closed outline: apex at the sensor, an arc at its
+    range (cameras: CAMERA_RANGE_M; a spinning lidar: the whole circle), at the sensor's height."""
+    x, y, z = spec.pose.position_m
+    yaw = sensor_yaw(spec)
+    if spec.lidar is not None:
+        hfov, reach = 2 * math.pi, spec.lidar.max_range_m
+    elif spec.radar is not None:
+        hfov, reach = spec.radar.hfov_rad, spec.radar.max_range_m
+    else:
+        assert spec.camera is not None  # SensorSpec validates that its kind's model is given
+        hfov, reach = spec.camera.hfov_rad, CAMERA_RANGE_M
+    arc = [
+        (x + reach * math.cos(a), y + reach * math.sin(a), z)
+        for a in (yaw - hfov / 2 + hfov * k / steps for k in range(steps + 1))
+    ]
+    return [(x, y, z), *arc, (x, y, z)]
+
+
+def sensor_yaw(spec: SensorSpec) -> float:
+    """Heading of a sensor's +x axis in the table plane, rad."""
+    if spec.pose.rpy_rad is not None:
+        return float(spec.pose.rpy_rad[2])
+    assert spec.pose.quat_xyzw is not None  # PoseSpec holds exactly one of the two
+    qx, qy, qz, qw = spec.pose.quat_xyzw
+    return math.atan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))
+
+
+# --- dynamic layers -----------------------------------------------------------------------------
+
+
+def tracked_objects(agent_id: str, msg: pb.TrackedObjects, stamp_ns: int) -> SceneUpdate:
+    """One agent's tracks: boxes coloured by modality and state, ids, velocity arrows."""
+    entities = []
+    for obj in msg.objects:
+        b = obj.box
+        coasting = obj.state == pb.TRACK_STATE_COASTING
+        color = modality_color(obj.modalities, coasting)
+        vx, vy = obj.velocity_mps.x, obj.velocity_mps.y
+        speed = math.hypot(vx, vy)
+        top = b.center_m.z + b.size_m.z / 2
+        arrows = []
+        if speed > 1e-3:
+            arrows.append(
+                ArrowPrimitive(
+                    pose=pose(b.center_m.x, b.center_m.y, top, math.atan2(vy, vx)),
+                    shaft_length=speed,
+                    shaft_diameter=0.01,
+                    head_length=0.04,
+                    head_diameter=0.03,
+                    color=color,
+                )
+            )
+        entities.append(
+            SceneEntity(
+                timestamp=timestamp(stamp_ns),
+                frame_id=FRAME,
+                id=f"{agent_id}/track/{obj.track_id}",
+                lifetime=duration(DYNAMIC_LIFETIME_S),
+                cubes=[
+                    CubePrimitive(
+                        pose=pose(b.center_m.x, b.center_m.y, b.center_m.z, b.yaw_rad),
+                        size=Vector3(x=b.size_m.x, y=b.size_m.y, z=b.size_m.z),
+                        color=color,
+                    )
+                ],
+                texts=[
+                    TextPrimitive(
+                        pose=pose(b.center_m.x, b.center_m.y, top + 0.05),
+                        billboard=True,
+                        font_size=0.05,
+                        color=color,
+                        text=f"{agent_id}:{obj.track_id}",
+                    )
+                ],
+                arrows=arrows,
+            )
+        )
+    return SceneUpdate(entities=entities)
+
+
+def route_plan(msg: RoutePlan, network: RoadNetwork, stamp_ns: int) -> SceneUpdate:
+    """A vehicle's planned lanes as one line strip, labelled with the vehicle id and plan version."""
+    points = [
+        (float(p[0]), float(p[1]), (float(p[2]) if len(p) > 2 else 0.0) + PLAN_LIFT_M)
+        for lane in msg.lane_ids
+        if lane in network.lanes
+        for p in network.lanes[lane].points
+    ]
+    if not points:
+        return SceneUpdate()
+    x, y, z = points[0]
+    return SceneUpdate(
+        entities=[
+            SceneEntity(
+                timestamp=timestamp(stamp_ns),
+                frame_id=FRAME,
+                id=f"plan/{msg.vehicle_id}",
+                lifetime=duration(PLAN_LIFETIME_S),
+                lines=[line_strip(points, PLAN_COLOR, 0.015)],
+                texts=[
+                    TextPrimitive(
+                        pose=pose(x, y, z + 0.1),
+                        billboard=True,
+                        font_size=0.05,
+                        color=PLAN_COLOR,
+                        text=f"{msg.vehicle_id} v{msg.version}",
+                    )
+                ],
+            )
+        ]
+    )

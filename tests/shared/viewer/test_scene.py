@@ -1,0 +1,104 @@
+"""The 3D view's Foxglove messages, known answers: the table's entities, a track's box, colour, id and
+velocity arrow, a plan's line strip."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+from rmmdet.v1 import perception_pb2 as pb
+from rmmdet.v1.planning_pb2 import RoutePlan
+
+from shared.scene.road_network import RoadNetwork
+from shared.scene.scene import Scene
+from shared.viewer import scene as view
+
+STAMP_NS = 1_700_000_000_123_456_789
+
+
+@pytest.fixture(scope="module")
+def network(test_scene: Scene) -> RoadNetwork:
+    return RoadNetwork(test_scene)
+
+
+def roundtrip(update: SceneUpdate) -> SceneUpdate:
+    out = SceneUpdate()
+    out.ParseFromString(update.SerializeToString())
+    return out
+
+
+def test_the_table_has_every_lane_junction_and_sensor(test_scene: Scene, network: RoadNetwork) -> None:
+    update = roundtrip(view.table(test_scene, network, STAMP_NS))
+    by_id = {e.id: e for e in update.entities}
+    assert {f"lane/{lane}" for lane in network.lanes} <= by_id.keys()
+    for j in test_scene.spec.junctions:
+        assert by_id[f"junction/{j.id}"].texts[0].text == str(j.number)
+    assert {f"sensor/{s.id}" for s in test_scene.spec.sensors} <= by_id.keys()
+    lane_id, path = next(iter(network.lanes.items()))
+    line = by_id[f"lane/{lane_id}"].lines[0]
+    got = np.array([(p.x, p.y) for p in line.points])
+    np.testing.assert_allclose(got, np.asarray(path.points)[:, :2])
+    assert all(e.frame_id == "world" and e.timestamp.ToNanoseconds() == STAMP_NS for e in update.entities)
+    assert not any(e.HasField("lifetime") for e in update.entities)  # static
+
+
+def test_a_sensor_wedge_spans_its_field_of_view_at_its_range(test_scene: Scene) -> None:
+    spec = next(s for s in test_scene.spec.sensors if s.kind == "radar")
+    assert spec.radar is not None
+    wedge = np.array(view.fov_wedge(spec))
+    x, y, z = spec.pose.position_m
+    assert wedge[0] == pytest.approx((x, y, z)) and wedge[-1] == pytest.approx((x, y, z))
+    reach = np.hypot(wedge[1:-1, 0] - x, wedge[1:-1, 1] - y)
+    assert reach == pytest.approx(spec.radar.max_range_m)
+    hfov = spec.radar.hfov_rad
+    start = math.atan2(wedge[1, 1] - y, wedge[1, 0] - x)
+    assert math.remainder(start - (view.sensor_yaw(spec) - hfov / 2), 2 * math.pi) == pytest.approx(
+        0.0, abs=1e-9
+    )
+
+
+def track(track_id: int, modalities: list[int], state: int, v: tuple[float, float]) -> pb.TrackedObject:
+    obj = pb.TrackedObject(track_id=track_id, state=state, modalities=modalities)
+    obj.box.center_m.x, obj.box.center_m.y, obj.box.center_m.z = 1.0, 2.0, 0.05
+    obj.box.size_m.x, obj.box.size_m.y, obj.box.size_m.z = 0.25, 0.1, 0.1
+    obj.box.yaw_rad = math.pi / 2
+    obj.velocity_mps.x, obj.velocity_mps.y = v
+    return obj
+
+
+def test_a_track_is_a_box_coloured_by_modality_with_its_id_and_velocity() -> None:
+    msg = pb.TrackedObjects(agent_id="agent3")
+    msg.objects.append(
+        track(7, [pb.MODALITY_LIDAR, pb.MODALITY_CAMERA], pb.TRACK_STATE_CONFIRMED, (0.0, 0.3))
+    )
+    msg.objects.append(track(8, [], pb.TRACK_STATE_COASTING, (0.0, 0.0)))
+    fused, coasting = roundtrip(view.tracked_objects("agent3", msg, STAMP_NS)).entities
+    assert fused.id == "agent3/track/7" and fused.lifetime.ToNanoseconds() == 500_000_000
+    cube = fused.cubes[0]
+    assert (cube.pose.position.x, cube.pose.position.y, cube.pose.position.z) == pytest.approx(
+        (1.0, 2.0, 0.05)
+    )
+    assert (cube.size.x, cube.size.y, cube.size.z) == pytest.approx((0.25, 0.1, 0.1))
+    q = cube.pose.orientation
+    assert (q.z, q.w) == pytest.approx((math.sin(math.pi / 4), math.cos(math.pi / 4)))
+    assert (cube.color.r, cube.color.g, cube.color.b) == pytest.approx((0.2, 0.85, 0.3))  # lidar + camera
+    assert fused.texts[0].text == "agent3:7"
+    arrow = fused.arrows[0]
+    assert arrow.shaft_length == pytest.approx(0.3)  # 1 s of travel
+    assert arrow.pose.orientation.z == pytest.approx(math.sin(math.pi / 4))  # heading +y
+    assert coasting.arrows == [] and coasting.cubes[0].color.a == pytest.approx(0.35)
+
+
+def test_a_plan_is_a_line_along_its_lanes(network: RoadNetwork) -> None:
+    lanes = list(network.lanes)[:2]
+    plan = RoutePlan(vehicle_id="v03", plan_id="a" * 32, version=4, lane_ids=[*lanes, "no_such_lane"])
+    (entity,) = roundtrip(view.route_plan(plan, network, STAMP_NS)).entities
+    expected = [p for lane in lanes for p in network.lanes[lane].points]
+    points = entity.lines[0].points
+    assert len(points) == len(expected)
+    assert (points[0].x, points[0].y) == pytest.approx(tuple(map(float, expected[0][:2])))
+    assert entity.id == "plan/v03" and entity.texts[0].text == "v03 v4"
+    empty = RoutePlan(vehicle_id="v03", plan_id="b" * 32, version=5, lane_ids=["no_such_lane"])
+    assert not view.route_plan(empty, network, STAMP_NS).entities
