@@ -18,21 +18,27 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 
+import numpy as np
 from foxglove_schemas_protobuf.ArrowPrimitive_pb2 import ArrowPrimitive
 from foxglove_schemas_protobuf.Color_pb2 import Color
 from foxglove_schemas_protobuf.CubePrimitive_pb2 import CubePrimitive
+from foxglove_schemas_protobuf.Grid_pb2 import Grid
 from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
+from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.Point3_pb2 import Point3
 from foxglove_schemas_protobuf.Pose_pb2 import Pose
 from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
 from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from foxglove_schemas_protobuf.TextPrimitive_pb2 import TextPrimitive
+from foxglove_schemas_protobuf.Vector2_pb2 import Vector2
 from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
 from google.protobuf.duration_pb2 import Duration
 from google.protobuf.timestamp_pb2 import Timestamp
 from rmmdet.v1 import perception_pb2 as pb
 from rmmdet.v1.planning_pb2 import RoutePlan
+from rmmdet.v1.sim_pb2 import GroundTruth
+from rmmdet.v1.traffic_pb2 import TrafficMap
 
 from shared.scene.model import SensorSpec
 from shared.scene.road_network import RoadNetwork
@@ -263,4 +269,65 @@ def route_plan(msg: RoutePlan, network: RoadNetwork, stamp_ns: int) -> SceneUpda
                 ],
             )
         ]
+    )
+
+
+def ground_truth(msg: GroundTruth, stamp_ns: int) -> SceneUpdate:
+    """The simulated vehicles as they are (a layer of its own, to hide): translucent boxes with ids."""
+    entities = []
+    for v in msg.vehicles:
+        b = v.box
+        entities.append(
+            SceneEntity(
+                timestamp=timestamp(stamp_ns),
+                frame_id=FRAME,
+                id=f"gt/{v.vehicle_id}",
+                lifetime=duration(DYNAMIC_LIFETIME_S),
+                cubes=[
+                    CubePrimitive(
+                        pose=pose(b.center_m.x, b.center_m.y, b.center_m.z, b.yaw_rad),
+                        size=Vector3(x=b.size_m.x, y=b.size_m.y, z=b.size_m.z),
+                        color=GROUND_TRUTH_COLOR,
+                    )
+                ],
+                texts=[
+                    TextPrimitive(
+                        pose=pose(b.center_m.x, b.center_m.y, b.center_m.z - b.size_m.z / 2 - 0.03),
+                        billboard=True,
+                        font_size=0.04,
+                        color=GROUND_TRUTH_COLOR,
+                        text=v.vehicle_id,
+                    )
+                ],
+            )
+        )
+    return SceneUpdate(entities=entities)
+
+
+#: Cell layout of the traffic grid: smoothed vehicles per cell, then their mean speed (float32 each).
+GRID_FIELDS = (("vehicles", 0), ("mean_speed_mps", 4))
+GRID_CELL_BYTES = 8
+
+
+def traffic_grid(msg: TrafficMap, stamp_ns: int) -> Grid:
+    """The coordinator's density / speed grid as a Foxglove Grid (colour it by either field)."""
+    g = msg.grid
+    cols, rows = int(g.column_count), int(g.row_count)
+    cells = np.zeros((rows * cols, 2), dtype="<f4")
+    if len(g.vehicle_count) == rows * cols:
+        cells[:, 0] = g.vehicle_count
+    if len(g.mean_speed_mps) == rows * cols:
+        cells[:, 1] = g.mean_speed_mps
+    return Grid(
+        timestamp=timestamp(stamp_ns),
+        frame_id=FRAME,
+        pose=pose(g.origin_m.x_m, g.origin_m.y_m, 0.0),
+        column_count=cols,
+        cell_size=Vector2(x=g.cell_size_m, y=g.cell_size_m),
+        row_stride=cols * GRID_CELL_BYTES,
+        cell_stride=GRID_CELL_BYTES,
+        fields=[
+            PackedElementField(name=n, offset=o, type=PackedElementField.FLOAT32) for n, o in GRID_FIELDS
+        ],
+        data=cells.tobytes(),
     )

@@ -10,6 +10,8 @@ import pytest
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from rmmdet.v1 import perception_pb2 as pb
 from rmmdet.v1.planning_pb2 import RoutePlan
+from rmmdet.v1.sim_pb2 import GroundTruth
+from rmmdet.v1.traffic_pb2 import TrafficMap
 
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
@@ -102,3 +104,28 @@ def test_a_plan_is_a_line_along_its_lanes(network: RoadNetwork) -> None:
     assert entity.id == "plan/v03" and entity.texts[0].text == "v03 v4"
     empty = RoutePlan(vehicle_id="v03", plan_id="b" * 32, version=5, lane_ids=["no_such_lane"])
     assert not view.route_plan(empty, network, STAMP_NS).entities
+
+
+def test_ground_truth_vehicles_are_their_own_layer() -> None:
+    gt = GroundTruth()
+    v = gt.vehicles.add(vehicle_id="v01")
+    v.box.center_m.x, v.box.size_m.x = 0.5, 0.25
+    (entity,) = view.ground_truth(gt, STAMP_NS).entities
+    assert entity.id == "gt/v01" and entity.cubes[0].pose.position.x == pytest.approx(0.5)
+    assert entity.lifetime.ToNanoseconds() > 0
+
+
+def test_the_traffic_grid_packs_density_and_speed_per_cell() -> None:
+    tm = TrafficMap()
+    g = tm.grid
+    g.origin_m.x_m, g.origin_m.y_m, g.cell_size_m = -1.0, -2.0, 0.5
+    g.column_count, g.row_count = 3, 2
+    g.vehicle_count.extend([0, 1, 2, 3, 4, 5])
+    g.mean_speed_mps.extend([0, 0.1, 0.2, 0.3, 0.4, 0.5])
+    grid = view.traffic_grid(tm, STAMP_NS)
+    assert grid.column_count == 3 and grid.cell_size.x == pytest.approx(0.5)
+    assert (grid.pose.position.x, grid.pose.position.y) == pytest.approx((-1.0, -2.0))
+    cells = np.frombuffer(grid.data, dtype="<f4").reshape(2, 3, 2)  # rows, columns, fields
+    assert cells[1, 2, 0] == pytest.approx(5.0) and cells[1, 2, 1] == pytest.approx(0.5)
+    assert [f.name for f in grid.fields] == ["vehicles", "mean_speed_mps"]
+    assert grid.row_stride == 3 * grid.cell_stride == 24
