@@ -1,0 +1,5 @@
+import sys
+
+from services.viewer.main import cli
+
+sys.exit(cli())

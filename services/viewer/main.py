@@ -1,0 +1,177 @@
+"""Live 3D view over the Foxglove WebSocket protocol (issue 18, first part): connect Foxglove or
+Lichtblick to ws://127.0.0.1:8765 while the system runs.
+
+    python -m services.viewer [--host 127.0.0.1] [--port 8765] [--publish-hz 10]
+
+Channels (Foxglove protobuf schemas, drawn by `shared/viewer/scene.py`):
+    /table                  SceneUpdate  lanes, junction numbers, sensors and their fields of view (every 2 s)
+    /ground_truth           SceneUpdate  the simulated vehicles (a layer to hide)
+    /agents/<agent>/tracks  SceneUpdate  each agent's tracked boxes, coloured by modality, ids, velocities
+    /plans                  SceneUpdate  each vehicle's newest pushed plan along its lanes (redrawn every 1 s)
+    /traffic/grid           Grid         the coordinator's density / speed grid
+
+Cheap by default: nothing is drawn while no client subscribes (`Channel.has_sinks`), and at most
+`--publish-hz` updates per channel are drawn, the newest of each stream (latest-wins queues). A slow or
+gone client never slows the loop: the Foxglove server queues per client and drops what a client cannot
+take. Binds to loopback unless told otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from pathlib import Path
+
+import foxglove
+import zenoh
+from foxglove_schemas_protobuf.Grid_pb2 import Grid
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+from google.protobuf.descriptor_pb2 import FileDescriptorSet
+from google.protobuf.message import Message
+from rmmdet.v1.planning_pb2 import RoutePlan
+
+from shared.bus.node import Node
+from shared.bus.queues import BoundedQueue, OverflowPolicy
+from shared.paths import DEFAULT_SCENE
+from shared.scene.road_network import RoadNetwork
+from shared.scene.scene import Scene
+from shared.service import run_service
+from shared.shutdown import GracefulShutdown
+from shared.viewer import scene as view
+
+log = logging.getLogger("services.viewer")
+
+SERVICE = "viewer"
+TABLE_EVERY_S = 2.0  # the static table is re-sent this often: a client that connects later gets it
+PLAN_QUEUE = 256  # pushed plans between two draws (one per vehicle at most, normally)
+PLAN_EVERY_S = 1.0  # every vehicle's plan is redrawn this often (they live PLAN_LIFETIME_S in the view)
+MAX_PLANS = 1024  # vehicles whose plans are kept for the view
+
+
+def schema_of(message_type: type[Message]) -> foxglove.Schema:
+    """The Foxglove protobuf schema of a message type: its name and a FileDescriptorSet of its file and
+    every file it imports."""
+    files: dict[str, bytes] = {}
+
+    def add(fd) -> None:
+        if fd.name in files:
+            return
+        for dep in fd.dependencies:
+            add(dep)
+        files[fd.name] = fd.serialized_pb
+
+    add(message_type.DESCRIPTOR.file)
+    fds = FileDescriptorSet()
+    for data in files.values():
+        fds.file.add().ParseFromString(data)
+    return foxglove.Schema(
+        name=message_type.DESCRIPTOR.full_name, encoding="protobuf", data=fds.SerializeToString()
+    )
+
+
+class Channels:
+    """The viewer's Foxglove channels, made on first use (one per topic)."""
+
+    def __init__(self, context: foxglove.Context) -> None:
+        self._context = context
+        self._channels: dict[str, foxglove.Channel] = {}
+
+    def wants(self, topic: str, message_type: type[Message]) -> bool:
+        """True if some client subscribes to `topic` (advertised from the first call on): draw only then."""
+        channel = self._channels.get(topic)
+        if channel is None:
+            channel = foxglove.Channel(
+                topic, schema=schema_of(message_type), message_encoding="protobuf", context=self._context
+            )
+            self._channels[topic] = channel
+        return channel.has_sinks()
+
+    def log(self, topic: str, msg: Message, stamp_ns: int) -> None:
+        self._channels[topic].log(msg.SerializeToString(), log_time=stamp_ns)
+
+
+def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
+    scene = Scene.load(args.scene)
+    network = RoadNetwork(scene)
+    context = foxglove.Context()
+    server = foxglove.start_server(name="rmmdet", host=args.host, port=args.port, context=context)
+    log.info("Foxglove WebSocket server on ws://%s:%d", args.host, server.port)
+    channels = Channels(context)
+    period_s = 1.0 / args.publish_hz
+    try:
+        with Node(conf, service=SERVICE, instance=args.instance, scope="site", stop=shutdown.event) as node:
+            objects = {a: node.subscribe_stream("objects", agent=a, maxsize=1) for a in scene.agents}
+            ground_truth = node.subscribe_stream("ground_truth", maxsize=1)
+            traffic = node.subscribe_stream("traffic_map", maxsize=1)
+            plans = node.subscribe_stream(
+                "route_plan",
+                queue=BoundedQueue(PLAN_QUEUE, OverflowPolicy.DROP_OLDEST, node.counters, "dropped/plans"),
+            )
+            next_table_s = next_plans_s = 0.0
+            latest_plans: dict[str, RoutePlan] = {}  # vehicle -> its newest pushed plan
+            while not shutdown.requested:
+                node.health.beat()
+                t0 = time.monotonic()
+                now_ns = time.time_ns()
+                if t0 >= next_table_s:
+                    if channels.wants("/table", SceneUpdate):
+                        channels.log("/table", view.table(scene, network, now_ns), now_ns)
+                    next_table_s = t0 + TABLE_EVERY_S
+                for agent, sub in objects.items():
+                    topic = f"/agents/{agent}/tracks"
+                    for item in sub.drain()[-1:]:
+                        if channels.wants(topic, SceneUpdate):
+                            stamp = item.header.stamp.ToNanoseconds()
+                            channels.log(topic, view.tracked_objects(agent, item.message, stamp), stamp)
+                for item in ground_truth.drain()[-1:]:
+                    if channels.wants("/ground_truth", SceneUpdate):
+                        stamp = item.header.stamp.ToNanoseconds()
+                        channels.log("/ground_truth", view.ground_truth(item.message, stamp), stamp)
+                for item in plans.drain():  # the newest plan of each vehicle, redrawn every PLAN_EVERY_S
+                    latest_plans.pop(item.message.vehicle_id, None)
+                    latest_plans[item.message.vehicle_id] = item.message
+                    next_plans_s = t0
+                while len(latest_plans) > MAX_PLANS:  # the longest unchanged go first
+                    del latest_plans[next(iter(latest_plans))]
+                if t0 >= next_plans_s:
+                    for vid in [v for v, p in latest_plans.items() if p.valid_until.ToNanoseconds() < now_ns]:
+                        del latest_plans[vid]  # expired: the vehicle no longer follows it
+                    if latest_plans and channels.wants("/plans", SceneUpdate):
+                        update = SceneUpdate()
+                        for plan in latest_plans.values():
+                            update.entities.extend(view.route_plan(plan, network, now_ns).entities)
+                        channels.log("/plans", update, now_ns)
+                    next_plans_s = t0 + PLAN_EVERY_S
+                for item in traffic.drain()[-1:]:
+                    if channels.wants("/traffic/grid", Grid):
+                        stamp = item.header.stamp.ToNanoseconds()
+                        channels.log("/traffic/grid", view.traffic_grid(item.message, stamp), stamp)
+                node.counters.inc("draws")
+                shutdown.wait(max(0.0, period_s - (time.monotonic() - t0)))
+    finally:
+        server.stop()
+    return 0
+
+
+def add_args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="scene YAML")
+    parser.add_argument("--host", default="127.0.0.1", help="address to serve on (default: loopback only)")
+    parser.add_argument("--port", type=int, default=8765, help="Foxglove WebSocket port (0: any free one)")
+    parser.add_argument("--publish-hz", type=positive, default=10.0, help="most draws per second per channel")
+
+
+def positive(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return value
+
+
+def cli(argv: list[str] | None = None) -> int:
+    return run_service(SERVICE, main, description=__doc__ or "", add_args=add_args, argv=argv)
+
+
+if __name__ == "__main__":
+    sys.exit(cli())
