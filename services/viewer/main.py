@@ -9,6 +9,9 @@ Channels (Foxglove protobuf schemas, drawn by `shared/viewer/scene.py`):
     /agents/<agent>/tracks  SceneUpdate  each agent's tracked boxes, coloured by modality, ids, velocities
     /plans                  SceneUpdate  each vehicle's newest pushed plan along its lanes (redrawn every 1 s)
     /traffic/grid           Grid         the coordinator's density / speed grid
+    /agents/<agent>/<kind>/<sensor>      camera images (foxglove.CompressedImage), lidar clouds
+                            (foxglove.PointCloud), radar scans (rmmdet.v1.RadarScan): the bus payloads
+                            as they are, subscribed on the bus only while a client watches (`SensorFeeds`)
 
 Cheap by default: nothing is drawn while no client subscribes (`Channel.has_sinks`), and at most
 `--publish-hz` updates per channel are drawn, the newest of each stream (latest-wins queues). A slow or
@@ -21,19 +24,25 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+import threading
 import time
+from collections import Counter
 from pathlib import Path
+from typing import Any
 
 import foxglove
 import zenoh
+from foxglove.websocket import ServerListener
 from foxglove_schemas_protobuf.Grid_pb2 import Grid
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from google.protobuf.descriptor_pb2 import FileDescriptorSet
 from google.protobuf.message import Message
 from rmmdet.v1.planning_pb2 import RoutePlan
 
+from shared.bus.codec import Counters
 from shared.bus.node import Node
 from shared.bus.queues import BoundedQueue, OverflowPolicy
+from shared.bus.streams import SENSOR_STREAM, get_stream
 from shared.paths import DEFAULT_SCENE
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
@@ -92,16 +101,90 @@ class Channels:
         self._channels[topic].log(msg.SerializeToString(), log_time=stamp_ns)
 
 
+class SensorFeeds(ServerListener):
+    """Camera images, lidar clouds and radar scans from the bus to the view, untouched (their payloads
+    are Foxglove / rmmdet protobufs already): a sensor's bus subscription exists only while some client
+    subscribes to its channel, so an idle viewer costs nothing for them. A Foxglove ServerListener
+    (its callbacks run on the server's threads; the bus callbacks on Zenoh's)."""
+
+    def __init__(self, scene: Scene, context: foxglove.Context) -> None:
+        self._counters: Counters | None = None
+        self._session: zenoh.Session | None = None
+        self._lock = threading.Lock()
+        self._keys: dict[str, str] = {}  # topic -> bus key
+        self._channels: dict[str, foxglove.Channel] = {}
+        self._watchers: Counter[str] = Counter()
+        self._subscribers: dict[str, Any] = {}
+        for spec in scene.spec.sensors:
+            stream = get_stream(SENSOR_STREAM[spec.kind])
+            topic = f"/agents/{spec.agent}/{spec.kind}/{spec.id}"
+            self._keys[topic] = stream.key(agent=spec.agent, sensor=spec.id)
+            self._channels[topic] = foxglove.Channel(
+                topic, schema=schema_of(stream.message_type), message_encoding="protobuf", context=context
+            )
+
+    def attach(self, session: zenoh.Session, counters: Counters) -> None:
+        """The bus to subscribe on and the counters to count on (subscriptions asked for before are
+        made now)."""
+        with self._lock:
+            self._session, self._counters = session, counters
+            for topic, n in self._watchers.items():
+                if n > 0 and topic not in self._subscribers:
+                    self._subscribe(topic)
+
+    def _subscribe(self, topic: str) -> None:
+        assert self._session is not None and self._counters is not None
+        channel, counters = self._channels[topic], self._counters
+
+        def forward(sample: zenoh.Sample) -> None:
+            channel.log(sample.payload.to_bytes(), log_time=time.time_ns())
+            counters.inc("forwarded/sensor")
+
+        self._subscribers[topic] = self._session.declare_subscriber(self._keys[topic], forward)
+
+    def on_subscribe(self, client: Any, channel: Any) -> None:
+        with self._lock:
+            if channel.topic not in self._keys:
+                return
+            self._watchers[channel.topic] += 1
+            if self._session is not None and channel.topic not in self._subscribers:
+                self._subscribe(channel.topic)
+
+    def on_unsubscribe(self, client: Any, channel: Any) -> None:
+        with self._lock:
+            if channel.topic not in self._keys or self._watchers[channel.topic] == 0:
+                return
+            self._watchers[channel.topic] -= 1
+            if self._watchers[channel.topic] == 0 and (sub := self._subscribers.pop(channel.topic, None)):
+                sub.undeclare()
+
+    @property
+    def subscribed(self) -> list[str]:
+        """The topics subscribed on the bus right now."""
+        with self._lock:
+            return sorted(self._subscribers)
+
+    def close(self) -> None:
+        with self._lock:
+            for sub in self._subscribers.values():
+                sub.undeclare()
+            self._subscribers.clear()
+
+
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
     scene = Scene.load(args.scene)
     network = RoadNetwork(scene)
     context = foxglove.Context()
-    server = foxglove.start_server(name="rmmdet", host=args.host, port=args.port, context=context)
+    feeds = SensorFeeds(scene, context)
+    server = foxglove.start_server(
+        name="rmmdet", host=args.host, port=args.port, context=context, server_listener=feeds
+    )
     log.info("Foxglove WebSocket server on ws://%s:%d", args.host, server.port)
     channels = Channels(context)
     period_s = 1.0 / args.publish_hz
     try:
         with Node(conf, service=SERVICE, instance=args.instance, scope="site", stop=shutdown.event) as node:
+            feeds.attach(node.session, node.counters)
             objects = {a: node.subscribe_stream("objects", agent=a, maxsize=1) for a in scene.agents}
             ground_truth = node.subscribe_stream("ground_truth", maxsize=1)
             traffic = node.subscribe_stream("traffic_map", maxsize=1)
@@ -151,6 +234,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 node.counters.inc("draws")
                 shutdown.wait(max(0.0, period_s - (time.monotonic() - t0)))
     finally:
+        feeds.close()
         server.stop()
     return 0
 

@@ -1,0 +1,55 @@
+"""The viewer's sensor feeds: a sensor's bus subscription exists exactly while some client watches its
+channel (two clients on one channel: one subscription, gone when the last leaves)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import foxglove
+
+from services.viewer.main import SensorFeeds
+from shared.bus.codec import Counters
+from shared.scene.scene import Scene
+
+
+@dataclass
+class FakeSub:
+    key: str
+    undeclared: bool = False
+
+    def undeclare(self) -> None:
+        self.undeclared = True
+
+
+@dataclass
+class FakeSession:
+    subs: list[FakeSub] = field(default_factory=list)
+
+    def declare_subscriber(self, key: str, _callback) -> FakeSub:
+        self.subs.append(FakeSub(key))
+        return self.subs[-1]
+
+
+@dataclass(frozen=True)
+class View:
+    topic: str
+    id: int = 0
+
+
+def test_a_sensor_is_subscribed_only_while_watched(test_scene: Scene) -> None:
+    feeds = SensorFeeds(test_scene, foxglove.Context())
+    spec = next(s for s in test_scene.spec.sensors if s.kind == "camera")
+    topic = f"/agents/{spec.agent}/camera/{spec.id}"
+    feeds.on_subscribe(1, View(topic))  # before the bus is there: made on attach
+    session = FakeSession()
+    feeds.attach(session, Counters())  # type: ignore[arg-type]
+    assert [s.key for s in session.subs] == [f"rmmdet/@v1/{spec.agent}/sensor/camera/{spec.id}"]
+    feeds.on_subscribe(2, View(topic))  # a second client: no second subscription
+    assert len(session.subs) == 1 and feeds.subscribed == [topic]
+    feeds.on_unsubscribe(1, View(topic))
+    assert not session.subs[0].undeclared
+    feeds.on_unsubscribe(2, View(topic))
+    assert session.subs[0].undeclared and feeds.subscribed == []
+    feeds.on_unsubscribe(2, View(topic))  # an extra unsubscribe changes nothing
+    feeds.on_subscribe(3, View("/table"))  # not a sensor channel: not the feeds' business
+    assert len(session.subs) == 1
