@@ -1,6 +1,7 @@
 """The live 3D view (issue 18): a Foxglove WebSocket client connects to the viewer while a loop runs
 (router, coordinator, sim with vehicles asking for plans, a stand-in MEC per agent) and receives the
-scene: the table, every agent's tracked boxes at >= 5 Hz, at least one route plan, the traffic grid.
+scene: the table, every agent's tracked boxes at >= 5 Hz, at least one route plan, the traffic grid,
+and a radar's scans forwarded from the bus.
 A client that connects and then reads nothing does not stall the viewer: the others keep their rate."""
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ import time
 import pytest
 from foxglove_schemas_protobuf.Grid_pb2 import Grid
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+from rmmdet.v1.sensors_pb2 import RadarScan
 
 from tests.helpers import Router, free_port, spawn, stop, wait_port
 from tests.integration.foxglove_client import FoxgloveClient
@@ -21,6 +23,7 @@ SCALE = float(os.environ.get("RSP_TIME_SCALE", "1"))
 AGENTS = ("agent1", "agent2", "agent3")
 MIN_RATE_HZ = 5.0 / SCALE
 WATCH_S = 6.0
+RADAR = "radar_2"  # a sensor feed: forwarded from the bus while the client watches it
 STARTUP_S = 60.0
 
 
@@ -44,6 +47,9 @@ def test_a_foxglove_client_sees_the_table_tracks_and_plans(router: Router) -> No
             env={"RMMDET_SIM_TRAFFIC__ROUTE_POLICY": "plan"},
         ),
         **{a: spawn([*fake_mec, "--instance", a]) for a in AGENTS[:-1]},
+        "radars": spawn(
+            ["-m", "services.sensor", "--group", "agent2-radars", "--only", RADAR, *router.client_args()]
+        ),
     }
     clients: list[FoxgloveClient] = []
     try:
@@ -84,6 +90,11 @@ def test_a_foxglove_client_sees_the_table_tracks_and_plans(router: Router) -> No
     table = scene_update(tables[-1].payload)
     assert any(e.id.startswith("lane/") for e in table.entities)
     assert any(e.id.startswith("junction/") for e in table.entities)
+    scans = client.of(f"/agents/agent2/radar/{RADAR}")
+    assert scans, "no radar scan forwarded"
+    scan = RadarScan()
+    scan.ParseFromString(scans[-1].payload)
+    assert scan.header.stamp.ToNanoseconds() > 0
     grid = Grid()
     assert client.of("/traffic/grid"), "no traffic grid"
     grid.ParseFromString(client.of("/traffic/grid")[-1].payload)
