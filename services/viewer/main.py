@@ -9,6 +9,7 @@ Channels (Foxglove protobuf schemas, drawn by `shared/viewer/scene.py`):
     /agents/<agent>/tracks  SceneUpdate  each agent's tracked boxes, coloured by modality, ids, velocities
     /plans                  SceneUpdate  each vehicle's newest pushed plan along its lanes (redrawn every 1 s)
     /traffic/grid           Grid         the coordinator's density / speed grid
+    /health                 JSON         `rmmdet health`'s verdict and every service's level (every 2 s)
     /agents/<agent>/<kind>/<sensor>      camera images (foxglove.CompressedImage), lidar clouds
                             (foxglove.PointCloud), radar scans (rmmdet.v1.RadarScan): the bus payloads
                             as they are, subscribed on the bus only while a client watches (`SensorFeeds`)
@@ -39,6 +40,7 @@ from google.protobuf.descriptor_pb2 import FileDescriptorSet
 from google.protobuf.message import Message
 from rmmdet.v1.planning_pb2 import RoutePlan
 
+from services.cli.health import Verdict, level_name, probe
 from shared.bus.codec import Counters
 from shared.bus.node import Node
 from shared.bus.queues import BoundedQueue, OverflowPolicy
@@ -57,6 +59,8 @@ TABLE_EVERY_S = 2.0  # the static table is re-sent this often: a client that con
 PLAN_QUEUE = 256  # pushed plans between two draws (one per vehicle at most, normally)
 PLAN_EVERY_S = 1.0  # every vehicle's plan is redrawn this often (they live PLAN_LIFETIME_S in the view)
 MAX_PLANS = 1024  # vehicles whose plans are kept for the view
+HEALTH_EVERY_S = 2.0
+HEALTH_TIMEOUT_S = 1.0
 
 
 def schema_of(message_type: type[Message]) -> foxglove.Schema:
@@ -171,6 +175,41 @@ class SensorFeeds(ServerListener):
             self._subscribers.clear()
 
 
+class HealthFeed:
+    """`rmmdet health`'s verdict on the loop and every service's level as JSON on `/health`, every
+    HEALTH_EVERY_S while a client watches; on its own thread (a probe waits for replies up to 1 s)."""
+
+    TOPIC = "/health"
+
+    def __init__(self, scene: Scene, context: foxglove.Context) -> None:
+        self._scene = scene
+        self._channel = foxglove.Channel(self.TOPIC, message_encoding="json", context=context)
+
+    def run(self, session: zenoh.Session, stop: threading.Event) -> None:
+        while not stop.wait(HEALTH_EVERY_S):
+            if not self._channel.has_sinks():
+                continue
+            verdict = probe(session, self._scene, timeout_s=HEALTH_TIMEOUT_S)
+            self._channel.log(health_json(verdict))
+
+
+def health_json(verdict: Verdict) -> dict[str, Any]:
+    """The verdict as the `/health` channel carries it."""
+    return {
+        "loop_ok": verdict.ok,
+        "summary": verdict.summary(),
+        "services": [
+            {
+                "service": f"{r.service}/{r.instance}",
+                "level": level_name(r.level),
+                "message": r.message,
+                "loop_age_s": round(r.loop_age_s, 3),
+            }
+            for r in sorted(verdict.reports, key=lambda r: (r.service, r.instance))
+        ],
+    }
+
+
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
     scene = Scene.load(args.scene)
     network = RoadNetwork(scene)
@@ -185,6 +224,10 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     try:
         with Node(conf, service=SERVICE, instance=args.instance, scope="site", stop=shutdown.event) as node:
             feeds.attach(node.session, node.counters)
+            health = threading.Thread(
+                target=HealthFeed(scene, context).run, args=(node.session, shutdown.event), daemon=True
+            )
+            health.start()
             objects = {a: node.subscribe_stream("objects", agent=a, maxsize=1) for a in scene.agents}
             ground_truth = node.subscribe_stream("ground_truth", maxsize=1)
             traffic = node.subscribe_stream("traffic_map", maxsize=1)

@@ -1,11 +1,12 @@
 """The live 3D view (issue 18): a Foxglove WebSocket client connects to the viewer while a loop runs
 (router, coordinator, sim with vehicles asking for plans, a stand-in MEC per agent) and receives the
 scene: the table, every agent's tracked boxes at >= 5 Hz, at least one route plan, the traffic grid,
-and a radar's scans forwarded from the bus.
+a radar's scans forwarded from the bus, and every service's health.
 A client that connects and then reads nothing does not stall the viewer: the others keep their rate."""
 
 from __future__ import annotations
 
+import json
 import os
 import time
 
@@ -95,6 +96,10 @@ def test_a_foxglove_client_sees_the_table_tracks_and_plans(router: Router) -> No
     scan = RadarScan()
     scan.ParseFromString(scans[-1].payload)
     assert scan.header.stamp.ToNanoseconds() > 0
+    health = client.of("/health")
+    assert health, "no health on /health"
+    services = {s["service"]: s["level"] for s in json.loads(health[-1].payload)["services"]}
+    assert services.get("coordinator/cloud") and services.get("viewer/main") == "NOMINAL", services
     grid = Grid()
     assert client.of("/traffic/grid"), "no traffic grid"
     grid.ParseFromString(client.of("/traffic/grid")[-1].payload)
