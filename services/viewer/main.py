@@ -14,6 +14,9 @@ Channels (Foxglove protobuf schemas, drawn by `shared/viewer/scene.py`):
                             (foxglove.PointCloud), radar scans (rmmdet.v1.RadarScan): the bus payloads
                             as they are, subscribed on the bus only while a client watches (`SensorFeeds`)
 
+`--mcap PATH` also writes every channel into an MCAP file (what is drawn, as drawn: playback in
+Foxglove shows the same view; while it records, everything is drawn).
+
 Cheap by default: nothing is drawn while no client subscribes (`Channel.has_sinks`), and at most
 `--publish-hz` updates per channel are drawn, the newest of each stream (latest-wins queues). A slow or
 gone client never slows the loop: the Foxglove server queues per client and drops what a client cannot
@@ -215,6 +218,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     network = RoadNetwork(scene)
     context = foxglove.Context()
     feeds = SensorFeeds(scene, context)
+    recording = foxglove.open_mcap(args.mcap, allow_overwrite=True, context=context) if args.mcap else None
     server = foxglove.start_server(
         name="rmmdet", host=args.host, port=args.port, context=context, server_listener=feeds
     )
@@ -279,6 +283,9 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     finally:
         feeds.close()
         server.stop()
+        if recording is not None:
+            recording.close()
+            log.info("view recorded to %s", args.mcap)
     return 0
 
 
@@ -286,6 +293,7 @@ def add_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="scene YAML")
     parser.add_argument("--host", default="127.0.0.1", help="address to serve on (default: loopback only)")
     parser.add_argument("--port", type=int, default=8765, help="Foxglove WebSocket port (0: any free one)")
+    parser.add_argument("--mcap", type=Path, help="also write every channel into this MCAP file")
     parser.add_argument("--publish-hz", type=positive, default=10.0, help="most draws per second per channel")
 
 

@@ -1,7 +1,8 @@
 """The live 3D view (issue 18): a Foxglove WebSocket client connects to the viewer while a loop runs
 (router, coordinator, sim with vehicles asking for plans, a stand-in MEC per agent) and receives the
 scene: the table, every agent's tracked boxes at >= 5 Hz, at least one route plan, the traffic grid,
-a radar's scans forwarded from the bus, and every service's health.
+a radar's scans forwarded from the bus, and every service's health; `--mcap` records the same
+channels.
 A client that connects and then reads nothing does not stall the viewer: the others keep their rate."""
 
 from __future__ import annotations
@@ -9,10 +10,13 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections import Counter
+from pathlib import Path
 
 import pytest
 from foxglove_schemas_protobuf.Grid_pb2 import Grid
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+from mcap.reader import make_reader
 from rmmdet.v1.sensors_pb2 import RadarScan
 
 from tests.helpers import Router, free_port, spawn, stop, wait_port
@@ -34,11 +38,14 @@ def scene_update(payload: bytes) -> SceneUpdate:
     return msg
 
 
-def test_a_foxglove_client_sees_the_table_tracks_and_plans(router: Router) -> None:
+def test_a_foxglove_client_sees_the_table_tracks_and_plans(router: Router, tmp_path: Path) -> None:
     port = free_port()
+    recording = tmp_path / "view.mcap"
     fake_mec = ["-m", "tests.integration.fake_mec", "--rate-hz", "10", *router.client_args()]
     procs = {
-        "viewer": spawn(["-m", "services.viewer", "--port", str(port), *router.client_args()]),
+        "viewer": spawn(
+            ["-m", "services.viewer", "--port", str(port), "--mcap", str(recording), *router.client_args()]
+        ),
         "coordinator": spawn(
             ["-m", "services.coordinator", *router.client_args()],
             env={"RMMDET_COORD_REPLAN_INTERVAL_S": "0.5"},
@@ -96,6 +103,9 @@ def test_a_foxglove_client_sees_the_table_tracks_and_plans(router: Router) -> No
     scan = RadarScan()
     scan.ParseFromString(scans[-1].payload)
     assert scan.header.stamp.ToNanoseconds() > 0
+    with recording.open("rb") as f:  # the same channels, recorded (the viewer was stopped cleanly)
+        recorded = Counter(ch.topic for _, ch, _ in make_reader(f).iter_messages())
+    assert recorded["/table"] and all(recorded[f"/agents/{a}/tracks"] for a in AGENTS), recorded
     health = client.of("/health")
     assert health, "no health on /health"
     services = {s["service"]: s["level"] for s in json.loads(health[-1].payload)["services"]}
