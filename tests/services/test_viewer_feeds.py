@@ -3,12 +3,15 @@ channel (two clients on one channel: one subscription, gone when the last leaves
 
 from __future__ import annotations
 
+import json
+import re
 from dataclasses import dataclass, field
 
 import foxglove
 
 from services.viewer.main import SensorFeeds
 from shared.bus.codec import Counters
+from shared.paths import DEFAULT_SCENE, REPO_ROOT
 from shared.scene.scene import Scene
 
 
@@ -53,3 +56,16 @@ def test_a_sensor_is_subscribed_only_while_watched(test_scene: Scene) -> None:
     feeds.on_unsubscribe(2, View(topic))  # an extra unsubscribe changes nothing
     feeds.on_subscribe(3, View("/table"))  # not a sensor channel: not the feeds' business
     assert len(session.subs) == 1
+
+
+def test_the_layout_names_only_topics_the_viewer_serves() -> None:
+    """deploy/foxglove/rmmdet-layout.json (open it in Foxglove or Lichtblick) refers to real channels of
+    the default scene."""
+    scene = Scene.load(DEFAULT_SCENE)
+    layout = json.loads((REPO_ROOT / "deploy" / "foxglove" / "rmmdet-layout.json").read_text())
+    text = json.dumps(layout["configById"])
+    named = set(re.findall(r'"(/[a-z0-9_/]+)"', text))
+    sensors = {f"/agents/{s.agent}/{s.kind}/{s.id}" for s in scene.spec.sensors}
+    served = {"/table", "/ground_truth", "/plans", "/traffic/grid", "/health"} | sensors
+    served |= {f"/agents/{a}/tracks" for a in scene.agents}
+    assert named and named <= served, named - served
