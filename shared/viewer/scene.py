@@ -36,6 +36,7 @@ from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
 from google.protobuf.duration_pb2 import Duration
 from google.protobuf.timestamp_pb2 import Timestamp
 from rmmdet.v1 import perception_pb2 as pb
+from rmmdet.v1.geometry_pb2 import Box3D
 from rmmdet.v1.planning_pb2 import RoutePlan
 from rmmdet.v1.sim_pb2 import GroundTruth
 from rmmdet.v1.traffic_pb2 import TrafficMap
@@ -189,6 +190,36 @@ def sensor_yaw(spec: SensorSpec) -> float:
 # --- dynamic layers -----------------------------------------------------------------------------
 
 
+def box_entity(
+    entity_id: str,
+    box: Box3D,
+    color: Color,
+    label: str,
+    label_z_m: float,
+    stamp_ns: int,
+    arrows: Sequence[ArrowPrimitive] = (),
+) -> SceneEntity:
+    """A box (its yaw about z) with a label above or below it, living DYNAMIC_LIFETIME_S."""
+    c, size = box.center_m, box.size_m
+    return SceneEntity(
+        timestamp=timestamp(stamp_ns),
+        frame_id=FRAME,
+        id=entity_id,
+        lifetime=duration(DYNAMIC_LIFETIME_S),
+        cubes=[
+            CubePrimitive(
+                pose=pose(c.x, c.y, c.z, box.yaw_rad), size=Vector3(x=size.x, y=size.y, z=size.z), color=color
+            )
+        ],
+        texts=[
+            TextPrimitive(
+                pose=pose(c.x, c.y, label_z_m), billboard=True, font_size=0.05, color=color, text=label
+            )
+        ],
+        arrows=list(arrows),
+    )
+
+
 def tracked_objects(agent_id: str, msg: pb.TrackedObjects, stamp_ns: int) -> SceneUpdate:
     """One agent's tracks: boxes coloured by modality and state, ids, velocity arrows."""
     entities = []
@@ -211,30 +242,9 @@ def tracked_objects(agent_id: str, msg: pb.TrackedObjects, stamp_ns: int) -> Sce
                     color=color,
                 )
             )
+        label = f"{agent_id}:{obj.track_id}"
         entities.append(
-            SceneEntity(
-                timestamp=timestamp(stamp_ns),
-                frame_id=FRAME,
-                id=f"{agent_id}/track/{obj.track_id}",
-                lifetime=duration(DYNAMIC_LIFETIME_S),
-                cubes=[
-                    CubePrimitive(
-                        pose=pose(b.center_m.x, b.center_m.y, b.center_m.z, b.yaw_rad),
-                        size=Vector3(x=b.size_m.x, y=b.size_m.y, z=b.size_m.z),
-                        color=color,
-                    )
-                ],
-                texts=[
-                    TextPrimitive(
-                        pose=pose(b.center_m.x, b.center_m.y, top + 0.05),
-                        billboard=True,
-                        font_size=0.05,
-                        color=color,
-                        text=f"{agent_id}:{obj.track_id}",
-                    )
-                ],
-                arrows=arrows,
-            )
+            box_entity(f"{agent_id}/track/{obj.track_id}", b, color, label, top + 0.05, stamp_ns, arrows)
         )
     return SceneUpdate(entities=entities)
 
@@ -277,29 +287,9 @@ def ground_truth(msg: GroundTruth, stamp_ns: int) -> SceneUpdate:
     entities = []
     for v in msg.vehicles:
         b = v.box
+        below = b.center_m.z - b.size_m.z / 2 - 0.03
         entities.append(
-            SceneEntity(
-                timestamp=timestamp(stamp_ns),
-                frame_id=FRAME,
-                id=f"gt/{v.vehicle_id}",
-                lifetime=duration(DYNAMIC_LIFETIME_S),
-                cubes=[
-                    CubePrimitive(
-                        pose=pose(b.center_m.x, b.center_m.y, b.center_m.z, b.yaw_rad),
-                        size=Vector3(x=b.size_m.x, y=b.size_m.y, z=b.size_m.z),
-                        color=GROUND_TRUTH_COLOR,
-                    )
-                ],
-                texts=[
-                    TextPrimitive(
-                        pose=pose(b.center_m.x, b.center_m.y, b.center_m.z - b.size_m.z / 2 - 0.03),
-                        billboard=True,
-                        font_size=0.04,
-                        color=GROUND_TRUTH_COLOR,
-                        text=v.vehicle_id,
-                    )
-                ],
-            )
+            box_entity(f"gt/{v.vehicle_id}", b, GROUND_TRUTH_COLOR, v.vehicle_id, below, stamp_ns)
         )
     return SceneUpdate(entities=entities)
 

@@ -3,6 +3,7 @@ and a recorder of the traffic maps it publishes."""
 
 from __future__ import annotations
 
+import subprocess
 import threading
 import time
 from dataclasses import dataclass, field
@@ -16,6 +17,7 @@ from rmmdet.v1.traffic_pb2 import AgentState
 from shared.bus.codec import encode
 from shared.bus.node import Node, Subscription
 from shared.bus.streams import get_stream
+from tests.helpers import spawn
 
 RPC_TIMEOUT_S = 2.0
 STATE_NAMES = {AgentState.AGENT_STATE_LIVE: "LIVE", AgentState.AGENT_STATE_STALE: "STALE"}
@@ -118,3 +120,20 @@ class MapLog:
             time.sleep(0.02)
         last = self.since(since)[-1:]
         raise AssertionError(f"no such map within {timeout_s} s (last: {last})")
+
+
+def spawn_planning_loop(
+    coordinator_args: list[str], sim_args: list[str], replan_interval_s: float = 0.5, vehicles: int = 10
+) -> dict[str, subprocess.Popen]:
+    """The coordinator (re-planning every `replan_interval_s`) and the sim at 1x with `vehicles` that ask
+    for, follow and acknowledge plans; each with its own connect flags (e.g. through a delayed link)."""
+    return {
+        "coordinator": spawn(
+            ["-m", "services.coordinator", *coordinator_args],
+            env={"RMMDET_COORD_REPLAN_INTERVAL_S": str(replan_interval_s)},
+        ),
+        "sim": spawn(
+            ["-m", "services.sim", "--speed", "1", "--vehicles", str(vehicles), *sim_args],
+            env={"RMMDET_SIM_TRAFFIC__ROUTE_POLICY": "plan"},
+        ),
+    }

@@ -21,7 +21,7 @@ import pytest
 
 from shared.bus.node import Node
 from tests.helpers import Router, free_port, spawn, stop
-from tests.integration.coordinator_client import MapLog, coordinator_health, counters
+from tests.integration.coordinator_client import MapLog, coordinator_health, counters, spawn_planning_loop
 from tests.integration.delay_relay import DelayRelay
 
 pytestmark = [pytest.mark.integration, pytest.mark.fault, pytest.mark.timeout(150)]
@@ -44,14 +44,7 @@ def test_a_delayed_link_delivers_plans_and_keeps_the_agent_live(router: Router) 
     with DelayRelay(relay_port, "127.0.0.1", router.port, DELAY_S, JITTER_S) as relay:
         delayed = ["--connect", f"tcp/127.0.0.1:{relay_port}"]
         procs = {
-            "coordinator": spawn(
-                ["-m", "services.coordinator", *router.client_args()],
-                env={"RMMDET_COORD_REPLAN_INTERVAL_S": "0.5"},
-            ),
-            "sim": spawn(
-                ["-m", "services.sim", "--speed", "1", "--vehicles", "10", *delayed],
-                env={"RMMDET_SIM_TRAFFIC__ROUTE_POLICY": "plan"},
-            ),
+            **spawn_planning_loop(router.client_args(), delayed),
             "agent1": spawn(
                 ["-m", "tests.integration.fake_mec", "--instance", "agent1", "--rate-hz", "10", *delayed]
             ),

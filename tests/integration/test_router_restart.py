@@ -25,7 +25,7 @@ import pytest
 
 from shared.bus.node import Node
 from tests.helpers import Router, spawn, start_router, stop
-from tests.integration.coordinator_client import MapLog, coordinator_health, counters
+from tests.integration.coordinator_client import MapLog, coordinator_health, counters, spawn_planning_loop
 
 pytestmark = [pytest.mark.integration, pytest.mark.fault, pytest.mark.timeout(180)]
 
@@ -50,16 +50,7 @@ class Seen:
 @pytest.fixture
 def system() -> Iterator[tuple[Router, dict, Node, MapLog, Seen]]:
     router = start_router()
-    procs = {
-        "coordinator": spawn(
-            ["-m", "services.coordinator", *router.client_args()],
-            env={"RMMDET_COORD_REPLAN_INTERVAL_S": "0.5"},
-        ),
-        "sim": spawn(
-            ["-m", "services.sim", "--speed", "1", "--vehicles", "10", *router.client_args()],
-            env={"RMMDET_SIM_TRAFFIC__ROUTE_POLICY": "plan"},
-        ),
-    }
+    procs = spawn_planning_loop(router.client_args(), router.client_args())
     for agent in AGENTS[:-1]:  # the last one comes up in the test, just before the fault
         procs[agent] = fake_mec(router, agent)
     node = Node(router.client_config(), service="test", instance="router-restart", scope="site")

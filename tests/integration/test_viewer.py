@@ -20,6 +20,7 @@ from mcap.reader import make_reader
 from rmmdet.v1.sensors_pb2 import RadarScan
 
 from tests.helpers import Router, free_port, spawn, stop, wait_port
+from tests.integration.coordinator_client import spawn_planning_loop
 from tests.integration.foxglove_client import FoxgloveClient
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(150)]
@@ -46,14 +47,7 @@ def test_a_foxglove_client_sees_the_table_tracks_and_plans(router: Router, tmp_p
         "viewer": spawn(
             ["-m", "services.viewer", "--port", str(port), "--mcap", str(recording), *router.client_args()]
         ),
-        "coordinator": spawn(
-            ["-m", "services.coordinator", *router.client_args()],
-            env={"RMMDET_COORD_REPLAN_INTERVAL_S": "0.5"},
-        ),
-        "sim": spawn(
-            ["-m", "services.sim", "--speed", "1", "--vehicles", "10", *router.client_args()],
-            env={"RMMDET_SIM_TRAFFIC__ROUTE_POLICY": "plan"},
-        ),
+        **spawn_planning_loop(router.client_args(), router.client_args()),
         **{a: spawn([*fake_mec, "--instance", a]) for a in AGENTS[:-1]},
         "radars": spawn(
             ["-m", "services.sensor", "--group", "agent2-radars", "--only", RADAR, *router.client_args()]
