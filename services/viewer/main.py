@@ -37,11 +37,8 @@ from typing import Any
 import foxglove
 import zenoh
 from foxglove.websocket import ServerListener
-from foxglove_schemas_protobuf.Grid_pb2 import Grid
-from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from google.protobuf.descriptor_pb2 import FileDescriptorSet
 from google.protobuf.message import Message
-from rmmdet.v1.planning_pb2 import RoutePlan
 
 from services.cli.health import Verdict, level_name, probe
 from shared.bus.codec import Counters
@@ -53,15 +50,12 @@ from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.service import run_service
 from shared.shutdown import GracefulShutdown
-from shared.viewer import scene as view
+from shared.viewer.core import ViewerCore
 
 log = logging.getLogger("services.viewer")
 
 SERVICE = "viewer"
-TABLE_EVERY_S = 2.0  # the static table is re-sent this often: a client that connects later gets it
 PLAN_QUEUE = 256  # pushed plans between two draws (one per vehicle at most, normally)
-PLAN_EVERY_S = 1.0  # every vehicle's plan is redrawn this often (they live PLAN_LIFETIME_S in the view)
-MAX_PLANS = 1024  # vehicles whose plans are kept for the view
 HEALTH_EVERY_S = 2.0
 HEALTH_TIMEOUT_S = 1.0
 
@@ -239,45 +233,22 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 "route_plan",
                 queue=BoundedQueue(PLAN_QUEUE, OverflowPolicy.DROP_OLDEST, node.counters, "dropped/plans"),
             )
-            next_table_s = next_plans_s = 0.0
-            latest_plans: dict[str, RoutePlan] = {}  # vehicle -> its newest pushed plan
+            core = ViewerCore(scene, network)
             while not shutdown.requested:
                 node.health.beat()
                 t0 = time.monotonic()
-                now_ns = time.time_ns()
-                if t0 >= next_table_s:
-                    if channels.wants("/table", SceneUpdate):
-                        channels.log("/table", view.table(scene, network, now_ns), now_ns)
-                    next_table_s = t0 + TABLE_EVERY_S
                 for agent, sub in objects.items():
-                    topic = f"/agents/{agent}/tracks"
                     for item in sub.drain()[-1:]:
-                        if channels.wants(topic, SceneUpdate):
-                            stamp = item.header.stamp.ToNanoseconds()
-                            channels.log(topic, view.tracked_objects(agent, item.message, stamp), stamp)
+                        core.on_tracks(agent, item.message, item.header.stamp.ToNanoseconds())
                 for item in ground_truth.drain()[-1:]:
-                    if channels.wants("/ground_truth", SceneUpdate):
-                        stamp = item.header.stamp.ToNanoseconds()
-                        channels.log("/ground_truth", view.ground_truth(item.message, stamp), stamp)
-                for item in plans.drain():  # the newest plan of each vehicle, redrawn every PLAN_EVERY_S
-                    latest_plans.pop(item.message.vehicle_id, None)
-                    latest_plans[item.message.vehicle_id] = item.message
-                    next_plans_s = t0
-                while len(latest_plans) > MAX_PLANS:  # the longest unchanged go first
-                    del latest_plans[next(iter(latest_plans))]
-                if t0 >= next_plans_s:
-                    for vid in [v for v, p in latest_plans.items() if p.valid_until.ToNanoseconds() < now_ns]:
-                        del latest_plans[vid]  # expired: the vehicle no longer follows it
-                    if latest_plans and channels.wants("/plans", SceneUpdate):
-                        update = SceneUpdate()
-                        for plan in latest_plans.values():
-                            update.entities.extend(view.route_plan(plan, network, now_ns).entities)
-                        channels.log("/plans", update, now_ns)
-                    next_plans_s = t0 + PLAN_EVERY_S
+                    core.on_ground_truth(item.message, item.header.stamp.ToNanoseconds())
+                for item in plans.drain():
+                    core.on_plan(item.message, t0)
                 for item in traffic.drain()[-1:]:
-                    if channels.wants("/traffic/grid", Grid):
-                        stamp = item.header.stamp.ToNanoseconds()
-                        channels.log("/traffic/grid", view.traffic_grid(item.message, stamp), stamp)
+                    core.on_traffic_map(item.message, item.header.stamp.ToNanoseconds())
+                for d in core.draw(t0, time.time_ns()):
+                    if channels.wants(d.topic, d.message_type):
+                        channels.log(d.topic, d.draw(), d.stamp_ns)
                 node.counters.inc("draws")
                 shutdown.wait(max(0.0, period_s - (time.monotonic() - t0)))
     finally:

@@ -16,6 +16,7 @@ from rmmdet.v1.traffic_pb2 import TrafficMap
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.viewer import scene as view
+from shared.viewer.core import PLANS, TABLE, ViewerCore
 
 STAMP_NS = 1_700_000_000_123_456_789
 
@@ -129,3 +130,27 @@ def test_the_traffic_grid_packs_density_and_speed_per_cell() -> None:
     assert cells[1, 2, 0] == pytest.approx(5.0) and cells[1, 2, 1] == pytest.approx(0.5)
     assert [f.name for f in grid.fields] == ["vehicles", "mean_speed_mps"]
     assert grid.row_stride == 3 * grid.cell_stride == 24
+
+
+# --- the viewer's decision loop (shared/viewer/core.py) -------------------------------------------
+
+
+def test_the_core_draws_the_table_and_plans_on_their_cadences(
+    test_scene: Scene, network: RoadNetwork
+) -> None:
+    core = ViewerCore(test_scene, network)
+    topics = [d.topic for d in core.draw(0.0, STAMP_NS)]
+    assert topics == [TABLE]  # no plans yet
+    assert core.draw(1.0, STAMP_NS) == []  # nothing new, no cadence due
+    lane = next(iter(network.lanes))
+    plan = RoutePlan(vehicle_id="v01", plan_id="a" * 32, version=1, lane_ids=[lane])
+    plan.valid_until.FromNanoseconds(STAMP_NS + 10 * 10**9)
+    core.on_plan(plan, now_s=1.1)
+    core.on_tracks("agent1", pb.TrackedObjects(agent_id="agent1"), STAMP_NS)
+    draws = {d.topic: d for d in core.draw(1.1, STAMP_NS)}
+    assert set(draws) == {"/agents/agent1/tracks", PLANS}  # a changed plan at once
+    assert [e.id for e in draws[PLANS].draw().entities] == ["plan/v01"]
+    assert [d.topic for d in core.draw(2.0, STAMP_NS)] == [TABLE]  # table every 2 s
+    assert [d.topic for d in core.draw(2.2, STAMP_NS)] == [PLANS]  # plans every 1 s
+    assert core.draw(3.3, STAMP_NS + 11 * 10**9) == []  # its plan expired: dropped, nothing drawn
+    assert core.plans == {}

@@ -1,0 +1,108 @@
+"""What the live view draws, and when: the viewer's decision loop, free of the bus and of the server.
+
+The service (`services/viewer`) feeds it the newest message of each stream and publishes what `draw`
+returns on the named topics; a study or a replay could drive it alike. Cadence: the static table every
+TABLE_EVERY_S (a client that connects later gets it soon), tracks, ground truth and the traffic grid
+as they come (the service keeps only the newest of each between two draws), every vehicle's newest
+pushed plan every PLAN_EVERY_S and at once when one changes, until it expires (`valid_until`).
+Times: `now_s` monotonic seconds, stamps UNIX-epoch ns.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from foxglove_schemas_protobuf.Grid_pb2 import Grid
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+from google.protobuf.message import Message
+from rmmdet.v1.perception_pb2 import TrackedObjects
+from rmmdet.v1.planning_pb2 import RoutePlan
+from rmmdet.v1.sim_pb2 import GroundTruth
+from rmmdet.v1.traffic_pb2 import TrafficMap
+
+from shared.scene.road_network import RoadNetwork
+from shared.scene.scene import Scene
+from shared.viewer import scene as view
+
+TABLE_EVERY_S = 2.0
+PLAN_EVERY_S = 1.0  # plans live view.PLAN_LIFETIME_S in the view: redrawn well before
+MAX_PLANS = 1024  # vehicles whose plans are kept (the longest unchanged go first)
+TABLE, GROUND_TRUTH, PLANS, GRID = "/table", "/ground_truth", "/plans", "/traffic/grid"
+
+
+def tracks_topic(agent_id: str) -> str:
+    return f"/agents/{agent_id}/tracks"
+
+
+@dataclass(frozen=True)
+class Draw:
+    """One message to publish: its topic, type (the channel's schema), a drawing and the log time."""
+
+    topic: str
+    message_type: type[Message]
+    draw: Callable[[], Message]  # called only if someone watches the topic
+    stamp_ns: int
+
+
+class ViewerCore:
+    def __init__(self, scene: Scene, network: RoadNetwork) -> None:
+        self.scene, self.network = scene, network
+        self._next_table_s = 0.0
+        self._next_plans_s = 0.0
+        self._plans: dict[str, RoutePlan] = {}  # vehicle -> its newest pushed plan, oldest change first
+        self._pending: list[Draw] = []
+
+    # --- inputs (the newest of each stream) ---------------------------------------------------------
+
+    def on_tracks(self, agent_id: str, msg: TrackedObjects, stamp_ns: int) -> None:
+        self._pending.append(
+            Draw(
+                tracks_topic(agent_id),
+                SceneUpdate,
+                lambda: view.tracked_objects(agent_id, msg, stamp_ns),
+                stamp_ns,
+            )
+        )
+
+    def on_ground_truth(self, msg: GroundTruth, stamp_ns: int) -> None:
+        self._pending.append(
+            Draw(GROUND_TRUTH, SceneUpdate, lambda: view.ground_truth(msg, stamp_ns), stamp_ns)
+        )
+
+    def on_traffic_map(self, msg: TrafficMap, stamp_ns: int) -> None:
+        self._pending.append(Draw(GRID, Grid, lambda: view.traffic_grid(msg, stamp_ns), stamp_ns))
+
+    def on_plan(self, plan: RoutePlan, now_s: float) -> None:
+        self._plans.pop(plan.vehicle_id, None)
+        self._plans[plan.vehicle_id] = plan
+        while len(self._plans) > MAX_PLANS:
+            del self._plans[next(iter(self._plans))]
+        self._next_plans_s = now_s  # draw the change at once
+
+    # --- output -------------------------------------------------------------------------------------
+
+    @property
+    def plans(self) -> dict[str, RoutePlan]:
+        return dict(self._plans)
+
+    def draw(self, now_s: float, now_ns: int) -> list[Draw]:
+        """What to publish now (then nothing until more comes or a cadence is due)."""
+        out, self._pending = self._pending, []
+        if now_s >= self._next_table_s:
+            out.append(Draw(TABLE, SceneUpdate, lambda: view.table(self.scene, self.network, now_ns), now_ns))
+            self._next_table_s = now_s + TABLE_EVERY_S
+        if now_s >= self._next_plans_s:
+            for vid in [v for v, p in self._plans.items() if p.valid_until.ToNanoseconds() < now_ns]:
+                del self._plans[vid]  # expired: the vehicle no longer follows it
+            if self._plans:
+                plans = list(self._plans.values())
+                out.append(Draw(PLANS, SceneUpdate, lambda: self._draw_plans(plans, now_ns), now_ns))
+            self._next_plans_s = now_s + PLAN_EVERY_S
+        return out
+
+    def _draw_plans(self, plans: list[RoutePlan], now_ns: int) -> SceneUpdate:
+        update = SceneUpdate()
+        for plan in plans:
+            update.entities.extend(view.route_plan(plan, self.network, now_ns).entities)
+        return update
