@@ -14,6 +14,10 @@ Channels (Foxglove protobuf schemas, drawn by `shared/viewer/scene.py`):
                             (foxglove.PointCloud), radar scans (rmmdet.v1.RadarScan): the bus payloads
                             as they are, subscribed on the bus only while a client watches (`SensorFeeds`)
 
+A browser dashboard is served by the same process on `--dashboard-port` (services/viewer/
+dashboard_server.py: http://127.0.0.1:8080/): coverage, rates and latencies per agent, live junction
+counters, plans and acknowledgements, the density heat map over the lanes, the alarms.
+
 `--mcap PATH` also writes every channel into an MCAP file (what is drawn, as drawn: playback in
 Foxglove shows the same view; while it records, everything is drawn).
 
@@ -27,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import queue
 import sys
 import threading
 import time
@@ -41,6 +46,7 @@ from google.protobuf.descriptor_pb2 import FileDescriptorSet
 from google.protobuf.message import Message
 
 from services.cli.health import Verdict, level_name, probe
+from services.viewer.dashboard_server import DashboardServer
 from shared.bus.codec import Counters
 from shared.bus.node import Node
 from shared.bus.queues import BoundedQueue, OverflowPolicy
@@ -51,11 +57,13 @@ from shared.scene.scene import Scene
 from shared.service import run_service
 from shared.shutdown import GracefulShutdown
 from shared.viewer.core import ViewerCore
+from shared.viewer.dashboard import DashboardState
 
 log = logging.getLogger("services.viewer")
 
 SERVICE = "viewer"
-PLAN_QUEUE = 256  # pushed plans between two draws (one per vehicle at most, normally)
+PLAN_QUEUE = 256  # pushed plans (or acks) between two draws (one per vehicle at most, normally)
+OBJECT_QUEUE = 8  # object lists of one agent between two draws (all counted for its rate, the newest drawn)
 HEALTH_EVERY_S = 2.0
 HEALTH_TIMEOUT_S = 1.0
 
@@ -181,13 +189,14 @@ class HealthFeed:
     def __init__(self, scene: Scene, context: foxglove.Context) -> None:
         self._scene = scene
         self._channel = foxglove.Channel(self.TOPIC, message_encoding="json", context=context)
+        self.verdicts: queue.SimpleQueue[Verdict] = queue.SimpleQueue()  # for the dashboard
 
     def run(self, session: zenoh.Session, stop: threading.Event) -> None:
         while not stop.wait(HEALTH_EVERY_S):
-            if not self._channel.has_sinks():
-                continue
             verdict = probe(session, self._scene, timeout_s=HEALTH_TIMEOUT_S)
-            self._channel.log(health_json(verdict))
+            self.verdicts.put(verdict)
+            if self._channel.has_sinks():
+                self._channel.log(health_json(verdict))
 
 
 def health_json(verdict: Verdict) -> dict[str, Any]:
@@ -207,26 +216,52 @@ def health_json(verdict: Verdict) -> dict[str, Any]:
     }
 
 
+def map_of(scene: Scene, network: RoadNetwork) -> dict[str, Any]:
+    """The dashboard's static map: every lane's centreline (x, y) and every junction's number."""
+    return {
+        "lanes": [
+            {"id": lane_id, "points": [[round(float(p[0]), 3), round(float(p[1]), 3)] for p in path.points]}
+            for lane_id, path in network.lanes.items()
+        ],
+        "junctions": [
+            {"id": j.id, "number": j.number, "x": j.position_m[0], "y": j.position_m[1]}
+            for j in scene.spec.junctions
+        ],
+    }
+
+
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
     scene = Scene.load(args.scene)
     network = RoadNetwork(scene)
     context = foxglove.Context()
     feeds = SensorFeeds(scene, context)
+    dashboard = (
+        DashboardServer(args.host, args.dashboard_port, map_of(scene, network))
+        if args.dashboard_port
+        else None
+    )
     recording = foxglove.open_mcap(args.mcap, allow_overwrite=True, context=context) if args.mcap else None
     server = foxglove.start_server(
         name="rmmdet", host=args.host, port=args.port, context=context, server_listener=feeds
     )
     log.info("Foxglove WebSocket server on ws://%s:%d", args.host, server.port)
+    if dashboard is not None:
+        dashboard.start()
+        log.info("dashboard on http://%s:%d/", args.host, dashboard.port)
     channels = Channels(context)
     period_s = 1.0 / args.publish_hz
     try:
         with Node(conf, service=SERVICE, instance=args.instance, scope="site", stop=shutdown.event) as node:
             feeds.attach(node.session, node.counters)
+            health_feed = HealthFeed(scene, context)
             health = threading.Thread(
-                target=HealthFeed(scene, context).run, args=(node.session, shutdown.event), daemon=True
+                target=health_feed.run, args=(node.session, shutdown.event), daemon=True
             )
             health.start()
-            objects = {a: node.subscribe_stream("objects", agent=a, maxsize=1) for a in scene.agents}
+            objects = {
+                a: node.subscribe_stream("objects", agent=a, maxsize=OBJECT_QUEUE) for a in scene.agents
+            }
+            acks = node.subscribe_stream("route_ack", maxsize=PLAN_QUEUE)
             ground_truth = node.subscribe_stream("ground_truth", maxsize=1)
             traffic = node.subscribe_stream("traffic_map", maxsize=1)
             plans = node.subscribe_stream(
@@ -234,18 +269,32 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 queue=BoundedQueue(PLAN_QUEUE, OverflowPolicy.DROP_OLDEST, node.counters, "dropped/plans"),
             )
             core = ViewerCore(scene, network)
+            board = DashboardState(list(scene.agents))
             while not shutdown.requested:
                 node.health.beat()
                 t0 = time.monotonic()
                 for agent, sub in objects.items():
-                    for item in sub.drain()[-1:]:
+                    items = sub.drain()
+                    for item in items:
+                        board.on_objects(agent, item.message, t0)
+                    for item in items[-1:]:
                         core.on_tracks(agent, item.message, item.header.stamp.ToNanoseconds())
                 for item in ground_truth.drain()[-1:]:
                     core.on_ground_truth(item.message, item.header.stamp.ToNanoseconds())
+                    board.on_ground_truth(item.message)
                 for item in plans.drain():
                     core.on_plan(item.message, t0)
+                    board.on_plan(item.message)
+                for item in acks.drain():
+                    board.on_ack(item.message)
                 for item in traffic.drain()[-1:]:
                     core.on_traffic_map(item.message, item.header.stamp.ToNanoseconds())
+                    board.on_traffic_map(item.message)
+                while not health_feed.verdicts.empty():
+                    verdict = health_feed.verdicts.get()
+                    board.on_health(verdict.ok, verdict.summary(), verdict.problems)
+                if dashboard is not None:
+                    dashboard.publish(board.snapshot(t0))
                 for d in core.draw(t0, time.time_ns()):
                     if channels.wants(d.topic, d.message_type):
                         channels.log(d.topic, d.draw(), d.stamp_ns)
@@ -254,6 +303,8 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     finally:
         feeds.close()
         server.stop()
+        if dashboard is not None:
+            dashboard.stop()
         if recording is not None:
             recording.close()
             log.info("view recorded to %s", args.mcap)
@@ -265,6 +316,9 @@ def add_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default="127.0.0.1", help="address to serve on (default: loopback only)")
     parser.add_argument("--port", type=int, default=8765, help="Foxglove WebSocket port (0: any free one)")
     parser.add_argument("--mcap", type=Path, help="also write every channel into this MCAP file")
+    parser.add_argument(
+        "--dashboard-port", type=int, default=8080, help="browser dashboard's HTTP/WebSocket port (0: none)"
+    )
     parser.add_argument("--publish-hz", type=positive, default=10.0, help="most draws per second per channel")
 
 

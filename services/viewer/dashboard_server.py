@@ -1,0 +1,96 @@
+"""The browser dashboard's HTTP + WebSocket endpoints, one port (websockets' server):
+
+    GET /            the page (services/viewer/static/dashboard.html: plain HTML/JS, no build step)
+    GET /api/state   the latest snapshot (shared/viewer/dashboard.py), JSON
+    GET /api/table   the table's lanes and junctions for the map, JSON (static)
+    WS  /ws          the snapshot again every time it changes (at most the viewer's draw rate)
+
+Anything else gets a clear 404; a plain GET on /ws a 426 (upgrade required, from websockets). Each
+connection has its own thread: a slow or stalled browser blocks only its own socket, never the viewer.
+Binds to loopback unless told otherwise.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+from http import HTTPStatus
+from pathlib import Path
+from typing import Any
+
+from websockets.datastructures import Headers
+from websockets.exceptions import ConnectionClosed
+from websockets.http11 import Request, Response
+from websockets.sync.server import Server, ServerConnection, serve
+
+log = logging.getLogger("services.viewer.dashboard")
+
+PAGE = Path(__file__).with_name("static") / "dashboard.html"
+PUSH_POLL_S = 0.1  # how often a connection looks for a newer snapshot
+
+
+def response(status: HTTPStatus, body: bytes, content_type: str) -> Response:
+    headers = Headers([("Content-Type", content_type), ("Content-Length", str(len(body)))])
+    headers["Cache-Control"] = "no-store"
+    return Response(status.value, status.phrase, headers, body)
+
+
+class DashboardServer:
+    """Serves `publish`ed snapshots; `table` is the static map (lanes, junctions)."""
+
+    def __init__(self, host: str, port: int, table: dict[str, Any]) -> None:
+        self._table = json.dumps(table).encode()
+        self._page = PAGE.read_bytes()
+        self._latest = b"{}"
+        self._version = 0
+        self._changed = threading.Condition()
+        self._server: Server = serve(self._handle, host, port, process_request=self._route, compression=None)
+        self.port = self._server.socket.getsockname()[1]
+        self._thread = threading.Thread(target=self._server.serve_forever, daemon=True, name="dashboard")
+        self.requests_refused = 0
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._server.shutdown()
+        with self._changed:
+            self._changed.notify_all()
+        self._thread.join(5.0)
+
+    def publish(self, snapshot: dict[str, Any]) -> None:
+        """The state to serve from now on (the viewer's loop calls this; JSON is made once here)."""
+        data = json.dumps(snapshot).encode()
+        with self._changed:
+            self._latest, self._version = data, self._version + 1
+            self._changed.notify_all()
+
+    def _route(self, connection: ServerConnection, request: Request) -> Response | None:
+        path = request.path.split("?", 1)[0]
+        if path == "/ws":
+            return None  # the WebSocket handshake goes on
+        if path in ("/", "/index.html"):
+            return response(HTTPStatus.OK, self._page, "text/html; charset=utf-8")
+        if path == "/api/state":
+            with self._changed:
+                return response(HTTPStatus.OK, self._latest, "application/json")
+        if path == "/api/table":
+            return response(HTTPStatus.OK, self._table, "application/json")
+        self.requests_refused += 1
+        body = f"no such page: {path} (try /, /api/state, /api/table or the WebSocket /ws)\n".encode()
+        return response(HTTPStatus.NOT_FOUND, body, "text/plain; charset=utf-8")
+
+    def _handle(self, connection: ServerConnection) -> None:
+        seen = -1
+        try:
+            while True:
+                with self._changed:
+                    if self._version == seen:
+                        self._changed.wait(PUSH_POLL_S)
+                    data, version = self._latest, self._version
+                if version != seen:
+                    connection.send(data.decode())
+                    seen = version
+        except ConnectionClosed:
+            return
