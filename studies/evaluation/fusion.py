@@ -36,6 +36,7 @@ import numpy as np
 import shapely
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from numpy.typing import NDArray
+from tqdm import tqdm
 
 from shared.config import with_overrides
 from shared.datasets.layout import MIN_LIDAR_POINTS, min_visible_px
@@ -537,16 +538,21 @@ def evaluate(
         for s in seeds
     ]
     per_agent: dict[str, AgentEvaluation] = {a: AgentEvaluation() for a in agents}
+    # A progress bar on a terminal (tqdm disables itself when stderr is not one: logs stay clean).
+    bar = tqdm(total=len(jobs), desc="agent runs", unit="run", disable=None)
     if workers <= 1:
         results = map(_run_worker, jobs)
         for agent, seed, ev, wall_s in results:
             log.info("%s seed %d: %d frames in %.0f s", agent, seed, ev.frames, wall_s)
             per_agent[agent].merge(ev)
+            bar.update()
     else:
         with mp.get_context("spawn").Pool(workers) as pool:
             for agent, seed, ev, wall_s in pool.imap_unordered(_run_worker, jobs):
                 log.info("%s seed %d: %d frames in %.0f s", agent, seed, ev.frames, wall_s)
                 per_agent[agent].merge(ev)
+                bar.update()
+    bar.close()
     return {**per_agent, "all": merge_agents(per_agent)}
 
 

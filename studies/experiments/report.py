@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 from scipy import stats
+from tqdm import tqdm
 
 from shared.scene.scene import Scene
 from shared.traffic.config import CoordinatorSettings, PolicyName
@@ -93,7 +94,10 @@ def run_grid(
     )
     results: list[RunResult] = []
     t0 = time.perf_counter()
-    for r in run_jobs(_worker, jobs, exp.workers):
+    # A progress bar on a terminal (tqdm disables itself when stderr is not one: logs stay clean).
+    for r in tqdm(
+        run_jobs(_worker, jobs, exp.workers), total=len(jobs), desc="flow runs", unit="run", disable=None
+    ):
         results.append(r)
         log.info(
             "%s %d vehicles seed %d: flow %d, %d trips (%d/%d, %.0f s)",

@@ -33,6 +33,7 @@ import numpy as np
 import torch
 from torch import nn
 from torch.utils.data import DataLoader
+from tqdm import tqdm
 
 from shared.config import with_overrides
 from shared.detection.camera.config import (
@@ -257,7 +258,8 @@ class Trainer:
         """Epochs until `epochs` or the time budget; one log line each. Returns the per-epoch record."""
         t = self.cfg.train
         history: list[dict[str, float]] = []
-        for epoch in range(1, t.epochs + 1):
+        # A progress bar on a terminal (tqdm disables itself when stderr is not one: logs stay clean).
+        for epoch in tqdm(range(1, t.epochs + 1), desc="epochs", unit="epoch", disable=None):
             entry = {"epoch": epoch, **self.train_epoch()}
             if entry["steps"] == 0:
                 break

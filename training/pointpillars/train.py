@@ -22,6 +22,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F  # noqa: N812 (torch convention)
 from torch.utils.data import DataLoader
+from tqdm import tqdm
 
 from shared.config import with_overrides
 from shared.detection.lidar.pointpillars.coding import (
@@ -194,7 +195,8 @@ def train(
     history: list[dict[str, Any]] = []
     best_ap = -1.0
     step = 0
-    for epoch in range(1, cfg.epochs + 1):
+    # A progress bar on a terminal (tqdm disables itself when stderr is not one: logs stay clean).
+    for epoch in tqdm(range(1, cfg.epochs + 1), desc="epochs", unit="epoch", disable=None):
         model.train()
         t0 = time.perf_counter()
         sums: dict[str, float] = {}
