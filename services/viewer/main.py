@@ -235,15 +235,20 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     network = RoadNetwork(scene)
     context = foxglove.Context()
     feeds = SensorFeeds(scene, context)
-    dashboard = (
-        DashboardServer(args.host, args.dashboard_port, map_of(scene, network))
-        if args.dashboard_port
-        else None
-    )
+    try:  # a port in use is a clear one-line exit, not a traceback
+        dashboard = (
+            DashboardServer(args.host, args.dashboard_port, map_of(scene, network))
+            if args.dashboard_port
+            else None
+        )
+        server = foxglove.start_server(
+            name="rmmdet", host=args.host, port=args.port, context=context, server_listener=feeds
+        )
+    except (OSError, RuntimeError) as err:
+        raise SystemExit(
+            f"viewer: cannot serve on {args.host} ports {args.port}/{args.dashboard_port}: {err}"
+        ) from None
     recording = foxglove.open_mcap(args.mcap, allow_overwrite=True, context=context) if args.mcap else None
-    server = foxglove.start_server(
-        name="rmmdet", host=args.host, port=args.port, context=context, server_listener=feeds
-    )
     log.info("Foxglove WebSocket server on ws://%s:%d", args.host, server.port)
     if dashboard is not None:
         dashboard.start()
