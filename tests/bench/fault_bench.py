@@ -210,6 +210,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if supervised_pids():
         raise SystemExit("the system is already up: `make down` first (this benchmark starts it itself)")
+    commit = git_commit()  # of the code `make up` starts
     subprocess.run(["make", "-C", str(REPO_ROOT), "up"], check=True, stdout=subprocess.DEVNULL)
     try:
         session = open_session(zenoh_config(DEFAULT_CLIENT_CONFIG), timeout_s=10)
@@ -227,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
         session.close()
     finally:
         subprocess.run(["make", "-C", str(REPO_ROOT), "down"], stdout=subprocess.DEVNULL)
-    result.update(commit=git_commit(), machine=machine_info(), time=time.strftime("%Y-%m-%dT%H:%M:%S"))
+    result.update(commit=commit, machine=machine_info(), time=time.strftime("%Y-%m-%dT%H:%M:%S"))
     runs = json.loads(RESULTS.read_text())["runs"] if RESULTS.exists() else []
     RESULTS.write_text(json.dumps({"runs": [*runs, result]}, indent=1) + "\n")
     print(readme_table(result))

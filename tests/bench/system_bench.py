@@ -526,6 +526,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=RESULTS)
     parser.add_argument("--readme", action="store_true", help="rewrite the README's system table")
     args = parser.parse_args(argv)
+    commit = git_commit()  # of the code `make up` starts (commits made while it runs are not in it)
     result = run(args)
     passed = acceptance(result)
     if result["host"]["other_cpu_cores"] > OTHER_LOAD_WARN_CORES:
@@ -534,7 +535,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     entry = {
         "label": args.label,
-        "commit": git_commit(),
+        "commit": commit,
         "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
         "args": {
             "minutes": args.minutes,
