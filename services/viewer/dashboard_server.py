@@ -5,7 +5,8 @@
     GET /api/table   the table's lanes and junctions for the map, JSON (static)
     WS  /ws          the snapshot again every time it changes (at most the viewer's draw rate)
 
-Anything else gets a clear 404; a plain GET on /ws a 426 (upgrade required, from websockets). Each
+Anything else gets a clear 404, counted (`rejected/http_not_found` in `counters`, which the viewer
+exports with its health); a plain GET on /ws a 426 (upgrade required, from websockets). Each
 connection has its own thread: a slow or stalled browser blocks only its own socket, never the viewer.
 Binds to loopback unless told otherwise.
 """
@@ -23,6 +24,8 @@ from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 from websockets.sync.server import Server, ServerConnection, serve
+
+from shared.bus.codec import Counters
 
 log = logging.getLogger("services.viewer.dashboard")
 
@@ -48,7 +51,7 @@ class DashboardServer:
         self._server: Server = serve(self._handle, host, port, process_request=self._route, compression=None)
         self.port = self._server.socket.getsockname()[1]
         self._thread = threading.Thread(target=self._server.serve_forever, daemon=True, name="dashboard")
-        self.requests_refused = 0
+        self.counters = Counters()  # thread-safe: the connections' threads count here
 
     def start(self) -> None:
         self._thread.start()
@@ -77,7 +80,7 @@ class DashboardServer:
                 return response(HTTPStatus.OK, self._latest, "application/json")
         if path == "/api/table":
             return response(HTTPStatus.OK, self._table, "application/json")
-        self.requests_refused += 1
+        self.counters.inc("rejected/http_not_found")
         body = f"no such page: {path} (try /, /api/state, /api/table or the WebSocket /ws)\n".encode()
         return response(HTTPStatus.NOT_FOUND, body, "text/plain; charset=utf-8")
 

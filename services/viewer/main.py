@@ -300,6 +300,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                     board.on_health(verdict.ok, verdict.summary(), verdict.problems)
                 if dashboard is not None:
                     dashboard.publish(board.snapshot(t0))
+                    node.counters.publish(dashboard.counters.snapshot())  # refused requests, in health
                 for d in core.draw(t0, time.time_ns()):
                     if channels.wants(d.topic, d.message_type):
                         channels.log(d.topic, d.draw(), d.stamp_ns)

@@ -97,6 +97,11 @@ def line_strip(points: Iterable[Sequence[float]], color: Color, thickness_m: flo
     )
 
 
+def label(x: float, y: float, z: float, text: str, color: Color, font_size: float) -> TextPrimitive:
+    """Text at (x, y, z) that always faces the viewer."""
+    return TextPrimitive(pose=pose(x, y, z), billboard=True, font_size=font_size, color=color, text=text)
+
+
 def modality_color(modalities: Iterable[int], coasting: bool) -> Color:
     """The colour of a track from the modalities that updated it (see the module doc)."""
     if coasting:
@@ -127,15 +132,7 @@ def table(scene: Scene, network: RoadNetwork, stamp_ns: int) -> SceneUpdate:
                 timestamp=timestamp(stamp_ns),
                 frame_id=FRAME,
                 id=f"junction/{junction.id}",
-                texts=[
-                    TextPrimitive(
-                        pose=pose(x, y, z + 0.1),
-                        billboard=True,
-                        font_size=0.15,
-                        color=JUNCTION_COLOR,
-                        text=str(junction.number),
-                    )
-                ],
+                texts=[label(x, y, z + 0.1, str(junction.number), JUNCTION_COLOR, 0.15)],
             )
         )
     for spec in scene.spec.sensors:
@@ -145,15 +142,7 @@ def table(scene: Scene, network: RoadNetwork, stamp_ns: int) -> SceneUpdate:
                 frame_id=FRAME,
                 id=f"sensor/{spec.id}",
                 lines=[line_strip(fov_wedge(spec), FOV_COLOR[spec.kind], 0.005)],
-                texts=[
-                    TextPrimitive(
-                        pose=pose(*spec.pose.position_m),
-                        billboard=True,
-                        font_size=0.06,
-                        color=FOV_COLOR[spec.kind],
-                        text=spec.id,
-                    )
-                ],
+                texts=[label(*spec.pose.position_m, spec.id, FOV_COLOR[spec.kind], 0.06)],
             )
         )
     return SceneUpdate(entities=entities)
@@ -194,7 +183,7 @@ def box_entity(
     entity_id: str,
     box: Box3D,
     color: Color,
-    label: str,
+    text: str,
     label_z_m: float,
     stamp_ns: int,
     arrows: Sequence[ArrowPrimitive] = (),
@@ -211,11 +200,7 @@ def box_entity(
                 pose=pose(c.x, c.y, c.z, box.yaw_rad), size=Vector3(x=size.x, y=size.y, z=size.z), color=color
             )
         ],
-        texts=[
-            TextPrimitive(
-                pose=pose(c.x, c.y, label_z_m), billboard=True, font_size=0.05, color=color, text=label
-            )
-        ],
+        texts=[label(c.x, c.y, label_z_m, text, color, 0.05)],
         arrows=list(arrows),
     )
 
@@ -242,9 +227,16 @@ def tracked_objects(agent_id: str, msg: pb.TrackedObjects, stamp_ns: int) -> Sce
                     color=color,
                 )
             )
-        label = f"{agent_id}:{obj.track_id}"
         entities.append(
-            box_entity(f"{agent_id}/track/{obj.track_id}", b, color, label, top + 0.05, stamp_ns, arrows)
+            box_entity(
+                f"{agent_id}/track/{obj.track_id}",
+                b,
+                color,
+                f"{agent_id}:{obj.track_id}",
+                top + 0.05,
+                stamp_ns,
+                arrows,
+            )
         )
     return SceneUpdate(entities=entities)
 
@@ -268,15 +260,7 @@ def route_plan(msg: RoutePlan, network: RoadNetwork, stamp_ns: int) -> SceneUpda
                 id=f"plan/{msg.vehicle_id}",
                 lifetime=duration(PLAN_LIFETIME_S),
                 lines=[line_strip(points, PLAN_COLOR, 0.015)],
-                texts=[
-                    TextPrimitive(
-                        pose=pose(x, y, z + 0.1),
-                        billboard=True,
-                        font_size=0.05,
-                        color=PLAN_COLOR,
-                        text=f"{msg.vehicle_id} v{msg.version}",
-                    )
-                ],
+                texts=[label(x, y, z + 0.1, f"{msg.vehicle_id} v{msg.version}", PLAN_COLOR, 0.05)],
             )
         ]
     )

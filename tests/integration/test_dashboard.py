@@ -15,6 +15,8 @@ from pathlib import Path
 
 import pytest
 
+from services.cli.health import query_health
+from shared.bus.session import open_session
 from tests.helpers import Router, free_port, spawn, stop, wait_port
 from tests.integration.coordinator_client import spawn_planning_loop
 
@@ -106,8 +108,14 @@ def test_the_dashboard_shows_the_agents_live_and_counters_rising(router: Router)
             if SCREENSHOT is not None:
                 page.screenshot(path=str(SCREENSHOT))
             browser.close()
+        with open_session(router.client_config(), timeout_s=5) as session:
+            reports, _ = query_health(session)
+        viewer = {c.name: c.value for r in reports if r.service == "viewer" for c in r.counters}
         print(f"dashboard: agents {states}, junction vehicles {first} -> {second}")
         assert second > first, (first, second)
+        assert viewer.get("rejected/http_not_found", 0) >= 1, (
+            viewer
+        )  # the bad request (and the browser's favicon)
     finally:
         for p in procs.values():
             stop(p)
