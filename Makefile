@@ -12,7 +12,7 @@ SUPERVISOR_CONF := deploy/local/supervisord.conf
 RUN_DIR := .run
 PYTEST_ARGS ?=
 
-.PHONY: help install proto pki up down status logs test test-unit test-integration test-fault bench soak models eval eval-fusion eval-robustness experiments lint typecheck fmt clean
+.PHONY: help install proto pki up down status logs view-web screenshots test test-unit test-integration test-fault bench soak models eval eval-fusion eval-robustness experiments lint typecheck fmt clean
 
 help: ## list targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-18s %s\n", $$1, $$2}'
@@ -60,6 +60,15 @@ status: ## supervisor view of the services
 
 logs: ## tail all service logs
 	@tail -n 50 -F $(RUN_DIR)/logs/*.log
+
+VIEW_WEB_PORT ?= 8090
+view-web: install ## the live 3D view in a local browser: prebuilt Foxglove Studio (from npm; needs npm) on http://127.0.0.1:8090/, connected to the viewer with the project's layout
+	@bash deploy/foxglove/web/assemble.sh $(RUN_DIR)/foxglove-web >/dev/null
+	@echo "open http://127.0.0.1:$(VIEW_WEB_PORT)/?ds=foxglove-websocket&ds.url=ws://127.0.0.1:8765   (Ctrl-C stops)"
+	@$(BIN)/python -m http.server $(VIEW_WEB_PORT) --bind 127.0.0.1 --directory $(RUN_DIR)/foxglove-web
+
+screenshots: install ## with `make up` running: the dashboard and the 3D view in headless Chromium -> docs/images/{dashboard_live,view3d}.png
+	$(BIN)/python -m tests.bench.screenshots
 
 test: install pki ## lint, type-check, then unit + integration + fault tests (excludes slow experiments)
 	$(BIN)/ruff check .

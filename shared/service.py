@@ -15,6 +15,7 @@ import zenoh
 
 from shared.bus.zenoh_config import DEFAULT_CLIENT_CONFIG, add_zenoh_args, config_from_args
 from shared.logging_setup import setup_logging
+from shared.memtrace import start_from_env
 from shared.shutdown import GracefulShutdown
 
 ServiceMain = Callable[[zenoh.Config, argparse.Namespace, GracefulShutdown], int | None]
@@ -41,6 +42,7 @@ def run_service(
     setup_logging(service, args.instance)
     conf = config_from_args(args)
     with GracefulShutdown() as shutdown:
+        start_from_env(shutdown.event, service, args.instance)
         rc = main(conf, args, shutdown)
     log.info("exit %s", rc or 0)
     return rc or 0

@@ -8,7 +8,9 @@ bus. Subscribes to every sensor of the agent (`rmmdet/@v1/<agent>/sensor/<kind>/
 latest-wins queue, feeds the core on the clock of record (sim time under a sim), and publishes
 `rmmdet.v1.TrackedObjects` on `rmmdet/@v1/<agent>/objects` with the frame's stamp. Under a sim it asks
 its cameras for just the frames the detector runs on (`capture_demand`, renewed every second); a
-sensor service whose presence token vanishes makes its sensors MISSING at once.
+sensor service whose presence token vanishes makes its sensors MISSING at once. Each camera's 2D
+detections go out on `rmmdet/@v1/<agent>/perception/detections_2d/<camera>` only while something
+subscribes (the viewer's image annotations).
 """
 
 from __future__ import annotations
@@ -29,7 +31,8 @@ from shared.bus.streams import SENSOR_STREAM, get_stream, limits, sensor_group_s
 from shared.config import load_settings
 from shared.paths import DEFAULT_SCENE
 from shared.perception.config import DEFAULT_MEC_CONFIG, MecSettings
-from shared.perception.core import MecCore
+from shared.perception.core import MecCore, MecOutput
+from shared.perception.output import detections_2d_message
 from shared.scene.cadence import DemandRenewal
 from shared.scene.scene import Scene
 from shared.service import run_service
@@ -136,6 +139,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             objects_pub.put(
                 out.message, header, stages=[processing_stamp("mec/process", out.started_ns, time.time_ns())]
             )
+            publish_detections_2d(node, agent, out)
             node.counters.publish(core.counts())  # stale / late frames per sensor, skipped, coasted, ...
             if time.monotonic() - last_log >= settings.report_interval_s:
                 last_log = time.monotonic()
@@ -147,6 +151,26 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                     dict(core.counts()),
                 )
     return 0
+
+
+def publish_detections_2d(node: Node, agent: str, out: MecOutput) -> None:
+    """Each camera's 2D detections of this frame, stamped as its image, for the live view's image
+    annotations: only while something subscribes (a viewer watching that camera), so they cost
+    nothing otherwise."""
+    for camera_id, boxes in out.result.camera_boxes.items():
+        pub = node.publisher("detections_2d", agent=agent, sensor=camera_id)
+        image, sample = out.inputs.images.get(camera_id), out.frame.samples.get(camera_id)
+        if image is None or sample is None or not pub.has_subscribers():
+            continue
+        height, width = image.shape[:2]
+        pub.put(
+            detections_2d_message(camera_id, boxes, width, height),
+            stamp_ns=sample.stamp_ns,
+            tick=sample.tick,
+            epoch=sample.epoch,
+            frame_id=camera_id,
+        )
+        node.counters.inc("published/detections_2d")
 
 
 def add_args(parser: argparse.ArgumentParser) -> None:

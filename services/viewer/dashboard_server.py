@@ -52,6 +52,13 @@ class DashboardServer:
         self.port = self._server.socket.getsockname()[1]
         self._thread = threading.Thread(target=self._server.serve_forever, daemon=True, name="dashboard")
         self.counters = Counters()  # thread-safe: the connections' threads count here
+        self._watching = 0  # open WebSocket connections
+
+    @property
+    def watched(self) -> bool:
+        """True while some browser holds the live WebSocket open."""
+        with self._changed:
+            return self._watching > 0
 
     def start(self) -> None:
         self._thread.start()
@@ -86,6 +93,8 @@ class DashboardServer:
 
     def _handle(self, connection: ServerConnection) -> None:
         seen = -1
+        with self._changed:
+            self._watching += 1
         try:
             while True:
                 with self._changed:
@@ -97,3 +106,6 @@ class DashboardServer:
                     seen = version
         except ConnectionClosed:
             return
+        finally:
+            with self._changed:
+                self._watching -= 1

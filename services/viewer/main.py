@@ -13,6 +13,8 @@ Channels (Foxglove protobuf schemas, drawn by `shared/viewer/scene.py`):
     /agents/<agent>/<kind>/<sensor>      camera images (foxglove.CompressedImage), lidar clouds
                             (foxglove.PointCloud), radar scans (rmmdet.v1.RadarScan): the bus payloads
                             as they are, subscribed on the bus only while a client watches (`SensorFeeds`)
+    /agents/<agent>/camera/<camera>/detections   ImageAnnotations  the MEC's 2D detections on that
+                            image (boxes and scores, stamped as the image), also only while watched
 
 A browser dashboard is served by the same process on `--dashboard-port` (services/viewer/
 dashboard_server.py: http://127.0.0.1:8080/): coverage, rates and latencies per agent, live junction
@@ -31,23 +33,27 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import queue
 import sys
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import foxglove
 import zenoh
 from foxglove.websocket import ServerListener
+from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
 from google.protobuf.descriptor_pb2 import FileDescriptorSet
 from google.protobuf.message import Message
+from rmmdet.v1 import perception_pb2 as pb
 
 from services.cli.health import Verdict, level_name, probe
 from services.viewer.dashboard_server import DashboardServer
-from shared.bus.codec import Counters
+from shared.bus.codec import Counters, MessageDecoder
 from shared.bus.node import Node
 from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.bus.streams import SENSOR_STREAM, get_stream
@@ -58,6 +64,7 @@ from shared.service import run_service
 from shared.shutdown import GracefulShutdown
 from shared.viewer.core import ViewerCore
 from shared.viewer.dashboard import DashboardState
+from shared.viewer.scene import image_annotations
 
 log = logging.getLogger("services.viewer")
 
@@ -65,6 +72,9 @@ SERVICE = "viewer"
 PLAN_QUEUE = 256  # pushed plans (or acks) between two draws (one per vehicle at most, normally)
 OBJECT_QUEUE = 8  # object lists of one agent between two draws (all counted for its rate, the newest drawn)
 HEALTH_EVERY_S = 2.0
+# Nobody watching (no /health subscriber, no dashboard WebSocket): health is probed and the dashboard's
+# snapshot made this seldom, so a page or `/api/state` opened later is at most this old at first.
+IDLE_EVERY_S = 10.0
 HEALTH_TIMEOUT_S = 1.0
 
 
@@ -112,9 +122,10 @@ class Channels:
 
 class SensorFeeds(ServerListener):
     """Camera images, lidar clouds and radar scans from the bus to the view, untouched (their payloads
-    are Foxglove / rmmdet protobufs already): a sensor's bus subscription exists only while some client
-    subscribes to its channel, so an idle viewer costs nothing for them. A Foxglove ServerListener
-    (its callbacks run on the server's threads; the bus callbacks on Zenoh's)."""
+    are Foxglove / rmmdet protobufs already), and each camera's 2D detections as image annotations
+    (`<camera topic>/detections`): a bus subscription exists only while some client subscribes to its
+    channel, so an idle viewer costs nothing for them (and the MEC publishes no detections). A Foxglove
+    ServerListener (its callbacks run on the server's threads; the bus callbacks on Zenoh's)."""
 
     def __init__(self, scene: Scene, context: foxglove.Context) -> None:
         self._counters: Counters | None = None
@@ -124,13 +135,21 @@ class SensorFeeds(ServerListener):
         self._channels: dict[str, foxglove.Channel] = {}
         self._watchers: Counter[str] = Counter()
         self._subscribers: dict[str, Any] = {}
+        self._annotates: set[str] = set()  # topics of 2D detections, drawn as image annotations
         for spec in scene.spec.sensors:
             stream = get_stream(SENSOR_STREAM[spec.kind])
             topic = f"/agents/{spec.agent}/{spec.kind}/{spec.id}"
-            self._keys[topic] = stream.key(agent=spec.agent, sensor=spec.id)
-            self._channels[topic] = foxglove.Channel(
-                topic, schema=schema_of(stream.message_type), message_encoding="protobuf", context=context
-            )
+            self._add(context, topic, stream.key(agent=spec.agent, sensor=spec.id), stream.message_type)
+            if spec.kind == "camera":
+                key = get_stream("detections_2d").key(agent=spec.agent, sensor=spec.id)
+                self._add(context, f"{topic}/detections", key, ImageAnnotations)
+                self._annotates.add(f"{topic}/detections")
+
+    def _add(self, context: foxglove.Context, topic: str, key: str, message_type: type[Message]) -> None:
+        self._keys[topic] = key
+        self._channels[topic] = foxglove.Channel(
+            topic, schema=schema_of(message_type), message_encoding="protobuf", context=context
+        )
 
     def attach(self, session: zenoh.Session, counters: Counters) -> None:
         """The bus to subscribe on and the counters to count on (subscriptions asked for before are
@@ -144,6 +163,21 @@ class SensorFeeds(ServerListener):
     def _subscribe(self, topic: str) -> None:
         assert self._session is not None and self._counters is not None
         channel, counters = self._channels[topic], self._counters
+        if topic in self._annotates:
+            # Subscribing is what makes the MEC publish them (it does only while something matches).
+            decoder = MessageDecoder(pb.Detection2DArray, counters)
+
+            def annotate(sample: zenoh.Sample) -> None:
+                attachment = sample.attachment.to_bytes() if sample.attachment is not None else None
+                decoded = decoder.decode(sample.payload.to_bytes(), str(sample.encoding), attachment)
+                if decoded is not None:
+                    stamp_ns = decoded.header.stamp.ToNanoseconds()
+                    ann = image_annotations(decoded.message, stamp_ns)  # type: ignore[arg-type]
+                    channel.log(ann.SerializeToString(), log_time=time.time_ns())
+                    counters.inc("forwarded/detections_2d")
+
+            self._subscribers[topic] = self._session.declare_subscriber(self._keys[topic], annotate)
+            return
 
         def forward(sample: zenoh.Sample) -> None:
             channel.log(sample.payload.to_bytes(), log_time=time.time_ns())
@@ -181,8 +215,9 @@ class SensorFeeds(ServerListener):
 
 
 class HealthFeed:
-    """`rmmdet health`'s verdict on the loop and every service's level as JSON on `/health`, every
-    HEALTH_EVERY_S while a client watches; on its own thread (a probe waits for replies up to 1 s)."""
+    """`rmmdet health`'s verdict on the loop and every service's level as JSON on `/health` and for the
+    dashboard: every HEALTH_EVERY_S while a client watches either, else every IDLE_EVERY_S; on its own
+    thread (a probe waits for replies up to 1 s)."""
 
     TOPIC = "/health"
 
@@ -191,8 +226,15 @@ class HealthFeed:
         self._channel = foxglove.Channel(self.TOPIC, message_encoding="json", context=context)
         self.verdicts: queue.SimpleQueue[Verdict] = queue.SimpleQueue()  # for the dashboard
 
-    def run(self, session: zenoh.Session, stop: threading.Event) -> None:
+    def run(
+        self, session: zenoh.Session, stop: threading.Event, watched: Callable[[], bool] = lambda: True
+    ) -> None:
+        last = -math.inf
         while not stop.wait(HEALTH_EVERY_S):
+            now = time.monotonic()
+            if not (self._channel.has_sinks() or watched()) and now - last < IDLE_EVERY_S:
+                continue
+            last = now
             verdict = probe(session, self._scene, timeout_s=HEALTH_TIMEOUT_S)
             self.verdicts.put(verdict)
             if self._channel.has_sinks():
@@ -259,8 +301,12 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         with Node(conf, service=SERVICE, instance=args.instance, scope="site", stop=shutdown.event) as node:
             feeds.attach(node.session, node.counters)
             health_feed = HealthFeed(scene, context)
+
+            def watched() -> bool:
+                return dashboard is not None and dashboard.watched
+
             health = threading.Thread(
-                target=health_feed.run, args=(node.session, shutdown.event), daemon=True
+                target=health_feed.run, args=(node.session, shutdown.event, watched), daemon=True
             )
             health.start()
             objects = {
@@ -275,6 +321,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             )
             core = ViewerCore(scene, network)
             board = DashboardState(list(scene.agents))
+            last_snapshot = -math.inf
             while not shutdown.requested:
                 node.health.beat()
                 t0 = time.monotonic()
@@ -298,7 +345,8 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 while not health_feed.verdicts.empty():
                     verdict = health_feed.verdicts.get()
                     board.on_health(verdict.ok, verdict.summary(), verdict.problems)
-                if dashboard is not None:
+                if dashboard is not None and (dashboard.watched or t0 - last_snapshot >= IDLE_EVERY_S):
+                    last_snapshot = t0
                     dashboard.publish(board.snapshot(t0))
                     node.counters.publish(dashboard.counters.snapshot())  # refused requests, in health
                 for d in core.draw(t0, time.time_ns()):

@@ -1,4 +1,5 @@
-"""Pipeline result -> `rmmdet.v1.TrackedObjects` (the MEC's output message, without its header)."""
+"""Pipeline result -> `rmmdet.v1.TrackedObjects` (the MEC's output message, without its header), and a
+camera's 2D detections -> `rmmdet.v1.Detection2DArray` (for the live view)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from rmmdet.v1 import perception_pb2 as pb
 
+from shared.detection.interface import CAMERA_COLUMNS
 from shared.perception.inputs import InputReport, InputState, Status
 from shared.perception.pipeline import AgentResult
 from shared.tracking.track_table import Track, TrackState
@@ -85,4 +87,23 @@ def tracked_objects_message(
         msg.stage_latencies.add(stage=stage, duration_s=seconds)
     for track in result.tracks:
         track_to_message(track, msg.objects.add(), default_size_m)
+    return msg
+
+
+_X0, _Y0, _X1, _Y1, _SCORE = (CAMERA_COLUMNS.index(c) for c in ("x0", "y0", "x1", "y1", "score"))
+
+
+def detections_2d_message(
+    sensor_id: str, boxes: np.ndarray, width_px: int, height_px: int
+) -> pb.Detection2DArray:
+    """One camera's detections (the detector's (N, 6) rows, pixels of the image it saw) as a
+    Detection2DArray: centre and size in pixels, the score, class car (the table's only class)."""
+    msg = pb.Detection2DArray(sensor_id=sensor_id, image_width_px=width_px, image_height_px=height_px)
+    for row in np.asarray(boxes, float):
+        d = msg.detections.add(score=float(row[_SCORE]))
+        d.box.center_u_px = (row[_X0] + row[_X1]) / 2
+        d.box.center_v_px = (row[_Y0] + row[_Y1]) / 2
+        d.box.width_px = row[_X1] - row[_X0]
+        d.box.height_px = row[_Y1] - row[_Y0]
+        d.classification.add(label=pb.OBJECT_CLASS_CAR, probability=float(row[_SCORE]))
     return msg

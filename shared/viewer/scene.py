@@ -23,9 +23,12 @@ from foxglove_schemas_protobuf.ArrowPrimitive_pb2 import ArrowPrimitive
 from foxglove_schemas_protobuf.Color_pb2 import Color
 from foxglove_schemas_protobuf.CubePrimitive_pb2 import CubePrimitive
 from foxglove_schemas_protobuf.Grid_pb2 import Grid
+from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
 from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
 from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
+from foxglove_schemas_protobuf.Point2_pb2 import Point2
 from foxglove_schemas_protobuf.Point3_pb2 import Point3
+from foxglove_schemas_protobuf.PointsAnnotation_pb2 import PointsAnnotation
 from foxglove_schemas_protobuf.Pose_pb2 import Pose
 from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
 from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
@@ -305,3 +308,29 @@ def traffic_grid(msg: TrafficMap, stamp_ns: int) -> Grid:
         ],
         data=cells.tobytes(),
     )
+
+
+DETECTION_COLOR = Color(r=0.2, g=1.0, b=0.3, a=1.0)
+DETECTION_TEXT_BACKGROUND = Color(r=0.0, g=0.0, b=0.0, a=0.6)
+
+
+def image_annotations(msg: pb.Detection2DArray, stamp_ns: int) -> ImageAnnotations:
+    """A camera's 2D detections as annotations over its image: each box an outline, its score above
+    it. Stamped with the image's own stamp so a viewer pairs them with the frame they were found in."""
+    out = ImageAnnotations()
+    for d in msg.detections:
+        b = d.box
+        u0, v0 = b.center_u_px - b.width_px / 2, b.center_v_px - b.height_px / 2
+        u1, v1 = u0 + b.width_px, v0 + b.height_px
+        box = out.points.add(type=PointsAnnotation.LINE_LOOP, outline_color=DETECTION_COLOR, thickness=2.0)
+        box.timestamp.CopyFrom(timestamp(stamp_ns))
+        box.points.extend(Point2(x=u, y=v) for u, v in ((u0, v0), (u1, v0), (u1, v1), (u0, v1)))
+        text = out.texts.add(
+            text=f"car {d.score:.2f}",
+            font_size=12.0,
+            text_color=DETECTION_COLOR,
+            background_color=DETECTION_TEXT_BACKGROUND,
+        )
+        text.timestamp.CopyFrom(timestamp(stamp_ns))
+        text.position.CopyFrom(Point2(x=u0, y=max(0.0, v0 - 14.0)))
+    return out

@@ -325,6 +325,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     probes: list[dict[str, Any]] = []
     rates: dict[str, list[dict[str, float]]] = defaultdict(list)
     recorder: subprocess.Popen[bytes] | None = None
+    view_client: subprocess.Popen[bytes] | None = None
+    view_rates = Path()
     recording = Path(tempfile.mkdtemp()) / "bench.mcap"
     subprocess.run(make, check=True, env=env, stdout=subprocess.DEVNULL)
     try:
@@ -334,6 +336,22 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         time.sleep(args.warmup_s)
         for name, pid in supervised_pids().items():
             sampler.track(name, pid)
+        view_rates = Path(tempfile.mkdtemp()) / "view_client.json"
+        if args.view_client:
+            view_client = subprocess.Popen(
+                [
+                    sys.executable,
+                    "-m",
+                    "tests.bench.view_client",
+                    "--seconds",
+                    str(args.minutes * 60),
+                    "--out",
+                    str(view_rates),
+                ],
+                cwd=REPO_ROOT,
+                stdout=subprocess.DEVNULL,
+            )
+            sampler.track("view-client", view_client.pid)
         if args.record_s > 0:
             recorder = subprocess.Popen(
                 [
@@ -380,6 +398,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             sub.undeclare()
         session.close()
     finally:
+        if view_client is not None:
+            view_client.wait(timeout=60)
         if recorder is not None:
             recorder.wait(timeout=60)
         recording.unlink(missing_ok=True)
@@ -392,10 +412,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "threads_max": max((int(s["threads"]) for s in sampler.samples[name]), default=0),
             "fds_max": max((int(s["fds"]) for s in sampler.samples[name]), default=0),
             **drift(sampler.samples[name]),
+            "rss_series_mb": rss_series(sampler.samples[name]),
             "restarts": sampler.restarts[name],
         }
         for name in sorted(cpu)
     }
+    if view_client is not None:
+        result["view_client_topics"] = json.loads(view_rates.read_text()) if view_rates.exists() else {}
     result["cpu_cores_total"] = round(sum(p["cpu_cores"] for p in result["processes"].values()), 3)
     result["host"] = {
         "busy_cores": round(host_s / wall_s, 3),
@@ -463,6 +486,7 @@ def readme_table(runs: list[dict[str, Any]]) -> str:
         lines.append(
             f"| {run['label']} ({run['commit']}) | {run['args']['speed']}"
             + (f" + record {run['args']['record_s']:.0f} s" if run["args"]["record_s"] else "")
+            + (" + view client" if run["args"].get("view_client") else "")
             + f" | {fmt(r.get('sim', {}).get('real_time_factor'), 2)} | {r['cpu_cores_total']:.2f}"
             f" | {r['probes']['ok']}/{r['probes']['count']}"
             f" | {'/'.join(fmt(100 * a.get('fraction_full', math.nan), 1) for a in agents)}"
@@ -497,6 +521,16 @@ def readme_table(runs: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def rss_series(samples: list[dict[str, float]], points: int = 60) -> list[list[float]]:
+    """RSS over the window, at most `points` [minutes since the first sample, MB] pairs (the shape of
+    a growth: a warm-up that levels off vs. a steady climb)."""
+    if not samples:
+        return []
+    step = max(1, len(samples) // points)
+    t0 = samples[0]["t_s"]
+    return [[round((s["t_s"] - t0) / 60, 1), round(s["rss_mb"], 1)] for s in samples[::step]]
+
+
 def drift(samples: list[dict[str, float]]) -> dict[str, float | int]:
     """What a leak looks like over the window (the soak criteria, reliability.md M1): the least-squares
     slope of RSS in MB per hour, and the spread (max - min) of threads and file descriptors."""
@@ -523,6 +557,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--speed", type=float, default=1.0, help="sim speed (make up SPEED=...)")
     parser.add_argument("--record-s", type=float, default=0.0, help="run `rmmdet record` this long, s")
     parser.add_argument("--label", default="default", help="name of this run in the results")
+    parser.add_argument(
+        "--view-client",
+        action="store_true",
+        help="keep a Foxglove client watching the layout's topics (tests/bench/view_client.py) throughout",
+    )
     parser.add_argument("--out", type=Path, default=RESULTS)
     parser.add_argument("--readme", action="store_true", help="rewrite the README's system table")
     args = parser.parse_args(argv)
@@ -542,6 +581,7 @@ def main(argv: list[str] | None = None) -> int:
             "warmup_s": args.warmup_s,
             "speed": args.speed,
             "record_s": args.record_s,
+            "view_client": args.view_client,
         },
         "machine": machine_info(),
         "acceptance": passed,

@@ -65,3 +65,24 @@ def test_drift_known_answer() -> None:
     ]
     assert drift(samples) == {"rss_slope_mb_per_h": 20.0, "threads_spread": 2, "fds_spread": 0}
     assert drift(samples[:1]) == {"rss_slope_mb_per_h": 0.0, "threads_spread": 0, "fds_spread": 0}
+
+
+def test_rss_series_is_thinned_to_minutes_and_mb() -> None:
+    from tests.bench.system_bench import rss_series
+
+    samples = [{"t_s": 1000.0 + 30.0 * i, "rss_mb": 100.0 + 0.25 * i} for i in range(240)]
+    series = rss_series(samples, points=60)
+    assert len(series) == 60
+    assert series[0] == [0.0, 100.0] and series[1] == [2.0, 101.0]
+    assert rss_series([]) == []
+
+
+def test_the_view_client_watches_what_the_layout_shows() -> None:
+    import json
+
+    from tests.bench.view_client import LAYOUT, layout_topics
+
+    topics = layout_topics(json.loads(LAYOUT.read_text()))
+    assert {"/table", "/plans", "/health", "/agents/agent1/tracks"} <= topics
+    assert {"/agents/agent2/camera/cam_2", "/agents/agent2/camera/cam_2/detections"} <= topics
+    assert "/ground_truth" not in topics  # a hidden layer is not watched

@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import struct
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from websockets.sync.client import connect
@@ -22,6 +23,7 @@ class Received:
     arrival_s: float
     log_time_ns: int
     payload: bytes
+    size_bytes: int = 0
 
 
 @dataclass
@@ -30,6 +32,8 @@ class FoxgloveClient:
     channels: dict[int, dict] = field(default_factory=dict)  # channel id -> advertisement
     subscribed: dict[int, int] = field(default_factory=dict)  # subscription id -> channel id
     received: list[Received] = field(default_factory=list)
+    wanted: Callable[[str], bool] | None = None  # which topics to subscribe to (None: every one)
+    keep_payloads: bool = True  # False: keep only topic, times and size (long runs)
 
     def __post_init__(self) -> None:
         self._connection = connect(self.url, subprotocols=[SUBPROTOCOL], open_timeout=10)  # type: ignore[list-item]
@@ -48,8 +52,9 @@ class FoxgloveClient:
             elif frame and frame[0] == MESSAGE_DATA:
                 sub_id, log_time = struct.unpack_from("<IQ", frame, 1)
                 channel = self.channels.get(self.subscribed.get(sub_id, -1), {})
+                payload = frame[13:] if self.keep_payloads else b""
                 self.received.append(
-                    Received(channel.get("topic", "?"), time.monotonic(), log_time, frame[13:])
+                    Received(channel.get("topic", "?"), time.monotonic(), log_time, payload, len(frame) - 13)
                 )
 
     def _on_op(self, op: dict) -> None:
@@ -57,6 +62,8 @@ class FoxgloveClient:
             new = []
             for ch in op["channels"]:
                 self.channels[ch["id"]] = ch
+                if self.wanted is not None and not self.wanted(ch["topic"]):
+                    continue
                 self.subscribed[ch["id"]] = ch["id"]  # one subscription per channel, same id
                 new.append({"id": ch["id"], "channelId": ch["id"]})
             self._ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))

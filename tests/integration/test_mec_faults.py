@@ -223,9 +223,7 @@ def check_kill_and_restart(chain: Chain, victim: str) -> None:
 
 def mec_dropped(chain: Chain, victim: str) -> int:
     """The victim's frames the MEC dropped, counted: stale or late on arrival."""
-    reports, _ = query_health(chain.node.session)  # type: ignore[attr-defined]
-    (mec,) = [r for r in reports if r.service == "mec" and r.instance == chain.agent]
-    return sum(c.value for c in mec.counters if c.name in (f"stale/{victim}", f"late/{victim}"))
+    return mec_counter(chain, f"stale/{victim}") + mec_counter(chain, f"late/{victim}")
 
 
 def check_freeze_and_thaw(chain: Chain, victim: str) -> dict[str, float]:
@@ -331,6 +329,32 @@ def test_radar_fault_degrades_and_recovers(chain_factory) -> None:
         "agent2", {"cam_2": ("agent2-cameras", "camera"), "radar_2": ("agent2-radars", "radar")}
     )
     check_kill_and_restart(chain, "radar_2")
+    check_detections_2d_only_while_watched(chain, "cam_2")
+
+
+def mec_counter(chain: Chain, name: str) -> int:
+    reports, _ = query_health(chain.node.session)  # type: ignore[attr-defined]
+    (mec,) = [r for r in reports if r.service == "mec" and r.instance == chain.agent]
+    return sum(c.value for c in mec.counters if c.name == name)
+
+
+def check_detections_2d_only_while_watched(chain: Chain, camera: str) -> None:
+    """The MEC's 2D detections of a camera (the live view's image annotations) go out only while
+    something subscribes, each stamped as the image it was found in."""
+    assert mec_counter(chain, "published/detections_2d") == 0, "published with nobody watching"
+    sub = chain.node.subscribe_stream(  # type: ignore[attr-defined]
+        "detections_2d", agent=chain.agent, sensor=camera, maxsize=100
+    )
+    deadline, got = time.monotonic() + 10.0 * SCALE, []
+    while len(got) < 5 and time.monotonic() < deadline:
+        if (item := sub.recv(timeout=0.2)) is not None:
+            got.append(item)
+    assert len(got) >= 5, f"{len(got)} detection arrays in 10 s while watched"
+    with chain.out.lock:
+        image_stamps = {round(stamp_s, 6) for _, sensor, stamp_s in chain.out.frames if sensor == camera}
+    for item in got:
+        assert item.message.sensor_id == camera and item.message.image_width_px > 0
+        assert round(item.header.stamp.ToNanoseconds() / 1e9, 6) in image_stamps
 
 
 def test_coordinator_sees_a_killed_mec_stale_and_back(chain_factory, router: Router) -> None:

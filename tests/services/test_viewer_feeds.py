@@ -5,19 +5,25 @@ from __future__ import annotations
 
 import json
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import foxglove
+import numpy as np
+from rmmdet.v1.common_pb2 import Header
 
 from services.viewer.main import SensorFeeds
-from shared.bus.codec import Counters
+from shared.bus.codec import Counters, encode, encoding_for
 from shared.paths import DEFAULT_SCENE, REPO_ROOT
+from shared.perception.output import detections_2d_message
 from shared.scene.scene import Scene
 
 
 @dataclass
 class FakeSub:
     key: str
+    callback: Callable[[Any], None]
     undeclared: bool = False
 
     def undeclare(self) -> None:
@@ -28,9 +34,24 @@ class FakeSub:
 class FakeSession:
     subs: list[FakeSub] = field(default_factory=list)
 
-    def declare_subscriber(self, key: str, _callback) -> FakeSub:
-        self.subs.append(FakeSub(key))
+    def declare_subscriber(self, key: str, callback: Callable[[Any], None]) -> FakeSub:
+        self.subs.append(FakeSub(key, callback))
         return self.subs[-1]
+
+
+@dataclass(frozen=True)
+class Bytes:
+    data: bytes
+
+    def to_bytes(self) -> bytes:
+        return self.data
+
+
+@dataclass(frozen=True)
+class FakeSample:
+    payload: Bytes
+    encoding: str
+    attachment: Bytes | None
 
 
 @dataclass(frozen=True)
@@ -67,5 +88,32 @@ def test_the_layout_names_only_topics_the_viewer_serves() -> None:
     named = set(re.findall(r'"(/[a-z0-9_/]+)"', text))
     sensors = {f"/agents/{s.agent}/{s.kind}/{s.id}" for s in scene.spec.sensors}
     served = {"/table", "/ground_truth", "/plans", "/traffic/grid", "/health"} | sensors
+    served |= {
+        f"/agents/{s.agent}/camera/{s.id}/detections" for s in scene.spec.sensors if s.kind == "camera"
+    }
     served |= {f"/agents/{a}/tracks" for a in scene.agents}
     assert named and named <= served, named - served
+
+
+def test_detections_are_drawn_as_annotations_while_watched(test_scene: Scene) -> None:
+    """Watching a camera's `/detections` channel subscribes to the MEC's 2D detections of that camera
+    (which makes the MEC publish them); each one becomes an ImageAnnotations, bad ones are counted."""
+    feeds = SensorFeeds(test_scene, foxglove.Context())
+    spec = next(s for s in test_scene.spec.sensors if s.kind == "camera")
+    topic = f"/agents/{spec.agent}/camera/{spec.id}/detections"
+    session, counters = FakeSession(), Counters()
+    feeds.attach(session, counters)  # type: ignore[arg-type]
+    feeds.on_subscribe(1, View(topic))
+    (sub,) = session.subs
+    assert sub.key == f"rmmdet/@v1/{spec.agent}/perception/detections_2d/{spec.id}"
+    msg = detections_2d_message(spec.id, np.array([[10, 20, 50, 40, 0.75, 0]], np.float32), 448, 336)
+    header = Header(source_id="agent/mec", seq=1)
+    header.stamp.FromNanoseconds(1_000_000_000)
+    encoded = encode(msg, header)
+    sub.callback(FakeSample(Bytes(encoded.payload), str(encoding_for(msg)), Bytes(encoded.attachment)))
+    sub.callback(FakeSample(Bytes(b"\xff\xff"), str(encoding_for(msg)), None))
+    snapshot = counters.snapshot()
+    assert snapshot["forwarded/detections_2d"] == 1
+    assert snapshot["rejected/decode"] == 1
+    feeds.on_unsubscribe(1, View(topic))
+    assert sub.undeclared

@@ -7,12 +7,14 @@ import math
 
 import numpy as np
 import pytest
+from foxglove_schemas_protobuf.PointsAnnotation_pb2 import PointsAnnotation
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from rmmdet.v1 import perception_pb2 as pb
 from rmmdet.v1.planning_pb2 import RoutePlan
 from rmmdet.v1.sim_pb2 import GroundTruth
 from rmmdet.v1.traffic_pb2 import TrafficMap
 
+from shared.perception.output import detections_2d_message
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.viewer import scene as view
@@ -154,3 +156,17 @@ def test_the_core_draws_the_table_and_plans_on_their_cadences(
     assert [d.topic for d in core.draw(2.2, STAMP_NS)] == [PLANS]  # plans every 1 s
     assert core.draw(3.3, STAMP_NS + 11 * 10**9) == []  # its plan expired: dropped, nothing drawn
     assert core.plans == {}
+
+
+def test_detections_become_image_annotations() -> None:
+    rows = np.array([[10, 20, 50, 40, 0.75, 0]], np.float32)
+    ann = view.image_annotations(detections_2d_message("cam_2", rows, 448, 336), STAMP_NS)
+    (box,) = ann.points
+    assert box.type == PointsAnnotation.LINE_LOOP
+    assert [(p.x, p.y) for p in box.points] == [(10, 20), (50, 20), (50, 40), (10, 40)]
+    assert box.timestamp.ToNanoseconds() == STAMP_NS
+    (text,) = ann.texts
+    assert text.text == "car 0.75"
+    assert (text.position.x, text.position.y) == (10, 6)
+    empty = view.image_annotations(pb.Detection2DArray(sensor_id="cam_2"), STAMP_NS)
+    assert len(empty.points) == 0 and len(empty.texts) == 0
