@@ -144,7 +144,13 @@ class CoordinatorService:
             plan, stamp_ns = self.core.serve(request, self.clock.now_s(), start_ns)
         except RequestRejected as err:
             raise RpcRejected(err.reason, err.code, err.message) from None
-        return RouteResponse(plan=self.signer.sign(plan)), stamp_ns
+        signed = self.signer.sign(plan)
+        # Viewers see the plans vehicles asked for too (a pushed plan they see on route_plan).
+        copy = self.node.publisher("route_plan_served", vehicle=plan.vehicle_id)
+        if copy.has_subscribers():
+            copy.put(signed, stamp_ns=stamp_ns or time.time_ns(), frame_id="world")
+            self.counters.inc("plans/copied")
+        return RouteResponse(plan=signed), stamp_ns
 
     def run(self, shutdown: GracefulShutdown) -> None:
         interval_s = self.settings.report_interval_s

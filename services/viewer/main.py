@@ -7,7 +7,8 @@ Channels (Foxglove protobuf schemas, drawn by `shared/viewer/scene.py`):
     /table                  SceneUpdate  lanes, junction numbers, sensors and their fields of view (every 2 s)
     /ground_truth           SceneUpdate  the simulated vehicles (a layer to hide)
     /agents/<agent>/tracks  SceneUpdate  each agent's tracked boxes, coloured by modality, ids, velocities
-    /plans                  SceneUpdate  each vehicle's newest pushed plan along its lanes (redrawn every 1 s)
+    /plans                  SceneUpdate  each vehicle's newest plan, pushed or served, along its lanes
+                            (redrawn every 1 s until it expires)
     /traffic/grid           Grid         the coordinator's density / speed grid
     /health                 JSON         `rmmdet health`'s verdict and every service's level (every 2 s)
     /agents/<agent>/<kind>/<sensor>      camera images (foxglove.CompressedImage), lidar clouds
@@ -32,6 +33,7 @@ take. Binds to loopback unless told otherwise.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import math
 import queue
@@ -223,7 +225,9 @@ class HealthFeed:
 
     def __init__(self, scene: Scene, context: foxglove.Context) -> None:
         self._scene = scene
-        self._channel = foxglove.Channel(self.TOPIC, message_encoding="json", context=context)
+        self._channel = foxglove.Channel(
+            self.TOPIC, message_encoding="json", schema=HEALTH_SCHEMA, context=context
+        )
         self.verdicts: queue.SimpleQueue[Verdict] = queue.SimpleQueue()  # for the dashboard
 
     def run(
@@ -239,6 +243,34 @@ class HealthFeed:
             self.verdicts.put(verdict)
             if self._channel.has_sinks():
                 self._channel.log(health_json(verdict))
+
+
+# What `/health` carries (health_json), as JSON Schema: viewers (Foxglove Studio 1.48) want a schema.
+HEALTH_SCHEMA = foxglove.Schema(
+    name="rmmdet.Health",
+    encoding="jsonschema",
+    data=json.dumps(
+        {
+            "type": "object",
+            "properties": {
+                "loop_ok": {"type": "boolean"},
+                "summary": {"type": "string"},
+                "services": {
+                    "type": "array",
+                    "items": {
+                        "type": "object",
+                        "properties": {
+                            "service": {"type": "string"},
+                            "level": {"type": "string"},
+                            "message": {"type": "string"},
+                            "loop_age_s": {"type": "number"},
+                        },
+                    },
+                },
+            },
+        }
+    ).encode(),
+)
 
 
 def health_json(verdict: Verdict) -> dict[str, Any]:
@@ -319,6 +351,12 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 "route_plan",
                 queue=BoundedQueue(PLAN_QUEUE, OverflowPolicy.DROP_OLDEST, node.counters, "dropped/plans"),
             )
+            served = node.subscribe_stream(  # plans vehicles asked for (the coordinator copies them)
+                "route_plan_served",
+                queue=BoundedQueue(
+                    PLAN_QUEUE, OverflowPolicy.DROP_OLDEST, node.counters, "dropped/served_plans"
+                ),
+            )
             core = ViewerCore(scene, network)
             board = DashboardState(list(scene.agents))
             last_snapshot = -math.inf
@@ -337,6 +375,9 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 for item in plans.drain():
                     core.on_plan(item.message, t0)
                     board.on_plan(item.message)
+                for item in served.drain():
+                    core.on_plan(item.message, t0)
+                    board.on_plan(item.message, served=True)
                 for item in acks.drain():
                     board.on_ack(item.message)
                 for item in traffic.drain()[-1:]:

@@ -4,7 +4,7 @@ The service (`services/viewer`) feeds it the newest message of each stream and p
 returns on the named topics; a study or a replay could drive it alike. Cadence: the static table every
 TABLE_EVERY_S (a client that connects later gets it soon), tracks, ground truth and the traffic grid
 as they come (the service keeps only the newest of each between two draws), every vehicle's newest
-pushed plan every PLAN_EVERY_S and at once when one changes, until it expires (`valid_until`).
+plan (pushed or served) every PLAN_EVERY_S and at once when one changes, until it expires (`valid_until`).
 Times: `now_s` monotonic seconds, stamps UNIX-epoch ns.
 """
 
@@ -50,7 +50,7 @@ class ViewerCore:
         self.scene, self.network = scene, network
         self._next_table_s = 0.0
         self._next_plans_s = 0.0
-        self._plans: dict[str, RoutePlan] = {}  # vehicle -> its newest pushed plan, oldest change first
+        self._plans: dict[str, RoutePlan] = {}  # vehicle -> its newest plan, oldest change first
         self._pending: list[Draw] = []
 
     # --- inputs (the newest of each stream) ---------------------------------------------------------

@@ -5,8 +5,9 @@ and serves `snapshot()`.
 Shown: each agent's coverage in the coordinator's maps (LIVE / STALE / LOST, data age, objects) with
 the rate of its object lists over the last RATE_WINDOW_S and their processing latency (the MEC's own
 stage latencies, summed); the paper's Table II live: each junction's vehicle count since the sim
-started; route plans pushed and acknowledgements by status; the traffic grid (vehicles and mean
-speed per cell) for the heat map; the alarms (`rmmdet health`'s problems). Times: `now_s` monotonic s.
+started; route plans pushed and served (asked for) and acknowledgements by status; the traffic grid
+(vehicles and mean speed per cell) for the heat map; the alarms (`rmmdet health`'s problems). Times:
+`now_s` monotonic s.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ class DashboardState:
         self._junctions: dict[str, dict[str, Any]] = {}
         self._grid: dict[str, Any] | None = None
         self.plans_pushed = 0
+        self.plans_served = 0
         self.acks: Counter[str] = Counter()
         self._health: dict[str, Any] = {"loop_ok": None, "summary": "no health probe yet", "alarms": []}
 
@@ -61,8 +63,12 @@ class DashboardState:
         for flow in msg.junction_flows:
             self._junctions[flow.junction_id] = {"number": flow.number, "vehicles": flow.arrivals}
 
-    def on_plan(self, msg: RoutePlan) -> None:
-        self.plans_pushed += 1
+    def on_plan(self, msg: RoutePlan, served: bool = False) -> None:
+        """A plan the coordinator pushed, or (`served`) one a vehicle asked for over the route RPC."""
+        if served:
+            self.plans_served += 1
+        else:
+            self.plans_pushed += 1
 
     def on_ack(self, msg: RouteAck) -> None:
         self.acks[AckStatus.Name(msg.status).removeprefix("ACK_STATUS_")] += 1
@@ -88,7 +94,11 @@ class DashboardState:
                 for a in self.agents
             ],
             "junctions": sorted(self._junctions.values(), key=lambda j: j["number"]),
-            "plans": {"pushed": self.plans_pushed, "acknowledged": dict(self.acks)},
+            "plans": {
+                "pushed": self.plans_pushed,
+                "served": self.plans_served,
+                "acknowledged": dict(self.acks),
+            },
             "grid": self._grid,
             "health": self._health,
         }

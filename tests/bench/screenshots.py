@@ -35,8 +35,12 @@ VIEWPORT = {"width": 1600, "height": 950}
 
 def serve(directory: Path) -> tuple[http.server.ThreadingHTTPServer, str]:
     """Serve `directory` on a free loopback port (a daemon thread); returns the server and its URL."""
-    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(directory))
-    handler.log_message = lambda *_args: None  # type: ignore[method-assign]
+
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, format: str, *args: object) -> None:
+            pass
+
+    handler = functools.partial(Quiet, directory=str(directory))
     server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
     threading.Thread(target=server.serve_forever, daemon=True).start()
     return server, f"http://127.0.0.1:{server.server_address[1]}/"
@@ -67,6 +71,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"{app_url}?ds=foxglove-websocket&ds.url={VIEWER_WS}", wait_until="load", timeout=120_000
             )
             time.sleep(args.settle_s)
+            for tip in page.locator('button[aria-label="Dismiss"]').all():  # first-run hints
+                tip.click()
             page.screenshot(path=str(args.out / "view3d.png"))
             browser.close()
     finally:

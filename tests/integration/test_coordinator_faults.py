@@ -139,3 +139,21 @@ def test_mec_kill_marks_agent_missing_and_restart_recovers(cluster: Cluster) -> 
     assert list(cluster.plan().coverage.missing_agents) == []
     report = coordinator_health(cluster.node.session)
     assert report is not None and report.level == HealthLevel.HEALTH_LEVEL_NOMINAL
+
+
+def test_served_plans_are_copied_for_viewers_only_while_watched(cluster: Cluster) -> None:
+    """A plan a vehicle asks for is copied on `route_plan_served` (the live view draws it) only while
+    something subscribes there."""
+    cluster.maps.wait(all_live, STARTUP_S, since=time.monotonic())
+    cluster.routes.wait_ready(STARTUP_S)
+    cluster.plan()
+    report = coordinator_health(cluster.node.session)
+    assert report is not None and counters(report).get("plans/copied", 0) == 0
+    copies = cluster.node.subscribe_stream("route_plan_served", maxsize=10)
+    deadline = time.monotonic() + 5.0 * SCALE
+    reply = cluster.plan()
+    while (item := copies.recv(timeout=0.2)) is None:  # until the subscription has reached it
+        assert time.monotonic() < deadline, "no copy of a served plan"
+        reply = cluster.plan()
+    assert item.message.vehicle_id == reply.vehicle_id == "t01"
+    assert 0 < item.message.version <= reply.version  # a copy may trail the newest reply by one

@@ -1,6 +1,25 @@
 // Starts the prebuilt Foxglove Studio app (its UMD bundle puts App and the data sources on `window`)
 // with the project's layout (rmmdet-layout.json, copied next to this file) as the only stored layout.
 // Open ?ds=foxglove-websocket&ds.url=ws://127.0.0.1:8765 to connect to the viewer at once.
+// The layout is written for current Foxglove / Lichtblick, whose image panel ("Image", config under
+// `imageMode`) Studio 1.48 does not have: there the same view is its "ImageViewPanel".
+function studio148(layout) {
+  const rename = {};
+  for (const [id, config] of Object.entries(layout.configById)) {
+    if (!id.startsWith("Image!")) continue;
+    const mode = config.imageMode ?? {};
+    const annotations = Object.entries(mode.annotations ?? {}).filter(([, a]) => a.visible).map(([t]) => t);
+    const newId = "ImageViewPanel!" + id.slice("Image!".length);
+    layout.configById[newId] = { cameraTopic: mode.imageTopic, enabledMarkerTopics: annotations, mode: "fit" };
+    delete layout.configById[id];
+    rename[id] = newId;
+  }
+  const walk = (node) =>
+    typeof node === "string" ? rename[node] ?? node : { ...node, first: walk(node.first), second: walk(node.second) };
+  layout.layout = walk(layout.layout);
+  return layout;
+}
+
 (async function () {
   const S = window;
   const h = React.createElement;
@@ -27,7 +46,7 @@
 
   // Layouts live in memory, seeded with the project's layout: every page load starts from it.
   const LAYOUT_ID = "rmmdet";
-  const data = await (await fetch("rmmdet-layout.json", { cache: "no-store" })).json();
+  const data = studio148(await (await fetch("rmmdet-layout.json", { cache: "no-store" })).json());
   const stores = new Map(); // namespace -> Map(id -> layout)
   const store = (namespace) => {
     if (!stores.has(namespace)) {

@@ -39,7 +39,12 @@ def perms(*names: str) -> dict[tuple[str, str], set[str]]:
         ("vehicle-v7", {"rmmdet/@v1/vehicles/v7/plan_ack", "rmmdet/@v1/vehicles/v7/plan_ack/@adv/**"}),
         (
             "coordinator",
-            {"rmmdet/@v1/cloud/plans/*", "rmmdet/@v1/cloud/plans/*/@adv/**", "rmmdet/@v1/cloud/maps/traffic"},
+            {
+                "rmmdet/@v1/cloud/plans/*",
+                "rmmdet/@v1/cloud/plans/*/@adv/**",
+                "rmmdet/@v1/cloud/plans_served/*",
+                "rmmdet/@v1/cloud/maps/traffic",
+            },
         ),
         ("recorder", set()),
         ("operator", set()),

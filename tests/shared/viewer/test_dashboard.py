@@ -50,7 +50,7 @@ def test_the_snapshot_gathers_every_panel() -> None:
     }
     assert a2["state"] == "STALE" and a2["rate_hz"] == 0.0 and a2["latency_ms"] is None
     assert [j["number"] for j in snap["junctions"]] == [1, 2] and snap["junctions"][1]["vehicles"] == 7
-    assert snap["plans"] == {"pushed": 1, "acknowledged": {"ACCEPTED": 1, "DUPLICATE": 1}}
+    assert snap["plans"] == {"pushed": 1, "served": 0, "acknowledged": {"ACCEPTED": 1, "DUPLICATE": 1}}
     assert snap["grid"]["vehicles"] == [1.0, 0.5] and snap["grid"]["columns"] == 2
     assert snap["health"]["alarms"] == ["agent2 STALE"]
     assert d.rate_hz("agent1", 4.9 + RATE_WINDOW_S + 0.01) == pytest.approx(0.0)  # gone quiet
