@@ -71,9 +71,14 @@ def rss_mb() -> float:
     return pages * os.sysconf("SC_PAGE_SIZE") / MB
 
 
+def _snapshot() -> tracemalloc.Snapshot:
+    """The traced heap, less tracemalloc's own bookkeeping (which grows with every snapshot)."""
+    return tracemalloc.take_snapshot().filter_traces([tracemalloc.Filter(False, tracemalloc.__file__)])
+
+
 def report_line(baseline: tracemalloc.Snapshot, top: int = 5) -> str:
     """One report: RSS, traced heap, allocator totals and the ``top`` source lines grown most."""
-    snap = tracemalloc.take_snapshot()
+    snap = _snapshot()
     traced_mb = tracemalloc.get_traced_memory()[0] / MB
     grown = snap.compare_to(baseline, "lineno")[:top]
     malloc = " ".join(f"{k}={v:.1f}" for k, v in malloc_totals_mb().items())
@@ -106,7 +111,7 @@ def start_from_env(stop: threading.Event, service: str = "", instance: str = "")
         # the baseline is one period in, after the service has loaded its models and warmed up
         if stop.wait(period_s):
             return
-        baseline = tracemalloc.take_snapshot()
+        baseline = _snapshot()
         while not stop.wait(period_s):
             log.info(report_line(baseline))
 

@@ -143,6 +143,8 @@ class AgentPipeline:
             self.camera_detector = camera_detector(
                 det.camera, threads=det.camera_threads, precision=det.camera_precision
             )
+            if hasattr(self.camera_detector, "warm_up"):  # the ONNX model: its arena at size from the start
+                self.camera_detector.warm_up(len(self.camera_ids))
         self.lidar_detector = lidar
         if self.lidar_detector is None and self.lidar_ids:
             self.lidar_detector = lidar_detector(

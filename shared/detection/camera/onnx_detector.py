@@ -54,6 +54,10 @@ class OnnxCameraDetector:
         options.inter_op_num_threads = 1
         options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        # Batches vary (1 .. an agent's cameras): a memory pattern is planned and kept per input shape,
+        # each a block of the arena for good, and RSS climbed in steps (+20 MB over 600 calls of random
+        # sizes 1-5 with patterns; +4 MB and flat from then on without; batch-1 latency unchanged).
+        options.enable_mem_pattern = False
         options.add_session_config_entry("session.intra_op.allow_spinning", "1" if allow_spinning else "0")
         self.session = ort.InferenceSession(str(model_path), options, providers=["CPUExecutionProvider"])
         shape = self.session.get_inputs()[0].shape  # ["batch", H, W, 3]
@@ -67,6 +71,13 @@ class OnnxCameraDetector:
         if len(self._batch) < n:
             self._batch = np.empty((n, *self._batch.shape[1:]), np.uint8)
         return self._batch[:n]
+
+    def warm_up(self, max_batch: int) -> None:
+        """Run every batch size from `max_batch` down to 1 once, so the runtime's memory arena reaches
+        its working size at start instead of growing in steps while the service runs."""
+        shape = (self.config.input.height, self.config.input.width, 3)
+        for n in range(max_batch, 0, -1):
+            self.detect([np.zeros(shape, np.uint8)] * n)
 
     def detect(self, images: list[np.ndarray]) -> list[np.ndarray]:
         """`images`: (H, W, 3) uint8 RGB each; returns per image (n, 6) float32

@@ -38,6 +38,9 @@ def make_session(model_path: Path, threads: int) -> ort.InferenceSession:
     options.inter_op_num_threads = 1
     options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    # The pillar count differs every sweep: a memory pattern planned and kept per input shape would
+    # grow the arena with every new count (see the camera detector).
+    options.enable_mem_pattern = False
     return ort.InferenceSession(str(model_path), options, providers=["CPUExecutionProvider"])
 
 

@@ -165,3 +165,11 @@ def test_onnx_matches_torch(tmp_path: Path) -> None:
         # Same rows up to order (NMS ranks near-equal scores in either order): nearest row of each.
         nearest = np.abs(g[:, None, :] - e[None, :, :]).max(axis=2).min(axis=1)
         assert nearest.max() < 1e-2
+
+
+def test_warm_up_runs_every_batch_size_without_memory_patterns(constant_detector: OnnxCameraDetector) -> None:
+    """Batches of varying size must not each keep a memory pattern (RSS grew in steps in the soak)."""
+    assert not constant_detector.session.get_session_options().enable_mem_pattern
+    constant_detector.warm_up(3)
+    assert len(constant_detector._batch) >= 3
+    assert len(constant_detector.detect([np.zeros((48, 64, 3), np.uint8)])) == 1
