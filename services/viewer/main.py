@@ -11,6 +11,7 @@ Channels (Foxglove protobuf schemas, drawn by `shared/viewer/scene.py`):
                             (redrawn every 1 s until it expires)
     /traffic/grid           Grid         the coordinator's density / speed grid
     /health                 JSON         `rmmdet health`'s verdict and every service's level (every 2 s)
+                            while watched here or on the dashboard, else every 10 s
     /agents/<agent>/<kind>/<sensor>      camera images (foxglove.CompressedImage), lidar clouds
                             (foxglove.PointCloud), radar scans (rmmdet.v1.RadarScan): the bus payloads
                             as they are, subscribed on the bus only while a client watches (`SensorFeeds`)

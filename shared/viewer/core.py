@@ -14,6 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from foxglove_schemas_protobuf.Grid_pb2 import Grid
+from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from google.protobuf.message import Message
 from rmmdet.v1.perception_pb2 import TrackedObjects
@@ -51,6 +52,10 @@ class ViewerCore:
         self._next_table_s = 0.0
         self._next_plans_s = 0.0
         self._plans: dict[str, RoutePlan] = {}  # vehicle -> its newest plan, oldest change first
+        # Drawn once, redrawn as they were: the table never changes; a plan's line strip only with a
+        # new plan (redrawing every plan every second was the viewer's largest cost with a client).
+        self._table: SceneUpdate | None = None
+        self._plan_entities: dict[str, tuple[tuple[str, int], SceneEntity]] = {}
         self._pending: list[Draw] = []
 
     # --- inputs (the newest of each stream) ---------------------------------------------------------
@@ -90,19 +95,34 @@ class ViewerCore:
         """What to publish now (then nothing until more comes or a cadence is due)."""
         out, self._pending = self._pending, []
         if now_s >= self._next_table_s:
-            out.append(Draw(TABLE, SceneUpdate, lambda: view.table(self.scene, self.network, now_ns), now_ns))
+            out.append(Draw(TABLE, SceneUpdate, lambda: self._draw_table(now_ns), now_ns))
             self._next_table_s = now_s + TABLE_EVERY_S
         if now_s >= self._next_plans_s:
             for vid in [v for v, p in self._plans.items() if p.valid_until.ToNanoseconds() < now_ns]:
                 del self._plans[vid]  # expired: the vehicle no longer follows it
+                self._plan_entities.pop(vid, None)
             if self._plans:
                 plans = list(self._plans.values())
                 out.append(Draw(PLANS, SceneUpdate, lambda: self._draw_plans(plans, now_ns), now_ns))
             self._next_plans_s = now_s + PLAN_EVERY_S
         return out
 
+    def _draw_table(self, now_ns: int) -> SceneUpdate:
+        if self._table is None:
+            self._table = view.table(self.scene, self.network, now_ns)
+        return self._table
+
     def _draw_plans(self, plans: list[RoutePlan], now_ns: int) -> SceneUpdate:
         update = SceneUpdate()
         for plan in plans:
-            update.entities.extend(view.route_plan(plan, self.network, now_ns).entities)
+            which = (plan.plan_id, int(plan.version))
+            cached = self._plan_entities.get(plan.vehicle_id)
+            if cached is None or cached[0] != which:
+                entities = view.route_plan(plan, self.network, now_ns).entities
+                if not entities:
+                    continue
+                cached = (which, entities[0])
+                self._plan_entities[plan.vehicle_id] = cached
+            cached[1].timestamp.FromNanoseconds(now_ns)  # its lifetime counts from this redraw
+            update.entities.append(cached[1])
         return update

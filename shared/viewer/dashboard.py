@@ -15,10 +15,11 @@ from __future__ import annotations
 from collections import Counter, deque
 from typing import Any
 
+import numpy as np
 from rmmdet.v1.perception_pb2 import TrackedObjects
 from rmmdet.v1.planning_pb2 import AckStatus, RouteAck, RoutePlan
 from rmmdet.v1.sim_pb2 import GroundTruth
-from rmmdet.v1.traffic_pb2 import AgentState, TrafficMap
+from rmmdet.v1.traffic_pb2 import AgentState, TrafficGrid, TrafficMap
 
 RATE_WINDOW_S = 5.0
 STATE = {AgentState.AGENT_STATE_LIVE: "LIVE", AgentState.AGENT_STATE_STALE: "STALE"}
@@ -32,7 +33,8 @@ class DashboardState:
         self._latency_s: dict[str, float] = {}
         self._coverage: dict[str, dict[str, Any]] = {}
         self._junctions: dict[str, dict[str, Any]] = {}
-        self._grid: dict[str, Any] | None = None
+        self._grid: dict[str, Any] | None = None  # _grid_msg as JSON, made on the first snapshot after it
+        self._grid_msg: TrafficGrid | None = None
         self.plans_pushed = 0
         self.plans_served = 0
         self.acks: Counter[str] = Counter()
@@ -49,15 +51,9 @@ class DashboardState:
             c.agent_id: {"state": STATE.get(c.state, "?"), "age_s": c.data_age_s, "objects": c.object_count}
             for c in msg.coverage
         }
-        g = msg.grid
-        self._grid = {
-            "origin_m": [g.origin_m.x_m, g.origin_m.y_m],
-            "cell_m": g.cell_size_m,
-            "columns": g.column_count,
-            "rows": g.row_count,
-            "vehicles": [round(v, 3) for v in g.vehicle_count],
-            "mean_speed_mps": [round(v, 3) for v in g.mean_speed_mps],
-        }
+        # The grid (thousands of cells) is turned into JSON only when a snapshot is taken: maps come
+        # faster than snapshots while nobody watches, and converting each was the viewer's top cost.
+        self._grid_msg, self._grid = msg.grid, None
 
     def on_ground_truth(self, msg: GroundTruth) -> None:
         for flow in msg.junction_flows:
@@ -82,6 +78,20 @@ class DashboardState:
             arrivals.popleft()
         return len(arrivals) / RATE_WINDOW_S
 
+    def grid(self) -> dict[str, Any] | None:
+        """The newest traffic grid as the page draws it (cells row-major, 3 decimals)."""
+        g = self._grid_msg
+        if self._grid is None and g is not None:
+            self._grid = {
+                "origin_m": [g.origin_m.x_m, g.origin_m.y_m],
+                "cell_m": g.cell_size_m,
+                "columns": g.column_count,
+                "rows": g.row_count,
+                "vehicles": np.round(np.asarray(g.vehicle_count, float), 3).tolist(),
+                "mean_speed_mps": np.round(np.asarray(g.mean_speed_mps, float), 3).tolist(),
+            }
+        return self._grid
+
     def snapshot(self, now_s: float) -> dict[str, Any]:
         return {
             "agents": [
@@ -99,6 +109,6 @@ class DashboardState:
                 "served": self.plans_served,
                 "acknowledged": dict(self.acks),
             },
-            "grid": self._grid,
+            "grid": self.grid(),
             "health": self._health,
         }

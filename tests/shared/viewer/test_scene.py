@@ -153,7 +153,15 @@ def test_the_core_draws_the_table_and_plans_on_their_cadences(
     assert set(draws) == {"/agents/agent1/tracks", PLANS}  # a changed plan at once
     assert [e.id for e in draws[PLANS].draw().entities] == ["plan/v01"]
     assert [d.topic for d in core.draw(2.0, STAMP_NS)] == [TABLE]  # table every 2 s
-    assert [d.topic for d in core.draw(2.2, STAMP_NS)] == [PLANS]  # plans every 1 s
+    (redraw,) = core.draw(2.2, STAMP_NS + 10**9)
+    assert redraw.topic == PLANS  # plans every 1 s: as drawn before, stamped now (lifetime from now)
+    (entity,) = redraw.draw().entities
+    assert entity.timestamp.ToNanoseconds() == STAMP_NS + 10**9 and "v1" in entity.texts[0].text
+    newer = RoutePlan(vehicle_id="v01", plan_id="b" * 32, version=2, lane_ids=[lane])
+    newer.valid_until.CopyFrom(plan.valid_until)
+    core.on_plan(newer, now_s=2.3)
+    (entity,) = core.draw(2.3, STAMP_NS)[0].draw().entities
+    assert "v2" in entity.texts[0].text  # a new plan is drawn anew
     assert core.draw(3.3, STAMP_NS + 11 * 10**9) == []  # its plan expired: dropped, nothing drawn
     assert core.plans == {}
 
