@@ -17,6 +17,9 @@ Channels (Foxglove protobuf schemas, drawn by `shared/viewer/scene.py`):
                             as they are, subscribed on the bus only while a client watches (`SensorFeeds`)
     /agents/<agent>/camera/<camera>/detections   ImageAnnotations  the MEC's 2D detections on that
                             image (boxes and scores, stamped as the image), also only while watched
+    /agents/<agent>/radar/<radar>/targets        SceneUpdate  that radar's targets as spheres (red
+                            approaching, blue receding), in its frame; also only while watched
+    /tf                     FrameTransforms  world -> each lidar's and radar's frame (with the table)
 
 A browser dashboard is served by the same process on `--dashboard-port` (services/viewer/
 dashboard_server.py: http://127.0.0.1:8080/): coverage, rates and latencies per agent, live junction
@@ -50,9 +53,11 @@ import foxglove
 import zenoh
 from foxglove.websocket import ServerListener
 from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from google.protobuf.descriptor_pb2 import FileDescriptorSet
 from google.protobuf.message import Message
 from rmmdet.v1 import perception_pb2 as pb
+from rmmdet.v1.sensors_pb2 import RadarScan
 
 from services.cli.health import Verdict, level_name, probe
 from services.viewer.dashboard_server import DashboardServer
@@ -67,7 +72,7 @@ from shared.service import run_service
 from shared.shutdown import GracefulShutdown
 from shared.viewer.core import ViewerCore
 from shared.viewer.dashboard import DashboardState
-from shared.viewer.scene import image_annotations
+from shared.viewer.scene import image_annotations, radar_targets
 
 log = logging.getLogger("services.viewer")
 
@@ -138,7 +143,8 @@ class SensorFeeds(ServerListener):
         self._channels: dict[str, foxglove.Channel] = {}
         self._watchers: Counter[str] = Counter()
         self._subscribers: dict[str, Any] = {}
-        self._annotates: set[str] = set()  # topics of 2D detections, drawn as image annotations
+        # Topics drawn from a bus message rather than forwarded: its type and the drawing.
+        self._convert: dict[str, tuple[type[Message], Callable[[Any, int], Message]]] = {}
         for spec in scene.spec.sensors:
             stream = get_stream(SENSOR_STREAM[spec.kind])
             topic = f"/agents/{spec.agent}/{spec.kind}/{spec.id}"
@@ -146,7 +152,10 @@ class SensorFeeds(ServerListener):
             if spec.kind == "camera":
                 key = get_stream("detections_2d").key(agent=spec.agent, sensor=spec.id)
                 self._add(context, f"{topic}/detections", key, ImageAnnotations)
-                self._annotates.add(f"{topic}/detections")
+                self._convert[f"{topic}/detections"] = (pb.Detection2DArray, image_annotations)
+            elif spec.kind == "radar":
+                self._add(context, f"{topic}/targets", self._keys[topic], SceneUpdate)
+                self._convert[f"{topic}/targets"] = (RadarScan, radar_targets)
 
     def _add(self, context: foxglove.Context, topic: str, key: str, message_type: type[Message]) -> None:
         self._keys[topic] = key
@@ -166,20 +175,21 @@ class SensorFeeds(ServerListener):
     def _subscribe(self, topic: str) -> None:
         assert self._session is not None and self._counters is not None
         channel, counters = self._channels[topic], self._counters
-        if topic in self._annotates:
-            # Subscribing is what makes the MEC publish them (it does only while something matches).
-            decoder = MessageDecoder(pb.Detection2DArray, counters)
+        if topic in self._convert:
+            # 2D detections: subscribing is what makes the MEC publish them (only while matched).
+            message_type, drawing = self._convert[topic]
+            decoder = MessageDecoder(message_type, counters)
+            name = message_type.DESCRIPTOR.name
 
-            def annotate(sample: zenoh.Sample) -> None:
+            def convert(sample: zenoh.Sample) -> None:
                 attachment = sample.attachment.to_bytes() if sample.attachment is not None else None
                 decoded = decoder.decode(sample.payload.to_bytes(), str(sample.encoding), attachment)
                 if decoded is not None:
-                    stamp_ns = decoded.header.stamp.ToNanoseconds()
-                    ann = image_annotations(decoded.message, stamp_ns)  # type: ignore[arg-type]
-                    channel.log(ann.SerializeToString(), log_time=time.time_ns())
-                    counters.inc("forwarded/detections_2d")
+                    drawn = drawing(decoded.message, decoded.header.stamp.ToNanoseconds())
+                    channel.log(drawn.SerializeToString(), log_time=time.time_ns())
+                    counters.inc(f"drawn/{name}")
 
-            self._subscribers[topic] = self._session.declare_subscriber(self._keys[topic], annotate)
+            self._subscribers[topic] = self._session.declare_subscriber(self._keys[topic], convert)
             return
 
         def forward(sample: zenoh.Sample) -> None:

@@ -1,10 +1,11 @@
 """What the live view draws, and when: the viewer's decision loop, free of the bus and of the server.
 
 The service (`services/viewer`) feeds it the newest message of each stream and publishes what `draw`
-returns on the named topics; a study or a replay could drive it alike. Cadence: the static table every
-TABLE_EVERY_S (a client that connects later gets it soon), tracks, ground truth and the traffic grid
-as they come (the service keeps only the newest of each between two draws), every vehicle's newest
-plan (pushed or served) every PLAN_EVERY_S and at once when one changes, until it expires (`valid_until`).
+returns on the named topics; a study or a replay could drive it alike. Cadence: the static table and
+the sensors' frames every TABLE_EVERY_S (a client that connects later gets them soon), tracks, ground
+truth and the traffic grid as they come (the service keeps only the newest of each between two draws),
+every vehicle's newest plan (pushed or served) every PLAN_EVERY_S and at once when one changes, until
+it expires (`valid_until`).
 Times: `now_s` monotonic seconds, stamps UNIX-epoch ns.
 """
 
@@ -13,6 +14,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.Grid_pb2 import Grid
 from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
@@ -30,6 +32,7 @@ TABLE_EVERY_S = 2.0
 PLAN_EVERY_S = 1.0  # plans live view.PLAN_LIFETIME_S in the view: redrawn well before
 MAX_PLANS = 1024  # vehicles whose plans are kept (the longest unchanged go first)
 TABLE, GROUND_TRUTH, PLANS, GRID = "/table", "/ground_truth", "/plans", "/traffic/grid"
+FRAMES = "/tf"  # world -> each lidar's and radar's frame, with the table
 
 
 def tracks_topic(agent_id: str) -> str:
@@ -55,6 +58,7 @@ class ViewerCore:
         # Drawn once, redrawn as they were: the table never changes; a plan's line strip only with a
         # new plan (redrawing every plan every second was the viewer's largest cost with a client).
         self._table: SceneUpdate | None = None
+        self._frames: FrameTransforms | None = None
         self._plan_entities: dict[str, tuple[tuple[str, int], SceneEntity]] = {}
         self._pending: list[Draw] = []
 
@@ -96,6 +100,7 @@ class ViewerCore:
         out, self._pending = self._pending, []
         if now_s >= self._next_table_s:
             out.append(Draw(TABLE, SceneUpdate, lambda: self._draw_table(now_ns), now_ns))
+            out.append(Draw(FRAMES, FrameTransforms, lambda: self._draw_frames(now_ns), now_ns))
             self._next_table_s = now_s + TABLE_EVERY_S
         if now_s >= self._next_plans_s:
             for vid in [v for v, p in self._plans.items() if p.valid_until.ToNanoseconds() < now_ns]:
@@ -111,6 +116,11 @@ class ViewerCore:
         if self._table is None:
             self._table = view.table(self.scene, self.network, now_ns)
         return self._table
+
+    def _draw_frames(self, now_ns: int) -> FrameTransforms:
+        if self._frames is None:
+            self._frames = view.sensor_frames(self.scene, now_ns)
+        return self._frames
 
     def _draw_plans(self, plans: list[RoutePlan], now_ns: int) -> SceneUpdate:
         update = SceneUpdate()

@@ -2,10 +2,11 @@
 protobuf schemas (`foxglove_schemas_protobuf`, the types the bus already uses for images and clouds;
 no bus, no server: the viewer service and MCAP export call them alike).
 
-Everything is drawn in the `world` frame of the table (metres, z up). Entity ids are stable per thing
-(`lane/<id>`, `<agent>/track/<id>`, `plan/<vehicle>`, ...) so an update replaces what it drew before,
-and every dynamic entity carries a `lifetime` so that what stops being published (a track dropped, an
-agent gone) disappears on its own instead of freezing in the view.
+Everything is drawn in the `world` frame of the table (metres, z up), except what a lidar or radar
+sees: that stays in the sensor's own frame, placed by `sensor_frames` (world -> sensor). Entity ids
+are stable per thing (`lane/<id>`, `<agent>/track/<id>`, `plan/<vehicle>`, ...) so an update replaces
+what it drew before, and every dynamic entity carries a `lifetime` so that what stops being published
+(a track dropped, an agent gone) disappears on its own instead of freezing in the view.
 
 Tracked boxes are coloured by the modalities that updated them in the latest frame (the paper's fusion
 branches): lidar + camera green, radar + camera orange, lidar alone blue, radar alone purple, camera
@@ -22,6 +23,7 @@ import numpy as np
 from foxglove_schemas_protobuf.ArrowPrimitive_pb2 import ArrowPrimitive
 from foxglove_schemas_protobuf.Color_pb2 import Color
 from foxglove_schemas_protobuf.CubePrimitive_pb2 import CubePrimitive
+from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.Grid_pb2 import Grid
 from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
 from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
@@ -33,6 +35,7 @@ from foxglove_schemas_protobuf.Pose_pb2 import Pose
 from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
 from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+from foxglove_schemas_protobuf.SpherePrimitive_pb2 import SpherePrimitive
 from foxglove_schemas_protobuf.TextPrimitive_pb2 import TextPrimitive
 from foxglove_schemas_protobuf.Vector2_pb2 import Vector2
 from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
@@ -41,8 +44,10 @@ from google.protobuf.timestamp_pb2 import Timestamp
 from rmmdet.v1 import perception_pb2 as pb
 from rmmdet.v1.geometry_pb2 import Box3D
 from rmmdet.v1.planning_pb2 import RoutePlan
+from rmmdet.v1.sensors_pb2 import RadarScan
 from rmmdet.v1.sim_pb2 import GroundTruth
 from rmmdet.v1.traffic_pb2 import TrafficMap
+from scipy.spatial.transform import Rotation
 
 from shared.scene.model import SensorSpec
 from shared.scene.road_network import RoadNetwork
@@ -334,3 +339,49 @@ def image_annotations(msg: pb.Detection2DArray, stamp_ns: int) -> ImageAnnotatio
         text.timestamp.CopyFrom(timestamp(stamp_ns))
         text.position.CopyFrom(Point2(x=u0, y=max(0.0, v0 - 14.0)))
     return out
+
+
+SENSOR_FRAME_KINDS = ("lidar", "radar")  # whose data is drawn in 3D in its own frame
+RADAR_APPROACHING = Color(r=1.0, g=0.35, b=0.2, a=0.9)  # range rate < 0
+RADAR_RECEDING = Color(r=0.3, g=0.6, b=1.0, a=0.9)
+RADAR_TARGET_SIZE_M = 0.06
+
+
+def sensor_frames(scene: Scene, stamp_ns: int) -> FrameTransforms:
+    """`world` -> each lidar's and radar's body frame (+x forward, +y left, +z up), so a viewer places
+    their clouds and targets (which come in those frames) on the table."""
+    out = FrameTransforms()
+    for spec in scene.spec.sensors:
+        if spec.kind not in SENSOR_FRAME_KINDS:
+            continue
+        T = np.asarray(scene.T_world_from_sensor(spec.id), float)
+        qx, qy, qz, qw = Rotation.from_matrix(T[:3, :3]).as_quat()
+        tf = out.transforms.add(parent_frame_id=FRAME, child_frame_id=spec.id)
+        tf.timestamp.CopyFrom(timestamp(stamp_ns))
+        tf.translation.CopyFrom(Vector3(x=T[0, 3], y=T[1, 3], z=T[2, 3]))
+        tf.rotation.CopyFrom(Quaternion(x=qx, y=qy, z=qz, w=qw))
+    return out
+
+
+def radar_targets(msg: RadarScan, stamp_ns: int) -> SceneUpdate:
+    """A radar's targets in its own frame: a sphere each, red approaching, blue receding, its range
+    rate beside it."""
+    spheres, texts = [], []
+    for t in msg.targets:
+        ce = math.cos(t.elevation_rad)
+        x = t.range_m * ce * math.cos(t.azimuth_rad)
+        y = t.range_m * ce * math.sin(t.azimuth_rad)
+        z = t.range_m * math.sin(t.elevation_rad)
+        color = RADAR_APPROACHING if t.range_rate_mps < 0 else RADAR_RECEDING
+        size = Vector3(x=RADAR_TARGET_SIZE_M, y=RADAR_TARGET_SIZE_M, z=RADAR_TARGET_SIZE_M)
+        spheres.append(SpherePrimitive(pose=pose(x, y, z), size=size, color=color))
+        texts.append(label(x, y, z + RADAR_TARGET_SIZE_M, f"{t.range_rate_mps:+.2f} m/s", color, 0.04))
+    entity = SceneEntity(
+        timestamp=timestamp(stamp_ns),
+        frame_id=msg.sensor_id,
+        id=f"radar/{msg.sensor_id}",
+        lifetime=duration(DYNAMIC_LIFETIME_S),
+        spheres=spheres,
+        texts=texts,
+    )
+    return SceneUpdate(entities=[entity])

@@ -12,6 +12,7 @@ from typing import Any
 import foxglove
 import numpy as np
 from rmmdet.v1.common_pb2 import Header
+from rmmdet.v1.sensors_pb2 import RadarScan
 
 from services.viewer.main import SensorFeeds
 from shared.bus.codec import Counters, encode, encoding_for
@@ -88,9 +89,11 @@ def test_the_layout_names_only_topics_the_viewer_serves() -> None:
     named = set(re.findall(r'"(/[a-z0-9_/]+)"', text))
     sensors = {f"/agents/{s.agent}/{s.kind}/{s.id}" for s in scene.spec.sensors}
     served = {"/table", "/ground_truth", "/plans", "/traffic/grid", "/health"} | sensors
+    drawn = {"camera": "detections", "radar": "targets"}  # drawn from the bus beside the raw feed
     served |= {
-        f"/agents/{s.agent}/camera/{s.id}/detections" for s in scene.spec.sensors if s.kind == "camera"
+        f"/agents/{s.agent}/{s.kind}/{s.id}/{drawn[s.kind]}" for s in scene.spec.sensors if s.kind in drawn
     }
+    served.add("/tf")
     served |= {f"/agents/{a}/tracks" for a in scene.agents}
     assert named and named <= served, named - served
 
@@ -113,7 +116,23 @@ def test_detections_are_drawn_as_annotations_while_watched(test_scene: Scene) ->
     sub.callback(FakeSample(Bytes(encoded.payload), str(encoding_for(msg)), Bytes(encoded.attachment)))
     sub.callback(FakeSample(Bytes(b"\xff\xff"), str(encoding_for(msg)), None))
     snapshot = counters.snapshot()
-    assert snapshot["forwarded/detections_2d"] == 1
+    assert snapshot["drawn/Detection2DArray"] == 1
     assert snapshot["rejected/decode"] == 1
     feeds.on_unsubscribe(1, View(topic))
     assert sub.undeclared
+
+
+def test_radar_scans_are_drawn_as_targets_while_watched(test_scene: Scene) -> None:
+    feeds = SensorFeeds(test_scene, foxglove.Context())
+    spec = next(s for s in test_scene.spec.sensors if s.kind == "radar")
+    session, counters = FakeSession(), Counters()
+    feeds.attach(session, counters)  # type: ignore[arg-type]
+    feeds.on_subscribe(1, View(f"/agents/{spec.agent}/radar/{spec.id}/targets"))
+    (sub,) = session.subs
+    assert sub.key == f"rmmdet/@v1/{spec.agent}/sensor/radar/{spec.id}"  # the scans themselves
+    scan = RadarScan(sensor_id=spec.id)
+    scan.targets.add(range_m=1.0, azimuth_rad=0.1, range_rate_mps=-0.3)
+    scan.header.stamp.FromNanoseconds(1_000_000_000)
+    encoded = encode(scan)
+    sub.callback(FakeSample(Bytes(encoded.payload), str(encoding_for(scan)), None))
+    assert counters.snapshot()["drawn/RadarScan"] == 1

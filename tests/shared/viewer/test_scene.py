@@ -11,6 +11,7 @@ from foxglove_schemas_protobuf.PointsAnnotation_pb2 import PointsAnnotation
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from rmmdet.v1 import perception_pb2 as pb
 from rmmdet.v1.planning_pb2 import RoutePlan
+from rmmdet.v1.sensors_pb2 import RadarScan
 from rmmdet.v1.sim_pb2 import GroundTruth
 from rmmdet.v1.traffic_pb2 import TrafficMap
 
@@ -18,7 +19,7 @@ from shared.perception.output import detections_2d_message
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.viewer import scene as view
-from shared.viewer.core import PLANS, TABLE, ViewerCore
+from shared.viewer.core import FRAMES, PLANS, TABLE, ViewerCore
 
 STAMP_NS = 1_700_000_000_123_456_789
 
@@ -142,7 +143,7 @@ def test_the_core_draws_the_table_and_plans_on_their_cadences(
 ) -> None:
     core = ViewerCore(test_scene, network)
     topics = [d.topic for d in core.draw(0.0, STAMP_NS)]
-    assert topics == [TABLE]  # no plans yet
+    assert topics == [TABLE, FRAMES]  # no plans yet
     assert core.draw(1.0, STAMP_NS) == []  # nothing new, no cadence due
     lane = next(iter(network.lanes))
     plan = RoutePlan(vehicle_id="v01", plan_id="a" * 32, version=1, lane_ids=[lane])
@@ -152,7 +153,7 @@ def test_the_core_draws_the_table_and_plans_on_their_cadences(
     draws = {d.topic: d for d in core.draw(1.1, STAMP_NS)}
     assert set(draws) == {"/agents/agent1/tracks", PLANS}  # a changed plan at once
     assert [e.id for e in draws[PLANS].draw().entities] == ["plan/v01"]
-    assert [d.topic for d in core.draw(2.0, STAMP_NS)] == [TABLE]  # table every 2 s
+    assert [d.topic for d in core.draw(2.0, STAMP_NS)] == [TABLE, FRAMES]  # table every 2 s
     (redraw,) = core.draw(2.2, STAMP_NS + 10**9)
     assert redraw.topic == PLANS  # plans every 1 s: as drawn before, stamped now (lifetime from now)
     (entity,) = redraw.draw().entities
@@ -178,3 +179,30 @@ def test_detections_become_image_annotations() -> None:
     assert (text.position.x, text.position.y) == (10, 6)
     empty = view.image_annotations(pb.Detection2DArray(sensor_id="cam_2"), STAMP_NS)
     assert len(empty.points) == 0 and len(empty.texts) == 0
+
+
+def test_lidar_and_radar_frames_are_placed_on_the_table(test_scene: Scene) -> None:
+    frames = view.sensor_frames(test_scene, STAMP_NS)
+    placed = {tf.child_frame_id: tf for tf in frames.transforms}
+    expected = {s.id for s in test_scene.spec.sensors if s.kind in ("lidar", "radar")}
+    assert set(placed) == expected and expected
+    for sensor_id, tf in placed.items():
+        T = np.asarray(test_scene.T_world_from_sensor(sensor_id))
+        assert tf.parent_frame_id == "world"
+        assert [tf.translation.x, tf.translation.y, tf.translation.z] == pytest.approx(T[:3, 3].tolist())
+        q = tf.rotation  # the rotation of the quaternion applied to +x is the matrix's first column
+        x_axis = [1 - 2 * (q.y**2 + q.z**2), 2 * (q.x * q.y + q.w * q.z), 2 * (q.x * q.z - q.w * q.y)]
+        assert x_axis == pytest.approx(T[:3, 0].tolist(), abs=1e-9)
+
+
+def test_radar_targets_are_spheres_in_the_radar_frame() -> None:
+    scan = RadarScan(sensor_id="radar_2")
+    scan.targets.add(range_m=2.0, azimuth_rad=math.pi / 2, elevation_rad=0.0, range_rate_mps=-0.5)
+    scan.targets.add(range_m=1.0, azimuth_rad=0.0, elevation_rad=math.pi / 6, range_rate_mps=0.25)
+    (entity,) = view.radar_targets(scan, STAMP_NS).entities
+    assert entity.frame_id == "radar_2" and entity.lifetime.ToNanoseconds() > 0
+    first, second = entity.spheres
+    assert (first.pose.position.x, first.pose.position.y) == pytest.approx((0.0, 2.0), abs=1e-12)
+    assert first.color == view.RADAR_APPROACHING and second.color == view.RADAR_RECEDING
+    assert second.pose.position.z == pytest.approx(0.5)
+    assert [t.text for t in entity.texts] == ["-0.50 m/s", "+0.25 m/s"]
