@@ -6,7 +6,8 @@
     WS  /ws          the snapshot again every time it changes (at most the viewer's draw rate)
 
 Anything else gets a clear 404, counted (`rejected/http_not_found` in `counters`, which the viewer
-exports with its health); a plain GET on /ws a 426 (upgrade required, from websockets). Each
+exports with its health); a plain GET on /ws a 426 (upgrade required, from websockets); a message sent
+on /ws closes it with 1008 and a reason (`rejected/ws_message`). Each
 connection has its own thread: a slow or stalled browser blocks only its own socket, never the viewer.
 Binds to loopback unless told otherwise.
 """
@@ -22,6 +23,7 @@ from typing import Any
 
 from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
+from websockets.frames import CloseCode
 from websockets.http11 import Request, Response
 from websockets.sync.server import Server, ServerConnection, serve
 
@@ -91,6 +93,17 @@ class DashboardServer:
         body = f"no such page: {path} (try /, /api/state, /api/table or the WebSocket /ws)\n".encode()
         return response(HTTPStatus.NOT_FOUND, body, "text/plain; charset=utf-8")
 
+    def _client_spoke(self, connection: ServerConnection) -> bool:
+        """The socket only sends: a message from the browser is refused, counted, and the connection
+        closed with a reason (1008, policy violation), not left to pile up unread."""
+        try:
+            connection.recv(timeout=0)
+        except TimeoutError:
+            return False
+        self.counters.inc("rejected/ws_message")
+        connection.close(CloseCode.POLICY_VIOLATION, "/ws only sends snapshots; it takes no messages")
+        return True
+
     def _handle(self, connection: ServerConnection) -> None:
         seen = -1
         with self._changed:
@@ -104,6 +117,8 @@ class DashboardServer:
                 if version != seen:
                     connection.send(data.decode())
                     seen = version
+                if self._client_spoke(connection):
+                    return
         except ConnectionClosed:
             return
         finally:

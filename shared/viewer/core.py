@@ -56,7 +56,7 @@ class ViewerCore:
         self._next_plans_s = 0.0
         self._plans: dict[str, RoutePlan] = {}  # vehicle -> its newest plan, oldest change first
         # Drawn once, redrawn as they were: the table never changes; a plan's line strip only with a
-        # new plan (redrawing every plan every second was the viewer's largest cost with a client).
+        # new plan (redrawing every plan each second was a large part of the viewer's cost, watched).
         self._table: SceneUpdate | None = None
         self._frames: FrameTransforms | None = None
         self._plan_entities: dict[str, tuple[tuple[str, int], SceneEntity]] = {}
@@ -86,7 +86,9 @@ class ViewerCore:
         self._plans.pop(plan.vehicle_id, None)
         self._plans[plan.vehicle_id] = plan
         while len(self._plans) > MAX_PLANS:
-            del self._plans[next(iter(self._plans))]
+            oldest = next(iter(self._plans))
+            del self._plans[oldest]
+            self._plan_entities.pop(oldest, None)
         self._next_plans_s = now_s  # draw the change at once
 
     # --- output -------------------------------------------------------------------------------------

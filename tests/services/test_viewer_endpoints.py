@@ -1,0 +1,61 @@
+"""The viewer's endpoints refuse bad requests clearly: the dashboard's push-only WebSocket closes with
+1008 and a reason when a client talks to it (counted), and the Foxglove WebSocket server answers a
+malformed or impossible request with an error status instead of dropping the connection."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import foxglove
+import pytest
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect
+
+from services.viewer.dashboard_server import DashboardServer
+from tests.integration.foxglove_client import SUBPROTOCOL
+
+
+@pytest.fixture
+def dashboard():
+    server = DashboardServer("127.0.0.1", 0, {"lanes": [], "junctions": []})
+    server.start()
+    yield server
+    server.stop()
+
+
+def test_the_dashboard_socket_pushes_and_refuses_messages(dashboard: DashboardServer) -> None:
+    dashboard.publish({"agents": []})
+    with connect(f"ws://127.0.0.1:{dashboard.port}/ws", open_timeout=5) as ws:
+        assert json.loads(ws.recv(timeout=5)) == {"agents": []}
+        assert dashboard.watched
+        ws.send("hello")
+        with pytest.raises(ConnectionClosed) as closed:
+            ws.recv(timeout=5)
+    assert closed.value.rcvd is not None and closed.value.rcvd.code == 1008
+    assert "takes no messages" in closed.value.rcvd.reason
+    assert dashboard.counters.snapshot()["rejected/ws_message"] == 1
+    deadline = time.monotonic() + 5
+    while dashboard.watched and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not dashboard.watched
+
+
+def test_the_foxglove_server_answers_bad_requests_with_errors() -> None:
+    context = foxglove.Context()
+    foxglove.Channel("/table", message_encoding="json", context=context)
+    server = foxglove.start_server(name="test", host="127.0.0.1", port=0, context=context)
+    try:
+        with connect(f"ws://127.0.0.1:{server.port}", subprotocols=[SUBPROTOCOL], open_timeout=5) as ws:  # type: ignore[list-item]
+            ws.send("not json")
+            ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": 1, "channelId": 99999}]}))
+            statuses = []
+            deadline = time.monotonic() + 5
+            while len(statuses) < 2 and time.monotonic() < deadline:
+                frame = ws.recv(timeout=5)
+                if isinstance(frame, str) and json.loads(frame).get("op") == "status":
+                    statuses.append(json.loads(frame))
+    finally:
+        server.stop()
+    assert len(statuses) == 2, statuses
+    assert all(s["level"] == 2 and s["message"] for s in statuses), statuses  # 2: error
