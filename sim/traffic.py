@@ -120,7 +120,10 @@ class TrafficSim:
         settings: TrafficSettings,
         seed: int,
         tick_hz: float,
+        keep_trips: bool = True,
     ) -> None:
+        """`keep_trips`: log every completed trip in `trips` (the studies' travel times); a live sim,
+        which runs for days, only counts them (`trips_completed`): the log would grow without bound."""
         self.scene = scene
         self.net = network
         self.cfg = settings
@@ -139,6 +142,8 @@ class TrafficSim:
         self.occupant: dict[str, str | None] = dict.fromkeys(self.junction_ids)
         self.arrivals: dict[str, int] = dict.fromkeys(self.junction_ids, 0)
         self.trips: list[Trip] = []
+        self.keep_trips = keep_trips
+        self.trips_completed = 0
         self.detours = 0
         self.distance_m = 0.0  # driven by all vehicles together
         self._seed = seed
@@ -231,7 +236,7 @@ class TrafficSim:
     def progress_text(self) -> str:
         """Counts so far, for status lines and logs."""
         arrivals = sum(self.arrivals.values())
-        return f"{arrivals} junction arrivals, {len(self.trips)} trips, {self.detours} detours"
+        return f"{arrivals} junction arrivals, {self.trips_completed} trips, {self.detours} detours"
 
     def vehicle(self, vehicle_id: str) -> Vehicle:
         return self._by_id[vehicle_id]
@@ -529,7 +534,9 @@ class TrafficSim:
                 if v.trip_start_lane is not None:
                     free_flow = self.free_flow_s(v.trip_start_lane, junction)
                 trip = Trip(v.id, v.origin, junction, v.trip_start_s, self.time_s, v.trips_done, free_flow)
-                self.trips.append(trip)
+                self.trips_completed += 1
+                if self.keep_trips:
+                    self.trips.append(trip)
                 v.origin, v.trip_start_s, v.arriving = junction, self.time_s, False
                 v.trip_start_lane, v.trips_done = v.lane_id, v.trips_done + 1
             return True

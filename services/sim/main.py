@@ -54,7 +54,9 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     given = {k: v for k in ("speed", "seed") if (v := getattr(args, k)) is not None}
     settings = load_sim_settings(args.settings, args.vehicles, **given)
     scene = Scene.load(settings.scene)
-    traffic = TrafficSim(scene, RoadNetwork(scene), settings.traffic, settings.seed, settings.tick_hz)
+    traffic = TrafficSim(
+        scene, RoadNetwork(scene), settings.traffic, settings.seed, settings.tick_hz, keep_trips=False
+    )
     collision_every = max(1, round(settings.tick_hz / settings.collision_check_hz))
     pacer = Pacer(settings.pacing.max_lag_s, settings.pacing.consumer_timeout_s)
     pacing = settings.speed > 0 and settings.pacing.enabled

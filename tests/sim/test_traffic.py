@@ -203,3 +203,17 @@ def test_trips_record_index_and_a_free_flow_time_no_longer_than_the_trip(
     assert all(t.free_flow_s is not None and 0 < t.free_flow_s <= 1.02 * t.travel_time_s for t in later)
     # Distance driven: all vehicles' speeds integrated, at most every vehicle at top speed throughout.
     assert 0 < sim.distance_m <= len(sim.vehicles) * sim.cfg.max_speed_mps * sim.time_s + 1e-9
+
+
+def test_a_live_sim_counts_trips_without_logging_them(scene: Scene, network: RoadNetwork) -> None:
+    """The trip log is for the studies; a live sim (days of running) only counts, or it grows."""
+    logged = TrafficSim(scene, network, TrafficSettings(vehicles=6), seed=3, tick_hz=TICK_HZ)
+    counted = TrafficSim(
+        scene, network, TrafficSettings(vehicles=6), seed=3, tick_hz=TICK_HZ, keep_trips=False
+    )
+    for _ in range(int(60 * TICK_HZ)):
+        logged.step()
+        counted.step()
+    assert logged.trips_completed == len(logged.trips) > 0
+    assert counted.trips_completed == logged.trips_completed and counted.trips == []
+    assert f"{counted.trips_completed} trips" in counted.progress_text()
