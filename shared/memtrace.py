@@ -80,7 +80,8 @@ def report_line(baseline: tracemalloc.Snapshot, top: int = 5) -> str:
     """One report: RSS, traced heap, allocator totals and the ``top`` source lines grown most."""
     snap = _snapshot()
     traced_mb = tracemalloc.get_traced_memory()[0] / MB
-    grown = snap.compare_to(baseline, "lineno")[:top]
+    diffs = snap.compare_to(baseline, "lineno")  # ordered by the size of the change, either way
+    grown = sorted((s for s in diffs if s.size_diff > 0), key=lambda s: -s.size_diff)[:top]
     malloc = " ".join(f"{k}={v:.1f}" for k, v in malloc_totals_mb().items())
     lines = "; ".join(
         f"{s.traceback[0].filename}:{s.traceback[0].lineno} {s.size_diff / MB:+.2f} MB" for s in grown

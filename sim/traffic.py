@@ -530,13 +530,14 @@ class TrafficSim:
             v.path = self.net.connector(junction, v.lane_id, v.next_lane)
             self.arrivals[junction] += 1
             if v.arriving:
-                free_flow = None
-                if v.trip_start_lane is not None:
-                    free_flow = self.free_flow_s(v.trip_start_lane, junction)
-                trip = Trip(v.id, v.origin, junction, v.trip_start_s, self.time_s, v.trips_done, free_flow)
                 self.trips_completed += 1
                 if self.keep_trips:
-                    self.trips.append(trip)
+                    free_flow = None
+                    if v.trip_start_lane is not None:
+                        free_flow = self.free_flow_s(v.trip_start_lane, junction)
+                    self.trips.append(
+                        Trip(v.id, v.origin, junction, v.trip_start_s, self.time_s, v.trips_done, free_flow)
+                    )
                 v.origin, v.trip_start_s, v.arriving = junction, self.time_s, False
                 v.trip_start_lane, v.trips_done = v.lane_id, v.trips_done + 1
             return True

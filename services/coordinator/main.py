@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 import zenoh
-from rmmdet.v1.planning_pb2 import RouteRequest, RouteResponse
+from rmmdet.v1.planning_pb2 import RoutePlan, RouteRequest, RouteResponse
 
 from shared.bus.liveliness import agent_of_mec_token
 from shared.bus.node import Node, Received, processing_stamp
@@ -145,12 +145,23 @@ class CoordinatorService:
         except RequestRejected as err:
             raise RpcRejected(err.reason, err.code, err.message) from None
         signed = self.signer.sign(plan)
-        # Viewers see the plans vehicles asked for too (a pushed plan they see on route_plan).
-        copy = self.node.publisher("route_plan_served", vehicle=plan.vehicle_id)
-        if copy.has_subscribers():
-            copy.put(signed, stamp_ns=stamp_ns or time.time_ns(), frame_id="world")
-            self.counters.inc("plans/copied")
+        self.copy_for_viewers(signed, stamp_ns)
         return RouteResponse(plan=signed), stamp_ns
+
+    def copy_for_viewers(self, plan: RoutePlan, stamp_ns: int) -> None:
+        """Viewers see the plans vehicles asked for too (pushed ones they see on route_plan): a copy
+        on route_plan_served while something subscribes there. Never at the vehicle's expense: a
+        failure here is counted, and the reply goes out regardless."""
+        try:
+            pub = self.node.publisher("route_plan_served", vehicle=plan.vehicle_id)
+            if pub.has_subscribers():
+                copy = RoutePlan()
+                copy.CopyFrom(plan)  # the put writes a header into it: not into the core's plan
+                pub.put(copy, stamp_ns=stamp_ns or time.time_ns(), frame_id="world")
+                self.counters.inc("plans/copied")
+        except Exception as err:  # a viewer's copy must never fail the RPC
+            self.counters.inc("plans/copy_failed")
+            log.warning("copy of %s's plan for viewers failed: %s", plan.vehicle_id, err)
 
     def run(self, shutdown: GracefulShutdown) -> None:
         interval_s = self.settings.report_interval_s

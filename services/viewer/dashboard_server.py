@@ -1,7 +1,9 @@
 """The browser dashboard's HTTP + WebSocket endpoints, one port (websockets' server):
 
     GET /            the page (services/viewer/static/dashboard.html: plain HTML/JS, no build step)
-    GET /api/state   the latest snapshot (shared/viewer/dashboard.py), JSON
+    GET /api/state   the latest snapshot (shared/viewer/dashboard.py) with `taken_unix_s`, JSON: after a
+                     quiet spell the first may be up to the viewer's idle period old (10 s), then
+                     snapshots are made at the draw rate while polls keep coming
     GET /api/table   the table's lanes and junctions for the map, JSON (static)
     WS  /ws          the snapshot again every time it changes (at most the viewer's draw rate)
 
@@ -16,7 +18,9 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import threading
+import time
 from http import HTTPStatus
 from pathlib import Path
 from typing import Any
@@ -33,6 +37,7 @@ log = logging.getLogger("services.viewer.dashboard")
 
 PAGE = Path(__file__).with_name("static") / "dashboard.html"
 PUSH_POLL_S = 0.1  # how often a connection looks for a newer snapshot
+POLLED_WATCHING_S = 10.0  # an /api/state request counts as someone watching for this long
 
 
 def response(status: HTTPStatus, body: bytes, content_type: str) -> Response:
@@ -55,12 +60,13 @@ class DashboardServer:
         self._thread = threading.Thread(target=self._server.serve_forever, daemon=True, name="dashboard")
         self.counters = Counters()  # thread-safe: the connections' threads count here
         self._watching = 0  # open WebSocket connections
+        self._polled_s = -math.inf  # monotonic time of the last /api/state request
 
     @property
     def watched(self) -> bool:
-        """True while some browser holds the live WebSocket open."""
+        """True while some browser holds the live WebSocket open or polled /api/state lately."""
         with self._changed:
-            return self._watching > 0
+            return self._watching > 0 or time.monotonic() - self._polled_s < POLLED_WATCHING_S
 
     def start(self) -> None:
         self._thread.start()
@@ -73,7 +79,7 @@ class DashboardServer:
 
     def publish(self, snapshot: dict[str, Any]) -> None:
         """The state to serve from now on (the viewer's loop calls this; JSON is made once here)."""
-        data = json.dumps(snapshot).encode()
+        data = json.dumps({**snapshot, "taken_unix_s": round(time.time(), 3)}).encode()
         with self._changed:
             self._latest, self._version = data, self._version + 1
             self._changed.notify_all()
@@ -86,6 +92,7 @@ class DashboardServer:
             return response(HTTPStatus.OK, self._page, "text/html; charset=utf-8")
         if path == "/api/state":
             with self._changed:
+                self._polled_s = time.monotonic()
                 return response(HTTPStatus.OK, self._latest, "application/json")
         if path == "/api/table":
             return response(HTTPStatus.OK, self._table, "application/json")

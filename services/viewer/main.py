@@ -80,8 +80,9 @@ SERVICE = "viewer"
 PLAN_QUEUE = 256  # pushed plans (or acks) between two draws (one per vehicle at most, normally)
 OBJECT_QUEUE = 8  # object lists of one agent between two draws (all counted for its rate, the newest drawn)
 HEALTH_EVERY_S = 2.0
-# Nobody watching (no /health subscriber, no dashboard WebSocket): health is probed and the dashboard's
-# snapshot made this seldom, so a page or `/api/state` opened later is at most this old at first.
+# Nobody watching (no /health subscriber, no dashboard WebSocket or recent /api/state poll): health is
+# probed and the dashboard's snapshot made this seldom (the first poll after a quiet spell may get a
+# snapshot this old, its verdict up to twice; each says when it was taken).
 IDLE_EVERY_S = 10.0
 HEALTH_TIMEOUT_S = 1.0
 
@@ -130,10 +131,11 @@ class Channels:
 
 class SensorFeeds(ServerListener):
     """Camera images, lidar clouds and radar scans from the bus to the view, untouched (their payloads
-    are Foxglove / rmmdet protobufs already), and each camera's 2D detections as image annotations
-    (`<camera topic>/detections`): a bus subscription exists only while some client subscribes to its
-    channel, so an idle viewer costs nothing for them (and the MEC publishes no detections). A Foxglove
-    ServerListener (its callbacks run on the server's threads; the bus callbacks on Zenoh's)."""
+    are Foxglove / rmmdet protobufs already), each camera's 2D detections as image annotations
+    (`<camera topic>/detections`) and each radar's targets as spheres (`<radar topic>/targets`): a bus
+    subscription exists only while some client subscribes to its channel, so an idle viewer costs
+    nothing for them (and the MEC publishes no detections). A Foxglove ServerListener (its callbacks
+    run on the server's threads; the bus callbacks on Zenoh's)."""
 
     def __init__(self, scene: Scene, context: foxglove.Context) -> None:
         self._counters: Counters | None = None
@@ -176,7 +178,8 @@ class SensorFeeds(ServerListener):
         assert self._session is not None and self._counters is not None
         channel, counters = self._channels[topic], self._counters
         if topic in self._convert:
-            # 2D detections: subscribing is what makes the MEC publish them (only while matched).
+            # Drawn from the bus message (2D detections: subscribing is what makes the MEC publish
+            # them at all; radar targets: from the radar's own scans).
             message_type, drawing = self._convert[topic]
             decoder = MessageDecoder(message_type, counters)
             name = message_type.DESCRIPTOR.name
@@ -213,6 +216,11 @@ class SensorFeeds(ServerListener):
             self._watchers[channel.topic] -= 1
             if self._watchers[channel.topic] == 0 and (sub := self._subscribers.pop(channel.topic, None)):
                 sub.undeclare()
+
+    @property
+    def topics(self) -> list[str]:
+        """Every channel the feeds serve (sensor feeds and what is drawn from them)."""
+        return sorted(self._channels)
 
     @property
     def subscribed(self) -> list[str]:
@@ -301,6 +309,14 @@ def health_json(verdict: Verdict) -> dict[str, Any]:
     }
 
 
+def start_view_server(
+    context: foxglove.Context, feeds: SensorFeeds, host: str, port: int
+) -> foxglove.WebSocketServer:
+    """The Foxglove WebSocket server of `context`'s channels, the sensor feeds listening to who
+    subscribes (port 0: any free one)."""
+    return foxglove.start_server(name="rmmdet", host=host, port=port, context=context, server_listener=feeds)
+
+
 def map_of(scene: Scene, network: RoadNetwork) -> dict[str, Any]:
     """The dashboard's static map: every lane's centreline (x, y) and every junction's number."""
     return {
@@ -326,9 +342,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             if args.dashboard_port
             else None
         )
-        server = foxglove.start_server(
-            name="rmmdet", host=args.host, port=args.port, context=context, server_listener=feeds
-        )
+        server = start_view_server(context, feeds, args.host, args.port)
     except (OSError, RuntimeError) as err:
         raise SystemExit(
             f"viewer: cannot serve on {args.host} ports {args.port}/{args.dashboard_port}: {err}"

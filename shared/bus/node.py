@@ -353,11 +353,12 @@ class Node:
         if stream.kind != "pubsub":
             raise ValueError(f"stream {stream_name} is a {stream.kind}, not pub/sub")
         key, source = stream.key(**ids), source_id or self.source_id
-        pub = self._publishers.get((key, source))
-        if pub is None:
-            pub = Publisher(self.session, stream, key, source, self.source_id)
-            self._publishers[(key, source)] = pub
-            self._declared.append(pub)
+        with self._lock:  # Zenoh callbacks (an RPC handler) may ask for one at the same time
+            pub = self._publishers.get((key, source))
+            if pub is None:
+                pub = Publisher(self.session, stream, key, source, self.source_id)
+                self._publishers[(key, source)] = pub
+                self._declared.append(pub)
         return pub
 
     # --- subscribe -------------------------------------------------------------------------------

@@ -83,6 +83,11 @@ class ViewerCore:
         self._pending.append(Draw(GRID, Grid, lambda: view.traffic_grid(msg, stamp_ns), stamp_ns))
 
     def on_plan(self, plan: RoutePlan, now_s: float) -> None:
+        """A vehicle's plan, pushed or served: an older version than the one held (a served copy
+        arriving after a newer push: copies travel at low priority) changes nothing."""
+        held = self._plans.get(plan.vehicle_id)
+        if held is not None and held.version > plan.version:
+            return
         self._plans.pop(plan.vehicle_id, None)
         self._plans[plan.vehicle_id] = plan
         while len(self._plans) > MAX_PLANS:

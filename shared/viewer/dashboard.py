@@ -43,7 +43,10 @@ class DashboardState:
     def on_objects(self, agent: str, msg: TrackedObjects, now_s: float) -> None:
         if agent not in self._arrivals:
             return
-        self._arrivals[agent].append(now_s)
+        arrivals = self._arrivals[agent]
+        arrivals.append(now_s)
+        while now_s - arrivals[0] > RATE_WINDOW_S:  # bounded even when no snapshot is ever taken
+            arrivals.popleft()
         self._latency_s[agent] = sum(s.duration_s for s in msg.stage_latencies)
 
     def on_traffic_map(self, msg: TrafficMap) -> None:

@@ -49,6 +49,7 @@ from rmmdet.v1.sim_pb2 import GroundTruth
 from rmmdet.v1.traffic_pb2 import TrafficMap
 from scipy.spatial.transform import Rotation
 
+from shared.geometry.transforms import polar_to_cartesian
 from shared.scene.model import SensorSpec
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
@@ -330,8 +331,9 @@ def image_annotations(msg: pb.Detection2DArray, stamp_ns: int) -> ImageAnnotatio
         box = out.points.add(type=PointsAnnotation.LINE_LOOP, outline_color=DETECTION_COLOR, thickness=2.0)
         box.timestamp.CopyFrom(timestamp(stamp_ns))
         box.points.extend(Point2(x=u, y=v) for u, v in ((u0, v0), (u1, v0), (u1, v1), (u0, v1)))
+        name = pb.ObjectClass.Name(d.classification[0].label) if d.classification else "OBJECT_CLASS_UNKNOWN"
         text = out.texts.add(
-            text=f"car {d.score:.2f}",
+            text=f"{name.removeprefix('OBJECT_CLASS_').lower()} {d.score:.2f}",
             font_size=12.0,
             text_color=DETECTION_COLOR,
             background_color=DETECTION_TEXT_BACKGROUND,
@@ -367,11 +369,9 @@ def radar_targets(msg: RadarScan, stamp_ns: int) -> SceneUpdate:
     """A radar's targets in its own frame: a sphere each, red approaching, blue receding, its range
     rate beside it."""
     spheres, texts = [], []
-    for t in msg.targets:
-        ce = math.cos(t.elevation_rad)
-        x = t.range_m * ce * math.cos(t.azimuth_rad)
-        y = t.range_m * ce * math.sin(t.azimuth_rad)
-        z = t.range_m * math.sin(t.elevation_rad)
+    polar = np.array([[t.range_m, t.azimuth_rad, t.elevation_rad] for t in msg.targets]).reshape(-1, 3)
+    points = polar_to_cartesian(polar[:, 0], polar[:, 1], polar[:, 2])
+    for t, (x, y, z) in zip(msg.targets, points.tolist(), strict=True):
         color = RADAR_APPROACHING if t.range_rate_mps < 0 else RADAR_RECEDING
         size = Vector3(x=RADAR_TARGET_SIZE_M, y=RADAR_TARGET_SIZE_M, z=RADAR_TARGET_SIZE_M)
         spheres.append(SpherePrimitive(pose=pose(x, y, z), size=size, color=color))

@@ -69,6 +69,7 @@ from shared.timebase import NS_PER_S
 RESULTS = REPO_ROOT / "tests" / "bench" / "results" / "system.json"
 SUPERVISOR_CONF = REPO_ROOT / "deploy" / "local" / "supervisord.conf"
 PROBE_EVERY_S = 10.0
+VIEW_CLIENT = "view-client"  # --view-client: its process, sampled like the system's, not counted in it
 OTHER_LOAD_WARN_CORES = 0.1  # other work on the host beyond this makes the run no measurement of the system
 
 
@@ -326,6 +327,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     rates: dict[str, list[dict[str, float]]] = defaultdict(list)
     recorder: subprocess.Popen[bytes] | None = None
     view_client: subprocess.Popen[bytes] | None = None
+    end = math.inf
     view_rates = Path()
     recording = Path(tempfile.mkdtemp()) / "bench.mcap"
     subprocess.run(make, check=True, env=env, stdout=subprocess.DEVNULL)
@@ -351,7 +353,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 cwd=REPO_ROOT,
                 stdout=subprocess.DEVNULL,
             )
-            sampler.track("view-client", view_client.pid)
+            sampler.track(VIEW_CLIENT, view_client.pid)
         if args.record_s > 0:
             recorder = subprocess.Popen(
                 [
@@ -399,7 +401,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         session.close()
     finally:
         if view_client is not None:
-            view_client.wait(timeout=60)
+            try:  # it ends with the window; on an early exit (an error, ^C) it is stopped
+                view_client.wait(timeout=60 if time.monotonic() >= end else 0)
+            except subprocess.TimeoutExpired:
+                view_client.terminate()
+                view_client.wait(timeout=10)
         if recorder is not None:
             recorder.wait(timeout=60)
         recording.unlink(missing_ok=True)
@@ -418,13 +424,18 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         for name in sorted(cpu)
     }
     if view_client is not None:
-        result["view_client_topics"] = json.loads(view_rates.read_text()) if view_rates.exists() else {}
-    result["cpu_cores_total"] = round(sum(p["cpu_cores"] for p in result["processes"].values()), 3)
+        if view_client.returncode != 0 or not view_rates.exists():
+            raise SystemExit(f"the view client failed (exit {view_client.returncode}): no figures with it")
+        result["view_client_topics"] = json.loads(view_rates.read_text())
+    # The system's own processes; the view client is the benchmark's, like its own probes.
+    system = {n: p for n, p in result["processes"].items() if n != VIEW_CLIENT}
+    result["cpu_cores_total"] = round(sum(p["cpu_cores"] for p in system.values()), 3)
+    bench_cores = own_s / wall_s + result["processes"].get(VIEW_CLIENT, {}).get("cpu_cores", 0.0)
     result["host"] = {
         "busy_cores": round(host_s / wall_s, 3),
-        "bench_cpu_cores": round(own_s / wall_s, 3),
+        "bench_cpu_cores": round(bench_cores, 3),
         # Kernel threads and short-lived processes count here too: ~0 on a quiet host.
-        "other_cpu_cores": round(max(0.0, (host_s - own_s) / wall_s - result["cpu_cores_total"]), 3),
+        "other_cpu_cores": round(max(0.0, host_s / wall_s - bench_cores - result["cpu_cores_total"]), 3),
     }
     stream_rates: dict[str, dict[str, float]] = {}
     for source, samples in rates.items():
@@ -526,7 +537,7 @@ def rss_series(samples: list[dict[str, float]], points: int = 60) -> list[list[f
     a growth: a warm-up that levels off vs. a steady climb)."""
     if not samples:
         return []
-    step = max(1, len(samples) // points)
+    step = max(1, -(-len(samples) // points))  # ceil: never more than `points`
     t0 = samples[0]["t_s"]
     return [[round((s["t_s"] - t0) / 60, 1), round(s["rss_mb"], 1)] for s in samples[::step]]
 

@@ -75,6 +75,7 @@ def test_rss_series_is_thinned_to_minutes_and_mb() -> None:
     assert len(series) == 60
     assert series[0] == [0.0, 100.0] and series[1] == [2.0, 101.0]
     assert rss_series([]) == []
+    assert len(rss_series(samples[:119], points=60)) <= 60  # not a multiple: still at most `points`
 
 
 def test_the_view_client_watches_what_the_layout_shows() -> None:

@@ -143,7 +143,7 @@ def test_mec_kill_marks_agent_missing_and_restart_recovers(cluster: Cluster) -> 
 
 def test_served_plans_are_copied_for_viewers_only_while_watched(cluster: Cluster) -> None:
     """A plan a vehicle asks for is copied on `route_plan_served` (the live view draws it) only while
-    something subscribes there."""
+    something subscribes there: not before, not after it leaves."""
     cluster.maps.wait(all_live, STARTUP_S, since=time.monotonic())
     cluster.routes.wait_ready(STARTUP_S)
     cluster.plan()
@@ -157,3 +157,11 @@ def test_served_plans_are_copied_for_viewers_only_while_watched(cluster: Cluster
         reply = cluster.plan()
     assert item.message.vehicle_id == reply.vehicle_id == "t01"
     assert 0 < item.message.version <= reply.version  # a copy may trail the newest reply by one
+    copies.undeclare()
+    time.sleep(1.0 * SCALE)  # the coordinator learns that nothing matches any more
+    report = coordinator_health(cluster.node.session)
+    assert report is not None
+    before = counters(report)["plans/copied"]
+    cluster.plan()
+    report = coordinator_health(cluster.node.session)
+    assert report is not None and counters(report)["plans/copied"] == before, "copied with nobody watching"

@@ -340,7 +340,7 @@ def mec_counter(chain: Chain, name: str) -> int:
 
 def check_detections_2d_only_while_watched(chain: Chain, camera: str) -> None:
     """The MEC's 2D detections of a camera (the live view's image annotations) go out only while
-    something subscribes, each stamped as the image it was found in."""
+    something subscribes, each stamped as the image it was found in; they stop when it leaves."""
     assert mec_counter(chain, "published/detections_2d") == 0, "published with nobody watching"
     sub = chain.node.subscribe_stream(  # type: ignore[attr-defined]
         "detections_2d", agent=chain.agent, sensor=camera, maxsize=100
@@ -355,6 +355,11 @@ def check_detections_2d_only_while_watched(chain: Chain, camera: str) -> None:
     for item in got:
         assert item.message.sensor_id == camera and item.message.image_width_px > 0
         assert round(item.header.stamp.ToNanoseconds() / 1e9, 6) in image_stamps
+    sub.undeclare()
+    time.sleep(1.0 * SCALE)  # the MEC learns that nothing matches any more
+    before = mec_counter(chain, "published/detections_2d")
+    time.sleep(2.0 * SCALE)
+    assert mec_counter(chain, "published/detections_2d") == before, "still published with nobody watching"
 
 
 def test_coordinator_sees_a_killed_mec_stale_and_back(chain_factory, router: Router) -> None:

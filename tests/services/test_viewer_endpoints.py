@@ -13,6 +13,8 @@ from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
 from services.viewer.dashboard_server import DashboardServer
+from services.viewer.main import SensorFeeds, start_view_server
+from shared.scene.scene import Scene
 from tests.integration.foxglove_client import SUBPROTOCOL
 
 
@@ -27,7 +29,8 @@ def dashboard():
 def test_the_dashboard_socket_pushes_and_refuses_messages(dashboard: DashboardServer) -> None:
     dashboard.publish({"agents": []})
     with connect(f"ws://127.0.0.1:{dashboard.port}/ws", open_timeout=5) as ws:
-        assert json.loads(ws.recv(timeout=5)) == {"agents": []}
+        state = json.loads(ws.recv(timeout=5))
+        assert state["agents"] == [] and state["taken_unix_s"] > 0
         assert dashboard.watched
         ws.send("hello")
         with pytest.raises(ConnectionClosed) as closed:
@@ -41,10 +44,9 @@ def test_the_dashboard_socket_pushes_and_refuses_messages(dashboard: DashboardSe
     assert not dashboard.watched
 
 
-def test_the_foxglove_server_answers_bad_requests_with_errors() -> None:
+def test_the_foxglove_server_answers_bad_requests_with_errors(test_scene: Scene) -> None:
     context = foxglove.Context()
-    foxglove.Channel("/table", message_encoding="json", context=context)
-    server = foxglove.start_server(name="test", host="127.0.0.1", port=0, context=context)
+    server = start_view_server(context, SensorFeeds(test_scene, context), "127.0.0.1", 0)
     try:
         with connect(f"ws://127.0.0.1:{server.port}", subprotocols=[SUBPROTOCOL], open_timeout=5) as ws:  # type: ignore[list-item]
             ws.send("not json")

@@ -12,13 +12,16 @@ from typing import Any
 import foxglove
 import numpy as np
 from rmmdet.v1.common_pb2 import Header
+from rmmdet.v1.health_pb2 import HEALTH_LEVEL_NOMINAL, ServiceHealth
 from rmmdet.v1.sensors_pb2 import RadarScan
 
-from services.viewer.main import SensorFeeds
+from services.cli.health import Verdict
+from services.viewer.main import HEALTH_SCHEMA, HealthFeed, SensorFeeds, health_json
 from shared.bus.codec import Counters, encode, encoding_for
 from shared.paths import DEFAULT_SCENE, REPO_ROOT
 from shared.perception.output import detections_2d_message
 from shared.scene.scene import Scene
+from shared.viewer.core import FRAMES, GRID, GROUND_TRUTH, PLANS, TABLE, tracks_topic
 
 
 @dataclass
@@ -87,14 +90,8 @@ def test_the_layout_names_only_topics_the_viewer_serves() -> None:
     layout = json.loads((REPO_ROOT / "deploy" / "foxglove" / "rmmdet-layout.json").read_text())
     text = json.dumps(layout["configById"])
     named = set(re.findall(r'"(/[a-z0-9_/]+)"', text))
-    sensors = {f"/agents/{s.agent}/{s.kind}/{s.id}" for s in scene.spec.sensors}
-    served = {"/table", "/ground_truth", "/plans", "/traffic/grid", "/health"} | sensors
-    drawn = {"camera": "detections", "radar": "targets"}  # drawn from the bus beside the raw feed
-    served |= {
-        f"/agents/{s.agent}/{s.kind}/{s.id}/{drawn[s.kind]}" for s in scene.spec.sensors if s.kind in drawn
-    }
-    served.add("/tf")
-    served |= {f"/agents/{a}/tracks" for a in scene.agents}
+    served = {TABLE, FRAMES, GROUND_TRUTH, PLANS, GRID, HealthFeed.TOPIC}
+    served |= {tracks_topic(a) for a in scene.agents} | set(SensorFeeds(scene, foxglove.Context()).topics)
     assert named and named <= served, named - served
 
 
@@ -136,3 +133,12 @@ def test_radar_scans_are_drawn_as_targets_while_watched(test_scene: Scene) -> No
     encoded = encode(scan)
     sub.callback(FakeSample(Bytes(encoded.payload), str(encoding_for(scan)), None))
     assert counters.snapshot()["drawn/RadarScan"] == 1
+
+
+def test_the_health_schema_describes_what_health_carries() -> None:
+    """`/health`'s JSON Schema (viewers read it) names exactly the fields health_json writes."""
+    report = ServiceHealth(service="mec", instance="agent1", level=HEALTH_LEVEL_NOMINAL, message="full")
+    sample = health_json(Verdict(reports=[report]))
+    schema = json.loads(HEALTH_SCHEMA.data)
+    assert set(schema["properties"]) == set(sample)
+    assert set(schema["properties"]["services"]["items"]["properties"]) == set(sample["services"][0])

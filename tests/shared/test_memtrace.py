@@ -34,6 +34,7 @@ def test_report_names_the_line_that_grew() -> None:
 
 @pytest.mark.parametrize("value", ["", "soon", "0", "-5"])
 def test_unset_or_bad_period_leaves_tracing_off(monkeypatch: pytest.MonkeyPatch, value: str) -> None:
+    monkeypatch.delenv(memtrace.ENV_WHO, raising=False)  # the period is what is judged here
     monkeypatch.setenv(memtrace.ENV_VAR, value)
     assert memtrace.start_from_env(threading.Event()) is None
     assert not tracemalloc.is_tracing()

@@ -13,8 +13,9 @@ HERE="$(cd "$(dirname "$0")" && pwd)"
 OUT="${1:?usage: assemble.sh OUTDIR}"
 STUDIO=1.48.0
 REACT=17.0.2
+PATCH=1  # bump when the patch below changes: an assembled copy is redone
 command -v npm >/dev/null || { echo "assemble.sh: needs npm (apt-get install npm)" >&2; exit 2; }
-if [ ! -f "$OUT/.studio-$STUDIO" ]; then
+if [ ! -f "$OUT/.studio-$STUDIO-patch$PATCH" ]; then
   TMP="$(mktemp -d)"
   trap 'rm -rf "$TMP"' EXIT
   (cd "$TMP" && npm pack --silent "@foxglove/studio-base@$STUDIO" "react@$REACT" "react-dom@$REACT" >/dev/null)
@@ -29,11 +30,12 @@ if [ ! -f "$OUT/.studio-$STUDIO" ]; then
     -e 's/new WebSocket(this._url, \[FoxgloveClient.SUPPORTED_SUBPROTOCOL\])/new WebSocket(this._url, ["foxglove.sdk.v1", FoxgloveClient.SUPPORTED_SUBPROTOCOL])/' \
     -e 's/if (this.ws.protocol !== FoxgloveClient.SUPPORTED_SUBPROTOCOL) {/if (this.ws.protocol !== FoxgloveClient.SUPPORTED_SUBPROTOCOL \&\& this.ws.protocol !== "foxglove.sdk.v1") {/' \
     "$OUT/assets/index.js"
-  if [ "$(grep -c 'foxglove.sdk.v1' "$OUT/assets/index.js")" -ne 3 ]; then
+  if [ "$(grep -o 'foxglove\.sdk\.v1' "$OUT/assets/index.js" | wc -l)" -ne 3 ]; then
     echo "assemble.sh: the subprotocol patch did not apply to studio-base $STUDIO" >&2
     exit 1
   fi
-  touch "$OUT/.studio-$STUDIO"
+  rm -f "$OUT"/.studio-*
+  touch "$OUT/.studio-$STUDIO-patch$PATCH"
 fi
 cp "$HERE/index.html" "$HERE/boot.js" "$HERE/../rmmdet-layout.json" "$OUT/"
 echo "$OUT/index.html"

@@ -54,3 +54,20 @@ def test_the_snapshot_gathers_every_panel() -> None:
     assert snap["grid"]["vehicles"] == [1.0, 0.5] and snap["grid"]["columns"] == 2
     assert snap["health"]["alarms"] == ["agent2 STALE"]
     assert d.rate_hz("agent1", 4.9 + RATE_WINDOW_S + 0.01) == pytest.approx(0.0)  # gone quiet
+
+
+def test_served_plans_are_counted_apart_from_pushed_ones() -> None:
+    board = DashboardState(["agent1"])
+    board.on_plan(RoutePlan(vehicle_id="v1", version=1))
+    board.on_plan(RoutePlan(vehicle_id="v2", version=1), served=True)
+    board.on_plan(RoutePlan(vehicle_id="v3", version=1), served=True)
+    assert board.snapshot(0.0)["plans"] == {"pushed": 1, "served": 2, "acknowledged": {}}
+
+
+def test_arrivals_are_bounded_without_snapshots() -> None:
+    """With no dashboard (no snapshots taken) the rate window must not grow with every list."""
+    board = DashboardState(["agent1"])
+    msg = TrackedObjects(agent_id="agent1")
+    for i in range(1000):
+        board.on_objects("agent1", msg, now_s=i * 0.1)
+    assert len(board._arrivals["agent1"]) <= RATE_WINDOW_S / 0.1 + 1

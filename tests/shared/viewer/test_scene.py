@@ -206,3 +206,31 @@ def test_radar_targets_are_spheres_in_the_radar_frame() -> None:
     assert first.color == view.RADAR_APPROACHING and second.color == view.RADAR_RECEDING
     assert second.pose.position.z == pytest.approx(0.5)
     assert [t.text for t in entity.texts] == ["-0.50 m/s", "+0.25 m/s"]
+
+
+def test_an_older_plan_does_not_replace_a_newer_one(test_scene: Scene, network: RoadNetwork) -> None:
+    """A served copy (low priority) may arrive after a newer push: the newer stays drawn."""
+    core = ViewerCore(test_scene, network)
+    lane = next(iter(network.lanes))
+    newer = RoutePlan(vehicle_id="v01", plan_id="b" * 32, version=6, lane_ids=[lane])
+    older = RoutePlan(vehicle_id="v01", plan_id="a" * 32, version=5, lane_ids=[lane])
+    for plan in (newer, older):
+        plan.valid_until.FromNanoseconds(STAMP_NS + 10**10)
+        core.on_plan(plan, now_s=0.0)
+    assert core.plans["v01"].version == 6
+
+
+def test_plans_beyond_the_cap_drop_their_drawings(
+    test_scene: Scene, network: RoadNetwork, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr("shared.viewer.core.MAX_PLANS", 2)
+    core = ViewerCore(test_scene, network)
+    lane = next(iter(network.lanes))
+    for i in range(3):
+        plan = RoutePlan(vehicle_id=f"v{i}", plan_id="a" * 32, version=1, lane_ids=[lane])
+        plan.valid_until.FromNanoseconds(STAMP_NS + 10**10)
+        core.on_plan(plan, now_s=float(i))
+        for d in core.draw(float(i), STAMP_NS):
+            d.draw()
+    assert set(core.plans) == {"v1", "v2"}
+    assert set(core._plan_entities) == {"v1", "v2"}  # the evicted vehicle's cached drawing is gone
