@@ -508,8 +508,13 @@ def readme_table(runs: list[dict[str, Any]]) -> str:
             f" | {fmt(plan_latency(coord).get('sim_p95_ms'))} ({plan_latency(coord).get('count', 0)})"
             f" | {fmt(r.get('host', {}).get('other_cpu_cores'), 2)} |"
         )
-    # The CPU budget table is the default `make up`'s: the newest run at 1x without a recording.
-    plain = [r for r in runs if r["args"]["speed"] == 1.0 and not r["args"]["record_s"]]
+    # The CPU budget table is the default `make up`'s: the newest run at 1x without a recording or a
+    # view client.
+    plain = [
+        r
+        for r in runs
+        if r["args"]["speed"] == 1.0 and not r["args"]["record_s"] and not r["args"].get("view_client")
+    ]
     last = (plain or runs)[-1]
     lines += [
         "",
