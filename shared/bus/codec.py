@@ -109,9 +109,17 @@ def has_body_header(msg_or_type: Message | type[Message]) -> bool:
 
 
 def encode(msg: Message, header: Header | None = None) -> Encoded:
-    """Serialise `msg`. For messages without a body header, `header` goes into the attachment."""
+    """Serialise `msg`. For messages without a body header, `header` goes into the attachment; with
+    one, it is written into `msg`, or into a copy of it if `msg` already carries another header: a
+    message published again and again (the sim's calibration, 3 a second) would otherwise keep every
+    header it was given, since protobuf (upb) frees a message's memory only with the whole message
+    (+186 B a put: the sim's RSS grew 2.5 MB/h in the soak)."""
     if has_body_header(msg):
         if header is not None:
+            if msg.HasField("header") and msg.header != header:  # type: ignore[attr-defined]
+                fresh = type(msg)()
+                fresh.CopyFrom(msg)
+                msg = fresh
             msg.header.CopyFrom(header)  # type: ignore[attr-defined]
         attachment = None
     else:
