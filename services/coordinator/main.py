@@ -26,6 +26,7 @@ from rmmdet.v1.planning_pb2 import RoutePlan, RouteRequest, RouteResponse
 
 from shared.bus.liveliness import agent_of_mec_token
 from shared.bus.node import Node, Received, processing_stamp
+from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.bus.rpc import RpcRejected, RpcServer
 from shared.bus.streams import get_stream, limits
 from shared.bus.uplink import REJOIN_GRACE_S
@@ -53,6 +54,8 @@ OBJECTS, ACKS = get_stream("objects"), get_stream("route_ack")
 MAX_OBJECT_BYTES = 1024
 #: glibc's M_MMAP_THRESHOLD (malloc.h), and the value it is fixed at (see `keep_large_buffers_unmapped`).
 M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES = -3, 1 << 20
+
+SERVED_COPIES_QUEUE = 256  # plans served between two rounds of the loop, to copy for viewers
 
 
 def keep_large_buffers_unmapped() -> None:
@@ -133,6 +136,11 @@ class CoordinatorService:
             max_future_s=bus_limits.max_clock_skew_s,
         )
         self.acks = node.subscribe_stream("route_ack")
+        # Plans served over the RPC, copied for viewers by the main loop (the handler runs on a Zenoh
+        # thread, where declaring and putting can stall the session).
+        self.served: BoundedQueue[tuple[RoutePlan, int]] = BoundedQueue(
+            SERVED_COPIES_QUEUE, OverflowPolicy.DROP_OLDEST, node.counters, "dropped/plan_copies"
+        )
         self.presence = node.presence(get_stream("alive").pattern(service="mec"))
         self.map_pub = node.publisher("traffic_map")
         node.health.set_status(core.health)  # Zenoh thread: cached values only
@@ -145,23 +153,24 @@ class CoordinatorService:
         except RequestRejected as err:
             raise RpcRejected(err.reason, err.code, err.message) from None
         signed = self.signer.sign(plan)
-        self.copy_for_viewers(signed, stamp_ns)
+        copy = RoutePlan()
+        copy.CopyFrom(signed)  # published later, with its own header: not the core's plan
+        self.served.put((copy, stamp_ns))
         return RouteResponse(plan=signed), stamp_ns
 
-    def copy_for_viewers(self, plan: RoutePlan, stamp_ns: int) -> None:
+    def copy_for_viewers(self) -> None:
         """Viewers see the plans vehicles asked for too (pushed ones they see on route_plan): a copy
         on route_plan_served while something subscribes there. Never at the vehicle's expense: a
-        failure here is counted, and the reply goes out regardless."""
-        try:
-            pub = self.node.publisher("route_plan_served", vehicle=plan.vehicle_id)
-            if pub.has_subscribers():
-                copy = RoutePlan()
-                copy.CopyFrom(plan)  # the put writes a header into it: not into the core's plan
-                pub.put(copy, stamp_ns=stamp_ns or time.time_ns(), frame_id="world")
-                self.counters.inc("plans/copied")
-        except Exception as err:  # a viewer's copy must never fail the RPC
-            self.counters.inc("plans/copy_failed")
-            log.warning("copy of %s's plan for viewers failed: %s", plan.vehicle_id, err)
+        failure here is counted."""
+        for plan, stamp_ns in self.served.drain():
+            try:
+                pub = self.node.publisher("route_plan_served", vehicle=plan.vehicle_id)
+                if pub.has_subscribers():
+                    pub.put(plan, stamp_ns=stamp_ns or time.time_ns(), frame_id="world")
+                    self.counters.inc("plans/copied")
+            except Exception as err:  # a viewer's copy must never fail the coordinator
+                self.counters.inc("plans/copy_failed")
+                log.warning("copy of %s's plan for viewers failed: %s", plan.vehicle_id, err)
 
     def run(self, shutdown: GracefulShutdown) -> None:
         interval_s = self.settings.report_interval_s
@@ -180,6 +189,7 @@ class CoordinatorService:
             if tick.replanned:
                 log.info("replan: %d plans to push", tick.replanned)
             self.push(now)
+            self.copy_for_viewers()
             if now >= next_log_s:
                 next_log_s = now + interval_s
                 log.info(
