@@ -85,7 +85,7 @@ test-integration: install
 test-fault: install
 	$(BIN)/python -m pytest -m "fault and not slow" $(PYTEST_ARGS)
 
-bench: install pki ## benchmarks: the whole system as `make up` runs it (10 min), then bus, sim, detectors, MEC, coordinator, secure sites -> tests/bench/results/*.json
+bench: install pki ## benchmarks: the whole system as `make up` runs it (10 min), then bus, sim, detectors, MEC, coordinator, memory, secure sites -> tests/bench/results/*.json
 	$(MAKE) down
 	$(BIN)/python -m tests.bench.system_bench --readme $(SYSTEM_BENCH_ARGS)
 	$(BIN)/python -m tests.bench.bus_bench $(BENCH_ARGS)
@@ -94,6 +94,7 @@ bench: install pki ## benchmarks: the whole system as `make up` runs it (10 min)
 	$(BIN)/python -m tests.bench.lidar_detector_bench --model $(MODELS_DIR)/lidar/pointpillars.onnx $(BENCH_DATA)
 	$(BIN)/python -m tests.bench.mec_bench
 	$(BIN)/python -m tests.bench.coordinator_bench
+	$(BIN)/python -m tests.bench.memory_bench --readme
 	$(BIN)/python -m tests.bench.sites_bench --readme
 	$(BIN)/python -m tests.shared.bus.fuzz --inputs 1000000 --out tests/bench/results/fuzz.json
 

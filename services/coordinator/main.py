@@ -142,6 +142,9 @@ class CoordinatorService:
             SERVED_COPIES_QUEUE, OverflowPolicy.DROP_OLDEST, node.counters, "dropped/plan_copies"
         )
         self.presence = node.presence(get_stream("alive").pattern(service="mec"))
+        # Object lists and the sim clock come tens of times a second: all of them silent at once is a
+        # frozen link (reliability.md R2), held like a cut one.
+        node.uplink.expect_traffic(settings.coverage.bus_silent_after_s, settings.coverage.bus_silence_max_s)
         self.map_pub = node.publisher("traffic_map")
         node.health.set_status(core.health)  # Zenoh thread: cached values only
 
@@ -175,11 +178,17 @@ class CoordinatorService:
     def run(self, shutdown: GracefulShutdown) -> None:
         interval_s = self.settings.report_interval_s
         next_log_s = self.clock.now_s() + interval_s
+        silent = False
         while not shutdown.requested:
             self.node.health.beat()
             self.ingest(min(POLL_S, self.core.next_map_s - self.clock.now_s()))
             now = self.clock.now_s()
-            # Cut off from the bus (a router restart) or only just back: the agents are not to blame.
+            # Cut off from the bus (a router restart or freeze) or only just back: the agents are not to
+            # blame.
+            if self.node.uplink.silent() != silent:
+                silent = not silent
+                if silent:
+                    log.warning("nothing heard from the bus: link suspected (frozen router?), coverage held")
             self.core.hold_coverage(self.node.uplink.recovering(REJOIN_GRACE_S), now)
             tick = self.core.tick(now, time.time_ns())
             if tick.coverage is not None:
@@ -230,7 +239,7 @@ class CoordinatorService:
         self.counters.inc("maps/published")
 
     def push(self, now: float) -> None:
-        if not self.node.uplink.connected:  # a send now goes nowhere: not an attempt, resent once back
+        if self.node.uplink.cut_off():  # a send now goes nowhere: not an attempt, resent once back
             return
         given_up = self.core.plans_given_up
         for plan, stamp_ns, first_send in self.core.due(now):

@@ -113,7 +113,7 @@ def encode(msg: Message, header: Header | None = None) -> Encoded:
     one, it is written into `msg`, or into a copy of it if `msg` already carries another header: a
     message published again and again (the sim's calibration, 3 a second) would otherwise keep every
     header it was given, since protobuf (upb) frees a message's memory only with the whole message
-    (+186 B a put: the sim's RSS grew 2.5 MB/h in the soak)."""
+    (the sim's RSS grew 2.5 MB/h in the soak; tests/bench/memory_bench.py measures both ways)."""
     if has_body_header(msg):
         if header is not None:
             if msg.HasField("header") and msg.header != header:  # type: ignore[attr-defined]

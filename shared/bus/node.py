@@ -61,6 +61,33 @@ def processing_stamp(stage: str, start_ns: int, end_ns: int | None = None) -> Pr
     return stamp
 
 
+def make_header(
+    source_id: str,
+    seq: int,
+    *,
+    stamp_ns: int | None = None,
+    derived_from: Header | None = None,
+    tick: int = 0,
+    epoch: int = 0,
+    frame_id: str = "",
+) -> Header:
+    """A message's header. The data stamp is inherited from `derived_from` (never re-stamped
+    downstream), else `stamp_ns`, else now (data with no sensor time)."""
+    header = Header(source_id=source_id, seq=seq, frame_id=frame_id, tick=tick, epoch=epoch)
+    if derived_from is not None:
+        header.stamp.CopyFrom(derived_from.stamp)
+        header.tick = derived_from.tick
+        header.epoch = derived_from.epoch
+        header.processing.extend(derived_from.processing)
+        if not frame_id:
+            header.frame_id = derived_from.frame_id
+    elif stamp_ns is not None:
+        header.stamp.FromNanoseconds(stamp_ns)
+    else:
+        header.stamp.FromNanoseconds(time.time_ns())
+    return header
+
+
 @dataclass(frozen=True)
 class Received:
     key: str
@@ -82,9 +109,11 @@ class Subscription:
         monitor: InputMonitor,
         counters: Counters,
         stream: Stream | None = None,
+        uplink: Uplink | None = None,
     ) -> None:
         self.key_expr = key_expr
         self.decoder = decoder
+        self._uplink = uplink  # told of every sample: the link carried it
         self.queue = queue
         self.monitor = monitor
         self._counters = counters
@@ -118,6 +147,8 @@ class Subscription:
     def _on_sample(self, sample: zenoh.Sample) -> None:
         # Runs on a Zenoh thread: never raise, never block.
         try:
+            if self._uplink is not None:
+                self._uplink.heard()
             payload = sample.payload.to_bytes()
             attachment = sample.attachment.to_bytes() if sample.attachment is not None else None
             decoded = self.decoder.decode(payload, str(sample.encoding), attachment)
@@ -192,24 +223,19 @@ class Publisher:
         epoch: int = 0,
         frame_id: str = "",
     ) -> Header:
-        """Header for the next message. The data stamp is inherited from `derived_from` (never
-        re-stamped downstream), else `stamp_ns`, else now (data with no sensor time)."""
+        """Header for the next message (`make_header` with this publisher's source and next seq)."""
         with self._lock:
             self.seq += 1
             seq = self.seq
-        header = Header(source_id=self.source_id, seq=seq, frame_id=frame_id, tick=tick, epoch=epoch)
-        if derived_from is not None:
-            header.stamp.CopyFrom(derived_from.stamp)
-            header.tick = derived_from.tick
-            header.epoch = derived_from.epoch
-            header.processing.extend(derived_from.processing)
-            if not frame_id:
-                header.frame_id = derived_from.frame_id
-        elif stamp_ns is not None:
-            header.stamp.FromNanoseconds(stamp_ns)
-        else:
-            header.stamp.FromNanoseconds(time.time_ns())
-        return header
+        return make_header(
+            self.source_id,
+            seq,
+            stamp_ns=stamp_ns,
+            derived_from=derived_from,
+            tick=tick,
+            epoch=epoch,
+            frame_id=frame_id,
+        )
 
     def put(
         self,
@@ -391,7 +417,9 @@ class Node:
         self.health.add_input(monitor)
         if queue is None:
             queue = BoundedQueue(maxsize, policy, self.counters)
-        sub = Subscription(self.session, key_expr, decoder, queue, monitor, self.counters, stream)
+        sub = Subscription(
+            self.session, key_expr, decoder, queue, monitor, self.counters, stream, self.uplink
+        )
         self._declared.append(sub)
         return sub
 
@@ -448,8 +476,11 @@ class Node:
         stream = get_stream("sim_clock")
         decoder = MessageDecoder(SimClock, self.counters)
 
+        uplink = self.uplink
+
         def on_sample(sample: zenoh.Sample) -> None:
             try:
+                uplink.heard()
                 decoded = decoder.decode(sample.payload.to_bytes(), str(sample.encoding))
                 if decoded is not None:
                     clock: SimClock = decoded.message

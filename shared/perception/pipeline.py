@@ -150,6 +150,8 @@ class AgentPipeline:
             self.lidar_detector = lidar_detector(
                 det.lidar, threads=det.lidar_threads, precision=det.lidar_precision
             )
+            if hasattr(self.lidar_detector, "warm_up"):  # the ONNX model: its arena at size from the start
+                self.lidar_detector.warm_up()
         self.origin_m = agent_origin_m(scene, agent_id) if self.lidar_ids else np.zeros(3)
         self.lidar_T = agent_frame_transforms(scene, agent_id) if self.lidar_ids else {}
         self.radar_T = {s.id: np.asarray(scene.T_world_from_sensor(s.id), float) for s in self.radar_specs}

@@ -64,6 +64,18 @@ class CoverageConfig(_Section):
         0.5, gt=0, description="agent data older than this (or presence gone): STALE"
     )
     lost_after_s: float = Field(3.0, gt=0, description="agent data older than this: LOST (reliability.md R4)")
+    bus_silent_after_s: float = Field(
+        0.3,
+        gt=0,
+        description="nothing at all heard from the bus for this long (object lists, sim clock, acks: tens"
+        " a second): the link is suspected, not every agent; coverage is held (reliability.md R2)",
+    )
+    bus_silence_max_s: float = Field(
+        12.0,
+        gt=0,
+        description="... for at most this much longer: more than Zenoh's 10 s lease, after which a frozen"
+        " router's transport closes and the outage is plain",
+    )
 
 
 class PlannerConfig(_Section):

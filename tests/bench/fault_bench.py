@@ -1,6 +1,8 @@
-"""Faults on the whole system: what `make up` does when a sensor group freezes or the router restarts.
+"""Faults on the whole system: what `make up` does when a sensor group freezes, or the router restarts
+or freezes.
 
-    python -m tests.bench.fault_bench [--group agent1-lidars] [--freeze-s 15] [--warmup-s 45] [--readme]
+    python -m tests.bench.fault_bench [--group agent1-lidars] [--freeze-s 15] [--warmup-s 45]
+                                      [--router-freeze-s 5] [--readme]
 
 The fault tests (tests/integration/test_mec_faults.py, test_router_restart.py) run small chains that
 fit a CI machine; this runs the same faults with everything `make up` starts, on a host as busy as the
@@ -12,6 +14,9 @@ default system makes it. Starts the system (refuses if it is up), lets it settle
 - R1: SIGKILL the router (supervisord starts it again at once; the clients reconnect on their retry
   schedule). Measured: when every agent's object lists flow again, whether any agent changed state in
   the coordinator's maps, and the coordinator's plan counters (given up, resent) over the fault.
+- R2: SIGSTOP the router for `--router-freeze-s` (its TCP connections stay open, nothing is forwarded),
+  then SIGCONT. Measured as R1, from SIGCONT; and which programs were restarted meanwhile (a loop
+  blocked on a full socket must not look stalled to the watchdog).
 
 Results go to `tests/bench/results/faults.json` (one run per call, with the machine and the commit);
 `--readme` puts the latest run in the README (`fault-bench`).
@@ -147,8 +152,8 @@ def coordinator_counters(session: zenoh.Session) -> dict[str, int]:
 
 
 def router_restart(watch: Watch, session: zenoh.Session) -> dict[str, Any]:
-    before = coordinator_counters(session)
-    old_pid = supervised_pids()["router"]
+    before, pids = coordinator_counters(session), supervised_pids()
+    old_pid = pids["router"]
     t_kill = time.monotonic()
     subprocess.run([*SUPERVISORCTL, "signal", "KILL", "router"], check=True, capture_output=True)
     deadline = t_kill + 30.0
@@ -157,15 +162,38 @@ def router_restart(watch: Watch, session: zenoh.Session) -> dict[str, Any]:
             raise SystemExit("the router did not come back")
         time.sleep(0.05)
     t_back = time.monotonic()
-    time.sleep(10.0)
-    after = coordinator_counters(session)
-    flowing = {a: first(watch.rows(a, t_back), lambda _r: True) for a in AGENTS}
-    with watch.lock:
-        maps = [s for t, s in watch.maps if t >= t_kill]
-    changes = {a: [k for k, _ in itertools.groupby(s.get(a, "?") for s in maps)] for a in AGENTS}
     return {
         "router_up_after_kill_s": t_back - t_kill,
+        **router_aftermath(watch, session, t_kill, t_back, before, pids),
+    }
+
+
+def router_freeze(watch: Watch, session: zenoh.Session, freeze_s: float) -> dict[str, Any]:
+    before, pids = coordinator_counters(session), supervised_pids()
+    t_stop = time.monotonic()
+    subprocess.run([*SUPERVISORCTL, "signal", "STOP", "router"], check=True, capture_output=True)
+    try:
+        time.sleep(freeze_s)
+    finally:
+        subprocess.run([*SUPERVISORCTL, "signal", "CONT", "router"], check=True, capture_output=True)
+    t_cont = time.monotonic()
+    return {"freeze_s": freeze_s, **router_aftermath(watch, session, t_stop, t_cont, before, pids)}
+
+
+def router_aftermath(
+    watch: Watch, session: zenoh.Session, t_fault: float, t_back: float, before: dict[str, int], pids: dict
+) -> dict[str, Any]:
+    """What a router fault (at `t_fault`, over at `t_back`) did, 10 s after it was over."""
+    time.sleep(10.0)
+    after = coordinator_counters(session)
+    now_pids = supervised_pids()
+    flowing = {a: first(watch.rows(a, t_back), lambda _r: True) for a in AGENTS}
+    with watch.lock:
+        maps = [s for t, s in watch.maps if t >= t_fault]
+    changes = {a: [k for k, _ in itertools.groupby(s.get(a, "?") for s in maps)] for a in AGENTS}
+    return {
         "objects_again_after_restart_s": {a: None if t is None else t - t_back for a, t in flowing.items()},
+        "restarted": sorted(p for p, pid in pids.items() if p != "router" and now_pids.get(p) != pid),
         "coverage_in_maps": changes,
         "plans": {
             k: after.get(k, 0) - before.get(k, 0) for k in ("plans/pushed", "plans/resent", "plans/given_up")
@@ -174,14 +202,32 @@ def router_restart(watch: Watch, session: zenoh.Session) -> dict[str, Any]:
     }
 
 
-def readme_table(r: dict[str, Any]) -> str:
-    f, rr = r["freeze"], r["router"]
+def ms(v: float | None) -> str:
+    return "–" if v is None else f"{v * 1e3:.0f} ms"
 
-    def ms(v: float | None) -> str:
-        return "–" if v is None else f"{v * 1e3:.0f} ms"
 
+def router_row(rr: dict[str, Any]) -> str:
+    """The measured side of a router fault's README row."""
     objects = ", ".join(f"{a} {ms(t)}" for a, t in rr["objects_again_after_restart_s"].items())
     coverage = "; ".join(f"{a} {' → '.join(s)}" for a, s in rr["coverage_in_maps"].items())
+    restarted = ", ".join(rr.get("restarted", [])) or "none"
+    return (
+        f"object lists again {objects} after; coverage in the maps: {coverage}; plans {rr['plans']}; "
+        f"missed {rr['missed'] or 0}; programs restarted: {restarted} |"
+    )
+
+
+def readme_table(r: dict[str, Any]) -> str:
+    f, rr = r["freeze"], r["router"]
+    rows = [
+        f"| R1: router SIGKILLed (supervisord restarts it: up {rr['router_up_after_kill_s']:.2f} s later; "
+        "times from then) | " + router_row(rr)
+    ]
+    if "router_freeze" in r:
+        rf = r["router_freeze"]
+        rows.append(
+            f"| R2: router SIGSTOPped {rf['freeze_s']:.0f} s (times from SIGCONT) | " + router_row(rf)
+        )
     return "\n".join(
         [
             f"`python -m tests.bench.fault_bench --readme` at {r['commit']} ({r['machine']['cpu_model']}, "
@@ -193,10 +239,7 @@ def readme_table(r: dict[str, Any]) -> str:
             f"{ms(f['degraded_after_s'])} after; output {f['rate_hz_wall']:.2f} Hz (wall) / "
             f"{f['rate_hz_stamps']:.2f} Hz (stamps), largest gap {ms(f['max_gap_s_wall'])} (wall) / "
             f"{ms(f['max_gap_s_stamps'])} (stamps); FULL {ms(f['full_after_sigcont_s'])} after SIGCONT |",
-            f"| R1: router SIGKILLed (supervisord restarts it: up "
-            f"{rr['router_up_after_kill_s']:.2f} s later) | "
-            f"object lists again {objects} after it is up; coverage in the maps: {coverage}; plans "
-            f"{rr['plans']}; missed {rr['missed'] or 0} |",
+            *rows,
         ]
     )
 
@@ -206,6 +249,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--group", default="agent1-lidars", help="sensor group to freeze")
     p.add_argument("--freeze-s", type=float, default=15.0)
     p.add_argument("--warmup-s", type=float, default=45.0)
+    p.add_argument("--router-freeze-s", type=float, default=5.0, help="R2: the router SIGSTOPped this long")
     p.add_argument("--readme", action="store_true", help="put the result in the README (fault-bench)")
     args = p.parse_args(argv)
     if supervised_pids():
@@ -223,6 +267,9 @@ def main(argv: list[str] | None = None) -> int:
         time.sleep(5.0)
         result["router"] = router_restart(watch, session)
         print(json.dumps(result["router"]), flush=True)
+        time.sleep(5.0)
+        result["router_freeze"] = router_freeze(watch, session, args.router_freeze_s)
+        print(json.dumps(result["router_freeze"]), flush=True)
         for s in subs:
             s.undeclare()
         session.close()

@@ -274,9 +274,24 @@ def check_freeze_and_thaw(chain: Chain, victim: str) -> dict[str, float]:
     assert figures["wall_rate_hz"] >= MIN_RATE_FRACTION * RATE_HZ / SCALE, "output rate (wall) fell"
     assert figures["max_stamp_gap_s"] <= MAX_GAP_S, f"largest gap {figures['max_stamp_gap_s']:.3f} s (sim)"
     assert figures["max_wall_gap_s"] <= MAX_GAP_S, f"largest gap {figures['max_wall_gap_s']:.3f} s (wall)"
-    assert figures["full_s"] <= FULL_WITHIN_S, f"FULL {figures['full_s']:.3f} s after SIGCONT"
+    assert figures["full_s"] <= FULL_WITHIN_S, f"FULL {figures['full_s']:.3f} s after SIGCONT; " + thaw_trace(
+        out, victim, t_cont, t_full
+    )
     assert dropped >= len(old), f"{len(old)} stale {victim} frames after SIGCONT, {dropped} counted"
     return figures
+
+
+def thaw_trace(out: Outputs, victim: str, t_cont: float, t_full: float) -> str:
+    """What happened between SIGCONT and FULL, for a failure message: each output (s after SIGCONT,
+    status, inputs missing) and each sensor frame (arrival s after SIGCONT, sensor, stamp)."""
+    with out.lock:
+        rows = [r for r in out.rows if t_cont <= r[0] <= t_full]
+        frames = [f for f in out.frames if t_cont <= f[0] <= t_full]
+    outputs = [
+        f"{r[0] - t_cont:.3f} {pb.PerceptionStatus.Name(r[1])} {sorted(r[2])} stamp {r[3]:.2f}" for r in rows
+    ]
+    inputs = [f"{f[0] - t_cont:.3f} {f[1]} stamp {f[2]:.2f}" for f in frames]
+    return f"outputs: {outputs}; sensor frames: {inputs} ({victim} frozen)"
 
 
 CAMERA_LIDAR = {"cam_41": ("agent3-cameras", "camera"), "lidar_41": ("agent3-lidars", "lidar")}

@@ -1,15 +1,17 @@
-"""Router restart (reliability.md R1): SIGKILL the Zenoh router under a running loop, start it again
-2 s later on the same endpoint.
+"""Router restart and freeze (reliability.md R1, R2): SIGKILL the Zenoh router under a running loop
+and start it again 2 s later on the same endpoint; or SIGSTOP it for 5 s (alive to TCP, forwarding
+nothing: the clients' transports stay open, so none knows it is cut off) and SIGCONT it.
 
 The loop: router, coordinator (re-planning every 0.5 s), the sim at 1x with 10 vehicles asking for and
 following plans, and a stand-in MEC per agent (object lists at 10 Hz, the MEC's presence token). The
 last agent's MEC comes up just before the kill: the coverage change makes the coordinator push new
 plans, whose delivery and acknowledgements cross the outage. Every client is cut off at once; each
 knows it (its transports close: `shared/bus/uplink.py`) and does not blame the others. Asserted:
-- no service exits; object lists of every agent flow again within 3 s of the restart;
+- no service exits; object lists of every agent flow again within 3 s of the restart (or SIGCONT);
 - no agent is ever LOST and the coverage never changes in any map (no flips from the blip: the
   coordinator holds coverage while cut off and for a grace after, presence leaves are held);
-- 0 plans given up (sends while cut off are not attempts), every pushed plan the test saw acked.
+- 0 plans given up (sends while cut off are not attempts), every pushed plan the test saw acked,
+  none accepted twice (a plan delivered again is acknowledged DUPLICATE, not run again).
 Time limits scale with RSP_TIME_SCALE (slow machines).
 """
 
@@ -19,9 +21,11 @@ import os
 import signal
 import threading
 import time
+from collections import Counter
 from collections.abc import Iterator
 
 import pytest
+from rmmdet.v1.planning_pb2 import ACK_STATUS_ACCEPTED
 
 from shared.bus.node import Node
 from tests.helpers import Router, spawn, start_router, stop
@@ -31,8 +35,9 @@ pytestmark = [pytest.mark.integration, pytest.mark.fault, pytest.mark.timeout(18
 
 SCALE = float(os.environ.get("RSP_TIME_SCALE", "1"))
 AGENTS = ("agent1", "agent2", "agent3")
-DOWN_S = 2.0  # the router is away this long
-FLOWING_WITHIN_S = 3.0 * SCALE  # object lists again, after the restart
+DOWN_S = 2.0  # the router is away this long (R1)
+FROZEN_S = 5.0  # ... or stopped this long (R2)
+FLOWING_WITHIN_S = 3.0 * SCALE  # object lists again, after the restart or SIGCONT
 AFTER_S = 8.0  # watched after the restart
 STARTUP_S = 60.0
 
@@ -45,6 +50,7 @@ class Seen:
         self.objects: dict[str, list[float]] = {a: [] for a in AGENTS}
         self.pushed: set[str] = set()
         self.acked: set[str] = set()
+        self.accepted: Counter[tuple[str, int]] = Counter()  # ACCEPTED acks per plan id and version
 
 
 @pytest.fixture
@@ -71,6 +77,8 @@ def system() -> Iterator[tuple[Router, dict, Node, MapLog, Seen]]:
             for item in acks.drain():
                 with seen.lock:
                     seen.acked.add(item.message.plan_id)
+                    if item.message.status == ACK_STATUS_ACCEPTED:
+                        seen.accepted[item.message.plan_id, item.message.version] += 1
             time.sleep(0.02)
 
     threads = [
@@ -118,6 +126,15 @@ def flips(rows: list[tuple[float, dict[str, str]]]) -> dict[str, list[str]]:
 
 
 def test_a_router_restart_loses_nothing_and_flips_nothing(system) -> None:
+    check_router_fault(system, "R1")
+
+
+def test_a_router_freeze_loses_nothing_and_flips_nothing(system) -> None:
+    check_router_fault(system, "R2")
+
+
+def check_router_fault(system, fault: str) -> None:
+    """R1: SIGKILL the router, a new one DOWN_S later; R2: SIGSTOP it FROZEN_S, then SIGCONT."""
     router, procs, node, maps, seen = system
     t0 = time.monotonic()
     maps.wait(lambda s: all(s.get(a) == "LIVE" for a in AGENTS[:-1]), STARTUP_S, since=t0)
@@ -131,11 +148,18 @@ def test_a_router_restart_loses_nothing_and_flips_nothing(system) -> None:
         assert time.monotonic() < deadline, f"no plan pushed before the fault: {coordinator_counters(node)}"
         time.sleep(0.05)
     t_kill = time.monotonic()
-    router.proc.send_signal(signal.SIGKILL)
-    router.proc.wait(5)
-    time.sleep(DOWN_S)
-    restarted = start_router(router.port)
-    router.proc = restarted.proc  # the fixture stops this one
+    if fault == "R1":
+        router.proc.send_signal(signal.SIGKILL)
+        router.proc.wait(5)
+        time.sleep(DOWN_S)
+        restarted = start_router(router.port)
+        router.proc = restarted.proc  # the fixture stops this one
+    else:
+        router.proc.send_signal(signal.SIGSTOP)
+        try:
+            time.sleep(FROZEN_S)
+        finally:
+            router.proc.send_signal(signal.SIGCONT)
     t_back = time.monotonic()
     time.sleep(AFTER_S)
 
@@ -145,22 +169,22 @@ def test_a_router_restart_loses_nothing_and_flips_nothing(system) -> None:
         resumed = {a: next((t for t in ts if t >= t_back), None) for a, ts in seen.objects.items()}
     late = {a: None if t is None else round(t - t_back, 3) for a, t in resumed.items()}
     print(
-        f"R1: object lists again {late} s after the restart "
-        f"(router up {t_back - t_kill:.2f} s after the kill)"
+        f"{fault}: object lists again {late} s after the {'restart' if fault == 'R1' else 'SIGCONT'} "
+        f"(router back {t_back - t_kill:.2f} s after the fault)"
     )
     assert all(t is not None and t - t_back <= FLOWING_WITHIN_S for t in resumed.values()), late
 
     rows = maps.since(t_kill)
     assert any(r[0] >= t_back for r in rows), "no traffic map after the restart"
     states = flips(rows)
-    print(f"R1: coverage in the maps around the fault: {states}")
+    print(f"{fault}: coverage in the maps around the fault: {states}")
     assert all(s == ["LIVE"] for s in states.values()), f"coverage flipped: {states}"
 
     c = coordinator_counters(node)
     with seen.lock:
         unacked = seen.pushed - seen.acked
     print(
-        f"R1: coordinator plans pushed {c.get('plans/pushed', 0)}, resent {c.get('plans/resent', 0)}, "
+        f"{fault}: coordinator plans pushed {c.get('plans/pushed', 0)}, resent {c.get('plans/resent', 0)}, "
         f"given up {c.get('plans/given_up', 0)}; pushed plans seen {len(seen.pushed)}, "
         f"unacknowledged {len(unacked)}"
     )
@@ -170,3 +194,6 @@ def test_a_router_restart_loses_nothing_and_flips_nothing(system) -> None:
     with seen.lock:
         unacked = seen.pushed - seen.acked
     assert not unacked, f"pushed plans never acknowledged: {sorted(unacked)}"
+    with seen.lock:
+        twice = {p: n for p, n in seen.accepted.items() if n > 1}
+    assert not twice, f"plans accepted more than once (a duplicate run): {twice}"

@@ -34,6 +34,7 @@ class OnnxCameraDetector:
     `model_path`: the exported `model.onnx`; `config`: its `CameraDetectorConfig` (default: the
     `config.json` in the model's directory). `intra_op_threads`: onnxruntime threads of one call.
     `allow_spinning`: let idle onnxruntime threads busy-wait (lower latency, burns CPU between calls).
+    `mem_pattern`: let onnxruntime plan and keep a memory pattern per input shape (off: see below).
     One instance serves one caller at a time (it reuses its input buffer)."""
 
     name = "onnx-camera"
@@ -44,6 +45,7 @@ class OnnxCameraDetector:
         config: CameraDetectorConfig | None = None,
         intra_op_threads: int = DEFAULT_THREADS,
         allow_spinning: bool = False,
+        mem_pattern: bool = False,
     ) -> None:
         model_path = Path(model_path)
         if config is None:
@@ -55,9 +57,9 @@ class OnnxCameraDetector:
         options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         # Batches vary (1 .. an agent's cameras): a memory pattern is planned and kept per input shape,
-        # each a block of the arena for good, and RSS climbed in steps (+20 MB over 600 calls of random
-        # sizes 1-5 with patterns; +4 MB and flat from then on without; batch-1 latency unchanged).
-        options.enable_mem_pattern = False
+        # each a block of the arena for good, and RSS climbed in steps (tests/bench/memory_bench.py
+        # measures both settings).
+        options.enable_mem_pattern = mem_pattern
         options.add_session_config_entry("session.intra_op.allow_spinning", "1" if allow_spinning else "0")
         self.session = ort.InferenceSession(str(model_path), options, providers=["CPUExecutionProvider"])
         shape = self.session.get_inputs()[0].shape  # ["batch", H, W, 3]

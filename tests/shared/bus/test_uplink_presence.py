@@ -57,6 +57,34 @@ def test_uplink_tracks_open_transports_and_outages() -> None:
     assert up.connected and up.outages == 1
 
 
+def test_a_silence_of_every_input_is_the_links_until_the_lease_would_have_told() -> None:
+    clock = Clock()
+    up = Uplink(clock)
+    up.on_transport("router", True)
+    up.heard()
+    clock.now_s += 5.0
+    assert not up.silent() and not up.recovering(2.0)  # no traffic expected: silence means nothing
+    up.expect_traffic(silent_after_s=0.3, max_s=12.0)
+    with pytest.raises(ValueError):
+        up.expect_traffic(silent_after_s=0.0, max_s=1.0)
+    up.heard()
+    clock.now_s += 0.3
+    assert not up.silent() and not up.cut_off()  # exactly the limit: still heard
+    clock.now_s += 0.01
+    assert up.silent() and up.cut_off() and up.recovering(2.0) and up.connected
+    clock.now_s += 5.0
+    up.heard()  # a frozen router resumed: heard again, the grace follows as after an outage
+    assert up.silences == 1 and not up.silent() and not up.cut_off() and up.recovering(2.0)
+    for _ in range(10):  # traffic as usual
+        clock.now_s += 0.2
+        up.heard()
+    assert not up.recovering(2.0) and up.silences == 1
+    clock.now_s += 12.31  # silent beyond the lease: the senders are gone, not the link
+    assert not up.silent() and not up.recovering(2.0)
+    up.on_transport("router", False)
+    assert up.cut_off() and not up.silent()  # closed: the plain outage, not a silence
+
+
 def held_monitor() -> tuple[LivelinessMonitor, Uplink, Clock]:
     clock = Clock()
     up = Uplink(clock)

@@ -24,6 +24,9 @@ INPUT_NAMES = ("features", "num_points", "coords")
 OUTPUT_NAMES = ("peak_scores", "regression")
 CLASS_CAR = 0.0
 SCORE_COLUMN = BOX_COLUMNS
+#: Pillar counts run by `warm_up` after the largest, down to one: after the largest alone the arena still
+#: grew at the first mix of sizes.
+WARM_UP_STEPS = 8
 
 
 def config_path_for(model_path: Path) -> Path:
@@ -32,31 +35,51 @@ def config_path_for(model_path: Path) -> Path:
     return fp32_file(Path(model_path)).with_suffix(".json")
 
 
-def make_session(model_path: Path, threads: int) -> ort.InferenceSession:
+def make_session(model_path: Path, threads: int, mem_pattern: bool = False) -> ort.InferenceSession:
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads
     options.inter_op_num_threads = 1
     options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     # The pillar count differs every sweep: a memory pattern planned and kept per input shape would
-    # grow the arena with every new count (see the camera detector).
-    options.enable_mem_pattern = False
+    # grow the arena with every new count (tests/bench/memory_bench.py measures both settings).
+    options.enable_mem_pattern = mem_pattern
     return ort.InferenceSession(str(model_path), options, providers=["CPUExecutionProvider"])
 
 
 class OnnxPointPillars:
-    """Lidar detector: (N, 4) x, y, z, intensity (agent frame) -> (M, 9) boxes, highest score first."""
+    """Lidar detector: (N, 4) x, y, z, intensity (agent frame) -> (M, 9) boxes, highest score first.
+    `threads`: onnxruntime intra-op threads; `mem_pattern`: a memory pattern kept per input shape."""
 
     name = "pointpillars"
 
     def __init__(
-        self, model_path: Path | str, config: PointPillarsConfig | None = None, threads: int = 1
+        self,
+        model_path: Path | str,
+        config: PointPillarsConfig | None = None,
+        threads: int = 1,
+        mem_pattern: bool = False,
     ) -> None:
         self.model_path = Path(model_path)
         self.config = (
             config if config is not None else PointPillarsConfig.load(config_path_for(self.model_path))
         )
-        self.session = make_session(self.model_path, threads)
+        self.session = make_session(self.model_path, threads, mem_pattern)
+
+    def warm_up(self, steps: int = WARM_UP_STEPS) -> None:
+        """Detect on clouds of the most pillars a frame can have, then of fewer in `steps` steps (one
+        point at the centre of each of the first cells), so the runtime's memory arena reaches its
+        working size at start instead of growing in steps at the densest frames while the service runs
+        (tests/bench/memory_bench.py measures it)."""
+        grid = self.config.grid
+        most = min(grid.max_pillars, grid.nx * grid.ny)
+        for count in np.linspace(most, 1, steps + 1).round().astype(int):
+            cells = np.arange(count)
+            cloud = np.zeros((count, 4), np.float32)
+            cloud[:, 0] = grid.x_min_m + (cells % grid.nx + 0.5) * grid.pillar_size_m
+            cloud[:, 1] = grid.y_min_m + (cells // grid.nx + 0.5) * grid.pillar_size_m
+            cloud[:, 2] = (grid.z_min_m + grid.z_max_m) / 2
+            self.detect(cloud)
 
     def pillarize(self, points: np.ndarray) -> Pillars:
         return pillarize(points, self.config.grid)

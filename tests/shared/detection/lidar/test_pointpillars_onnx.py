@@ -106,7 +106,27 @@ def test_onnx_detector_does_not_import_torch() -> None:
 
 
 def test_sessions_keep_no_memory_pattern_per_cloud_size(exported) -> None:
-    """Every sweep has its own pillar count: a memory pattern per shape grew RSS by ~37 MB over 600
-    sweeps of random sizes."""
+    """Every sweep has its own pillar count: a memory pattern per shape grew RSS in steps
+    (tests/bench/memory_bench.py)."""
     path, _ = exported
     assert not make_session(path, threads=1).get_session_options().enable_mem_pattern
+    assert make_session(path, threads=1, mem_pattern=True).get_session_options().enable_mem_pattern
+
+
+def test_warm_up_runs_the_most_pillars_first_then_fewer(exported) -> None:
+    """The arena is sized by the densest frame at start (it grew in steps at dense frames in the soak)."""
+    path, _ = exported
+    detector = OnnxPointPillars(path)
+    grid = detector.config.grid
+    counts: list[int] = []
+    infer = detector.infer
+
+    def recording(pillars):
+        counts.append(len(pillars))
+        return infer(pillars)
+
+    detector.infer = recording  # type: ignore[method-assign]
+    detector.warm_up(steps=4)
+    most = min(grid.max_pillars, grid.nx * grid.ny)
+    assert counts[0] == most and counts[-1] == 1 and len(counts) == 5
+    assert counts == sorted(counts, reverse=True)
