@@ -34,6 +34,7 @@ class FoxgloveClient:
     received: list[Received] = field(default_factory=list)
     wanted: Callable[[str], bool] | None = None  # which topics to subscribe to (None: every one)
     keep_payloads: bool = True  # False: keep only topic, times and size (long runs)
+    statuses: list[dict] = field(default_factory=list)  # the server's `status` ops (e.g. refusals)
 
     def __post_init__(self) -> None:
         self._connection = connect(self.url, subprotocols=[SUBPROTOCOL], open_timeout=10)  # type: ignore[list-item]
@@ -58,6 +59,8 @@ class FoxgloveClient:
                 )
 
     def _on_op(self, op: dict) -> None:
+        if op.get("op") == "status":
+            self.statuses.append(op)
         if op.get("op") == "advertise":
             new = []
             for ch in op["channels"]:

@@ -71,6 +71,7 @@ def test_a_foxglove_client_sees_the_table_tracks_and_plans(router: Router, tmp_p
         client.received.clear()
         client.pump(WATCH_S)
     finally:
+        exited = {name: p.returncode for name, p in procs.items() if p.poll() is not None}
         for c in clients:
             c.close()
         for p in procs.values():
@@ -86,7 +87,12 @@ def test_a_foxglove_client_sees_the_table_tracks_and_plans(router: Router, tmp_p
         f"viewer: tracks {rates} Hz, boxes drawn {boxes}, tables {len(tables)}, "
         f"topics {sorted(client.topics())}"
     )
-    assert all(r >= MIN_RATE_HZ for r in rates.values()), rates
+    subscribed = sorted(client.channels[c]["topic"] for c in client.subscribed.values())
+    seen = Counter(r.topic for r in client.received)
+    assert all(r >= MIN_RATE_HZ for r in rates.values()), (
+        f"{rates}; exited {exited}; subscribed {subscribed}; received {dict(seen)}; "
+        f"server statuses {client.statuses[-5:]}"
+    )
     assert all(n > 0 for n in boxes.values()), boxes
     assert tables, "no table"
     table = scene_update(tables[-1].payload)
