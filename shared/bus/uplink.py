@@ -60,7 +60,11 @@ class Uplink:
             self._heard_s = None  # silences count from the next sample on
 
     def heard(self, now_s: float | None = None) -> None:
-        """A sample arrived from the bus (any input, valid or not: the link carried it)."""
+        """A sample arrived from the bus (any input, valid or not: the link carried it). Called for every
+        sample of every subscription: a service that expects no traffic returns at once (the attribute
+        is read without the lock: it is set once, and `expect_traffic` forgets what came before)."""
+        if self._silent_after_s is None:
+            return
         now = self._clock() if now_s is None else now_s
         with self._lock:
             after = self._silent_after_s
