@@ -55,7 +55,9 @@ def sensor_calibration(scene: Scene, sensor_id: str) -> SensorCalibration:
             )
         )
     elif s.lidar is not None:
-        msg.lidar.CopyFrom(LidarSpec(**_proto_fields(LidarSpec, s.lidar.model_dump())))
+        values = s.lidar.model_dump()
+        values["vertical_min_rad"], values["vertical_max_rad"] = s.lidar.vertical_range_rad
+        msg.lidar.CopyFrom(LidarSpec(**_proto_fields(LidarSpec, values)))
     elif s.radar is not None:
         msg.radar.CopyFrom(RadarSpec(**_proto_fields(RadarSpec, s.radar.model_dump())))
         msg.paired_camera_id = s.paired_camera or ""

@@ -15,6 +15,8 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_validator
 
+from shared.devices.robosense import MODELS, firings_per_turn
+
 Id = Annotated[str, StringConstraints(pattern=r"^[a-z0-9][a-z0-9_\-]{0,63}$")]
 Vec2 = tuple[float, float]
 Vec3 = tuple[float, float, float]
@@ -66,22 +68,57 @@ class CameraModel(_Strict):
         return self
 
 
+LidarDevice = Literal["rs16", "rs32"]
+
+
 class LidarModel(_Strict):
+    """A spinning lidar. A generic one spaces `channels` evenly from `vertical_min_rad` to
+    `vertical_max_rad`; a `device` (a Robosense RS-LiDAR-16 / -32, shared/devices/robosense.py) fires
+    the example unit's calibrated channel angles on that device's firing grid at `rpm`, from its lens
+    centre, so that the emulated unit's packets (sim/emulators/robosense.py) carry exactly these rays."""
+
     channels: int = Field(gt=0)
     horizontal_samples: int = Field(gt=0, description="rays per revolution")
-    vertical_min_rad: float = Field(ge=-math.pi / 2, le=math.pi / 2)
-    vertical_max_rad: float = Field(ge=-math.pi / 2, le=math.pi / 2)
+    vertical_min_rad: float | None = Field(None, ge=-math.pi / 2, le=math.pi / 2, description="generic only")
+    vertical_max_rad: float | None = Field(None, ge=-math.pi / 2, le=math.pi / 2, description="generic only")
     min_range_m: float = Field(ge=0)
     max_range_m: float = Field(gt=0)
     range_noise_std_m: float = Field(0.0, ge=0)
+    device: LidarDevice | None = Field(None, description="a real model's channel angles and firing grid")
+    rpm: Literal[300, 600, 1200] = Field(600, description="device motor speed (10 Hz = 600)")
 
     @model_validator(mode="after")
     def _check(self) -> LidarModel:
-        if self.vertical_max_rad < self.vertical_min_rad:
-            raise ValueError("vertical_max_rad < vertical_min_rad")
+        if self.device is None:
+            if self.vertical_min_rad is None or self.vertical_max_rad is None:
+                raise ValueError("a generic lidar needs vertical_min_rad and vertical_max_rad")
+            if self.vertical_max_rad < self.vertical_min_rad:
+                raise ValueError("vertical_max_rad < vertical_min_rad")
+        else:
+            model = MODELS[self.device]
+            if self.vertical_min_rad is not None or self.vertical_max_rad is not None:
+                raise ValueError(
+                    f"{self.device}: the channel angles are the device's, give no vertical range"
+                )
+            if self.channels != model.lasers:
+                raise ValueError(f"{self.device} has {model.lasers} channels, not {self.channels}")
+            if self.horizontal_samples > firings_per_turn(model, self.rpm):
+                raise ValueError(
+                    f"{self.device} at {self.rpm} rpm fires {firings_per_turn(model, self.rpm)} times a "
+                    f"turn: horizontal_samples {self.horizontal_samples} is more"
+                )
         if self.max_range_m <= self.min_range_m:
             raise ValueError("max_range_m must exceed min_range_m")
         return self
+
+    @property
+    def vertical_range_rad(self) -> tuple[float, float]:
+        """Lowest and highest channel elevation."""
+        if self.device is None:
+            assert self.vertical_min_rad is not None and self.vertical_max_rad is not None
+            return self.vertical_min_rad, self.vertical_max_rad
+        table = MODELS[self.device].example_vertical_deg
+        return math.radians(min(table)), math.radians(max(table))
 
 
 class RadarModel(_Strict):

@@ -1,8 +1,12 @@
 """Lidar model: spinning multi-channel lidar, fast because the scene is static.
 
-At construction every ray of one revolution (channels evenly spaced from `vertical_min_rad` to
-`vertical_max_rad` inclusive, `horizontal_samples` azimuths over 360 deg, azimuth 0 = sensor +x,
-counter-clockwise) is ray-cast once against the static world and its range kept. Each scan, only the
+At construction every ray of one revolution is ray-cast once against the static world and its range
+kept. A generic lidar's rays start at the sensor origin: channels evenly spaced from
+`vertical_min_rad` to `vertical_max_rad` inclusive, `horizontal_samples` azimuths over 360 deg,
+azimuth 0 = sensor +x, counter-clockwise. A device lidar (`LidarModel.device`, a Robosense unit) fires
+the device's rays: azimuth sample i is the device's firing `firing_of_sample` (clockwise from +x, as
+the unit spins), each channel at the example unit's calibrated angles, from the lens centre, so the
+emulated unit's packets describe exactly these rays (range = distance from the lens). Each scan, only the
 rays that can reach a vehicle (ray vs the vehicle's oriented box, vectorised) are cast against the
 vehicle world, each truncated at its static range, so static obstacles occlude vehicles and vehicles
 occlude the scene. Gaussian range noise is added along the ray; returns outside
@@ -22,6 +26,7 @@ from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from scipy.spatial.transform import Rotation
 
+from shared.devices import robosense
 from shared.perception.decode import FLOAT32_BYTES, POINT_DTYPE, POINT_FIELDS
 from shared.scene.model import LidarModel
 from shared.scene.scene import Scene
@@ -78,14 +83,34 @@ def ray_directions(model: LidarModel) -> tuple[np.ndarray, np.ndarray]:
     return dirs.reshape(-1, 3), channel
 
 
+def ray_layout(model: LidarModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Ray origins (R, 3), unit directions (R, 3) in the sensor frame and each ray's channel (R,),
+    channel-major (ray = channel * horizontal_samples + azimuth sample)."""
+    if model.device is None:
+        dirs, channel = ray_directions(model)
+        return np.zeros_like(dirs), dirs, channel
+    device = robosense.MODELS[model.device]
+    geometry = robosense.firing_geometry(
+        device, model.rpm, np.asarray(device.example_vertical_deg), np.asarray(device.example_horizontal_deg)
+    )
+    firing = robosense.firing_of_sample(model.horizontal_samples, len(geometry.firing_az))
+    # (F, L, 3) -> (L, H, 3): channel-major over the sampled firings
+    origins = geometry.origin_m[firing].transpose(1, 0, 2).reshape(-1, 3)
+    dirs = geometry.direction[firing].transpose(1, 0, 2).reshape(-1, 3)
+    channel = np.repeat(np.arange(model.channels, dtype=np.int32), model.horizontal_samples)
+    return origins, dirs, channel
+
+
 def cast_rays(client: int, origin: np.ndarray, ends: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Ray-cast segments origin -> ends (R, 3) in chunks; hit fraction (R,; inf = none), body id (R,)."""
+    """Ray-cast segments origin -> ends (R, 3) in chunks (origin (3,) or one per ray (R, 3)); hit
+    fraction (R,; inf = none), body id (R,)."""
     fraction = np.full(len(ends), np.inf)
     body = np.full(len(ends), NO_HIT_BODY, np.int64)
-    starts = np.broadcast_to(origin, (min(len(ends), RAY_BATCH_SIZE), 3)).tolist()
+    origins = np.broadcast_to(origin, ends.shape)
     for i in range(0, len(ends), RAY_BATCH_SIZE):
         chunk = ends[i : i + RAY_BATCH_SIZE]
-        results = pb.rayTestBatch(starts[: len(chunk)], chunk.tolist(), physicsClientId=client)
+        starts = origins[i : i + RAY_BATCH_SIZE].tolist()
+        results = pb.rayTestBatch(starts, chunk.tolist(), physicsClientId=client)
         ids = np.fromiter((r[0] for r in results), np.int64, len(results))
         frac = np.fromiter((r[2] for r in results), np.float64, len(results))
         hit = ids != NO_HIT_BODY
@@ -149,11 +174,12 @@ class LidarSimulator:
         self.model = model or spec.lidar
         self.vehicles = vehicles
         T = np.asarray(scene.T_world_from_sensor(sensor_id))
-        self.dirs_sensor, self.channel = ray_directions(self.model)
+        self.origins_sensor, self.dirs_sensor, self.channel = ray_layout(self.model)
         self.origin = T[:3, 3].copy()
+        self.origins_world = self.origins_sensor @ T[:3, :3].T + self.origin
         self.dirs_world = self.dirs_sensor @ T[:3, :3].T
         fraction, body = cast_rays(
-            static.cid, self.origin, self.origin + self.dirs_world * self.model.max_range_m
+            static.cid, self.origins_world, self.origins_world + self.dirs_world * self.model.max_range_m
         )
         self.static_range_m = fraction * self.model.max_range_m
         self.static_range_m.setflags(write=False)
@@ -163,7 +189,10 @@ class LidarSimulator:
         self.static_intensity = np.array(
             [STATIC_INTENSITY.get(k, INTENSITY_OBJECT) for k in self.static_kind], np.float32
         )
-        self._half_m = np.asarray(vehicles.size_m) / 2 + CANDIDATE_MARGIN_M
+        # Rays leave from up to the lens offset away from the sensor origin: the candidate test (rays
+        # from the origin) sees boxes grown by that much.
+        lens_m = float(np.max(np.linalg.norm(self.origins_sensor, axis=1)))
+        self._half_m = np.asarray(vehicles.size_m) / 2 + CANDIDATE_MARGIN_M + lens_m
 
     @property
     def num_rays(self) -> int:
@@ -186,8 +215,9 @@ class LidarSimulator:
         rays = self.candidate_rays(poses)
         if len(rays):
             length = np.minimum(self.static_range_m[rays], self.model.max_range_m)
-            ends = self.origin + self.dirs_world[rays] * length[:, None]
-            fraction, body = cast_rays(self.vehicles.cid, self.origin, ends)
+            starts = self.origins_world[rays]
+            ends = starts + self.dirs_world[rays] * length[:, None]
+            fraction, body = cast_rays(self.vehicles.cid, starts, ends)
             index = {p.vehicle_id: i for i, p in enumerate(poses)}
             hit_vehicle = np.array(
                 [index.get(self.vehicles.body_vehicle.get(int(b), ""), -1) for b in body], np.int64
@@ -209,7 +239,9 @@ class LidarSimulator:
         ids = np.array([p.vehicle_id for p in poses] + [""])
         return LidarScan(
             sensor_id=self.sensor_id,
-            points_m=(self.dirs_sensor[rays] * measured[:, None]).astype(np.float32),
+            points_m=(self.origins_sensor[rays] + self.dirs_sensor[rays] * measured[:, None]).astype(
+                np.float32
+            ),
             intensity=np.where(on_vehicle, np.float32(INTENSITY_VEHICLE), self.static_intensity[rays]),
             vehicle_ids=ids[vehicle],  # index -1 picks the trailing ""
             ray_index=rays.astype(np.int32),
