@@ -49,12 +49,16 @@ class SimTime:
         self._wall_ns = 0  # ... and the wall time it was heard
         self._speed = 1.0
         self._tick_hz: float | None = None
+        self._epoch_ns: int | None = None
         self.samples = 0
 
-    def on_clock(self, sim_ns: int, speed: float, wall_ns: int | None = None, step_s: float = 0.0) -> None:
+    def on_clock(
+        self, sim_ns: int, speed: float, wall_ns: int | None = None, step_s: float = 0.0, epoch_ns: int = 0
+    ) -> None:
         """A SimClock sample: sim time `sim_ns`, the sim's target speed (sim s per wall s; 0, as fast
-        as possible, runs on at 1x) and its tick period `step_s` (0: unknown). A restarted sim may move
-        the clock back: its samples are taken as they come."""
+        as possible, runs on at 1x), its tick period `step_s` (0: unknown) and the stamp of its run's
+        tick 0 `epoch_ns` (Header.epoch; 0: unknown). A restarted sim may move the clock back: its
+        samples are taken as they come."""
         wall = time.time_ns() if wall_ns is None else wall_ns
         with self._lock:
             self._sim_ns = sim_ns
@@ -63,6 +67,8 @@ class SimTime:
             if step_s > 0:
                 # Rounded: tick arithmetic (shared.scene.cadence) needs 60.0, not 59.99999999999999.
                 self._tick_hz = round(1.0 / step_s, TICK_HZ_DECIMALS)
+            if epoch_ns > 0:
+                self._epoch_ns = epoch_ns
             self.samples += 1
 
     @property
@@ -70,6 +76,12 @@ class SimTime:
         """The sim's ticks per simulated second, once a clock sample named it (None: no sim, or unknown)."""
         with self._lock:
             return self._tick_hz
+
+    @property
+    def epoch_ns(self) -> int | None:
+        """Stamp of the sim run's tick 0 (Header.epoch), once a clock sample named it."""
+        with self._lock:
+            return self._epoch_ns
 
     @property
     def speed(self) -> float:

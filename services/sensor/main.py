@@ -14,6 +14,13 @@ frames `Scene.captures_on` names (staggered: one camera per frame, not all on on
 the demand is renewed. Sensor noise is drawn from a generator seeded by (scenario seed, sensor,
 tick), so a rerun with one seed gives identical data whatever the timing. Killing this process stops
 only its group (the fault-injection test "a sensor service dies").
+
+    python -m services.sensor --group agent1-lidars --wire deploy/devices/sand_table_wire.yaml
+
+With `--wire SITE` the group is its devices instead: each capture goes out in the wire format of the
+device the site file names (sim/emulators/group.py) and nothing is published on the bus; the device
+service (services/device) reads the wire and publishes. The process is then the `emulator` service
+(presence `<agent>/emulator/<group>`), so the device service alone holds the group's sensor presence.
 """
 
 from __future__ import annotations
@@ -30,7 +37,8 @@ from rmmdet.v1.sim_pb2 import GroundTruth
 from shared.bus.health import NOMINAL
 from shared.bus.node import Node, Publisher, Received, processing_stamp
 from shared.bus.ordering import OrderGate, reset_after_ticks
-from shared.bus.streams import SENSOR_STREAM, limits, sensor_group
+from shared.bus.streams import SENSOR_STREAM, limits
+from shared.devices.site import SiteFile
 from shared.paths import DEFAULT_SCENE
 from shared.scene.cadence import CaptureDemands
 from shared.scene.model import SensorSpec
@@ -38,6 +46,7 @@ from shared.scene.scene import Scene
 from shared.service import run_service
 from shared.shutdown import GracefulShutdown
 from shared.timebase import SimTime
+from sim.emulators.group import WireGroup
 from sim.sensors.rig import SensorRig
 
 log = logging.getLogger("services.sensor")
@@ -47,14 +56,10 @@ DEMAND_QUEUE = 16  # capture demands: one per consumer per second
 
 
 def parse_group(scene: Scene, group: str) -> list[SensorSpec]:
-    agent, _, kinds = group.rpartition("-")
-    kind = kinds.rstrip("s")
-    if agent not in scene.agents or kind not in SENSOR_STREAM or group != sensor_group(agent, kind):
-        raise SystemExit(f"unknown sensor group {group!r}: expected <agent>-<cameras|lidars|radars>")
-    sensors = scene.sensors_of(agent, kind)  # type: ignore[arg-type]
-    if not sensors:
-        raise SystemExit(f"sensor group {group!r} has no sensors in scene {scene.scene_id}")
-    return sensors
+    try:
+        return scene.group_sensors(group)
+    except ValueError as exc:
+        raise SystemExit(str(exc)) from None
 
 
 def newest_due(
@@ -84,85 +89,109 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             )
         specs = [s for s in specs if s.id in wanted]
     agent, kind = specs[0].agent, specs[0].kind
-    t0 = time.perf_counter()
-    with (
-        SensorRig(scene, specs) as rig,
-        Node(conf, service="sensor", instance=args.group, scope=agent, stop=shutdown.event) as node,
-    ):
-        log.info("group %s: %d sensors ready in %.2f s", args.group, len(specs), time.perf_counter() - t0)
-        pubs: dict[str, Publisher] = {
-            spec.id: node.publisher(
-                SENSOR_STREAM[spec.kind], agent=agent, sensor=spec.id, source_id=f"{agent}/{spec.id}"
+    wire: WireGroup | None = None
+    if args.wire is not None:
+        site = SiteFile.load(args.wire)
+        try:
+            wire = WireGroup(site, specs)
+        except (ValueError, KeyError, OSError) as exc:
+            raise SystemExit(f"--wire {args.wire}: {exc}") from None
+    try:
+        t0 = time.perf_counter()
+        service = "sensor" if wire is None else "emulator"
+        with (
+            SensorRig(scene, specs) as rig,
+            Node(conf, service=service, instance=args.group, scope=agent, stop=shutdown.event) as node,
+        ):
+            log.info("group %s: %d sensors ready in %.2f s", args.group, len(specs), time.perf_counter() - t0)
+            pubs: dict[str, Publisher] = (
+                {
+                    spec.id: node.publisher(
+                        SENSOR_STREAM[spec.kind], agent=agent, sensor=spec.id, source_id=f"{agent}/{spec.id}"
+                    )
+                    for spec in specs
+                }
+                if wire is None
+                else {}
             )
-            for spec in specs
-        }
-        # Ground truth ahead of the sim's own clock is refused, and the tick order restarts with a
-        # new sim run (epoch) or after a bogus tick (shared/bus/ordering.py): nothing latches it.
-        sim_time = SimTime()
-        node.follow_sim_time(sim_time)
-        bus_limits = limits()
-        gt_sub = node.subscribe_stream(
-            "ground_truth", maxsize=GT_QUEUE, clock_s=sim_time.now_s, max_future_s=bus_limits.max_clock_skew_s
-        )
-        ticks: OrderGate | None = None
-        demand_sub = node.subscribe_stream("capture_demand", agent=agent, kind=kind, maxsize=DEMAND_QUEUE)
-        demands = CaptureDemands()
-        stats = {"frames": 0, "skipped": 0, "last_tick": -1, "every_n": 1}
-
-        def status() -> tuple[int, str]:
-            return (
-                NOMINAL,
-                f"{len(specs)} sensors, {stats['frames']} frames, tick {stats['last_tick']}, "
-                f"{stats['skipped']} ticks skipped, every {stats['every_n']} frame(s)",
+            # Ground truth ahead of the sim's own clock is refused, and the tick order restarts with a
+            # new sim run (epoch) or after a bogus tick (shared/bus/ordering.py): nothing latches it.
+            sim_time = SimTime()
+            node.follow_sim_time(sim_time)
+            bus_limits = limits()
+            gt_sub = node.subscribe_stream(
+                "ground_truth",
+                maxsize=GT_QUEUE,
+                clock_s=sim_time.now_s,
+                max_future_s=bus_limits.max_clock_skew_s,
             )
+            ticks: OrderGate | None = None
+            demand_sub = node.subscribe_stream("capture_demand", agent=agent, kind=kind, maxsize=DEMAND_QUEUE)
+            demands = CaptureDemands()
+            stats = {"frames": 0, "skipped": 0, "last_tick": -1, "every_n": 1}
 
-        node.health.set_status(status)
-        last_log = time.monotonic()
-        while not shutdown.requested:
-            node.health.beat()
-            received = gt_sub.recv(timeout=0.1)
-            if received is None:
-                continue
-            now = time.monotonic()
-            for demand in demand_sub.drain():
-                if not demands.on_demand(
-                    demand.header.source_id, demand.message.every_n, demand.message.valid_for_s, now
-                ):
-                    node.counters.inc("rejected/capture_demand")
-            every_n = demands.every_n(now)
-            if every_n != stats["every_n"]:
-                log.info("capturing every %d frame(s) (was %d)", every_n, stats["every_n"])
-                stats["every_n"] = every_n
-            due, skipped = newest_due([received, *gt_sub.drain()], scene, specs, every_n)
-            stats["skipped"] += skipped
-            node.counters.inc("frames/skipped_ticks", skipped)
-            if due is None:
-                continue
-            gt: GroundTruth = due.message
-            if ticks is None:
-                ticks = OrderGate(reset_after_ticks(gt.tick_hz))
-            if not ticks.admit(gt.header.epoch, gt.header.tick):
-                continue
-            stats["last_tick"] = gt.header.tick
-            for capture in rig.captures(gt, every_n=every_n):  # each published as soon as made
-                stage = processing_stamp(f"sensor/{capture.spec.kind}", capture.start_ns, capture.end_ns)
-                pub = pubs[capture.spec.id]
-                header = pub.next_header(derived_from=gt.header, frame_id=capture.spec.id)
-                if hasattr(capture.message, "header"):
-                    capture.message.header.CopyFrom(header)
-                pub.put(capture.message, header, stages=[stage])
-                stats["frames"] += 1
-                node.counters.inc(f"frames/{capture.spec.kind}")
-            now = time.monotonic()
-            if now - last_log >= args.report_interval_s:
-                log.info(
-                    "%d frames published, tick %d, %d ticks skipped, tick order restarted %d times",
-                    stats["frames"],
-                    stats["last_tick"],
-                    stats["skipped"],
-                    ticks.restarts if ticks is not None else 0,
+            def status() -> tuple[int, str]:
+                return (
+                    NOMINAL,
+                    f"{len(specs)} sensors, {stats['frames']} frames, tick {stats['last_tick']}, "
+                    f"{stats['skipped']} ticks skipped, every {stats['every_n']} frame(s)"
+                    + (f"; on the wire: {wire.status()}" if wire is not None else ""),
                 )
-                last_log = now
+
+            node.health.set_status(status)
+            last_log = time.monotonic()
+            while not shutdown.requested:
+                node.health.beat()
+                received = gt_sub.recv(timeout=0.1)
+                if received is None:
+                    continue
+                now = time.monotonic()
+                for demand in demand_sub.drain():
+                    if not demands.on_demand(
+                        demand.header.source_id, demand.message.every_n, demand.message.valid_for_s, now
+                    ):
+                        node.counters.inc("rejected/capture_demand")
+                every_n = demands.every_n(now)
+                if every_n != stats["every_n"]:
+                    log.info("capturing every %d frame(s) (was %d)", every_n, stats["every_n"])
+                    stats["every_n"] = every_n
+                due, skipped = newest_due([received, *gt_sub.drain()], scene, specs, every_n)
+                stats["skipped"] += skipped
+                node.counters.inc("frames/skipped_ticks", skipped)
+                if due is None:
+                    continue
+                gt: GroundTruth = due.message
+                if ticks is None:
+                    ticks = OrderGate(reset_after_ticks(gt.tick_hz))
+                if not ticks.admit(gt.header.epoch, gt.header.tick):
+                    continue
+                stats["last_tick"] = gt.header.tick
+                for capture in rig.captures(gt, every_n=every_n):  # each published as soon as made
+                    stats["frames"] += 1
+                    if wire is not None:
+                        wire.send(capture)
+                        node.counters.inc(f"frames/{capture.spec.kind}")
+                        continue
+                    stage = processing_stamp(f"sensor/{capture.spec.kind}", capture.start_ns, capture.end_ns)
+                    pub = pubs[capture.spec.id]
+                    header = pub.next_header(derived_from=gt.header, frame_id=capture.spec.id)
+                    if hasattr(capture.message, "header"):
+                        capture.message.header.CopyFrom(header)
+                    pub.put(capture.message, header, stages=[stage])
+                    node.counters.inc(f"frames/{capture.spec.kind}")
+                now = time.monotonic()
+                if now - last_log >= args.report_interval_s:
+                    log.info(
+                        "%d frames published, tick %d, %d ticks skipped, tick order restarted %d times",
+                        stats["frames"],
+                        stats["last_tick"],
+                        stats["skipped"],
+                        ticks.restarts if ticks is not None else 0,
+                    )
+                    last_log = now
+    finally:
+        if wire is not None:
+            wire.close()
     return 0
 
 
@@ -170,6 +199,7 @@ def add_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--group", required=True, help="sensor group: <agent>-<cameras|lidars|radars>")
     parser.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="scene YAML")
     parser.add_argument("--only", help="comma-separated subset of the group's sensors (tests)")
+    parser.add_argument("--wire", type=Path, help="site file: emulate the group's devices on the wire")
     parser.add_argument("--report-interval-s", type=float, default=10.0, help="log interval")
 
 

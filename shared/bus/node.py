@@ -484,7 +484,12 @@ class Node:
                 decoded = decoder.decode(sample.payload.to_bytes(), str(sample.encoding))
                 if decoded is not None:
                     clock: SimClock = decoded.message
-                    sim_time.on_clock(clock.sim_time.ToNanoseconds(), clock.target_speed, step_s=clock.step_s)
+                    sim_time.on_clock(
+                        clock.sim_time.ToNanoseconds(),
+                        clock.target_speed,
+                        step_s=clock.step_s,
+                        epoch_ns=decoded.header.epoch,
+                    )
             except Exception:  # never raise on Zenoh's thread
                 self.counters.inc("rejected/internal")
                 log.exception("sim clock callback failed")

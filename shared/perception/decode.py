@@ -29,6 +29,20 @@ POINT_DTYPE = np.dtype("<f4")
 IMAGE_FORMATS = ("jpeg", "jpg", "png")
 
 
+def point_cloud_message(
+    points_m: np.ndarray, intensity: np.ndarray, frame_id: str, stamp_ns: int
+) -> PointCloud:
+    """foxglove.PointCloud of (N, 3) points and (N,) intensities in [0, 1]: x, y, z, intensity as
+    little-endian float32, identity pose in `frame_id` (what every lidar source publishes)."""
+    msg = PointCloud(frame_id=frame_id, point_stride=FLOAT32_BYTES * len(POINT_FIELDS))
+    msg.timestamp.FromNanoseconds(stamp_ns)
+    msg.pose.orientation.w = 1.0
+    for i, name in enumerate(POINT_FIELDS):
+        msg.fields.add(name=name, offset=i * FLOAT32_BYTES, type=PackedElementField.FLOAT32)
+    msg.data = np.column_stack([points_m, intensity]).astype(POINT_DTYPE).tobytes()
+    return msg
+
+
 def point_cloud_to_array(msg: PointCloud) -> np.ndarray:
     """(N, 4) float32 x, y, z, intensity of a foxglove.PointCloud with float32 fields by those names."""
     offsets = {f.name: f.offset for f in msg.fields if f.type == PackedElementField.FLOAT32}

@@ -8,12 +8,14 @@ K = scene.K("cam_11")                         # from resolution and field of vie
 from __future__ import annotations
 
 import functools
+import math
 from pathlib import Path
 
 import numpy as np
 import shapely
 from pydantic import ValidationError
 
+from shared.bus.streams import SENSOR_STREAM, sensor_group
 from shared.config import ConfigError, read_yaml
 from shared.geometry.camera import intrinsics_from_fov
 from shared.geometry.grid import CellGrid
@@ -86,6 +88,28 @@ class Scene:
         (`cadence.frame_due`)."""
         offset = self.agents[spec.agent].sensor_phase_ticks
         return frame_due(spec.rate_hz, every_n, tick, tick_hz, self._capture_phase[spec.id], offset)
+
+    def group_sensors(self, group: str) -> list[SensorSpec]:
+        """The sensors of sensor group `group` (`<agent>-<kind>s`, shared.bus.streams.sensor_group);
+        ValueError for a group that is not one of this scene's."""
+        agent, _, kinds = group.rpartition("-")
+        kind = kinds.removesuffix("s")
+        if agent not in self.agents or kind not in SENSOR_STREAM or group != sensor_group(agent, kind):
+            raise ValueError(f"unknown sensor group {group!r}: expected <agent>-<cameras|lidars|radars>")
+        sensors = self.sensors_of(agent, kind)  # type: ignore[arg-type]
+        if not sensors:
+            raise ValueError(f"sensor group {group!r} has no sensors in scene {self.scene_id}")
+        return sensors
+
+    def latest_capture_tick(self, spec: SensorSpec, tick: float, tick_hz: float) -> int | None:
+        """The last tick at or before `tick` (fractional) on which `spec` captures at full cadence,
+        searched back one of its periods (None: none there, e.g. before the sim's first capture)."""
+        period = max(1, math.ceil(tick_hz / spec.rate_hz))
+        last = math.floor(tick)
+        for k in range(last, max(-1, last - period - 1), -1):
+            if self.captures_on(spec, k, tick_hz):
+                return k
+        return None
 
     def agents_capturing_on(self, tick: int, tick_hz: float) -> frozenset[str]:
         """The agents some sensor of which captures on `tick` (at full cadence)."""

@@ -16,8 +16,11 @@ share of the revolution period, as the unit's clock (locked to GPS: DIFOP says s
 from __future__ import annotations
 
 import calendar
+import socket
 import struct
+import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -199,3 +202,88 @@ def temperature_le(celsius: float) -> bytes:
     parseTempInLe)."""
     units = round(abs(celsius) / 0.0625)
     return bytes([(units & 0x1F) << 3, (0x80 if celsius < 0 else 0) | ((units >> 5) & 0x7F)])
+
+
+@dataclass
+class _Turn:
+    packets: list[bytes]
+    first_ns: int  # wall time the first packet is due
+    next: int = 0
+
+
+class LidarSender:
+    """Sends an emulated unit's packets over UDP as the unit does: a revolution's MSOP packets spread
+    over the revolution (packet k at start + k x period / packets: the last one leaves as the turn
+    ends, so a frame is complete one period after its first firing, as with the device) and a DIFOP
+    once a second. A revolution handed in while the previous one is still going out has that one's
+    remaining packets sent at once first (counted in `hurried`): the emulated unit's turns follow the
+    sim's ticks, which jitter, and no return is lost to it."""
+
+    def __init__(
+        self, emulator: RobosenseEmulator, host: str, msop_port: int, difop_port: int, paced: bool = True
+    ) -> None:
+        self.emulator = emulator
+        self.msop_addr = (host, msop_port)
+        self.difop_addr = (host, difop_port)
+        self.paced = paced
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sent = 0
+        self.hurried = 0  # turns whose tail was sent at once because the next one was due
+        self.withheld_difop = False  # fault injection: stop sending DIFOP
+        self.cut_after: int | None = None  # fault injection: send only the first n packets of each turn
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._turns: deque[_Turn] = deque()
+        self._thread = threading.Thread(target=self._run, name="lidar-sender", daemon=True)
+        self._thread.start()
+
+    def send_turn(self, packets: list[bytes]) -> None:
+        with self._lock:
+            if self._turns and self._turns[-1].next < len(self._turns[-1].packets):
+                self.hurried += 1  # the previous turn's remaining packets go out at once
+            self._turns.append(_Turn(list(packets), time.time_ns()))
+        self._wake.set()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        self._thread.join(timeout=2.0)
+        self.sock.close()
+
+    def _run(self) -> None:
+        interval_ns = self.emulator.period_ns // max(self.emulator.packets_per_turn, 1)
+        next_difop = time.monotonic()
+        while not self._stop.is_set():
+            if time.monotonic() >= next_difop:
+                if not self.withheld_difop:
+                    self._send(self.emulator.difop_packet(time.time_ns()), self.difop_addr)
+                next_difop = time.monotonic() + 1.0
+            packet, index, wait_s = None, 0, 0.05
+            with self._lock:
+                while self._turns and self._turns[0].next >= len(self._turns[0].packets):
+                    self._turns.popleft()
+                if self._turns:
+                    turn = self._turns[0]
+                    # A turn with another queued behind it is late: the rest of it goes out now.
+                    paced = self.paced and len(self._turns) == 1
+                    due_ns = turn.first_ns + turn.next * interval_ns if paced else 0
+                    now_ns = time.time_ns()
+                    if now_ns >= due_ns:
+                        packet, index = turn.packets[turn.next], turn.next
+                        turn.next += 1
+                    else:
+                        wait_s = (due_ns - now_ns) / 1e9
+            if packet is not None:
+                if self.cut_after is None or index < self.cut_after:
+                    self._send(packet, self.msop_addr)
+                continue
+            self._wake.wait(max(0.0, min(wait_s, next_difop - time.monotonic())))
+            self._wake.clear()
+
+    def _send(self, data: bytes, addr: tuple[str, int]) -> None:
+        try:
+            self.sock.sendto(data, addr)
+            self.sent += 1
+        except OSError:
+            pass  # nobody listening (ICMP refused) or the network is down: a device sends regardless

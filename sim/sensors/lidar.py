@@ -22,12 +22,11 @@ from dataclasses import dataclass
 
 import numpy as np
 import pybullet as pb
-from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from scipy.spatial.transform import Rotation
 
 from shared.devices import robosense
-from shared.perception.decode import FLOAT32_BYTES, POINT_DTYPE, POINT_FIELDS
+from shared.perception.decode import point_cloud_message
 from shared.scene.model import LidarModel
 from shared.scene.scene import Scene
 from sim.world import StaticWorld, VehiclePose, VehicleWorld
@@ -43,9 +42,6 @@ INTENSITY_TABLE = 0.15
 INTENSITY_STRUCTURE = 0.45  # viaduct deck, pillars
 INTENSITY_OBJECT = 0.6  # buildings, poles, other static objects
 STATIC_INTENSITY = {"table": INTENSITY_TABLE, "viaduct": INTENSITY_STRUCTURE, "pillar": INTENSITY_STRUCTURE}
-
-# foxglove.PointCloud layout: x, y, z, intensity, little-endian float32 (see shared.perception.decode).
-POINT_STRIDE_BYTES = FLOAT32_BYTES * len(POINT_FIELDS)
 
 
 @dataclass(frozen=True)
@@ -251,12 +247,5 @@ class LidarSimulator:
 
 
 def to_point_cloud(scan: LidarScan, frame_id: str, stamp_ns: int) -> PointCloud:
-    """foxglove.PointCloud of a scan: x, y, z, intensity as float32, identity pose in `frame_id`."""
-    msg = PointCloud(frame_id=frame_id, point_stride=POINT_STRIDE_BYTES)
-    msg.timestamp.FromNanoseconds(stamp_ns)
-    msg.pose.orientation.w = 1.0
-    for i, name in enumerate(POINT_FIELDS):
-        msg.fields.add(name=name, offset=i * FLOAT32_BYTES, type=PackedElementField.FLOAT32)
-    data = np.column_stack([scan.points_m, scan.intensity]).astype(POINT_DTYPE)
-    msg.data = data.tobytes()
-    return msg
+    """foxglove.PointCloud of a scan (shared.perception.decode.point_cloud_message)."""
+    return point_cloud_message(scan.points_m, scan.intensity, frame_id, stamp_ns)

@@ -15,7 +15,6 @@ from shared.scene.scene import Scene
 from sim.config import TrafficSettings
 from sim.sensors.lidar import (
     INTENSITY_VEHICLE,
-    POINT_STRIDE_BYTES,
     RAY_BATCH_SIZE,
     LidarScan,
     LidarSimulator,
@@ -245,10 +244,10 @@ def test_point_cloud_round_trip(scene: Scene, lidar: LidarSimulator, vehicles: V
     msg = to_point_cloud(scan, LIDAR, stamp_ns)
     assert msg.frame_id == LIDAR
     assert msg.timestamp.ToNanoseconds() == stamp_ns
-    assert msg.point_stride == POINT_STRIDE_BYTES == 16
+    assert msg.point_stride == 16
     assert [f.name for f in msg.fields] == ["x", "y", "z", "intensity"]
     assert msg.pose.orientation.w == 1.0 and msg.pose.position.x == 0.0
-    assert len(msg.data) == len(scan) * POINT_STRIDE_BYTES
+    assert len(msg.data) == len(scan) * 16
     decoded = from_point_cloud(type(msg).FromString(msg.SerializeToString()))
     assert decoded.dtype == np.float32
     np.testing.assert_array_equal(decoded, np.column_stack([scan.points_m, scan.intensity]))

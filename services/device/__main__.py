@@ -1,0 +1,5 @@
+import sys
+
+from services.device.main import cli
+
+sys.exit(cli())

@@ -1,0 +1,183 @@
+"""Device service: one sensor group's real (or emulated) devices onto the bus, as the simulator's group.
+
+    python -m services.device --group agent1-lidars --site deploy/devices/sand_table_wire.yaml
+
+Every sensor of the group must be in the site file (shared/devices/site.py), which says what device
+it is and where it is reached: Robosense lidars on their MSOP / DIFOP UDP ports, ARS 408 radars on a
+CAN bus, cameras on a stream URL. Each device is read on its own thread (shared/devices/sources.py)
+and each frame published on the keys, with the frame ids, header fields and message types the sim's
+sensor service uses, under the same presence (`<agent>/sensor/<agent>-<kind>s`): a MEC cannot tell
+the two apart. Stamps follow the site file's clock per sensor; under a sim clock each frame also gets
+its capture tick (shared/devices/stamping.py). Cameras honour capture demands as the sim's cameras do:
+a frame is published only if its camera is due at the demanded cadence (by tick under a sim, else
+every n-th frame).
+
+Health: NOMINAL while every device delivers; DEGRADED naming each device that does not (no DIFOP yet,
+radar not configured, bus-off, stream down, silent), with per-device counters of what was refused.
+A device that fails is reopened with backoff; the service itself never needs a restart for it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import queue
+import sys
+import time
+from pathlib import Path
+
+import zenoh
+
+from services.sensor.main import parse_group
+from shared.bus.health import DEGRADED, NOMINAL
+from shared.bus.node import Node, Publisher, processing_stamp
+from shared.bus.streams import SENSOR_STREAM
+from shared.devices.site import SiteFile
+from shared.devices.sources import CameraSource, LidarSource, Output, OutputFn, RadarSource, Source
+from shared.devices.stamping import Stamper
+from shared.scene.cadence import CaptureDemands
+from shared.scene.model import SensorSpec
+from shared.scene.scene import Scene
+from shared.service import run_service
+from shared.shutdown import GracefulShutdown
+from shared.timebase import SimTime
+
+log = logging.getLogger("services.device")
+
+OUTPUT_QUEUE = 64
+DEMAND_QUEUE = 16
+
+
+def build_source(site: SiteFile, spec: SensorSpec, emit: OutputFn) -> Source:
+    device = site.device(spec.id)
+    if device.device in ("rs16", "rs32"):
+        return LidarSource(spec.id, device, emit)  # type: ignore[arg-type]
+    if device.device == "ars408":
+        return RadarSource(spec.id, device, emit)  # type: ignore[arg-type]
+    return CameraSource(spec.id, device, emit)  # type: ignore[arg-type]
+
+
+def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
+    site = SiteFile.load(args.site)
+    scene = Scene.load(site.scene)
+    site.check_against({s.id: s.kind for s in scene.spec.sensors})
+    specs = parse_group(scene, args.group)
+    agent, kind = specs[0].agent, specs[0].kind
+    outputs: queue.Queue[Output] = queue.Queue(maxsize=OUTPUT_QUEUE)
+    dropped = {"queue_full": 0}
+
+    def emit(output: Output) -> None:
+        try:
+            outputs.put_nowait(output)
+        except queue.Full:  # the publisher fell behind: the newest frames matter, count the loss
+            dropped["queue_full"] += 1
+
+    with Node(conf, service="sensor", instance=args.group, scope=agent, stop=shutdown.event) as node:
+        sim_time = SimTime()
+        node.follow_sim_time(sim_time)
+        sources = {spec.id: build_source(site, spec, emit) for spec in specs}
+        by_id = {spec.id: spec for spec in specs}
+        stampers = {spec.id: Stamper(scene, spec, sim_time, site.device(spec.id).latency_s) for spec in specs}
+        pubs: dict[str, Publisher] = {
+            spec.id: node.publisher(
+                SENSOR_STREAM[kind], agent=agent, sensor=spec.id, source_id=f"{agent}/{spec.id}"
+            )
+            for spec in specs
+        }
+        demand_sub = (
+            node.subscribe_stream("capture_demand", agent=agent, kind=kind, maxsize=DEMAND_QUEUE)
+            if kind == "camera"
+            else None
+        )
+        demands = CaptureDemands()
+        published = dict.fromkeys(sources, 0)
+        seen = dict.fromkeys(sources, 0)
+
+        def status() -> tuple[int, str]:
+            problems = [f"{sid}: {text}" for sid, src in sources.items() if (text := src.status())]
+            counts = ", ".join(f"{sid} {published[sid]}" for sid in sources)
+            if problems:
+                return DEGRADED, "; ".join(problems) + f" (frames: {counts})"
+            return NOMINAL, f"{len(sources)} devices, frames: {counts}"
+
+        node.health.set_status(status)
+        for source in sources.values():
+            source.start()
+        log.info("group %s: %d devices from site %s", args.group, len(sources), site.site_id)
+        last_log = time.monotonic()
+        try:
+            while not shutdown.requested:
+                node.health.beat()
+                now = time.monotonic()
+                if demand_sub is not None:
+                    for demand in demand_sub.drain():
+                        if not demands.on_demand(
+                            demand.header.source_id, demand.message.every_n, demand.message.valid_for_s, now
+                        ):
+                            node.counters.inc("rejected/capture_demand")
+                if now - last_log >= args.report_interval_s:
+                    for sid, src in sources.items():
+                        median_ms, max_ms = stampers[sid].snap_summary_ms()
+                        log.info(
+                            "%s: %d frames published, %d read, stamp moved %.1f ms median %.1f max, %s",
+                            sid, published[sid], seen[sid], median_ms, max_ms, src.counters_snapshot(),
+                        )  # fmt: skip
+                    if dropped["queue_full"]:
+                        log.warning("%d frames dropped: publishing fell behind", dropped["queue_full"])
+                    last_log = now
+                try:
+                    out = outputs.get(timeout=0.1)
+                except queue.Empty:
+                    continue
+                start_ns = time.time_ns()
+                seen[out.sensor_id] += 1
+                spec = by_id[out.sensor_id]
+                stamp = stampers[out.sensor_id].stamp(out.stamp_ns, out.on_wall_clock)
+                every_n = demands.every_n(now)
+                if kind == "camera" and not _due(
+                    scene, spec, stamp.tick, sim_time, every_n, seen[out.sensor_id]
+                ):
+                    node.counters.inc("frames/not_demanded")
+                    continue
+                message = out.message
+                if hasattr(message, "timestamp"):
+                    message.timestamp.FromNanoseconds(stamp.stamp_ns)
+                pub = pubs[out.sensor_id]
+                header = pub.next_header(
+                    stamp_ns=stamp.stamp_ns, tick=stamp.tick, epoch=stamp.epoch, frame_id=out.sensor_id
+                )
+                if hasattr(message, "header"):
+                    message.header.CopyFrom(header)
+                pub.put(
+                    message, header, stages=[processing_stamp(f"device/{kind}", start_ns, time.time_ns())]
+                )
+                published[out.sensor_id] += 1
+                node.counters.inc(f"frames/{kind}")
+        finally:
+            for source in sources.values():
+                source.close()
+    return 0
+
+
+def _due(scene: Scene, spec: SensorSpec, tick: int, sim_time: SimTime, every_n: int, nth: int) -> bool:
+    """Is this camera frame wanted at cadence `every_n`: by its tick under a sim, else every n-th."""
+    hz = sim_time.tick_hz
+    if every_n <= 1:
+        return True
+    if tick and hz is not None:
+        return scene.captures_on(spec, tick, hz, every_n)
+    return nth % every_n == 0
+
+
+def add_args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--group", required=True, help="sensor group: <agent>-<cameras|lidars|radars>")
+    parser.add_argument("--site", type=Path, required=True, help="site file (deploy/devices/*.yaml)")
+    parser.add_argument("--report-interval-s", type=float, default=10.0, help="log interval")
+
+
+def cli(argv: list[str] | None = None) -> int:
+    return run_service("device", main, description=__doc__ or "", add_args=add_args, argv=argv)
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

@@ -1,0 +1,102 @@
+"""Site file: what each of the scene's sensors is on a real (or emulated) site.
+
+    site_id: sand_table_wire
+    scene: deploy/scenes/sand_table.yaml      # the sensors' ids, agents, poses and rates
+    sensors:
+      lidar_11: {device: rs16, bind: 127.0.0.1, msop_port: 6699, difop_port: 7788, clock: device}
+      radar_2:  {device: ars408, interface: slcan, channel: "socket://127.0.0.1:20002", can_id: 0}
+      cam_11:   {device: stream, url: "http://127.0.0.1:8101/stream.mjpg"}
+
+A sensor keeps its scene id (keys, frame ids and calibration stay the scene's); the site file says
+which device delivers it, where to listen or connect, and which clock stamps its frames:
+- `device`: the unit's own clock (Robosense: the MSOP time, trusted only while DIFOP reports GPS lock);
+- `receive`: the host's receive time less `latency_s` (lidar: less one packet's duration as well; CAN:
+  the kernel's receive stamp where the interface gives one).
+Sensors the file does not list are not this site's (a sensor group lists all of its sensors, or none).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from shared.paths import REPO_ROOT
+
+Clock = Literal["device", "receive"]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class RobosenseLidar(_Strict):
+    device: Literal["rs16", "rs32"]
+    bind: str = Field("0.0.0.0", description="address the adapter listens on")
+    msop_port: int = Field(6699, gt=0, lt=65536)
+    difop_port: int = Field(7788, gt=0, lt=65536)
+    clock: Clock = "receive"
+    latency_s: float = Field(0.0, ge=0, le=1)
+    min_range_m: float | None = Field(None, ge=0, description="default: the device's")
+    max_range_m: float | None = Field(None, gt=0)
+    returns: Literal["first", "all"] = Field("first", description="dual-return mode: keep which")
+
+    @model_validator(mode="after")
+    def _ports(self) -> RobosenseLidar:
+        if self.msop_port == self.difop_port:
+            raise ValueError("msop_port and difop_port must differ")
+        return self
+
+
+class Ars408Radar(_Strict):
+    device: Literal["ars408"]
+    interface: Literal["socketcan", "slcan", "udp_multicast", "virtual"] = "socketcan"
+    channel: str = Field("can0", description="can0; /dev/ttyACM0@115200 or socket://host:port (slcan)")
+    bitrate: int = Field(500_000, gt=0)
+    can_id: int = Field(0, ge=0, le=7, description="the radar's sensor id (adds 0x10 x id to every frame)")
+    output: Literal["clusters", "objects"] = "clusters"
+    clock: Literal["receive"] = "receive"  # CAN frames carry no time
+    latency_s: float = Field(0.0, ge=0, le=1)
+
+
+class StreamCamera(_Strict):
+    device: Literal["stream"]
+    url: str = Field(description="rtsp://, http(s)://...mjpg, a V4L2 index or device path, or a video file")
+    clock: Literal["receive"] = "receive"  # OpenCV gives no sensor clock
+    latency_s: float = Field(0.0, ge=0, le=1)
+    reconnect_max_s: float = Field(5.0, gt=0, description="backoff ceiling between reconnects")
+
+
+DeviceSpec = Annotated[RobosenseLidar | Ars408Radar | StreamCamera, Field(discriminator="device")]
+KIND_OF_DEVICE = {"rs16": "lidar", "rs32": "lidar", "ars408": "radar", "stream": "camera"}
+
+
+class SiteFile(_Strict):
+    site_id: str
+    scene: Path
+    sensors: dict[str, DeviceSpec]
+
+    @classmethod
+    def load(cls, path: Path) -> SiteFile:
+        raw = yaml.safe_load(Path(path).read_text())
+        site = cls.model_validate(raw)
+        if not site.scene.is_absolute():
+            site = site.model_copy(update={"scene": REPO_ROOT / site.scene})
+        return site
+
+    def device(self, sensor_id: str) -> RobosenseLidar | Ars408Radar | StreamCamera:
+        try:
+            return self.sensors[sensor_id]
+        except KeyError:
+            raise KeyError(f"site {self.site_id}: no device for sensor {sensor_id!r}") from None
+
+    def check_against(self, scene_sensor_kinds: dict[str, str]) -> None:
+        """ValueError unless every listed sensor is in the scene and its device is of its kind."""
+        for sensor_id, spec in self.sensors.items():
+            kind = scene_sensor_kinds.get(sensor_id)
+            if kind is None:
+                raise ValueError(f"site {self.site_id}: {sensor_id} is not a sensor of the scene")
+            if KIND_OF_DEVICE[spec.device] != kind:
+                raise ValueError(f"site {self.site_id}: {sensor_id} is a {kind}, {spec.device} is not")

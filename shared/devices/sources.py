@@ -1,0 +1,453 @@
+"""Device sources: one reader per real sensor, turning its wire format into the message the simulated
+sensor publishes (lidar foxglove.PointCloud, radar rmmdet.v1.RadarScan, camera foxglove.CompressedImage
+JPEG), with the time it was taken and which clock gave it.
+
+Each source reads on its own thread and hands `Output`s to a callback; it never raises out of the
+thread: bad input is counted by reason (`counters`), a lost device is reconnected with backoff, and
+`status()` says in one line what is wrong (no DIFOP yet, radar not configured, bus-off, stream down,
+nothing received for a while), which the device service reports in its health.
+
+- `LidarSource`: MSOP and DIFOP UDP sockets (kernel receive stamps, SO_TIMESTAMPNS) -> LidarStream.
+- `RadarSource`: a python-can bus (socketcan, slcan, udp_multicast, virtual) -> ListAssembler; sends
+  the configuration at start and again every second until RadarState confirms it.
+- `CameraSource`: OpenCV's FFmpeg backend on the stream URL; an MJPEG source's JPEG packets are passed
+  through undecoded (CAP_PROP_FORMAT -1), any other codec is decoded and encoded as JPEG; one
+  latest-frame thread per camera, reopened with backoff when a read fails.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import select
+import socket
+import struct
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from google.protobuf.message import Message
+from rmmdet.v1.sensors_pb2 import RadarScan, RadarTarget
+
+from shared.devices import ars408, robosense
+from shared.devices.site import Ars408Radar, RobosenseLidar, StreamCamera
+from shared.perception.decode import point_cloud_message
+
+log = logging.getLogger(__name__)
+
+INTENSITY_FULL_SCALE = 255.0  # Robosense reflectivity byte -> the [0, 1] intensity lidars publish
+SILENT_AFTER_S = 1.0  # no data for this long: the source reports itself silent
+# Cameras asked for every 10th frame (capture demand) deliver 1 Hz: silent only past three of those.
+CAMERA_SILENT_AFTER_S = 3.0
+JPEG_QUALITY = 85
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
+_TIMESPEC = struct.Struct("@qq")
+
+
+@dataclass(frozen=True)
+class Output:
+    """One frame of one sensor: the message (stamp fields unset) and its time."""
+
+    sensor_id: str
+    message: Message
+    stamp_ns: int
+    on_wall_clock: bool  # True: host receive time (wall); False: the device's own clock
+
+
+OutputFn = Callable[[Output], None]
+
+
+class _Source:
+    """Shared plumbing: counters, a thread, the time of the last good frame."""
+
+    def __init__(self, sensor_id: str, emit: OutputFn) -> None:
+        self.sensor_id = sensor_id
+        self.emit = emit
+        self.counters: dict[str, int] = {}
+        self.frames = 0
+        self.last_frame_mono: float | None = None
+        self.started_mono = time.monotonic()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._guarded_run, name=f"device-{sensor_id}", daemon=True)
+        self._lock = threading.Lock()
+
+    def count(self, reason: str, n: int = 1) -> None:
+        with self._lock:
+            self.counters[reason] = self.counters.get(reason, 0) + n
+
+    def counters_snapshot(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self.counters)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=3.0)
+
+    def _frame_out(self, output: Output) -> None:
+        self.frames += 1
+        self.last_frame_mono = time.monotonic()
+        self.emit(output)
+
+    def silent_s(self) -> float:
+        since = self.last_frame_mono if self.last_frame_mono is not None else self.started_mono
+        return time.monotonic() - since
+
+    def _guarded_run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self._run()
+                return
+            except Exception:  # never let a device kill its thread: count, wait, go on
+                self.count("errors/internal")
+                log.exception("%s: reader failed; restarting it in 1 s", self.sensor_id)
+                self._stop.wait(1.0)
+
+    def _run(self) -> None:
+        raise NotImplementedError
+
+    def status(self) -> str:
+        """'' when all is well, else what is wrong."""
+        raise NotImplementedError
+
+
+# --- lidar ------------------------------------------------------------------------------------------
+
+
+def lidar_frame_message(frame: robosense.Frame, sensor_id: str, returns: str = "first") -> Any:
+    """foxglove.PointCloud of a decoded frame (first returns only unless `returns` is 'all')."""
+    pts = frame.points
+    keep = np.ones(len(pts), bool) if returns == "all" else pts.ret == 0
+    return point_cloud_message(
+        pts.xyz_m[keep],
+        pts.intensity[keep].astype(np.float32) / INTENSITY_FULL_SCALE,
+        sensor_id,
+        frame.stamp_ns,
+    )
+
+
+def _udp_socket(bind: str, port: int) -> socket.socket:
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)  # a turn of RS-LiDAR-32 is 187 kB
+    sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+    sock.bind((bind, port))
+    sock.setblocking(False)
+    return sock
+
+
+def _recv_stamped(sock: socket.socket) -> tuple[bytes, int] | None:
+    """One datagram and its kernel receive time (wall ns; now if the kernel gave none)."""
+    try:
+        data, ancdata, _flags, _addr = sock.recvmsg(2048, 64)
+    except BlockingIOError:
+        return None
+    for level, kind, payload in ancdata:
+        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(payload) >= _TIMESPEC.size:
+            sec, nsec = _TIMESPEC.unpack(payload[: _TIMESPEC.size])
+            return data, sec * 1_000_000_000 + nsec
+    return data, time.time_ns()
+
+
+class LidarSource(_Source):
+    """A Robosense unit on its MSOP / DIFOP UDP ports."""
+
+    def __init__(self, sensor_id: str, spec: RobosenseLidar, emit: OutputFn) -> None:
+        super().__init__(sensor_id, emit)
+        self.spec = spec
+        model = robosense.MODELS[spec.device]
+        clock = robosense.StampClock(spec.clock)
+        self.stream = robosense.LidarStream(model, clock, spec.min_range_m, spec.max_range_m)
+        self.msop = _udp_socket(spec.bind, spec.msop_port)
+        self.difop = _udp_socket(spec.bind, spec.difop_port)
+        self._last_packet_mono = time.monotonic()
+        # An open frame whose packets stopped for two revolutions is dropped (counted).
+        self.expire_after_s = 0.2
+
+    def close(self) -> None:
+        super().close()
+        self.msop.close()
+        self.difop.close()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            ready, _, _ = select.select([self.msop, self.difop], [], [], 0.1)
+            for sock in ready:
+                while (got := _recv_stamped(sock)) is not None:
+                    data, recv_ns = got
+                    if sock is self.difop:
+                        self.stream.on_difop(data)
+                        continue
+                    self._last_packet_mono = time.monotonic()
+                    for frame in self.stream.on_msop(data, recv_ns):
+                        self._frame_out(
+                            Output(
+                                self.sensor_id,
+                                lidar_frame_message(frame, self.sensor_id, self.spec.returns),
+                                frame.stamp_ns,
+                                frame.clock is robosense.StampClock.RECEIVE,
+                            )
+                        )
+            if self.stream.open_packets and time.monotonic() - self._last_packet_mono > self.expire_after_s:
+                self.stream.expire()
+
+    def counters_snapshot(self) -> dict[str, int]:
+        return super().counters_snapshot() | self.stream.counters
+
+    def status(self) -> str:
+        if self.stream.info is None:
+            return "no DIFOP yet: no cloud until the unit's angles arrive"
+        if self.spec.clock == "device" and not self.stream.info.clock_locked:
+            return "clock not locked (DIFOP): stamped on receive"
+        if self.silent_s() > SILENT_AFTER_S:
+            return f"no frame for {self.silent_s():.1f} s"
+        return ""
+
+
+# --- radar ------------------------------------------------------------------------------------------
+
+
+def radar_scan_message(detections: ars408.Detections, sensor_id: str) -> RadarScan:
+    """rmmdet.v1.RadarScan of one ARS 408 list: each detection's range and azimuth in the radar's
+    plane (elevation 0: the ARS 408 reports none), range rate along the line of sight, RCS; the
+    ARS 408 reports no SNR (left 0)."""
+    rng, az, rate = detections.polar()
+    scan = RadarScan(sensor_id=sensor_id)
+    for i in range(len(detections)):
+        scan.targets.append(
+            RadarTarget(
+                range_m=float(rng[i]),
+                azimuth_rad=float(az[i]),
+                elevation_rad=0.0,
+                range_rate_mps=float(rate[i]),
+                rcs_dbsm=float(detections.rcs_dbsm[i]),
+                target_index=i,
+            )
+        )
+    return scan
+
+
+CONFIG_RETRY_S = 1.0
+RECONNECT_MIN_S = 0.2
+
+
+class RadarSource(_Source):
+    """An ARS 408 on a CAN bus (python-can), configured at start."""
+
+    def __init__(
+        self,
+        sensor_id: str,
+        spec: Ars408Radar,
+        emit: OutputFn,
+        bus_factory: Callable[[], Any] | None = None,
+        reconnect_max_s: float = 2.0,
+    ) -> None:
+        super().__init__(sensor_id, emit)
+        self.spec = spec
+        self.config = ars408.RadarConfig(
+            sensor_id=spec.can_id,
+            output=ars408.OutputType.CLUSTERS if spec.output == "clusters" else ars408.OutputType.OBJECTS,
+        )
+        self.assembler = ars408.ListAssembler(self.config)
+        self.bus_factory = bus_factory or self._open_bus
+        self.reconnect_max_s = reconnect_max_s
+        self.connected = False
+
+    def _open_bus(self) -> Any:
+        import can  # python-can: imported where a bus is opened (its import is slow)
+
+        kwargs: dict[str, Any] = {"interface": self.spec.interface, "channel": self.spec.channel}
+        if self.spec.interface == "slcan":
+            kwargs |= {"bitrate": self.spec.bitrate, "sleep_after_open": 0.0}
+        elif self.spec.interface == "socketcan":
+            kwargs |= {"receive_own_messages": False}
+        return can.Bus(**kwargs)
+
+    def _run(self) -> None:
+        backoff = RECONNECT_MIN_S
+        while not self._stop.is_set():
+            try:
+                bus = self.bus_factory()
+            except Exception as exc:  # no device, no adapter, refused: retry
+                self.count("can/open_failed")
+                log.warning(
+                    "%s: cannot open CAN %s %s: %s",
+                    self.sensor_id,
+                    self.spec.interface,
+                    self.spec.channel,
+                    exc,
+                )
+                self._stop.wait(backoff)
+                backoff = min(backoff * 2, self.reconnect_max_s)
+                continue
+            self.connected = True
+            backoff = RECONNECT_MIN_S
+            try:
+                self._read(bus)
+            finally:
+                self.connected = False
+                try:
+                    bus.shutdown()
+                except Exception:
+                    self.count("can/shutdown_failed")
+
+    def _read(self, bus: Any) -> None:
+        import can
+
+        next_config = 0.0
+        while not self._stop.is_set():
+            if not self.assembler.configured and time.monotonic() >= next_config:
+                can_id, data = self.config.frame()
+                try:
+                    bus.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=False))
+                    self.count("can/config_sent")
+                except can.CanError:
+                    self.count("can/send_failed")
+                next_config = time.monotonic() + CONFIG_RETRY_S
+            try:
+                msg = bus.recv(0.1)
+            except (can.CanError, OSError, ValueError) as exc:
+                # The link broke (adapter unplugged, socket closed) or a line did not parse.
+                self.count("can/read_failed")
+                log.warning("%s: CAN read failed (%s): reconnecting", self.sensor_id, exc)
+                return
+            if msg is None:
+                continue
+            if msg.is_error_frame:
+                self.assembler.on_error_frame(msg.arbitration_id)
+                continue
+            if msg.is_remote_frame or msg.is_extended_id:
+                self.count("rejected/foreign_frame")
+                continue
+            stamp_s = msg.timestamp if msg.timestamp and math.isfinite(msg.timestamp) else time.time()
+            for detections in self.assembler.on_frame(msg.arbitration_id, bytes(msg.data), stamp_s):
+                if self.assembler.configured:
+                    self._frame_out(
+                        Output(
+                            self.sensor_id,
+                            radar_scan_message(detections, self.sensor_id),
+                            round(detections.stamp_s * 1e9),
+                            True,
+                        )
+                    )
+                else:
+                    self.count("lists/before_configured")
+
+    def counters_snapshot(self) -> dict[str, int]:
+        return super().counters_snapshot() | self.assembler.counters
+
+    def status(self) -> str:
+        if not self.connected:
+            return f"CAN {self.spec.interface} {self.spec.channel} not open"
+        if self.assembler.bus_off:
+            return "CAN bus-off"
+        if not self.assembler.configured:
+            state = self.assembler.state
+            wrong = state.mismatches(self.config) if state else ["no RadarState yet"]
+            return f"radar not configured ({', '.join(wrong)})"
+        if self.assembler.state and self.assembler.state.errors:
+            return f"radar reports {', '.join(self.assembler.state.errors)}"
+        if self.silent_s() > SILENT_AFTER_S:
+            return f"no list for {self.silent_s():.1f} s"
+        return ""
+
+
+# --- camera -----------------------------------------------------------------------------------------
+
+MJPEG_FOURCC = cv2.VideoWriter.fourcc(*"MJPG")
+
+
+def open_capture(url: str, timeout_s: float) -> cv2.VideoCapture:
+    """An OpenCV capture of `url`: a digit string or /dev/video* opens that V4L2 device, anything else
+    goes to FFmpeg with open and read timeouts."""
+    timeout_ms = round(timeout_s * 1000)
+    if url.isdigit() or url.startswith("/dev/video"):
+        return cv2.VideoCapture(int(url) if url.isdigit() else url, cv2.CAP_V4L2)
+    return cv2.VideoCapture(
+        url,
+        cv2.CAP_FFMPEG,
+        [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, timeout_ms, cv2.CAP_PROP_READ_TIMEOUT_MSEC, timeout_ms],
+    )
+
+
+class CameraSource(_Source):
+    """A camera stream: the newest frame goes out as soon as it is read."""
+
+    def __init__(self, sensor_id: str, spec: StreamCamera, emit: OutputFn, timeout_s: float = 2.0) -> None:
+        super().__init__(sensor_id, emit)
+        self.spec = spec
+        self.timeout_s = timeout_s
+        self.connected = False
+        self.reconnects = 0
+
+    def _run(self) -> None:
+        backoff = RECONNECT_MIN_S
+        while not self._stop.is_set():
+            cap = open_capture(self.spec.url, self.timeout_s)
+            if not cap.isOpened():
+                cap.release()
+                self.count("stream/open_failed")
+                self._stop.wait(backoff)
+                backoff = min(backoff * 2, self.spec.reconnect_max_s)
+                continue
+            passthrough = int(cap.get(cv2.CAP_PROP_FOURCC)) == MJPEG_FOURCC and cap.set(
+                cv2.CAP_PROP_FORMAT, -1
+            )
+            self.connected = True
+            backoff = RECONNECT_MIN_S
+            try:
+                self._read(cap, passthrough)
+            finally:
+                self.connected = False
+                cap.release()
+            if not self._stop.is_set():
+                self.reconnects += 1
+                self.count("stream/reconnects")
+
+    def _read(self, cap: cv2.VideoCapture, passthrough: bool) -> None:
+        is_file = not (self.spec.url.isdigit() or "://" in self.spec.url or self.spec.url.startswith("/dev/"))
+        frame_s = 1.0 / cap.get(cv2.CAP_PROP_FPS) if is_file and cap.get(cv2.CAP_PROP_FPS) > 0 else 0.0
+        while not self._stop.is_set():
+            ok, frame = cap.read()
+            recv_ns = time.time_ns()
+            if not ok or frame is None:
+                self.count("stream/read_failed")
+                return
+            if passthrough:
+                jpeg = frame.tobytes()
+                if not jpeg.startswith(b"\xff\xd8"):
+                    self.count("rejected/not_jpeg")
+                    continue
+            else:
+                ok, buf = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+                if not ok:
+                    self.count("rejected/encode_failed")
+                    continue
+                jpeg = buf.tobytes()
+            self._frame_out(
+                Output(
+                    self.sensor_id,
+                    CompressedImage(frame_id=self.sensor_id, format="jpeg", data=jpeg),
+                    recv_ns,
+                    True,
+                )
+            )
+            if frame_s:
+                self._stop.wait(frame_s)  # a file plays at its own rate, not as fast as it decodes
+
+    def status(self) -> str:
+        if not self.connected:
+            return f"stream {self.spec.url} not open"
+        if self.silent_s() > CAMERA_SILENT_AFTER_S:
+            return f"no frame for {self.silent_s():.1f} s"
+        return ""
+
+
+Source = LidarSource | RadarSource | CameraSource

@@ -1,0 +1,111 @@
+"""A simulated sensor group speaking its devices' wire formats: each capture goes out as the device the
+site file names would send it (a Robosense unit's UDP packets, an ARS 408's CAN frames through a
+serial-line CAN adapter, a network camera's MJPEG stream), for the device service
+(services/device) to read as it would read the real one.
+
+The site file's addresses are the adapter's side: the lidar emulator sends to the adapter's bind
+address and ports (0.0.0.0 is sent to loopback), the radar and camera emulators serve on the host and
+port of the adapter's `socket://` channel and stream URL.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from urllib.parse import urlsplit
+
+from shared.devices.site import Ars408Radar, RobosenseLidar, SiteFile, StreamCamera
+from shared.scene.model import SensorSpec
+from sim.emulators.ars408 import Ars408Emulator, SlcanRadarServer, Target
+from sim.emulators.mjpeg import MjpegServer
+from sim.emulators.robosense import LidarSender, RobosenseEmulator
+from sim.sensors.lidar import LidarScan
+from sim.sensors.radar import SimRadarTarget
+from sim.sensors.rig import Capture
+
+
+def _socket_address(channel: str) -> tuple[str, int]:
+    parts = urlsplit(channel)
+    if parts.scheme != "socket" or parts.hostname is None or parts.port is None:
+        raise ValueError(f"an emulated radar serves slcan on socket://host:port, not {channel!r}")
+    return parts.hostname, parts.port
+
+
+def _http_address(url: str) -> tuple[str, int]:
+    parts = urlsplit(url)
+    if parts.scheme != "http" or parts.hostname is None or parts.port is None:
+        raise ValueError(f"an emulated camera serves MJPEG on http://host:port/..., not {url!r}")
+    return parts.hostname, parts.port
+
+
+@dataclass
+class _Lidar:
+    emulator: RobosenseEmulator
+    sender: LidarSender
+
+
+class WireGroup:
+    """Emulators for `specs` per `site`; `send(capture)` puts one capture on the wire."""
+
+    def __init__(self, site: SiteFile, specs: list[SensorSpec]) -> None:
+        self.lidars: dict[str, _Lidar] = {}
+        self.radars: dict[str, SlcanRadarServer] = {}
+        self.cameras: dict[str, MjpegServer] = {}
+        try:
+            for spec in specs:
+                device = site.device(spec.id)
+                if isinstance(device, RobosenseLidar):
+                    if spec.lidar is None or spec.lidar.device != device.device:
+                        raise ValueError(f"{spec.id}: the scene's lidar is not a {device.device}")
+                    emulator = RobosenseEmulator(device.device, spec.lidar.horizontal_samples, spec.lidar.rpm)
+                    host = "127.0.0.1" if device.bind == "0.0.0.0" else device.bind
+                    self.lidars[spec.id] = _Lidar(
+                        emulator, LidarSender(emulator, host, device.msop_port, device.difop_port)
+                    )
+                elif isinstance(device, Ars408Radar):
+                    if device.interface != "slcan":
+                        raise ValueError(f"{spec.id}: an emulated ARS 408 is reached over slcan")
+                    host, port = _socket_address(device.channel)
+                    radar = Ars408Emulator(sensor_id=device.can_id)
+                    self.radars[spec.id] = SlcanRadarServer(radar, host, port)
+                elif isinstance(device, StreamCamera):
+                    host, port = _http_address(device.url)
+                    self.cameras[spec.id] = MjpegServer(host, port)
+        except BaseException:
+            self.close()
+            raise
+
+    def send(self, capture: Capture) -> None:
+        sid = capture.spec.id
+        if sid in self.lidars:
+            lidar = self.lidars[sid]
+            scan = capture.data
+            assert isinstance(scan, LidarScan)
+            samples = lidar.emulator.samples
+            packets = lidar.emulator.msop_packets(
+                scan.channel, scan.ray_index % samples, scan.range_m, scan.intensity, capture.stamp_ns
+            )
+            lidar.sender.send_turn(packets)
+        elif sid in self.radars:
+            targets = capture.data
+            assert isinstance(targets, list)
+            self.radars[sid].send_scan([radar_target(t) for t in targets])
+        elif sid in self.cameras:
+            self.cameras[sid].publish(capture.message.data)  # type: ignore[attr-defined]
+
+    def status(self) -> str:
+        parts = [f"{sid} {lidar.sender.sent} packets" for sid, lidar in self.lidars.items()]
+        parts += [f"{sid} {srv.frames_sent} frames" for sid, srv in self.radars.items()]
+        parts += [f"{sid} {srv.frames} images, {srv.clients} clients" for sid, srv in self.cameras.items()]
+        return ", ".join(parts)
+
+    def close(self) -> None:
+        for lidar in self.lidars.values():
+            lidar.sender.close()
+        for radar in self.radars.values():
+            radar.close()
+        for camera in self.cameras.values():
+            camera.stop()
+
+
+def radar_target(t: SimRadarTarget) -> Target:
+    return Target(t.range_m, t.azimuth_rad, t.elevation_rad, t.range_rate_mps, t.rcs_dbsm)
