@@ -37,8 +37,24 @@ $(PROTO_STAMP): $(INSTALLED) $(PROTO_SRC) proto/generate.py
 proto: $(INSTALLED) ## (re)generate the protobuf Python code into proto/gen
 	$(BIN)/python proto/generate.py
 
+# SENSORS=sim (default): the sim's sensor groups publish their frames. SENSORS=wire: they emulate the
+# site file's devices on the wire (Robosense UDP, ARS 408 CAN over slcan, MJPEG over HTTP) and the device
+# services (services/device) read them onto the bus, as with real sensors.
+SENSORS ?= sim
+SITE ?= deploy/devices/sand_table_wire.yaml
+ifeq ($(SENSORS),wire)
+export RMMDET_SENSOR_ARGS := --wire $(SITE)
+export RMMDET_DEVICES := true
+else ifeq ($(SENSORS),sim)
+export RMMDET_SENSOR_ARGS :=
+export RMMDET_DEVICES := false
+else
+$(error SENSORS must be sim or wire, not $(SENSORS))
+endif
+export RMMDET_SITE := $(SITE)
+
 SPEED ?=
-up: install pki ## start router and every service under supervisord (idempotent); SPEED=x: sim seconds per wall second
+up: install pki ## start router and every service under supervisord (idempotent); SPEED=x: sim seconds per wall second; SENSORS=wire: through emulated devices and the device services
 	@mkdir -p $(RUN_DIR)/logs
 	@if $(BIN)/supervisorctl -c $(SUPERVISOR_CONF) pid >/dev/null 2>&1; then \
 	  echo "already up"; \

@@ -35,6 +35,7 @@ from shared.bus.streams import SENSOR_STREAM
 from shared.devices.site import SiteFile
 from shared.devices.sources import CameraSource, LidarSource, Output, OutputFn, RadarSource, Source
 from shared.devices.stamping import Stamper
+from shared.perception.inputs import InputState, SensorMonitor
 from shared.scene.cadence import CaptureDemands
 from shared.scene.model import SensorSpec
 from shared.scene.scene import Scene
@@ -45,6 +46,7 @@ from shared.timebase import SimTime
 log = logging.getLogger("services.device")
 
 OUTPUT_QUEUE = 64
+SILENT_PERIODS = 3.0  # a sensor with no frame for this many of its periods is reported silent
 DEMAND_QUEUE = 16
 
 
@@ -92,9 +94,20 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         demands = CaptureDemands()
         published = dict.fromkeys(sources, 0)
         seen = dict.fromkeys(sources, 0)
+        # Silence on the clock of record (a held sim holds it too), at the cadence asked of each sensor.
+        monitor = SensorMonitor({s.id: s.rate_hz for s in specs}, SILENT_PERIODS, 0.0, sim_time.now_s())
+        cadence = {"every_n": 1}
 
         def status() -> tuple[int, str]:
+            now_s = sim_time.now_s()
             problems = [f"{sid}: {text}" for sid, src in sources.items() if (text := src.status())]
+            problems += [
+                f"{r.sensor_id}: nothing for {r.age_s:.1f} s"
+                if r.age_s >= 0
+                else f"{r.sensor_id}: nothing yet"
+                for r in monitor.report(now_s)
+                if r.state is not InputState.OK and not sources[r.sensor_id].status()
+            ]
             counts = ", ".join(f"{sid} {published[sid]}" for sid in sources)
             if problems:
                 return DEGRADED, "; ".join(problems) + f" (frames: {counts})"
@@ -134,6 +147,10 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 spec = by_id[out.sensor_id]
                 stamp = stampers[out.sensor_id].stamp(out.stamp_ns, out.on_wall_clock)
                 every_n = demands.every_n(now)
+                if kind == "camera" and every_n != cadence["every_n"]:
+                    cadence["every_n"] = every_n
+                    for sid in sources:
+                        monitor.set_rate(sid, by_id[sid].rate_hz / every_n)
                 if kind == "camera" and not _due(
                     scene, spec, stamp.tick, sim_time, every_n, seen[out.sensor_id]
                 ):
@@ -152,6 +169,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                     message, header, stages=[processing_stamp(f"device/{kind}", start_ns, time.time_ns())]
                 )
                 published[out.sensor_id] += 1
+                monitor.accept(out.sensor_id, stamp.stamp_ns, sim_time.now_s(), stamp.stamp_ns)
                 node.counters.inc(f"frames/{kind}")
         finally:
             for source in sources.values():

@@ -80,6 +80,9 @@ def newest_due(
 
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
     scene = Scene.load(args.scene)
+    site = SiteFile.load(args.wire) if args.wire is not None else None
+    if site is not None:
+        scene = site.simulated_scene(scene)  # the site's lidars fire their devices' rays
     specs = parse_group(scene, args.group)
     if args.only:
         wanted = set(args.only.split(","))
@@ -90,8 +93,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         specs = [s for s in specs if s.id in wanted]
     agent, kind = specs[0].agent, specs[0].kind
     wire: WireGroup | None = None
-    if args.wire is not None:
-        site = SiteFile.load(args.wire)
+    if site is not None:
         try:
             wire = WireGroup(site, specs)
         except (ValueError, KeyError, OSError) as exc:

@@ -215,6 +215,12 @@ class DeviceInfo:
         return self.return_mode == ReturnMode.DUAL
 
     @property
+    def fov_deg(self) -> float:
+        """Horizontal field of view the unit reports (a full turn when start == end)."""
+        span = (self.fov_end - self.fov_start) % AZIMUTH_PER_TURN
+        return (span or AZIMUTH_PER_TURN) * 0.01
+
+    @property
     def clock_locked(self) -> bool:
         """The lidar's clock follows GPS: PPS and GPRMC both locked."""
         need = GPS_PPS_LOCK | GPS_GPRMC_LOCK
@@ -482,6 +488,9 @@ class LidarStream:
         Range gate (the model's by default).
     max_packets : int
         A frame with more packets than this (a split never seen) is cut and emitted.
+    min_coverage : float
+        A frame whose blocks sweep less than this fraction of the unit's field of view (DIFOP) lost
+        packets: it is dropped and counted (`frames/partial`), not passed on as a whole revolution.
     """
 
     def __init__(
@@ -492,8 +501,10 @@ class LidarStream:
         max_range_m: float | None = None,
         split_az: int = 0,
         max_packets: int = 4000,
+        min_coverage: float = 0.9,
     ) -> None:
         self.model = model
+        self.min_coverage = min_coverage
         self.clock = clock
         self.min_range_m, self.max_range_m = min_range_m, max_range_m
         self.max_packets = max_packets
@@ -603,8 +614,7 @@ class LidarStream:
             self._count("rejected/block/bad_flag", bad_flags)
         az = packets["blocks"]["azimuth"][masks]
         az = az[az < AZIMUTH_PER_TURN]
-        self._count("frames")
-        return Frame(
+        frame = Frame(
             stamp_ns=start_ns,
             clock=StampClock.DEVICE if use_device else StampClock.RECEIVE,
             points=points,
@@ -612,6 +622,11 @@ class LidarStream:
             first_az=int(az[0]) if len(az) else 0,
             last_az=int(az[-1]) if len(az) else 0,
         )
+        if frame.covered_deg < self.min_coverage * info.fov_deg:
+            self._count("frames/partial")
+            return None
+        self._count("frames")
+        return frame
 
 
 def firings_per_turn(model: RobosenseModel, rpm: int) -> int:

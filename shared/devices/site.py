@@ -23,7 +23,10 @@ from typing import Annotated, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from shared.devices.robosense import MODELS
 from shared.paths import REPO_ROOT
+from shared.scene.model import LidarModel
+from shared.scene.scene import Scene
 
 Clock = Literal["device", "receive"]
 
@@ -66,7 +69,7 @@ class StreamCamera(_Strict):
     url: str = Field(description="rtsp://, http(s)://...mjpg, a V4L2 index or device path, or a video file")
     clock: Literal["receive"] = "receive"  # OpenCV gives no sensor clock
     latency_s: float = Field(0.0, ge=0, le=1)
-    reconnect_max_s: float = Field(5.0, gt=0, description="backoff ceiling between reconnects")
+    reconnect_max_s: float = Field(1.0, gt=0, description="backoff ceiling between reconnects")
 
 
 DeviceSpec = Annotated[RobosenseLidar | Ars408Radar | StreamCamera, Field(discriminator="device")]
@@ -91,6 +94,24 @@ class SiteFile(_Strict):
             return self.sensors[sensor_id]
         except KeyError:
             raise KeyError(f"site {self.site_id}: no device for sensor {sensor_id!r}") from None
+
+    def simulated_scene(self, scene: Scene) -> Scene:
+        """`scene` as the simulator must render it to stand in for this site's devices: each lidar the
+        site names as a Robosense unit fires that unit's rays (`LidarModel.device`; its pose, rate,
+        ranges and noise stay the scene's)."""
+        sensors = []
+        for spec in scene.spec.sensors:
+            device = self.sensors.get(spec.id)
+            if (
+                isinstance(device, RobosenseLidar)
+                and spec.lidar is not None
+                and spec.lidar.device != device.device
+            ):
+                values = spec.lidar.model_dump(exclude={"vertical_min_rad", "vertical_max_rad"})
+                values |= {"device": device.device, "channels": MODELS[device.device].lasers}
+                spec = spec.model_copy(update={"lidar": LidarModel.model_validate(values)})
+            sensors.append(spec)
+        return Scene(scene.spec.model_copy(update={"sensors": sensors}), source=scene.source)
 
     def check_against(self, scene_sensor_kinds: dict[str, str]) -> None:
         """ValueError unless every listed sensor is in the scene and its device is of its kind."""

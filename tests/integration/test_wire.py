@@ -19,6 +19,7 @@ from scipy.spatial import cKDTree
 
 from shared.bus.node import Node, Received
 from shared.devices.robosense import DISTANCE_RES_M
+from shared.devices.site import SiteFile
 from shared.paths import DEFAULT_SCENE
 from shared.perception.decode import point_cloud_to_array
 from shared.scene.scene import Scene
@@ -32,30 +33,14 @@ STARTUP_S = 40.0
 FRAMES = 6  # ticks compared per sensor
 
 
-def device_scene_text() -> str:
-    """The default scene with its lidars as the devices they stand for (RS-LiDAR-16 x 2, -32)."""
-    text = DEFAULT_SCENE.read_text()
-    for channels, vmax, device in ((16, "0.5353", "rs16"), (32, "0.1862", "rs32")):
-        old = f"vertical_min_rad: -0.5353, vertical_max_rad: {vmax},"
-        assert old in text
-        text = text.replace(
-            f"channels: {channels}, horizontal_samples",
-            f"channels: {channels}, device: {device}, horizontal_samples",
-        )
-        text = text.replace(old, "")
-    return text
-
-
 @pytest.fixture
 def wire_site(tmp_path: Path) -> Path:
-    scene_path = tmp_path / "scene.yaml"
-    scene_path.write_text(device_scene_text())
-    scene = Scene.load(scene_path)
+    scene = Scene.load(DEFAULT_SCENE)
     sensors: dict[str, dict] = {}
     for spec in scene.spec.sensors:
         if spec.agent == "agent1" and spec.kind == "lidar":
             sensors[spec.id] = {
-                "device": spec.lidar.device,  # type: ignore[union-attr]
+                "device": "rs16",
                 "bind": "127.0.0.1",
                 "msop_port": free_port(),
                 "difop_port": free_port(),
@@ -72,7 +57,7 @@ def wire_site(tmp_path: Path) -> Path:
         elif spec.agent == "agent2" and spec.kind == "camera":
             sensors[spec.id] = {"device": "stream", "url": f"http://127.0.0.1:{free_port()}/{spec.id}.mjpg"}
     site = tmp_path / "site.yaml"
-    site.write_text(yaml.safe_dump({"site_id": "test_wire", "scene": str(scene_path), "sensors": sensors}))
+    site.write_text(yaml.safe_dump({"site_id": "test_wire", "scene": str(DEFAULT_SCENE), "sensors": sensors}))
     return site
 
 
@@ -140,8 +125,9 @@ def wire_loop(
 
 def test_wire_path_gives_the_simulators_message_back(wire_loop, wire_site: Path) -> None:
     frames, truth = wire_loop
-    scene = Scene.load(Path(yaml.safe_load(wire_site.read_text())["scene"]))
-    specs = [s for s in scene.spec.sensors if s.id in yaml.safe_load(wire_site.read_text())["sensors"]]
+    site = SiteFile.load(wire_site)
+    scene = site.simulated_scene(Scene.load(DEFAULT_SCENE))
+    specs = [s for s in scene.spec.sensors if s.id in site.sensors]
     deadline = time.monotonic() + STARTUP_S
     while time.monotonic() < deadline and not all(len(frames.get(s.id, [])) >= FRAMES + 2 for s in specs):
         time.sleep(0.2)

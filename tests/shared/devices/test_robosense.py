@@ -257,11 +257,13 @@ def test_no_frame_before_difop_then_frames() -> None:
     assert stream.counters["rejected/msop/no_difop"] == 10
     assert stream.on_difop(hand_difop_rs16(one_degree_table()))
     frames = []
-    for p in turn_packets(34000, 60):  # wraps at 36000 = packet 4, block 2 (34000 + 50 * 40)
+    # wraps at 36000 = packet 4, block 2 (34000 + 50 * 40), and again at packet 79, block 2
+    for p in turn_packets(34000, 100):
         frames += stream.on_msop(p, 0)
-    assert len(frames) == 1  # the blocks before the wrap end the first frame
-    assert frames[0].packets == 5 and len(frames[0].points) == 50
-    assert frames[0].last_az == 35960
+    # the first 50 blocks (20 deg) are a revolution's tail, not a revolution: dropped, counted
+    assert stream.counters["frames/partial"] == 1
+    assert len(frames) == 1 and len(frames[0].points) == 900
+    assert (frames[0].first_az, frames[0].last_az) == (0, 35960) and frames[0].packets == 76
 
 
 def test_split_mid_packet_puts_each_block_in_its_frame() -> None:
@@ -312,6 +314,15 @@ def test_bad_packets_are_counted_not_raised() -> None:
         "rejected/msop/bad_time": 1,
         "rejected/difop/bad_length": 1,
     }
+
+
+def test_a_frame_that_lost_packets_is_dropped() -> None:
+    stream = rs.LidarStream(rs.RS16)
+    stream.on_difop(hand_difop_rs16(one_degree_table()))
+    turn = turn_packets(0, 75)
+    frames = [f for p in turn[:40] + turn_packets(0, 76) for f in stream.on_msop(p, 0)]  # cut at 40 of 75
+    assert stream.counters["frames/partial"] == 1
+    assert len(frames) == 1 and frames[0].covered_deg == pytest.approx(359.6)
 
 
 def test_expired_frame_is_counted() -> None:
