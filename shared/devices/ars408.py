@@ -193,10 +193,8 @@ class BatchDecoder:
     def decode(self, payloads: list[bytes]) -> dict[str, np.ndarray]:
         """Physical values (raw * scale + offset) of every signal, one array each; payloads shorter
         than 8 bytes are zero-padded (the caller refuses those shorter than the message)."""
-        raw = np.zeros((len(payloads), CAN_MAX_DLC), np.uint8)
-        for i, p in enumerate(payloads):
-            raw[i, : len(p)] = np.frombuffer(p[:CAN_MAX_DLC], np.uint8)
-        words = raw.view(">u8")[:, 0]
+        joined = b"".join(p[:CAN_MAX_DLC].ljust(CAN_MAX_DLC, b"\0") for p in payloads)
+        words = np.frombuffer(joined, ">u8")
         return {
             name: ((words >> np.uint64(shift)) & np.uint64(mask)).astype(np.float64) * scale + offset
             for name, shift, mask, scale, offset in self.signals
@@ -261,6 +259,13 @@ class ListAssembler:
         self.state: RadarState | None = None
         self.bus_off = False
         self._open: _OpenList | None = None
+        objects = config.output is OutputType.OBJECTS
+        self._status_id = ID_OBJECT_STATUS if objects else ID_CLUSTER_STATUS
+        self._parts = (
+            {ID_OBJECT_GENERAL: "general", ID_OBJECT_QUALITY: "quality", ID_OBJECT_EXTENDED: "extended"}
+            if objects
+            else {ID_CLUSTER_GENERAL: "general", ID_CLUSTER_QUALITY: "quality"}
+        )
         self._batch = {
             i: BatchDecoder(i)
             for i in (
@@ -273,6 +278,7 @@ class ListAssembler:
                 ID_CLUSTER_QUALITY,
             )
         }
+        self._lengths = {i: b.length for i, b in self._batch.items()}
 
     def _count(self, reason: str, n: int = 1) -> None:
         self.counters[reason] = self.counters.get(reason, 0) + n
@@ -307,16 +313,11 @@ class ListAssembler:
                 return []
             self._count("state")
             return []
-        status_id = ID_OBJECT_STATUS if kind is OutputType.OBJECTS else ID_CLUSTER_STATUS
-        parts = (
-            {ID_OBJECT_GENERAL: "general", ID_OBJECT_QUALITY: "quality", ID_OBJECT_EXTENDED: "extended"}
-            if kind is OutputType.OBJECTS
-            else {ID_CLUSTER_GENERAL: "general", ID_CLUSTER_QUALITY: "quality"}
-        )
+        status_id, parts = self._status_id, self._parts
         if base != status_id and base not in parts:
             self._count("ignored/other_message")
             return []
-        if len(data) < self._batch[base].length:
+        if len(data) < self._lengths[base]:
             self._count("rejected/short")
             return []
         out: list[Detections] = []
@@ -365,21 +366,18 @@ class ListAssembler:
         prob = np.full(len(ids), np.nan)
         if lst.quality:
             q = self._batch[ID_OBJECT_QUALITY if objects else ID_CLUSTER_QUALITY].decode(lst.quality)
-            by_id = dict(
-                zip(q[f"{prefix}ID"].astype(np.int64).tolist(), range(len(lst.quality)), strict=False)
-            )
-            unmatched = 0
-            for i, ident in enumerate(ids.tolist()):
-                j = by_id.get(ident)
-                if j is None:
-                    unmatched += 1
-                    continue
-                # Clusters carry a false-alarm bucket (Cluster_PdH0) whose value table is not in the
-                # documents at hand: left unread (nan) rather than guessed.
-                if objects:
-                    prob[i] = PROB_OF_EXIST[int(q["Obj_ProbOfExist"][j])]
+            # quality frame of each id (ids are one byte): -1 where none came
+            row_of = np.full(256, -1, np.int64)
+            row_of[q[f"{prefix}ID"].astype(np.int64)] = np.arange(len(lst.quality))
+            rows = row_of[ids]
+            unmatched = int(np.count_nonzero(rows < 0))
             if unmatched:
                 self._count("rejected/quality_without_general", unmatched)
+            # Clusters carry a false-alarm bucket (Cluster_PdH0) whose value table is not in the
+            # documents at hand: left unread (nan) rather than guessed.
+            if objects:
+                have = rows >= 0
+                prob[have] = np.asarray(PROB_OF_EXIST)[q["Obj_ProbOfExist"][rows[have]].astype(np.int64)]
         return Detections(
             kind=lst.kind,
             sensor_id=self.config.sensor_id,
