@@ -336,6 +336,44 @@ def eval_robustness(
     console.print(f"results: {out / 'results.json'}")
 
 
+@eval_app.command("wire")
+def eval_wire(
+    agents: Annotated[
+        list[str] | None, typer.Option("--agent", help="agents (repeatable; default all)")
+    ] = None,
+    seeds: Annotated[
+        list[int] | None,
+        typer.Option("--seed", help="sim seeds (repeatable; default the held-out fusion test split)"),
+    ] = None,
+    duration_s: Annotated[float, typer.Option(help="simulated seconds scored per run")] = 30.0,
+    warmup_s: Annotated[float, typer.Option(help="simulated seconds before scoring")] = 3.0,
+    workers: Annotated[int, typer.Option(help="(agent, seed) runs in parallel (processes)")] = 2,
+    config: Annotated[Path | None, typer.Option(help="MEC settings YAML")] = None,
+    out: Annotated[Path, typer.Option(help="results folder")] = Path("docs/eval/wire"),
+    readme: Annotated[bool, typer.Option(help="rewrite the README's wire-path table")] = False,
+) -> None:
+    """Accuracy through the devices' wire formats: the scene's sensors, the site's device rays, and
+    the device rays through the wire and back (RS-LiDAR 5 mm, ARS 408 0.2 m / 0.25 m/s), same seeds."""
+    from shared.config import load_settings
+    from shared.perception.config import DEFAULT_MEC_CONFIG, MecSettings
+    from shared.readme import replace_section
+    from studies.dataset.config import DEFAULT_DATASET_CONFIG, DatasetSettings
+    from studies.evaluation import wire
+
+    log_progress()
+    scene = Scene.load(DEFAULT_SCENE)
+    dataset = load_settings(DatasetSettings, DEFAULT_DATASET_CONFIG)
+    agents = agents or sorted(scene.agents)
+    seeds = seeds or list(dataset.seeds.fusion_test)
+    mec = load_settings(MecSettings, config or DEFAULT_MEC_CONFIG)
+    results = wire.run_wire_study(dataset, mec, agents, seeds, duration_s, warmup_s, workers, out)
+    text = wire.markdown_table(results)
+    if readme:
+        replace_section("eval-wire", text)
+    console.print(text)
+    console.print(f"results: {out / 'results.json'}")
+
+
 experiments_app = typer.Typer(add_completion=False, no_args_is_help=True, help="experiments (offline)")
 app.add_typer(experiments_app, name="experiments")
 

@@ -591,6 +591,11 @@ class LidarStream:
                 out.append(frame)
         return out
 
+    def flush(self) -> Frame | None:
+        """The open frame as it stands (the caller knows its revolution ended: a recording's last
+        one, an in-process round trip); None if nothing is open or it is partial (counted)."""
+        return self._finish()
+
     def expire(self) -> None:
         """Drop the open frame (its packets stopped); counted if it held any."""
         if self._frame.packets:

@@ -29,6 +29,7 @@ import json
 import logging
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, cast
 
@@ -44,7 +45,7 @@ from shared.detection.interface import CameraDetector, LidarDetector
 from shared.geometry.boxes import bev_iou_matrix
 from shared.metrics.fusion import FusionAccumulator
 from shared.metrics.tracking import TrackingAccumulator
-from shared.paths import DEFAULT_SCENE
+from shared.paths import DEFAULT_SCENE, REPO_ROOT
 from shared.perception import camera_only
 from shared.perception.confidence import ALONE, FUSED, ScoreCalibration, evidence_key
 from shared.perception.config import MecSettings
@@ -300,11 +301,14 @@ def evaluate_run(
     conditions: SeedConditions | None = None,
     mec_scene: Scene | None = None,
     range_delay_s: float = 0.0,
+    transform: Callable[[list[Capture]], list[Capture]] | None = None,
 ) -> AgentEvaluation:
     """Run one seed for one agent: its frames scored (one MOT sequence per run). `conditions` (sensor
     noise, lighting, colours) apply to the sim; without them the sensors run as the scene defines.
     Perturbations (studies/evaluation/robustness.py): the MEC calibrated on `mec_scene` instead of
-    the true scene; its lidar and radar frames `range_delay_s` old but stamped as new."""
+    the true scene; its lidar and radar frames `range_delay_s` old but stamped as new; every capture
+    through `transform` before the MEC (e.g. its device's wire format and back); truth always from the
+    untouched captures."""
     ev = AgentEvaluation()
     vehicle_index: dict[str, int] = {}
     sensor_ids = [s.id for s in scene.sensors_of(agent_id)]
@@ -330,7 +334,8 @@ def evaluate_run(
                 continue
             gt = tick.ground_truth
             stamp_ns = gt.header.stamp.ToNanoseconds()
-            out = feed_tick(core, stamp_ns, gt.header.tick, delayed.captures(stamp_ns, tick.captures))
+            fed = delayed.captures(stamp_ns, tick.captures)
+            out = feed_tick(core, stamp_ns, gt.header.tick, transform(fed) if transform else fed)
             if out is None or out.frame.tick != gt.header.tick:
                 # Every sensor of an agent captures on the agent's ticks: a lock-step frame is complete
                 # at once. Anything else is a bug of the join, not a frame to score late.
@@ -495,6 +500,15 @@ def _run_worker(
     mec = MecSettings.model_validate_json(mec_json)
     variation = Variation.model_validate_json(variation_json)
     perturbation = robustness.Perturbation(**json.loads(perturbation_json))
+    transform = None
+    if perturbation.site:
+        from shared.devices.site import SiteFile
+        from studies.evaluation.wire import WireRoundTrip
+
+        site = SiteFile.load(REPO_ROOT / perturbation.site)
+        scene = site.simulated_scene(scene)
+        if perturbation.wire:
+            transform = WireRoundTrip(site, scene.sensors_of(agent)).captures
     conditions = perturbation.conditions(SeedConditions.draw(variation, seed), variation)
     t0 = time.perf_counter()
     ev = evaluate_run(
@@ -507,6 +521,7 @@ def _run_worker(
         conditions=conditions,
         mec_scene=perturbation.mec_scene(scene, seed),
         range_delay_s=perturbation.range_delay_s,
+        transform=transform,
     )
     return agent, seed, ev, time.perf_counter() - t0
 

@@ -44,6 +44,8 @@ class Perturbation:
     extrinsic_translation_m: float = 0.0  # the MEC's sensor positions off by this much ...
     extrinsic_rotation_rad: float = 0.0  # ... and its orientations by this angle
     vehicles: int | None = None  # traffic density instead of the seed's
+    site: str = ""  # a site file: its lidars fire their devices' rays (studies/evaluation/wire.py)
+    wire: bool = False  # ... and every capture goes through its device's wire format and back
 
     def conditions(self, base: SeedConditions, variation: Variation) -> SeedConditions:
         """The seed's conditions with this perturbation's noise and density."""

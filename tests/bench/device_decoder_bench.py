@@ -140,7 +140,8 @@ def main(argv: list[str] | None = None) -> int:
     for name, r in results.items():
         timed = r.get("frame") or r.get("list")
         print(
-            f"{name}: p50 {timed['p50_ms']:.2f} ms, p95 {timed['p95_ms']:.2f} ms, max {timed['max_ms']:.2f} ms"
+            f"{name}: p50 {timed['p50_ms']:.2f} ms, p95 {timed['p95_ms']:.2f} ms, "
+            f"max {timed['max_ms']:.2f} ms"
         )
     print("met:", record["met"])
     return 0

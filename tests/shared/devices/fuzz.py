@@ -19,6 +19,7 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -48,10 +49,10 @@ def _mutate(rng: np.random.Generator, data: bytes) -> bytes:
     return data
 
 
-def _run(report: Report, call, rng: np.random.Generator) -> None:  # type: ignore[no-untyped-def]
+def _run(report: Report, call: Callable[..., object], *args: object) -> None:
     t0 = time.thread_time()
     try:
-        call()
+        call(*args)
     except Exception as err:  # an escape: the decoder must count, never raise
         report.escapes.append(f"{type(err).__name__}: {err}"[:300] if len(report.escapes) < 5 else "")
     report.slowest_s = max(report.slowest_s, time.thread_time() - t0)
@@ -88,13 +89,11 @@ def fuzz_robosense(inputs: int, seed: int, difop: bool) -> Report:
                     break
                 if difop:
                     data = _mutate(rng, good_difop) if rng.random() < MUTATED_FRACTION else good_difop
-                    _run(report, lambda d=data: stream.on_difop(d), rng)
-                    _run(
-                        report, lambda p=packet: stream.on_msop(p, T0_NS), rng
-                    )  # frames under mutated angles
+                    _run(report, stream.on_difop, data)
+                    _run(report, stream.on_msop, packet, T0_NS)  # frames under mutated angles
                 else:
                     data = _mutate(rng, packet) if rng.random() < MUTATED_FRACTION else packet
-                    _run(report, lambda d=data: stream.on_msop(d, T0_NS), rng)
+                    _run(report, stream.on_msop, data, T0_NS)
                 done += 1
         for key, value in stream.counters.items():
             totals[key] = totals.get(key, 0) + value
@@ -117,9 +116,17 @@ def fuzz_ars408(inputs: int, seed: int) -> Report:
         em.on_config(config.frame()[1])
         assembler = ars408.ListAssembler(config)
         for _ in range(50):
-            frames = [em.state_frame()] + em.scan_frames(
-                [Target(float(rng.uniform(0, 300)), float(rng.uniform(-1.6, 1.6)), 0.0, float(rng.normal(0, 5)), float(rng.normal(0, 20))) for _ in range(int(rng.integers(0, 40)))]
-            )  # fmt: skip
+            targets = [
+                Target(
+                    float(rng.uniform(0, 300)),
+                    float(rng.uniform(-1.6, 1.6)),
+                    0.0,
+                    float(rng.normal(0, 5)),
+                    float(rng.normal(0, 20)),
+                )
+                for _ in range(int(rng.integers(0, 40)))
+            ]
+            frames = [em.state_frame(), *em.scan_frames(targets)]
             for can_id, data in frames:
                 if done >= inputs:
                     break
@@ -142,8 +149,8 @@ def fuzz_ars408(inputs: int, seed: int) -> Report:
                             )
                         ) | (int(rng.integers(0, 8)) << 4)
                 if rng.random() < 0.01:
-                    _run(report, lambda c=int(rng.integers(0, 1 << 29)): assembler.on_error_frame(c), rng)
-                _run(report, lambda c=can_id, d=data: assembler.on_frame(c, d, 1.0), rng)
+                    _run(report, assembler.on_error_frame, int(rng.integers(0, 1 << 29)))
+                _run(report, assembler.on_frame, can_id, data, 1.0)
                 done += 1
         for key, value in assembler.counters.items():
             totals[key] = totals.get(key, 0) + value
@@ -171,7 +178,8 @@ def main(argv: list[str] | None = None) -> int:
     reports = fuzz_all(args.inputs, args.seed)
     for r in reports:
         print(
-            f"{r.decoder}: {r.inputs} inputs, {len(r.escapes)} escapes, slowest {r.slowest_s * 1e3:.2f} ms, {r.wall_s:.1f} s"
+            f"{r.decoder}: {r.inputs} inputs, {len(r.escapes)} escapes, "
+            f"slowest {r.slowest_s * 1e3:.2f} ms, {r.wall_s:.1f} s"
         )
     if args.out:
         with open(args.out, "w") as f:
