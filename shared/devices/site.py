@@ -25,7 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from shared.devices.robosense import MODELS
 from shared.paths import REPO_ROOT
-from shared.scene.model import LidarModel
+from shared.scene.model import LidarModel, PoseSpec
 from shared.scene.scene import Scene
 
 Clock = Literal["device", "receive"]
@@ -73,13 +73,33 @@ class StreamCamera(_Strict):
 
 
 DeviceSpec = Annotated[RobosenseLidar | Ars408Radar | StreamCamera, Field(discriminator="device")]
+
+
+class CameraIntrinsics(_Strict):
+    fx_px: float = Field(gt=0)
+    fy_px: float = Field(gt=0)
+    cx_px: float
+    cy_px: float
+    distortion: list[float] = Field(default_factory=list, description="plumb_bob k1 k2 p1 p2 k3, or empty")
+
+
+class SensorCalibration(_Strict):
+    """One sensor's calibration on this site (what `rmmdet calibrate` writes): its world pose and,
+    for a camera, its intrinsics; `note` says how they were obtained (solver, residual, inputs)."""
+
+    pose: PoseSpec | None = None
+    intrinsics: CameraIntrinsics | None = None
+    note: str = ""
+
+
 KIND_OF_DEVICE = {"rs16": "lidar", "rs32": "lidar", "ars408": "radar", "stream": "camera"}
 
 
 class SiteFile(_Strict):
     site_id: str
     scene: Path
-    sensors: dict[str, DeviceSpec]
+    sensors: dict[str, DeviceSpec] = Field(default_factory=dict)
+    calibration: dict[str, SensorCalibration] = Field(default_factory=dict)
 
     @classmethod
     def load(cls, path: Path) -> SiteFile:
@@ -113,8 +133,45 @@ class SiteFile(_Strict):
             sensors.append(spec)
         return Scene(scene.spec.model_copy(update={"sensors": sensors}), source=scene.source)
 
+    def calibrated_scene(self, scene: Scene) -> Scene:
+        """`scene` with this site's calibration: poses and camera intrinsics replaced where given."""
+        sensors = []
+        for spec in scene.spec.sensors:
+            cal = self.calibration.get(spec.id)
+            if cal is not None:
+                update: dict[str, object] = {}
+                if cal.pose is not None:
+                    update["pose"] = cal.pose
+                if cal.intrinsics is not None:
+                    if spec.camera is None:
+                        raise ValueError(f"site {self.site_id}: {spec.id} is no camera: it has no intrinsics")
+                    i = cal.intrinsics
+                    update["camera"] = spec.camera.model_copy(
+                        update={
+                            "intrinsics_px": (i.fx_px, i.fy_px, i.cx_px, i.cy_px),
+                            "distortion": i.distortion,
+                        }
+                    )
+                spec = spec.model_copy(update=update)
+            sensors.append(spec)
+        return Scene(scene.spec.model_copy(update={"sensors": sensors}), source=scene.source)
+
+    def save(self, path: Path) -> None:
+        """Write the site file (the scene path as given, relative to the repository when inside it)."""
+        data = self.model_dump(mode="json", exclude_defaults=False)
+        try:
+            data["scene"] = str(Path(self.scene).relative_to(REPO_ROOT))
+        except ValueError:
+            data["scene"] = str(self.scene)
+        Path(path).write_text(yaml.safe_dump(data, sort_keys=False))
+
     def check_against(self, scene_sensor_kinds: dict[str, str]) -> None:
         """ValueError unless every listed sensor is in the scene and its device is of its kind."""
+        for sensor_id in self.calibration:
+            if sensor_id not in scene_sensor_kinds:
+                raise ValueError(
+                    f"site {self.site_id}: calibration of {sensor_id}, not a sensor of the scene"
+                )
         for sensor_id, spec in self.sensors.items():
             kind = scene_sensor_kinds.get(sensor_id)
             if kind is None:

@@ -58,6 +58,9 @@ class CameraModel(_Strict):
     near_m: float = Field(0.02, gt=0, description="render clip plane")
     far_m: float = Field(30.0, gt=0, description="render clip plane")
     image_noise_std: float = Field(0.0, ge=0, le=1, description="Gaussian pixel noise, fraction of 255")
+    intrinsics_px: tuple[float, float, float, float] | None = Field(
+        None, description="calibrated fx, fy, cx, cy (a site's camera); default: from hfov, centred"
+    )
 
     @model_validator(mode="after")
     def _check(self) -> CameraModel:
@@ -65,6 +68,12 @@ class CameraModel(_Strict):
             raise ValueError("distortion needs 4 or 5 plumb_bob coefficients")
         if self.far_m <= self.near_m:
             raise ValueError("far_m must exceed near_m")
+        if self.intrinsics_px is not None and not (
+            self.intrinsics_px[0] > 0
+            and self.intrinsics_px[1] > 0
+            and all(map(math.isfinite, self.intrinsics_px))
+        ):
+            raise ValueError("intrinsics_px: fx, fy must be positive and every value finite")
         return self
 
 

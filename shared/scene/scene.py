@@ -150,10 +150,15 @@ class Scene:
 
     @functools.cache  # noqa: B019
     def K(self, camera_id: str) -> FloatArray:
-        """3x3 intrinsics derived from the camera's resolution and horizontal field of view."""
+        """3x3 intrinsics: the camera's calibrated ones where the scene has them, else derived from its
+        resolution and horizontal field of view."""
         cam = self._camera(camera_id).camera
         assert cam is not None
-        K = intrinsics_from_fov(cam.width_px, cam.height_px, cam.hfov_rad)
+        if cam.intrinsics_px is not None:
+            fx, fy, cx, cy = cam.intrinsics_px
+            K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        else:
+            K = intrinsics_from_fov(cam.width_px, cam.height_px, cam.hfov_rad)
         K.setflags(write=False)
         return K
 
