@@ -29,6 +29,7 @@ from shared.bus.node import Node, Received, processing_stamp
 from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.bus.streams import SENSOR_STREAM, get_stream, limits, sensor_group_source
 from shared.config import load_settings
+from shared.devices.site import SiteFile
 from shared.paths import DEFAULT_SCENE
 from shared.perception.config import DEFAULT_MEC_CONFIG, MecSettings
 from shared.perception.core import MecCore, MecOutput
@@ -47,6 +48,8 @@ IDLE_WAIT_S = 0.1
 
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
     scene = Scene.load(args.scene)
+    if args.site is not None:  # a real site: its sensors' calibration (rmmdet calibrate) over the scene's
+        scene = SiteFile.load(args.site).calibrated_scene(scene)
     agent = args.instance
     if agent not in scene.agents:
         raise SystemExit(f"unknown agent {agent!r}: scene has {sorted(scene.agents)}")
@@ -176,6 +179,7 @@ def publish_detections_2d(node: Node, agent: str, out: MecOutput) -> None:
 def add_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="scene YAML")
     parser.add_argument("--settings", type=Path, default=DEFAULT_MEC_CONFIG, help="MEC settings YAML")
+    parser.add_argument("--site", type=Path, help="site file: its calibration replaces the scene's")
     parser.add_argument(
         "--sensors", help="comma-separated subset of the agent's sensors to fuse (default all)"
     )

@@ -31,6 +31,7 @@ Where public decoders disagree (each tested in tests/shared/devices/test_ars408.
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -55,6 +56,19 @@ ID_OBJECT_STATUS = 0x60A
 ID_OBJECT_GENERAL = 0x60B
 ID_OBJECT_QUALITY = 0x60C
 ID_OBJECT_EXTENDED = 0x60D
+
+# The radar's steps (the DBC's factors of DistLong / DistLat, VrelLong / VrelLat): a detection is off
+# by up to half a step, uniformly, so its quantisation noise is step / sqrt(12) per axis.
+DIST_STEP_M = 0.2
+VREL_STEP_MPS = 0.25
+
+
+def quantisation_noise(typical_range_m: float) -> tuple[float, float, float]:
+    """(range m, azimuth rad at `typical_range_m`, range rate m/s) standard deviations of the ARS 408's
+    quantisation: what a tracker should expect of its detections at least."""
+    per_axis = DIST_STEP_M / math.sqrt(12)
+    return per_axis, per_axis / typical_range_m, VREL_STEP_MPS / math.sqrt(12)
+
 
 #: Obj_ProbOfExist index -> probability (DBC value table / Apollo const_vars.h).
 PROB_OF_EXIST = (0.0, 0.25, 0.5, 0.75, 0.9, 0.99, 0.999, 1.0)

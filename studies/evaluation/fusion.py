@@ -510,6 +510,11 @@ def _run_worker(
         if perturbation.wire:
             transform = WireRoundTrip(site, scene.sensors_of(agent)).captures
     conditions = perturbation.conditions(SeedConditions.draw(variation, seed), variation)
+    mec_scene = perturbation.mec_scene(scene, seed)
+    if perturbation.radar_noise == "ars408":
+        from studies.evaluation.wire import with_ars408_noise
+
+        mec_scene = with_ars408_noise(mec_scene)
     t0 = time.perf_counter()
     ev = evaluate_run(
         scene,
@@ -519,7 +524,7 @@ def _run_worker(
         duration_s,
         warmup_s,
         conditions=conditions,
-        mec_scene=perturbation.mec_scene(scene, seed),
+        mec_scene=mec_scene,
         range_delay_s=perturbation.range_delay_s,
         transform=transform,
     )

@@ -46,6 +46,7 @@ class Perturbation:
     vehicles: int | None = None  # traffic density instead of the seed's
     site: str = ""  # a site file: its lidars fire their devices' rays (studies/evaluation/wire.py)
     wire: bool = False  # ... and every capture goes through its device's wire format and back
+    radar_noise: str = ""  # "ars408": the MEC's radar noise model is the ARS 408's quantisation
 
     def conditions(self, base: SeedConditions, variation: Variation) -> SeedConditions:
         """The seed's conditions with this perturbation's noise and density."""

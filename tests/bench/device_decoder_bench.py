@@ -28,6 +28,7 @@ import numpy as np
 
 from shared.devices import ars408, robosense
 from shared.machine import git_commit, machine_info
+from shared.readme import replace_section
 from sim.emulators.ars408 import Ars408Emulator, Target
 from sim.emulators.robosense import RobosenseEmulator
 
@@ -114,6 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--frames", type=int, default=300, help="lidar revolutions and radar lists timed")
     parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--readme", action="store_true", help="rewrite the README's decoder table")
     args = parser.parse_args(argv)
     os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})  # one core
     rng = np.random.default_rng(0)
@@ -144,7 +146,42 @@ def main(argv: list[str] | None = None) -> int:
             f"max {timed['max_ms']:.2f} ms"
         )
     print("met:", record["met"])
+    if args.readme:
+        replace_section("device-decoders", readme_table(record))
     return 0
+
+
+def readme_table(record: dict[str, Any]) -> str:
+    r, m = record["results"], record["machine"]
+    lidar = {k: f"{r[k]['packets_per_frame']} packets, {r[k]['points']} points" for k in ("rs32", "rs16")}
+    radar = {
+        k: f"{r[k]['detections']} detections, {r[k]['frames']} frames"
+        for k in ("ars408_objects", "ars408_clusters")
+    }
+    rows = [
+        ("RS-LiDAR-32 revolution", r["rs32"], "frame", lidar["rs32"], "rs32_frame"),
+        ("RS-LiDAR-16 revolution", r["rs16"], "frame", lidar["rs16"], None),
+        ("ARS 408 object list", r["ars408_objects"], "list", radar["ars408_objects"], "ars408_objects_list"),
+        ("ARS 408 cluster list", r["ars408_clusters"], "list", radar["ars408_clusters"], None),
+    ]
+    lines = [
+        f"Commit {record['commit']}, {record['date']}, {m['cpu_model']} (one core). "
+        "`python -m tests.bench.device_decoder_bench --readme`.",
+        "",
+        "| decoded | size | p50 ms | p95 ms | max ms | target p95 |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, result, key, size, target in rows:
+        t = result[key]
+        goal = (
+            f"<= {TARGETS_MS[target]:g} ms: {'met' if record['met'][target] else '**not met**'}"
+            if target
+            else ""
+        )
+        lines.append(
+            f"| {name} | {size} | {t['p50_ms']:.2f} | {t['p95_ms']:.2f} | {t['max_ms']:.2f} | {goal} |"
+        )
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

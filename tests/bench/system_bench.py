@@ -319,7 +319,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if supervised_pids():
         raise SystemExit("the system is already up: `make down` first (this benchmark starts it itself)")
     env = dict(os.environ)
-    make = ["make", "-C", str(REPO_ROOT), "up"] + ([f"SPEED={args.speed}"] if args.speed != 1.0 else [])
+    make = ["make", "-C", str(REPO_ROOT), "up", f"SENSORS={args.sensors}"] + (
+        [f"SPEED={args.speed}"] if args.speed != 1.0 else []
+    )
     scene = Scene.load(DEFAULT_SCENE)
     sampler = ProcessSampler()
     tap = Tap()
@@ -498,6 +500,7 @@ def readme_table(runs: list[dict[str, Any]]) -> str:
             f"| {run['label']} ({run['commit']}) | {run['args']['speed']}"
             + (f" + record {run['args']['record_s']:.0f} s" if run["args"]["record_s"] else "")
             + (" + view client" if run["args"].get("view_client") else "")
+            + (" + SENSORS=wire" if run["args"].get("sensors", "sim") == "wire" else "")
             + f" | {fmt(r.get('sim', {}).get('real_time_factor'), 2)} | {r['cpu_cores_total']:.2f}"
             f" | {r['probes']['ok']}/{r['probes']['count']}"
             f" | {'/'.join(fmt(100 * a.get('fraction_full', math.nan), 1) for a in agents)}"
@@ -513,7 +516,10 @@ def readme_table(runs: list[dict[str, Any]]) -> str:
     plain = [
         r
         for r in runs
-        if r["args"]["speed"] == 1.0 and not r["args"]["record_s"] and not r["args"].get("view_client")
+        if r["args"]["speed"] == 1.0
+        and not r["args"]["record_s"]
+        and not r["args"].get("view_client")
+        and r["args"].get("sensors", "sim") == "sim"
     ]
     last = (plain or runs)[-1]
     lines += [
@@ -534,7 +540,42 @@ def readme_table(runs: list[dict[str, Any]]) -> str:
         lines.append(
             f"| {name} | {p['cpu_cores']:.3f} | {p['rss_mb_max']:.0f} | {slope} | {threads} | {fds} |"
         )
+    wire = [r for r in runs if r["args"].get("sensors", "sim") == "wire" and r["args"]["speed"] == 1.0]
+    if wire:
+        lines += ["", *wire_cost_table(wire[-1], last)]
     return "\n".join(lines)
+
+
+WIRE_BUDGET_CORES = 0.3  # issue 33: emulators + device services over the direct path's sensor groups
+
+
+def wire_cost_table(wire: dict[str, Any], direct: dict[str, Any]) -> list[str]:
+    """The sensor path's cost, per group: the direct path's sensor service against the wire profile's
+    emulating sensor service + its device service (SENSORS=wire)."""
+    wp, dp = wire["result"]["processes"], direct["result"]["processes"]
+    groups = sorted(n for n in dp if n.endswith(("-cameras", "-lidars", "-radars")))
+    lines = [
+        f'Sensor path, direct (run "{direct["label"]}", {direct["commit"]}) against SENSORS=wire (run '
+        f'"{wire["label"]}", {wire["commit"]}): CPU cores per sensor group',
+        "",
+        "| group | direct: sensor service | wire: emulating sensor service | wire: device service "
+        "| difference |",
+        "|---|---|---|---|---|",
+    ]
+    total = 0.0
+    for g in groups:
+        direct_c = dp[g]["cpu_cores"]
+        emu, dev = (
+            wp.get(g, {}).get("cpu_cores", math.nan),
+            wp.get(f"{g}-device", {}).get("cpu_cores", math.nan),
+        )
+        total += emu + dev - direct_c
+        lines.append(f"| {g} | {direct_c:.3f} | {emu:.3f} | {dev:.3f} | {emu + dev - direct_c:+.3f} |")
+    lines.append(
+        f"| all | | | | {total:+.3f} ({'within' if total <= WIRE_BUDGET_CORES else '**over**'} the "
+        f"{WIRE_BUDGET_CORES} budget) |"
+    )
+    return lines
 
 
 def rss_series(samples: list[dict[str, float]], points: int = 60) -> list[list[float]]:
@@ -572,6 +613,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--warmup-s", type=float, default=60.0, help="settling time after `make up`, s")
     parser.add_argument("--speed", type=float, default=1.0, help="sim speed (make up SPEED=...)")
     parser.add_argument("--record-s", type=float, default=0.0, help="run `rmmdet record` this long, s")
+    parser.add_argument(
+        "--sensors",
+        choices=("sim", "wire"),
+        default="sim",
+        help="make up SENSORS=...: wire = emulated devices",
+    )
     parser.add_argument("--label", default="default", help="name of this run in the results")
     parser.add_argument(
         "--view-client",
@@ -597,6 +644,7 @@ def main(argv: list[str] | None = None) -> int:
             "warmup_s": args.warmup_s,
             "speed": args.speed,
             "record_s": args.record_s,
+            "sensors": args.sensors,
             "view_client": args.view_client,
         },
         "machine": machine_info(),
