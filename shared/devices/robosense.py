@@ -584,12 +584,29 @@ class LidarStream:
                 out.append(frame)
             mask[:split] = False
         self._append(data, mask, recv_ns)
+        if self._ends_turn(azimuths):
+            # The packet's last block is the revolution's last: the frame is whole now, not one packet
+            # later when the next turn's first block crosses the split (the next turn may be late).
+            frame = self._finish()
+            if frame is not None:
+                out.append(frame)
+            return out
         if len(self._frame.packets) >= self.max_packets:
             self._count("frames/cut_long")
             frame = self._finish()
             if frame is not None:
                 out.append(frame)
         return out
+
+    def _ends_turn(self, azimuths: np.ndarray) -> bool:
+        """Does the next firing after this packet's last block cross the split azimuth?"""
+        valid = azimuths[azimuths < AZIMUTH_PER_TURN]
+        if not len(valid) or self.info is None:
+            return False
+        last = int(valid[-1])
+        step = self.model.nominal_az_step(self.info.rpm, self.info.dual)
+        split = self._splitter.split_az
+        return (split - last - 1) % AZIMUTH_PER_TURN < step
 
     def flush(self) -> Frame | None:
         """The open frame as it stands (the caller knows its revolution ended: a recording's last
