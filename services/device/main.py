@@ -130,10 +130,12 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                             node.counters.inc("rejected/capture_demand")
                 if now - last_log >= args.report_interval_s:
                     for sid, src in sources.items():
-                        median_ms, max_ms = stampers[sid].snap_summary_ms()
+                        low_ms, median_ms, high_ms = stampers[sid].snap_summary_ms()
                         log.info(
-                            "%s: %d frames published, %d read, stamp moved %.1f ms median %.1f max, %s",
-                            sid, published[sid], seen[sid], median_ms, max_ms, src.counters_snapshot(),
+                            "%s: %d frames published, %d read, stamp - capture %.1f / %.1f / %.1f ms "
+                            "(min / median / max), %d given their predecessor's capture, %s",
+                            sid, published[sid], seen[sid], low_ms, median_ms, high_ms,
+                            stampers[sid].repeated, src.counters_snapshot(),
                         )  # fmt: skip
                     if dropped["queue_full"]:
                         log.warning("%d frames dropped: publishing fell behind", dropped["queue_full"])

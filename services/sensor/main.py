@@ -171,7 +171,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 for capture in rig.captures(gt, every_n=every_n):  # each published as soon as made
                     stats["frames"] += 1
                     if wire is not None:
-                        wire.send(capture)
+                        wire.send(capture, due.received_wall_ns)
                         node.counters.inc(f"frames/{capture.spec.kind}")
                         continue
                     stage = processing_stamp(f"sensor/{capture.spec.kind}", capture.start_ns, capture.end_ns)

@@ -111,6 +111,24 @@ class Scene:
                 return k
         return None
 
+    def nearest_capture_tick(self, spec: SensorSpec, tick: float, tick_hz: float) -> int | None:
+        """The tick nearest `tick` (fractional) on which `spec` captures at full cadence, searched one
+        of its periods either side."""
+        period = max(1, math.ceil(tick_hz / spec.rate_hz))
+        best: int | None = None
+        for k in range(max(0, math.floor(tick) - period), math.ceil(tick) + period + 1):
+            if self.captures_on(spec, k, tick_hz) and (best is None or abs(k - tick) < abs(best - tick)):
+                best = k
+        return best
+
+    def next_capture_tick(self, spec: SensorSpec, after: int, tick_hz: float) -> int | None:
+        """The first tick after `after` on which `spec` captures at full cadence (within a period)."""
+        period = max(1, math.ceil(tick_hz / spec.rate_hz))
+        for k in range(after + 1, after + period + 2):
+            if self.captures_on(spec, k, tick_hz):
+                return k
+        return None
+
     def agents_capturing_on(self, tick: int, tick_hz: float) -> frozenset[str]:
         """The agents some sensor of which captures on `tick` (at full cadence)."""
         return frozenset(s.agent for s in self.spec.sensors if self.captures_on(s, tick, tick_hz))

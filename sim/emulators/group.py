@@ -10,6 +10,11 @@ port of the adapter's `socket://` channel and stream URL.
 
 from __future__ import annotations
 
+import heapq
+import logging
+import threading
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from urllib.parse import urlsplit
 
@@ -21,6 +26,8 @@ from sim.emulators.robosense import LidarSender, RobosenseEmulator
 from sim.sensors.lidar import LidarScan
 from sim.sensors.radar import SimRadarTarget
 from sim.sensors.rig import Capture
+
+log = logging.getLogger(__name__)
 
 
 def _socket_address(channel: str) -> tuple[str, int]:
@@ -47,6 +54,13 @@ class WireGroup:
     """Emulators for `specs` per `site`; `send(capture)` puts one capture on the wire."""
 
     def __init__(self, site: SiteFile, specs: list[SensorSpec]) -> None:
+        self.delays_ns = {
+            s.id: round(d.latency_s * 1e9)
+            for s in specs
+            if isinstance(d := site.device(s.id), (Ars408Radar, StreamCamera))
+        }
+        self.late = 0
+        self._scheduler = _Scheduler()
         self.lidars: dict[str, _Lidar] = {}
         self.radars: dict[str, SlcanRadarServer] = {}
         self.cameras: dict[str, MjpegServer] = {}
@@ -74,7 +88,22 @@ class WireGroup:
             self.close()
             raise
 
-    def send(self, capture: Capture) -> None:
+    def send(self, capture: Capture, tick_wall_ns: int | None = None) -> None:
+        """Put `capture` on the wire; a radar's or camera's `latency_s` (site file) after
+        `tick_wall_ns` (the wall time its tick arrived: the moment of capture), as the device delivers
+        its output a fixed time after its measurement; at once if that has passed (counted `late`).
+        A lidar's packets go out over its revolution (LidarSender)."""
+        sid = capture.spec.id
+        delay_ns = self.delays_ns.get(sid, 0)
+        if delay_ns and tick_wall_ns is not None:
+            due_ns = tick_wall_ns + delay_ns
+            if time.time_ns() < due_ns:
+                self._scheduler.at(due_ns, lambda: self._send_now(capture))
+                return
+            self.late += 1
+        self._send_now(capture)
+
+    def _send_now(self, capture: Capture) -> None:
         sid = capture.spec.id
         if sid in self.lidars:
             lidar = self.lidars[sid]
@@ -93,18 +122,58 @@ class WireGroup:
             self.cameras[sid].publish(capture.message.data)  # type: ignore[attr-defined]
 
     def status(self) -> str:
-        parts = [f"{sid} {lidar.sender.sent} packets" for sid, lidar in self.lidars.items()]
+        parts = [f"{self.late} late"] if self.late else []
+        parts += [f"{sid} {lidar.sender.sent} packets" for sid, lidar in self.lidars.items()]
         parts += [f"{sid} {srv.frames_sent} frames" for sid, srv in self.radars.items()]
         parts += [f"{sid} {srv.frames} images, {srv.clients} clients" for sid, srv in self.cameras.items()]
         return ", ".join(parts)
 
     def close(self) -> None:
+        self._scheduler.close()
         for lidar in self.lidars.values():
             lidar.sender.close()
         for radar in self.radars.values():
             radar.close()
         for camera in self.cameras.values():
             camera.stop()
+
+
+class _Scheduler:
+    """Runs callables at wall times, in order, on one thread (the delayed device outputs)."""
+
+    def __init__(self) -> None:
+        self._queue: list[tuple[int, int, Callable[[], None]]] = []
+        self._count = 0
+        self._cond = threading.Condition()
+        self._stop = False
+        self._thread = threading.Thread(target=self._run, name="wire-scheduler", daemon=True)
+        self._thread.start()
+
+    def at(self, due_ns: int, fn: Callable[[], None]) -> None:
+        with self._cond:
+            self._count += 1
+            heapq.heappush(self._queue, (due_ns, self._count, fn))
+            self._cond.notify()
+
+    def close(self) -> None:
+        with self._cond:
+            self._stop = True
+            self._cond.notify()
+        self._thread.join(timeout=2.0)
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._stop and (not self._queue or self._queue[0][0] > time.time_ns()):
+                    wait_s = (self._queue[0][0] - time.time_ns()) / 1e9 if self._queue else None
+                    self._cond.wait(wait_s)
+                if self._stop:
+                    return
+                _, _, fn = heapq.heappop(self._queue)
+            try:
+                fn()
+            except Exception:  # a device that cannot take the frame now: never the scheduler's end
+                log.exception("delayed device output failed")
 
 
 def radar_target(t: SimRadarTarget) -> Target:

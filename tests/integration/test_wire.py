@@ -11,6 +11,7 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -31,6 +32,8 @@ pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
 GROUPS = ("agent1-lidars", "agent2-radars", "agent2-cameras")
 STARTUP_S = 40.0
 FRAMES = 6  # ticks compared per sensor
+LATENCY_S = 0.06  # the emulated radars and cameras deliver this long after each capture
+RECEIVE_TICK_SHARE = 0.8
 
 
 @pytest.fixture
@@ -55,7 +58,11 @@ def wire_site(tmp_path: Path) -> Path:
                 "channel": f"socket://127.0.0.1:{free_port()}",
             }
         elif spec.agent == "agent2" and spec.kind == "camera":
-            sensors[spec.id] = {"device": "stream", "url": f"http://127.0.0.1:{free_port()}/{spec.id}.mjpg"}
+            sensors[spec.id] = {
+                "device": "stream",
+                "url": f"http://127.0.0.1:{free_port()}/{spec.id}.mjpg",
+                "latency_s": LATENCY_S,
+            }
     site = tmp_path / "site.yaml"
     site.write_text(yaml.safe_dump({"site_id": "test_wire", "scene": str(DEFAULT_SCENE), "sensors": sensors}))
     return site
@@ -123,7 +130,39 @@ def wire_loop(
                 print(p.stdout.read() if p.stdout else "")
 
 
+def same_within_resolution(kind: str, got: Any, direct: Any) -> bool:
+    """Is the wire's message the simulator's capture back, within its device's resolution?"""
+    if kind == "lidar":
+        points, want = point_cloud_to_array(got), point_cloud_to_array(direct.message)
+        if len(points) != len(want):
+            return False
+        dist, nearest = cKDTree(points[:, :3]).query(want[:, :3])
+        return (
+            float(dist.max()) <= DISTANCE_RES_M / 2 + 1e-4
+            and len(np.unique(nearest)) == len(want)
+            and bool(np.allclose(points[nearest, 3], want[:, 3], atol=0.5 / 255 + 1e-6))
+        )
+    if kind == "radar":
+        decoded = [(t.range_m, t.azimuth_rad) for t in got.targets]
+        if len(decoded) != len(direct.data):
+            return False
+        for t in direct.data:  # each simulated target has a decoded one within half the 0.2 m steps
+            ground = t.range_m * np.cos(t.elevation_rad)
+            x, y = ground * np.cos(t.azimuth_rad), ground * np.sin(t.azimuth_rad)
+            if not any(
+                abs(r * np.cos(a) - x) <= 0.1 + 1e-6 and abs(r * np.sin(a) - y) <= 0.1 + 1e-6
+                for r, a in decoded
+            ):
+                return False
+        return True
+    return bool(got.data == direct.message.data)
+
+
 def test_wire_path_gives_the_simulators_message_back(wire_loop, wire_site: Path) -> None:
+    """Device clock (lidar): every frame on its own capture's tick. Receive clock (radar, camera):
+    stamped on receipt less the latency, so a frame delayed past half a period by the host's jitter
+    takes the neighbouring capture; at least RECEIVE_TICK_SHARE of them must be on their own, and
+    every one must be the simulator's message of its tick or of the capture next to it."""
     frames, truth = wire_loop
     site = SiteFile.load(wire_site)
     scene = site.simulated_scene(Scene.load(DEFAULT_SCENE))
@@ -135,37 +174,27 @@ def test_wire_path_gives_the_simulators_message_back(wire_loop, wire_site: Path)
     assert not missing, f"too few frames through the wire: {missing}"
     with SensorRig(scene, specs) as rig:
         for spec in specs:
-            compared = 0
+            compared, on_tick = 0, 0
+            period = round(60 / spec.rate_hz)  # the sim's 60 Hz ticks between captures
             for item in frames[spec.id][2:]:
                 tick = item.header.tick
                 assert tick > 0, f"{spec.id}: no tick under the sim"
                 gt = truth.get(tick)
-                if gt is None:
+                if gt is None or truth.get(tick - period) is None or truth.get(tick + period) is None:
                     continue
-                (direct,) = rig.capture(gt.message, specs=[spec])
                 assert item.header.stamp.ToNanoseconds() == gt.header.stamp.ToNanoseconds()
-                if spec.kind == "lidar":
-                    got = point_cloud_to_array(item.message)
-                    want = point_cloud_to_array(direct.message)
-                    assert len(got) == len(want), spec.id
-                    dist, nearest = cKDTree(got[:, :3]).query(want[:, :3])
-                    assert float(dist.max()) <= DISTANCE_RES_M / 2 + 1e-4
-                    assert len(np.unique(nearest)) == len(want)
-                    assert np.allclose(got[nearest, 3], want[:, 3], atol=0.5 / 255 + 1e-6)
-                elif spec.kind == "radar":
-                    got_t = sorted((t.range_m, t.azimuth_rad) for t in item.message.targets)
-                    want_t = direct.data
-                    assert len(got_t) == len(want_t), spec.id
-                    for t in want_t:  # each simulated target has a decoded one within the steps
-                        ground = t.range_m * np.cos(t.elevation_rad)
-                        x, y = ground * np.cos(t.azimuth_rad), ground * np.sin(t.azimuth_rad)
-                        assert any(
-                            abs(r * np.cos(a) - x) <= 0.1 + 1e-6 and abs(r * np.sin(a) - y) <= 0.1 + 1e-6
-                            for r, a in got_t
-                        )
-                else:
-                    assert item.message.data == direct.message.data, spec.id
+                matched = [
+                    dt
+                    for dt in (0, -period, period)
+                    if same_within_resolution(
+                        spec.kind, item.message, rig.capture(truth[tick + dt].message, specs=[spec])[0]
+                    )
+                ]
+                assert matched, f"{spec.id} tick {tick}: not the simulator's message of it or a neighbour"
+                on_tick += matched[0] == 0
                 compared += 1
                 if compared >= FRAMES:
                     break
             assert compared >= FRAMES // 2, f"{spec.id}: {compared} frames compared"
+            share = on_tick / compared
+            assert share == 1.0 if spec.kind == "lidar" else share >= RECEIVE_TICK_SHARE, (spec.id, share)

@@ -95,11 +95,12 @@ def test_under_a_sim_a_frame_gets_its_capture_tick() -> None:
     # a device clock a microsecond early (the YMD time's resolution) still belongs to tick 12
     assert lidar.stamp(tick_12 - 800, on_wall_clock=False) == Stamp(tick_12, 12, EPOCH_NS)
     # received 90 ms after tick 12 (the next capture is tick 18, at 100 ms): still tick 12
-    assert lidar.stamp(tick_12 + 90_000_000, on_wall_clock=False) == Stamp(tick_12, 12, EPOCH_NS)
+    late = Stamper(scene, scene.sensor("lidar_11"), sim_time_at(tick_12 + 50_000_000))
+    assert late.stamp(tick_12 + 90_000_000, on_wall_clock=False) == Stamp(tick_12, 12, EPOCH_NS)
     radar = Stamper(scene, scene.sensor("radar_2"), sim_time_at(tick_12 + 50_000_000))
     tick_14 = tick_stamp_ns(EPOCH_NS, 14, HZ)
     assert radar.stamp(tick_14 + 30_000_000, on_wall_clock=False) == Stamp(tick_14, 14, EPOCH_NS)
-    assert radar.snap_summary_ms() == (30.0, 30.0)
+    assert radar.snap_summary_ms() == (30.0, 30.0, 30.0)
 
 
 def test_receive_time_goes_onto_sim_time_first() -> None:
@@ -117,3 +118,25 @@ def test_before_the_first_capture_nothing_is_snapped() -> None:
     radar = Stamper(scene, scene.sensor("radar_2"), sim_time_at(EPOCH_NS))
     assert radar.stamp(EPOCH_NS + 1_000, on_wall_clock=False) == Stamp(EPOCH_NS + 1_000)
     assert radar.unsnapped == 1
+
+
+def test_a_late_frame_takes_the_next_capture_and_is_counted() -> None:
+    """Receive stamps less the latency are jitter around their capture: the nearest capture is taken.
+    A frame delayed past half a period takes the next one, the frame after it that one again (counted):
+    the error stays with the late frame."""
+    scene = Scene.load(DEFAULT_SCENE)
+    radar = Stamper(scene, scene.sensor("radar_2"), sim_time_at(EPOCH_NS))
+    tick = {k: tick_stamp_ns(EPOCH_NS, k, HZ) for k in (8, 14, 20)}
+    assert radar.stamp(tick[8] + 20_000_000, on_wall_clock=False).tick == 8  # device clock: floor
+    wall = Stamper(scene, scene.sensor("radar_2"), SimTime())  # no sim: stamps kept
+    assert wall.stamp(tick[8], on_wall_clock=True).tick == 0
+    late = Stamper(scene, scene.sensor("radar_2"), SimTime())
+
+    def received(at_ns: int) -> int:  # a clock sample just then (the wall clock is sim time here)
+        late.sim_time.on_clock(at_ns, 1.0, wall_ns=at_ns, step_s=1 / HZ, epoch_ns=EPOCH_NS)
+        return late.stamp(at_ns, on_wall_clock=True).tick
+
+    assert received(tick[8] + 30_000_000) == 8  # 30 ms of jitter: its own capture
+    assert received(tick[8] + 70_000_000) == 14  # 70 ms late: the next one
+    assert received(tick[14] + 10_000_000) == 14  # on time: its own
+    assert late.repeated == 1
