@@ -32,8 +32,16 @@ from services.sensor.main import parse_group
 from shared.bus.health import DEGRADED, NOMINAL
 from shared.bus.node import Node, Publisher, processing_stamp
 from shared.bus.streams import SENSOR_STREAM
-from shared.devices.site import SiteFile
-from shared.devices.sources import CameraSource, LidarSource, Output, OutputFn, RadarSource, Source
+from shared.devices.site import Ars408Radar, RobosenseLidar, SiteFile, VelodyneLidar
+from shared.devices.sources import (
+    CameraSource,
+    LidarSource,
+    Output,
+    OutputFn,
+    RadarSource,
+    Source,
+    VelodyneSource,
+)
 from shared.devices.stamping import Stamper
 from shared.perception.inputs import InputState, SensorMonitor
 from shared.scene.cadence import CaptureDemands
@@ -52,11 +60,13 @@ DEMAND_QUEUE = 16
 
 def build_source(site: SiteFile, spec: SensorSpec, emit: OutputFn) -> Source:
     device = site.device(spec.id)
-    if device.device in ("rs16", "rs32"):
-        return LidarSource(spec.id, device, emit)  # type: ignore[arg-type]
-    if device.device == "ars408":
-        return RadarSource(spec.id, device, emit)  # type: ignore[arg-type]
-    return CameraSource(spec.id, device, emit)  # type: ignore[arg-type]
+    if isinstance(device, RobosenseLidar):
+        return LidarSource(spec.id, device, emit)
+    if isinstance(device, VelodyneLidar):
+        return VelodyneSource(spec.id, device, emit)
+    if isinstance(device, Ars408Radar):
+        return RadarSource(spec.id, device, emit)
+    return CameraSource(spec.id, device, emit)
 
 
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:

@@ -4,6 +4,7 @@
     scene: deploy/scenes/sand_table.yaml      # the sensors' ids, agents, poses and rates
     sensors:
       lidar_11: {device: rs16, bind: 127.0.0.1, msop_port: 6699, difop_port: 7788, clock: device}
+      lidar_12: {device: vlp16, bind: 0.0.0.0, data_port: 2368}
       radar_2:  {device: ars408, interface: slcan, channel: "socket://127.0.0.1:20002", can_id: 0}
       cam_11:   {device: stream, url: "http://127.0.0.1:8101/stream.mjpg"}
 
@@ -51,6 +52,18 @@ class RobosenseLidar(_Strict):
         if self.msop_port == self.difop_port:
             raise ValueError("msop_port and difop_port must differ")
         return self
+
+
+class VelodyneLidar(_Strict):
+    """A Velodyne unit, decoded by the `velodyne-decoder` package with its bundled calibration."""
+
+    device: Literal["vlp16", "vlp32c"]
+    bind: str = Field("0.0.0.0", description="address the adapter listens on")
+    data_port: int = Field(2368, gt=0, lt=65536)
+    clock: Clock = "receive"  # device: the packets' microseconds past the hour on the host's hour
+    latency_s: float = Field(0.0, ge=0, le=1)
+    min_range_m: float = Field(0.1, ge=0)
+    max_range_m: float = Field(200.0, gt=0)
 
 
 class Ars408Radar(_Strict):
@@ -109,7 +122,7 @@ class SiteFile(_Strict):
             site = site.model_copy(update={"scene": REPO_ROOT / site.scene})
         return site
 
-    def device(self, sensor_id: str) -> RobosenseLidar | Ars408Radar | StreamCamera:
+    def device(self, sensor_id: str) -> RobosenseLidar | VelodyneLidar | Ars408Radar | StreamCamera:
         try:
             return self.sensors[sensor_id]
         except KeyError:

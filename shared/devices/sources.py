@@ -9,6 +9,7 @@ bus-off, stream down), which the device service reports in its health beside the
 silent (judged there, on the clock of record).
 
 - `LidarSource`: MSOP and DIFOP UDP sockets (kernel receive stamps, SO_TIMESTAMPNS) -> LidarStream.
+- `VelodyneSource`: a VLP-16 / VLP-32C data port -> velodyne-decoder's StreamDecoder.
 - `RadarSource`: a python-can bus (socketcan, slcan, udp_multicast, virtual) -> ListAssembler; sends
   the configuration at start and again every second until RadarState confirms it.
 - `CameraSource`: OpenCV's FFmpeg backend on the stream URL; an MJPEG source's JPEG packets are passed
@@ -36,7 +37,7 @@ from google.protobuf.message import Message
 from rmmdet.v1.sensors_pb2 import RadarScan, RadarTarget
 
 from shared.devices import ars408, robosense
-from shared.devices.site import Ars408Radar, RobosenseLidar, StreamCamera
+from shared.devices.site import Ars408Radar, RobosenseLidar, StreamCamera, VelodyneLidar
 from shared.perception.decode import point_cloud_message
 
 log = logging.getLogger(__name__)
@@ -89,7 +90,8 @@ class _Source:
 
     def close(self) -> None:
         self._stop.set()
-        self._thread.join(timeout=3.0)
+        if self._thread.ident is not None:  # started
+            self._thread.join(timeout=3.0)
 
     def _frame_out(self, output: Output) -> None:
         self.frames += 1
@@ -201,6 +203,80 @@ class LidarSource(_Source):
             return "no DIFOP yet: no cloud until the unit's angles arrive"
         if self.spec.clock == "device" and not self.stream.info.clock_locked:
             return "clock not locked (DIFOP): stamped on receive"
+        return ""
+
+
+class VelodyneSource(_Source):
+    """A Velodyne unit on its data port, decoded by `velodyne-decoder`'s StreamDecoder (a scan per
+    revolution, cut at its default angle; stamped with its first packet)."""
+
+    HOUR_NS = 3_600_000_000_000
+
+    def __init__(self, sensor_id: str, spec: VelodyneLidar, emit: OutputFn) -> None:
+        super().__init__(sensor_id, emit)
+        import velodyne_decoder as vd  # compiled decoder: imported where a Velodyne is used
+
+        self.spec = spec
+        model = {"vlp16": vd.Model.VLP16, "vlp32c": vd.Model.VLP32C}[spec.device]
+        config = vd.Config(
+            model=model, min_range=spec.min_range_m, max_range=spec.max_range_m, timestamp_first_packet=True
+        )
+        self.decoder = vd.StreamDecoder(config)
+        self.packet_size = vd.PACKET_SIZE
+        self.sock = _udp_socket(spec.bind, spec.data_port)
+
+    def close(self) -> None:
+        super().close()
+        self.sock.close()
+
+    def on_packet(self, data: bytes, recv_ns: int) -> None:
+        if len(data) != self.packet_size:
+            self.count("rejected/packet/bad_length")
+            return
+        try:
+            result = self.decoder.decode(recv_ns / 1e9, data)
+        except (RuntimeError, ValueError) as exc:
+            self.count("rejected/packet/undecodable")
+            log.debug("%s: %s", self.sensor_id, exc)
+            return
+        self.count("packets")
+        if result is None:
+            return
+        stamps, points = result
+        if points is None or len(points) == 0:
+            self.count("scans/empty")
+            return
+        if self.spec.clock == "device":
+            stamp_ns, wall = self.on_host_hour(round(stamps.device * 1e9), recv_ns), False
+        else:
+            stamp_ns, wall = round(stamps.host * 1e9), True
+        pts = np.asarray(points, np.float32)
+        self._frame_out(
+            Output(
+                self.sensor_id,
+                point_cloud_message(pts[:, :3], pts[:, 3] / INTENSITY_FULL_SCALE, self.sensor_id, stamp_ns),
+                stamp_ns,
+                wall,
+            )
+        )
+
+    @classmethod
+    def on_host_hour(cls, device_ns: int, host_ns: int) -> int:
+        """A time within the hour (what a Velodyne packet carries, unless it is given absolute time)
+        on the host's hour: the one that puts it nearest the host's time."""
+        if device_ns >= cls.HOUR_NS:
+            return device_ns  # already absolute
+        base = host_ns - host_ns % cls.HOUR_NS + device_ns
+        return min((base - cls.HOUR_NS, base, base + cls.HOUR_NS), key=lambda t: abs(t - host_ns))
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            ready, _, _ = select.select([self.sock], [], [], 0.1)
+            if ready:
+                while (got := _recv_stamped(self.sock)) is not None:
+                    self.on_packet(*got)
+
+    def status(self) -> str:
         return ""
 
 
@@ -441,4 +517,4 @@ class CameraSource(_Source):
         return ""
 
 
-Source = LidarSource | RadarSource | CameraSource
+Source = LidarSource | VelodyneSource | RadarSource | CameraSource
