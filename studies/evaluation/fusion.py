@@ -503,7 +503,7 @@ def _run_worker(
     transform = None
     if perturbation.site:
         from shared.devices.site import SiteFile
-        from studies.evaluation.wire import WireRoundTrip
+        from studies.evaluation.wire_path import WireRoundTrip
 
         site = SiteFile.load(REPO_ROOT / perturbation.site)
         scene = site.simulated_scene(scene)
@@ -512,7 +512,7 @@ def _run_worker(
     conditions = perturbation.conditions(SeedConditions.draw(variation, seed), variation)
     mec_scene = perturbation.mec_scene(scene, seed)
     if perturbation.radar_noise == "ars408":
-        from studies.evaluation.wire import with_ars408_noise
+        from studies.evaluation.wire_path import with_ars408_noise
 
         mec_scene = with_ars408_noise(mec_scene)
     t0 = time.perf_counter()
