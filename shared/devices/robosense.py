@@ -530,6 +530,7 @@ class LidarStream:
         self.counters: dict[str, int] = {}
         self._splitter = FrameSplitter(split_az)
         self._frame = _Partial()
+        self._last_day: tuple[int, int, int] | None = None  # date of the last packet whose time was good
 
     def _count(self, reason: str, n: int = 1) -> None:
         self.counters[reason] = self.counters.get(reason, 0) + n
@@ -563,12 +564,9 @@ class LidarStream:
             self._count("rejected/msop/no_difop")
             return []
         packet = np.frombuffer(data, MSOP_DTYPE)[0]
-        if self.clock is StampClock.DEVICE:
-            try:
-                packet_time_ns(packet)
-            except PacketError as exc:
-                self._count(f"rejected/msop/{exc.reason}")
-                return []
+        if self.clock is StampClock.DEVICE and not self._time_plausible(packet):
+            self._count("rejected/msop/bad_time")
+            return []
         self._count("msop")
         azimuths = packet["blocks"]["azimuth"]
         out: list[Frame] = []
@@ -597,6 +595,26 @@ class LidarStream:
             if frame is not None:
                 out.append(frame)
         return out
+
+    def _time_plausible(self, packet: np.ndarray) -> bool:
+        """Is the packet's time a calendar time? Quick for the same date as the last good packet's and
+        a valid time of day (the usual case); a new date, or a bad field, takes the exact check."""
+        day = (int(packet["year"]), int(packet["month"]), int(packet["day"]))
+        ok = (
+            day == self._last_day
+            and packet["hour"] < 24
+            and packet["minute"] < 60
+            and packet["second"] < 61
+            and packet["ms"] < 1000
+            and packet["us"] < 1000
+        )
+        if not ok:
+            try:
+                packet_time_ns(packet)
+            except PacketError:
+                return False
+            self._last_day = day
+        return True
 
     def _ends_turn(self, azimuths: np.ndarray) -> bool:
         """Does the next firing after this packet's last block cross the split azimuth?"""
