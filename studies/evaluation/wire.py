@@ -61,9 +61,12 @@ def _row(summary: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def paired(a: list[float], b: list[float]) -> dict[str, float]:
-    """Mean of b - a over paired seeds and its 95 % t-interval."""
-    d = np.asarray(b) - np.asarray(a)
+def paired(a: list[float | None], b: list[float | None]) -> dict[str, float]:
+    """Mean of b - a over the seeds where both are defined (an AP is None where a seed has nothing to
+    score), and its 95 % t-interval."""
+    d = np.asarray([y - x for x, y in zip(a, b, strict=True) if x is not None and y is not None], float)
+    if len(d) == 0:
+        return {"mean": math.nan, "ci_low": math.nan, "ci_high": math.nan}
     mean = float(d.mean())
     if len(d) < 2:
         return {"mean": mean, "ci_low": math.nan, "ci_high": math.nan}
@@ -94,14 +97,16 @@ def run_wire_study(
                 if name != "all":
                     evaluations.setdefault(name, fe.AgentEvaluation()).merge(e)
         pooled[arm.name] = {name: _row(fe.summarise(e)) for name, e in evaluations.items()}
+        out.mkdir(parents=True, exist_ok=True)  # what is done so far survives a later failure
+        (out / "partial.json").write_text(json.dumps({"per_seed": per_seed, "pooled": pooled}, default=float))
     differences: dict[str, dict[str, Any]] = {}
     for base, other in (("devices", "wire"), ("sim", "devices"), ("wire", "wire_radar_model")):
         for agent in agents:
             for key in pooled[other][agent]:
                 if not key.endswith("_ap"):
                     continue
-                before = [per_seed[base][s][agent][key] for s in seeds]
-                after = [per_seed[other][s][agent][key] for s in seeds]
+                before = [per_seed[base][s][agent].get(key) for s in seeds]
+                after = [per_seed[other][s][agent].get(key) for s in seeds]
                 pair = paired(before, after)
                 differences.setdefault(f"{other} - {base}", {}).setdefault(agent, {})[key] = pair
     results = {
@@ -146,10 +151,13 @@ def markdown_table(results: dict[str, Any]) -> str:
                 d = diff[name][agent][key]
                 return f"{d['mean']:+.3f} [{d['ci_low']:+.3f}, {d['ci_high']:+.3f}]"
 
+            def ap(arm: str, agent: str = agent, key: str = key) -> str:
+                value = pooled[arm][agent].get(key)
+                return "-" if value is None else f"{value:.3f}"
+
             lines.append(
-                f"| {agent} | {key.removesuffix('_ap')} | {pooled['sim'][agent][key]:.3f} | "
-                f"{pooled['devices'][agent][key]:.3f} | {pooled['wire'][agent][key]:.3f} | "
-                f"{pooled['wire_radar_model'][agent][key]:.3f} | "
+                f"| {agent} | {key.removesuffix('_ap')} | {ap('sim')} | {ap('devices')} | {ap('wire')} | "
+                f"{ap('wire_radar_model')} | "
                 f"{ci('wire - devices')} | {ci('devices - sim')} | {ci('wire_radar_model - wire')} |"
             )
     return "\n".join(lines)
