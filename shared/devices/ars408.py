@@ -57,17 +57,16 @@ ID_OBJECT_GENERAL = 0x60B
 ID_OBJECT_QUALITY = 0x60C
 ID_OBJECT_EXTENDED = 0x60D
 
-# The radar's steps (the DBC's factors of DistLong / DistLat, VrelLong / VrelLat): a detection is off
-# by up to half a step, uniformly, so its quantisation noise is step / sqrt(12) per axis.
-DIST_STEP_M = 0.2
-VREL_STEP_MPS = 0.25
-
 
 def quantisation_noise(typical_range_m: float) -> tuple[float, float, float]:
     """(range m, azimuth rad at `typical_range_m`, range rate m/s) standard deviations of the ARS 408's
-    quantisation: what a tracker should expect of its detections at least."""
-    per_axis = DIST_STEP_M / math.sqrt(12)
-    return per_axis, per_axis / typical_range_m, VREL_STEP_MPS / math.sqrt(12)
+    quantisation: what a tracker should expect of its detections at least. A detection is off by up to
+    half a step (the DBC's factors of Cluster_DistLong and Cluster_VrelLong), uniformly: step / sqrt(12)."""
+    general = database().get_message_by_frame_id(ID_CLUSTER_GENERAL)
+    dist_step = float(general.get_signal_by_name("Cluster_DistLong").scale)
+    vrel_step = float(general.get_signal_by_name("Cluster_VrelLong").scale)
+    per_axis = dist_step / math.sqrt(12)
+    return per_axis, per_axis / typical_range_m, vrel_step / math.sqrt(12)
 
 
 #: Obj_ProbOfExist index -> probability (DBC value table / Apollo const_vars.h).

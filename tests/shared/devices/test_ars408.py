@@ -198,3 +198,11 @@ def test_round_trip_within_the_radar_resolution(output: a.OutputType) -> None:
     rates = np.array([t.range_rate_mps for t in targets])
     assert np.max(np.abs(lst.vrel_long_mps - rates * np.cos(az))) <= 0.125 + 1e-9
     assert np.max(np.abs(lst.rcs_dbsm - [t.rcs_dbsm for t in targets])) <= 0.25 + 1e-9
+
+
+def test_quantisation_noise_of_the_dbc_steps() -> None:
+    """0.2 m and 0.25 m/s steps (the DBC's factors): uniform error of +-half a step, std step / sqrt(12)."""
+    range_std, azimuth_std, rate_std = a.quantisation_noise(2.0)
+    assert range_std == pytest.approx(0.2 / math.sqrt(12))
+    assert azimuth_std == pytest.approx(0.2 / math.sqrt(12) / 2.0)
+    assert rate_std == pytest.approx(0.25 / math.sqrt(12))
