@@ -124,6 +124,7 @@ def run_wire_study(
     }
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps(results, indent=2, default=float) + "\n")
+    (out / "partial.json").unlink(missing_ok=True)  # superseded: only a failed run leaves it
     return results
 
 
