@@ -28,7 +28,6 @@ from pathlib import Path
 
 import zenoh
 
-from services.sensor.main import parse_group
 from shared.bus.health import DEGRADED, NOMINAL
 from shared.bus.node import Node, Publisher, processing_stamp
 from shared.bus.streams import SENSOR_STREAM
@@ -73,7 +72,10 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     site = SiteFile.load(args.site)
     scene = Scene.load(site.scene)
     site.check_against({s.id: s.kind for s in scene.spec.sensors})
-    specs = parse_group(scene, args.group)
+    try:
+        specs = scene.group_sensors(args.group)
+    except ValueError as exc:
+        raise SystemExit(str(exc)) from None
     agent, kind = specs[0].agent, specs[0].kind
     outputs: queue.Queue[Output] = queue.Queue(maxsize=OUTPUT_QUEUE)
     dropped = {"queue_full": 0}
