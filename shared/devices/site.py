@@ -22,8 +22,9 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from shared.config import ConfigError, read_yaml
 from shared.devices.robosense import MODELS
 from shared.paths import REPO_ROOT
 from shared.scene.model import LidarModel, PoseSpec
@@ -116,8 +117,11 @@ class SiteFile(_Strict):
 
     @classmethod
     def load(cls, path: Path) -> SiteFile:
-        raw = yaml.safe_load(Path(path).read_text())
-        site = cls.model_validate(raw)
+        """The site file at `path`; ConfigError naming the file and the field for anything wrong."""
+        try:
+            site = cls.model_validate(read_yaml(Path(path)))
+        except ValidationError as err:
+            raise ConfigError(f"{path}: invalid site file: {err}") from None
         if not site.scene.is_absolute():
             site = site.model_copy(update={"scene": REPO_ROOT / site.scene})
         return site

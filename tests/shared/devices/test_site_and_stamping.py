@@ -140,3 +140,14 @@ def test_a_late_frame_takes_the_next_capture_and_is_counted() -> None:
     assert received(tick[8] + 70_000_000) == 14  # 70 ms late: the next one
     assert received(tick[14] + 10_000_000) == 14  # on time: its own
     assert late.repeated == 1
+
+
+def test_a_bad_site_file_is_refused_naming_the_file(tmp_path: Path) -> None:
+    from shared.config import ConfigError
+
+    bad = write_site(tmp_path, {"lidar_11": {"device": "rs16", "msop_port": 70000}})
+    with pytest.raises(ConfigError, match="site.yaml: invalid site file"):
+        SiteFile.load(bad)
+    (tmp_path / "broken.yaml").write_text("site_id: [")
+    with pytest.raises(ConfigError, match="invalid YAML"):
+        SiteFile.load(tmp_path / "broken.yaml")
