@@ -146,7 +146,7 @@ def test_a_bad_site_file_is_refused_naming_the_file(tmp_path: Path) -> None:
     from shared.config import ConfigError
 
     bad = write_site(tmp_path, {"lidar_11": {"device": "rs16", "msop_port": 70000}})
-    with pytest.raises(ConfigError, match="site.yaml: invalid site file"):
+    with pytest.raises(ConfigError, match=r"site\.yaml: invalid site file"):
         SiteFile.load(bad)
     (tmp_path / "broken.yaml").write_text("site_id: [")
     with pytest.raises(ConfigError, match="invalid YAML"):
