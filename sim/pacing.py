@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter, deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 from shared.timebase import NS_PER_S
@@ -33,6 +33,14 @@ MAX_PERIOD_S = 1.0  # a gap longer than this (a restarted consumer) is not its c
 PERIOD_WINDOW = 8  # outputs whose gaps make up a consumer's period: one full round of cameras taking turns
 SILENCE_PERIODS = 2.0  # wall cadences without a report after which a consumer is silent
 MIN_TIMEOUT_S = 0.15  # ... but never sooner (wall s): one late frame of a 10 Hz consumer is not silence
+
+
+def silence_after_s(wall_gaps_s: Iterable[float], timeout_s: float) -> float:
+    """Wall seconds without a report after which a consumer with these recent wall gaps between its
+    reports is silent: SILENCE_PERIODS of its cadence (the longest gap), within [MIN_TIMEOUT_S,
+    `timeout_s`]; `timeout_s` while its cadence is unknown."""
+    cadence_s = max(wall_gaps_s, default=timeout_s)
+    return min(timeout_s, max(MIN_TIMEOUT_S, SILENCE_PERIODS * cadence_s))
 
 
 @dataclass
@@ -48,9 +56,8 @@ class _Consumer:
         return max(self.gaps_ns, default=0)
 
     def silent(self, now_s: float, timeout_s: float) -> bool:
-        """No report for SILENCE_PERIODS of its wall cadence (clamped to [MIN_TIMEOUT_S, timeout_s])."""
-        cadence_s = max(self.wall_gaps_s, default=timeout_s)
-        return now_s - self.heard_s > min(timeout_s, max(MIN_TIMEOUT_S, SILENCE_PERIODS * cadence_s))
+        """No report for `silence_after_s` of its recent wall cadence."""
+        return now_s - self.heard_s > silence_after_s(self.wall_gaps_s, timeout_s)
 
 
 class Pacer:

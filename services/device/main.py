@@ -164,7 +164,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 if kind == "camera" and every_n != cadence["every_n"]:
                     cadence["every_n"] = every_n
                     for sid in sources:
-                        monitor.set_rate(sid, by_id[sid].rate_hz / every_n)
+                        monitor.set_rate(sid, by_id[sid].rate_hz / every_n, sim_time.now_s())
                 if kind == "camera" and not _due(
                     scene, spec, stamp.tick, sim_time, every_n, seen[out.sensor_id]
                 ):

@@ -223,7 +223,7 @@ class MecCore:
             return every_n, False
         self.every_n = every_n
         for sensor_id, rate_hz in self.rates_hz().items():
-            self.monitor.set_rate(sensor_id, rate_hz)
+            self.monitor.set_rate(sensor_id, rate_hz, now_s)
         return every_n, True
 
     def expected(self, alive: Collection[str]) -> Callable[[int], Collection[str]]:

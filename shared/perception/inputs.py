@@ -45,6 +45,7 @@ class _Input:
     accepted: int = 0
     stale: int = 0
     gone: bool = False  # its producing process left the bus: MISSING until it delivers again
+    rate_since_s: float | None = None  # when it was last asked for more frames while OK
 
 
 @dataclass(frozen=True)
@@ -88,11 +89,20 @@ class SensorMonitor:
     def sensors(self) -> list[str]:
         return list(self._inputs)
 
-    def set_rate(self, sensor_id: str, rate_hz: float) -> None:
-        """The rate `sensor_id` is now expected at (e.g. a camera asked for every n-th frame), Hz."""
+    def set_rate(self, sensor_id: str, rate_hz: float, now_s: float) -> None:
+        """The rate `sensor_id` is expected at from `now_s` on (e.g. a camera asked for every n-th
+        frame), Hz. An input OK at the change is judged on a higher rate from `now_s`, not from its last
+        frame: a camera asked for every frame after 1 s at every 10th is not missing at once for frames
+        it was not asked for. One already missing stays missing; a lower rate is judged from the last
+        frame."""
         if rate_hz <= 0:
             raise ValueError(f"rate must be > 0, got {rate_hz}")
-        self._inputs[sensor_id].rate_hz = rate_hz
+        inp = self._inputs[sensor_id]
+        if rate_hz < inp.rate_hz:
+            inp.rate_since_s = None
+        elif rate_hz > inp.rate_hz and self.state(sensor_id, now_s) is InputState.OK:
+            inp.rate_since_s = now_s
+        inp.rate_hz = rate_hz
 
     def accept(self, sensor_id: str, stamp_ns: int, now_s: float, arrival_ns: int) -> bool:
         """Record an arrival; False (and counted as stale) when the frame is too old to fuse."""
@@ -117,6 +127,8 @@ class SensorMonitor:
             return InputState.MISSING
         limit_s = self.missing_after_periods / inp.rate_hz
         last = inp.last_accepted_s if inp.last_accepted_s is not None else self.start_s
+        if inp.rate_since_s is not None:
+            last = max(last, inp.rate_since_s)
         if now_s - last <= limit_s:
             return InputState.OK
         if inp.last_stale_s is not None and now_s - inp.last_stale_s <= limit_s:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from sim.pacing import NS_PER_S, Pacer
+from sim.pacing import MIN_TIMEOUT_S, NS_PER_S, Pacer, silence_after_s
 
 MS = NS_PER_S // 1000
 T0 = 1_700_000_000 * NS_PER_S
@@ -144,3 +144,10 @@ def test_a_slow_consumer_keeps_holding_for_its_own_cadence() -> None:
         pacer.on_progress("mec1", T0 + k * 100 * MS, now_s=10.0 + k * 0.4)
     assert pacer.holding(T0 + 800 * MS, now_s=11.6 + 0.79) == "mec1"
     assert pacer.holding(T0 + 800 * MS, now_s=11.6 + 0.81) is None  # 2 x 0.4 s
+
+
+def test_silence_is_two_wall_cadences_within_the_floor_and_the_timeout() -> None:
+    assert silence_after_s([0.1, 0.12, 0.1], timeout_s=1.0) == pytest.approx(0.24)  # 2 x longest gap
+    assert silence_after_s([0.02, 0.03], timeout_s=1.0) == MIN_TIMEOUT_S  # never sooner than the floor
+    assert silence_after_s([0.9], timeout_s=1.0) == 1.0  # never later than the timeout
+    assert silence_after_s([], timeout_s=1.0) == 1.0  # cadence unknown: the timeout

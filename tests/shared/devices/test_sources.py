@@ -148,6 +148,7 @@ class VirtualRadar:
     def __init__(self, channel: str) -> None:
         self.bus = can.Bus(interface="virtual", channel=channel)
         self.emulator = Ars408Emulator(output=1)
+        self.outputs = [self.emulator.output]  # the list it sends, after each configuration
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self.run, daemon=True)
         self.thread.start()
@@ -156,6 +157,7 @@ class VirtualRadar:
         while not self.stop.is_set():
             msg = self.bus.recv(0.05)
             if msg is not None and msg.arbitration_id == 0x200 and self.emulator.on_config(bytes(msg.data)):
+                self.outputs.append(self.emulator.output)
                 can_id, data = self.emulator.state_frame()
                 self.bus.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=False))
 
@@ -188,9 +190,8 @@ def radar() -> Iterator[tuple[RadarSource, VirtualRadar, Collector]]:
 
 def test_radar_configured_at_start_then_lists(radar) -> None:
     source, emulated, out = radar
-    assert emulated.emulator.output == 1
     wait_until(lambda: source.assembler.configured, 5.0)
-    assert emulated.emulator.output == 2  # clusters, as the site asked
+    assert emulated.outputs[0] == 1 and emulated.outputs[-1] == 2  # objects -> clusters, as the site asked
     assert source.status() == ""
     emulated.scan(3)
     out.wait(1)

@@ -189,3 +189,30 @@ def test_bounded_wait_joins_asynchronous_sensors_by_stamp(scene: Scene) -> None:
 def test_an_unknown_trigger_is_refused(scene: Scene) -> None:
     with pytest.raises(ValueError, match="trigger"):
         core_of(scene, settings(collector="bounded_wait", trigger="cam_99"))
+
+
+def test_after_its_lidars_are_lost_each_frame_tick_goes_out_while_the_cameras_catch_up(scene: Scene) -> None:
+    """Cameras at every 10th frame (lidars live), then both lidars' process leaves: the cameras are
+    asked for every frame, but they last delivered up to 1 s ago at the old cadence and take a frame to
+    follow. They are not missing for that (judged at the new rate from the change on), so the frame tick
+    meanwhile goes out coasted instead of leaving a gap in the agent's output."""
+    core = MecCore(scene, AGENT, MecSettings(), cameras=CountingCameras(), lidar=NoCars())
+    core.tick_hz = TICK_HZ
+    core.reset(0.0)
+    n = MecSettings().detectors.camera_every_n_with_lidar
+    for frame in range(1, n):
+        due = core.pipeline.cameras_due(True, frame * TICKS_PER_FRAME)
+        now = feed(core, frame, skip=tuple(c for c in core.camera_ids if c not in due))
+        core.cadence(now)
+        assert core.step(now) is not None
+    lidars = tuple(s for s, k in core.kinds.items() if k == "lidar")
+    for lidar in lidars:
+        core.mark_gone(lidar)
+    assert core.cadence(now + 0.05) == (1, True)
+    stamp_s = n * TICKS_PER_FRAME / TICK_HZ  # nothing delivered: the cameras have not followed yet
+    out = core.step(stamp_s + MecSettings().sync.max_wait_s + 0.001)
+    assert out is not None and out.frame.coasted and out.frame.tick == n * TICKS_PER_FRAME
+    assert set(out.frame.missing) == set(core.camera_ids) and out.status is Status.UNAVAILABLE
+    out = core.step(feed(core, n + 1, skip=lidars))
+    assert out is not None and set(out.frame.samples) == set(core.camera_ids)
+    assert out.frame.tick == (n + 1) * TICKS_PER_FRAME and out.status is Status.DEGRADED

@@ -63,11 +63,25 @@ def test_stutter_does_not_flap_and_no_input_is_unavailable() -> None:
 def test_an_input_asked_for_fewer_frames_is_judged_at_its_new_rate() -> None:
     m = monitor()
     m.accept("cam", stamp_ns=10 * NS_PER_S, now_s=1.0, arrival_ns=10 * NS_PER_S)
-    m.set_rate("cam", 3.0)  # every 5th frame of 15 Hz
+    m.set_rate("cam", 3.0, now_s=1.05)  # every 5th frame of 15 Hz
     assert m.state("cam", 1.0 + 0.9) is InputState.OK  # 3 periods of 1/3 s
     assert m.state("cam", 1.0 + 1.01) is InputState.MISSING
     with pytest.raises(ValueError):
-        m.set_rate("cam", 0.0)
+        m.set_rate("cam", 0.0, now_s=2.0)
+
+
+def test_an_input_asked_for_more_frames_is_judged_at_its_new_rate_from_the_change() -> None:
+    """A camera at every 10th frame (1 Hz) asked for every frame (10 Hz) 0.8 s after its last frame
+    is not missing at once: it gets 3 new periods from the change. One already missing stays so."""
+    m = SensorMonitor({"cam": 1.0, "lidar": 10.0}, missing_after_periods=3, max_age_s=0.5, start_s=0.0)
+    m.accept("cam", stamp_ns=10 * NS_PER_S, now_s=1.0, arrival_ns=10 * NS_PER_S)
+    m.set_rate("cam", 10.0, now_s=1.8)
+    assert m.state("cam", 1.8 + 0.29) is InputState.OK
+    assert m.state("cam", 1.8 + 0.31) is InputState.MISSING
+    m.set_rate("cam", 1.0, now_s=3.0)  # back to 1 Hz: judged from its last frame (1.0) on
+    assert m.state("cam", 3.9) is InputState.OK and m.state("cam", 4.01) is InputState.MISSING
+    m.set_rate("cam", 10.0, now_s=5.0)  # missing when asked for more: no new grace
+    assert m.state("cam", 5.01) is InputState.MISSING
 
 
 def test_an_input_whose_process_is_gone_is_missing_at_once_until_it_delivers() -> None:
