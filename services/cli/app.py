@@ -34,6 +34,7 @@ HELP = """`rmmdet`: command-line tool for a running RMMDet system.
     rmmdet eval fusion [--agent agent1] [--seed 201] [--duration-s 60] [--workers 2] [--out docs/eval/fusion]
     rmmdet experiments flow [--config deploy/experiments/flow.yaml] [--out docs/eval/flow]   flow experiment
     rmmdet eval wire [--seed 201] [--agent agent2]   accuracy through the devices' wire formats
+    rmmdet eval calibration [--agent agent3]         accuracy on a calibration recovered from boards
     rmmdet calibrate intrinsics|camera-pose|sensor-pose|render-board ...   site calibration -> site file
 
 Connects like any service (deploy/zenoh/client.json5, or the standard Zenoh flags).

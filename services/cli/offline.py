@@ -297,81 +297,106 @@ def eval_readme(
         console.print(f"README <- {path}")
 
 
-@eval_app.command("robustness")
-def eval_robustness(
-    agents: Annotated[
-        list[str] | None, typer.Option("--agent", help="agents (repeatable; default all)")
-    ] = None,
-    seeds: Annotated[
-        list[int] | None,
-        typer.Option("--seed", help="sim seeds (repeatable; default the held-out fusion test split)"),
-    ] = None,
-    duration_s: Annotated[float, typer.Option(help="simulated seconds scored per run")] = 30.0,
-    warmup_s: Annotated[float, typer.Option(help="simulated seconds before scoring")] = 3.0,
-    workers: Annotated[int, typer.Option(help="(agent, seed) runs in parallel (processes)")] = 2,
-    config: Annotated[Path | None, typer.Option(help="MEC settings YAML")] = None,
-    out: Annotated[Path, typer.Option(help="results folder")] = Path("docs/eval/robustness"),
-    readme: Annotated[bool, typer.Option(help="rewrite the README's robustness table")] = False,
-) -> None:
-    """The fusion evaluation's tracked output under 2x sensor noise, 100 ms range-sensor delay, 1 cm /
-    0.5 deg extrinsic error and 32 vehicles, each against the clean run on the same seeds."""
+# Options of the studies that score arms on the held-out seeds (robustness, wire, calibration).
+HeldOutAgents = Annotated[list[str] | None, typer.Option("--agent", help="agents (repeatable; default all)")]
+HeldOutSeeds = Annotated[
+    list[int] | None,
+    typer.Option("--seed", help="sim seeds (repeatable; default the held-out fusion test split)"),
+]
+DurationS = Annotated[float, typer.Option(help="simulated seconds scored per run")]
+WarmupS = Annotated[float, typer.Option(help="simulated seconds before scoring")]
+Workers = Annotated[int, typer.Option(help="(agent, seed) runs in parallel (processes)")]
+MecConfig = Annotated[Path | None, typer.Option(help="MEC settings YAML")]
+Readme = Annotated[bool, typer.Option(help="rewrite the README's table of this study")]
+
+
+def held_out_study(
+    run: Any, table: Any, section: str, agents: list[str] | None, seeds: list[int] | None,
+    duration_s: float, warmup_s: float, workers: int, config: Path | None, out: Path, readme: bool,
+) -> None:  # fmt: skip
+    """Run `run(dataset, mec, agents, seeds, duration_s, warmup_s, workers, out)` (default: every agent,
+    the held-out seeds, the MEC's settings), print `table(results)`, and put it in the README's
+    `section` with `readme`."""
     from shared.config import load_settings
     from shared.perception.config import DEFAULT_MEC_CONFIG, MecSettings
     from shared.readme import replace_section
     from studies.dataset.config import DEFAULT_DATASET_CONFIG, DatasetSettings
+
+    log_progress()
+    dataset = load_settings(DatasetSettings, DEFAULT_DATASET_CONFIG)
+    agents = agents or sorted(Scene.load(DEFAULT_SCENE).agents)
+    seeds = seeds or list(dataset.seeds.fusion_test)
+    mec = load_settings(MecSettings, config or DEFAULT_MEC_CONFIG)
+    results = run(dataset, mec, agents, seeds, duration_s, warmup_s, workers, out)
+    text = table(results)
+    if readme:
+        replace_section(section, text)
+    console.print(text)
+    console.print(f"results: {out / 'results.json'}")
+
+
+@eval_app.command("robustness")
+def eval_robustness(
+    agents: HeldOutAgents = None,
+    seeds: HeldOutSeeds = None,
+    duration_s: DurationS = 30.0,
+    warmup_s: WarmupS = 3.0,
+    workers: Workers = 2,
+    config: MecConfig = None,
+    out: Annotated[Path, typer.Option(help="results folder")] = Path("docs/eval/robustness"),
+    readme: Readme = False,
+) -> None:
+    """The fusion evaluation's tracked output under 2x sensor noise, 100 ms range-sensor delay, 1 cm /
+    0.5 deg extrinsic error and 32 vehicles, each against the clean run on the same seeds."""
     from studies.evaluation import robustness
     from studies.evaluation.run import run_robustness_study
 
-    log_progress()
-    scene = Scene.load(DEFAULT_SCENE)
-    dataset = load_settings(DatasetSettings, DEFAULT_DATASET_CONFIG)
-    agents = agents or sorted(scene.agents)
-    seeds = seeds or list(dataset.seeds.fusion_test)
-    mec = load_settings(MecSettings, config or DEFAULT_MEC_CONFIG)
-    results = run_robustness_study(dataset, mec, agents, seeds, duration_s, warmup_s, workers, out)
-    text = robustness.markdown_table(results)
-    if readme:
-        replace_section("eval-robustness", text)
-    console.print(text)
-    console.print(f"results: {out / 'results.json'}")
+    held_out_study(
+        run_robustness_study, robustness.markdown_table, "eval-robustness",
+        agents, seeds, duration_s, warmup_s, workers, config, out, readme,
+    )  # fmt: skip
 
 
 @eval_app.command("wire")
 def eval_wire(
-    agents: Annotated[
-        list[str] | None, typer.Option("--agent", help="agents (repeatable; default all)")
-    ] = None,
-    seeds: Annotated[
-        list[int] | None,
-        typer.Option("--seed", help="sim seeds (repeatable; default the held-out fusion test split)"),
-    ] = None,
-    duration_s: Annotated[float, typer.Option(help="simulated seconds scored per run")] = 30.0,
-    warmup_s: Annotated[float, typer.Option(help="simulated seconds before scoring")] = 3.0,
-    workers: Annotated[int, typer.Option(help="(agent, seed) runs in parallel (processes)")] = 2,
-    config: Annotated[Path | None, typer.Option(help="MEC settings YAML")] = None,
+    agents: HeldOutAgents = None,
+    seeds: HeldOutSeeds = None,
+    duration_s: DurationS = 30.0,
+    warmup_s: WarmupS = 3.0,
+    workers: Workers = 2,
+    config: MecConfig = None,
     out: Annotated[Path, typer.Option(help="results folder")] = Path("docs/eval/wire"),
-    readme: Annotated[bool, typer.Option(help="rewrite the README's wire-path table")] = False,
+    readme: Readme = False,
 ) -> None:
     """Accuracy through the devices' wire formats: the scene's sensors, the site's device rays, and
     the device rays through the wire and back (RS-LiDAR 5 mm, ARS 408 0.2 m / 0.25 m/s), same seeds."""
-    from shared.config import load_settings
-    from shared.perception.config import DEFAULT_MEC_CONFIG, MecSettings
-    from shared.readme import replace_section
-    from studies.dataset.config import DEFAULT_DATASET_CONFIG, DatasetSettings
     from studies.evaluation import wire
 
-    log_progress()
-    scene = Scene.load(DEFAULT_SCENE)
-    dataset = load_settings(DatasetSettings, DEFAULT_DATASET_CONFIG)
-    agents = agents or sorted(scene.agents)
-    seeds = seeds or list(dataset.seeds.fusion_test)
-    mec = load_settings(MecSettings, config or DEFAULT_MEC_CONFIG)
-    results = wire.run_wire_study(dataset, mec, agents, seeds, duration_s, warmup_s, workers, out)
-    text = wire.markdown_table(results)
-    if readme:
-        replace_section("eval-wire", text)
-    console.print(text)
-    console.print(f"results: {out / 'results.json'}")
+    held_out_study(
+        wire.run_wire_study, wire.markdown_table, "eval-wire",
+        agents, seeds, duration_s, warmup_s, workers, config, out, readme,
+    )  # fmt: skip
+
+
+@eval_app.command("calibration")
+def eval_calibration(
+    agents: HeldOutAgents = None,
+    seeds: HeldOutSeeds = None,
+    duration_s: DurationS = 20.0,
+    warmup_s: WarmupS = 3.0,
+    workers: Workers = 2,
+    config: MecConfig = None,
+    out: Annotated[Path, typer.Option(help="results folder")] = Path("docs/eval/calibration"),
+    readme: Readme = False,
+) -> None:
+    """Every camera calibrated through `rmmdet calibrate` on simulator-rendered boards, then the
+    pipeline on the recovered calibration against the scene's true one, same seeds."""
+    from studies.evaluation import calibration
+
+    held_out_study(
+        calibration.run_calibration_study, calibration.markdown_table, "eval-calibration",
+        agents, seeds, duration_s, warmup_s, workers, config, out, readme,
+    )  # fmt: skip
 
 
 experiments_app = typer.Typer(add_completion=False, no_args_is_help=True, help="experiments (offline)")

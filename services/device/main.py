@@ -55,6 +55,7 @@ log = logging.getLogger("services.device")
 OUTPUT_QUEUE = 64
 SILENT_PERIODS = 3.0  # a sensor with no frame for this many of its periods is reported silent
 DEMAND_QUEUE = 16
+COUNTERS_EVERY_S = 1.0  # the devices' own counters (by reason) taken into the health report this often
 
 
 def build_source(site: SiteFile, spec: SensorSpec, emit: OutputFn) -> Source:
@@ -73,7 +74,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     scene = Scene.load(site.scene)
     site.check_against({s.id: s.kind for s in scene.spec.sensors})
     try:
-        specs = scene.group_sensors(args.group)
+        specs = scene.group_sensors(args.group, args.only)
     except ValueError as exc:
         raise SystemExit(str(exc)) from None
     agent, kind = specs[0].agent, specs[0].kind
@@ -129,11 +130,21 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         for source in sources.values():
             source.start()
         log.info("group %s: %d devices from site %s", args.group, len(sources), site.site_id)
-        last_log = time.monotonic()
+        last_log = last_counters = time.monotonic()
         try:
             while not shutdown.requested:
                 node.health.beat()
                 now = time.monotonic()
+                if now - last_counters >= COUNTERS_EVERY_S:  # `rmmdet health` shows them by reason
+                    last_counters = now
+                    node.counters.publish(
+                        {
+                            f"{reason}/{sid}": n
+                            for sid, src in sources.items()
+                            for reason, n in src.counters_snapshot().items()
+                        }
+                        | {"dropped/queue_full": dropped["queue_full"]}
+                    )
                 if demand_sub is not None:
                     for demand in demand_sub.drain():
                         if not demands.on_demand(
@@ -204,6 +215,7 @@ def _due(scene: Scene, spec: SensorSpec, tick: int, sim_time: SimTime, every_n: 
 def add_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--group", required=True, help="sensor group: <agent>-<cameras|lidars|radars>")
     parser.add_argument("--site", type=Path, required=True, help="site file (deploy/devices/*.yaml)")
+    parser.add_argument("--only", help="comma-separated subset of the group's sensors (tests)")
     parser.add_argument("--report-interval-s", type=float, default=10.0, help="log interval")
 
 

@@ -55,9 +55,9 @@ GT_QUEUE = 8
 DEMAND_QUEUE = 16  # capture demands: one per consumer per second
 
 
-def parse_group(scene: Scene, group: str) -> list[SensorSpec]:
+def parse_group(scene: Scene, group: str, only: str | None = None) -> list[SensorSpec]:
     try:
-        return scene.group_sensors(group)
+        return scene.group_sensors(group, only)
     except ValueError as exc:
         raise SystemExit(str(exc)) from None
 
@@ -83,14 +83,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     site = SiteFile.load(args.wire) if args.wire is not None else None
     if site is not None:
         scene = site.simulated_scene(scene)  # the site's lidars fire their devices' rays
-    specs = parse_group(scene, args.group)
-    if args.only:
-        wanted = set(args.only.split(","))
-        if not wanted <= {s.id for s in specs}:
-            raise SystemExit(
-                f"--only: {sorted(wanted - {s.id for s in specs})} are not in group {args.group}"
-            )
-        specs = [s for s in specs if s.id in wanted]
+    specs = parse_group(scene, args.group, args.only)
     agent, kind = specs[0].agent, specs[0].kind
     wire: WireGroup | None = None
     if site is not None:

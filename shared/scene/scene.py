@@ -89,9 +89,10 @@ class Scene:
         offset = self.agents[spec.agent].sensor_phase_ticks
         return frame_due(spec.rate_hz, every_n, tick, tick_hz, self._capture_phase[spec.id], offset)
 
-    def group_sensors(self, group: str) -> list[SensorSpec]:
-        """The sensors of sensor group `group` (`<agent>-<kind>s`, shared.bus.streams.sensor_group);
-        ValueError for a group that is not one of this scene's."""
+    def group_sensors(self, group: str, only: str | None = None) -> list[SensorSpec]:
+        """The sensors of sensor group `group` (`<agent>-<kind>s`, shared.bus.streams.sensor_group), or
+        the comma-separated subset `only` of them; ValueError for a group that is not one of this
+        scene's, or a sensor in `only` that is not in the group."""
         agent, _, kinds = group.rpartition("-")
         kind = kinds.removesuffix("s")
         if agent not in self.agents or kind not in SENSOR_STREAM or group != sensor_group(agent, kind):
@@ -99,6 +100,11 @@ class Scene:
         sensors = self.sensors_of(agent, kind)  # type: ignore[arg-type]
         if not sensors:
             raise ValueError(f"sensor group {group!r} has no sensors in scene {self.scene_id}")
+        if only:
+            wanted = set(only.split(","))
+            if unknown := wanted - {s.id for s in sensors}:
+                raise ValueError(f"{sorted(unknown)} are not in sensor group {group}")
+            sensors = [s for s in sensors if s.id in wanted]
         return sensors
 
     def latest_capture_tick(self, spec: SensorSpec, tick: float, tick_hz: float) -> int | None:

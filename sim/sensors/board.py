@@ -17,6 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pybullet as pb
+import yaml
 
 from shared.calibration.solve import Board
 from shared.scene.scene import Scene
@@ -171,3 +172,36 @@ def standing_placements(scene: Scene, camera_id: str, board: Board) -> list[np.n
         for ahead in (0.45, 0.6)
         for side in (-0.15, 0.0, 0.15)
     ]
+
+
+def render_views(
+    scene: Scene, camera_id: str, board: Board, out: Path, views: int, seed: int = 0
+) -> list[Path]:
+    """`views` images of `board` in front of the camera (0.3-0.6 m away) as PNGs in `out`: a session's
+    intrinsics photographs."""
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    with BoardRenderer(scene, camera_id, board) as renderer:
+        for k, T in enumerate(
+            views_in_front(scene, camera_id, board, views, np.random.default_rng(seed), (0.3, 0.6))
+        ):
+            paths.append(out / f"{camera_id}_view_{k:02d}.png")
+            cv2.imwrite(str(paths[-1]), cv2.cvtColor(renderer.render(T), cv2.COLOR_RGB2BGR))
+    return paths
+
+
+def render_standing(scene: Scene, camera_id: str, board: Board, board_text: str, out: Path) -> Path:
+    """The board standing on the table at `standing_placements`, one PNG each in `out`, and the survey
+    file naming each image with the board's surveyed pose (`board_text` as the survey's `board`)."""
+    from shared.calibration.workflow import pose_spec
+
+    out.mkdir(parents=True, exist_ok=True)
+    placements = []
+    with BoardRenderer(scene, camera_id, board) as renderer:
+        for k, T in enumerate(standing_placements(scene, camera_id, board)):
+            name = f"{camera_id}_standing_{k:02d}.png"
+            cv2.imwrite(str(out / name), cv2.cvtColor(renderer.render(T), cv2.COLOR_RGB2BGR))
+            placements.append({"image": name, "pose": pose_spec(T).model_dump(exclude_none=True)})
+    survey = out / "survey.yaml"
+    survey.write_text(yaml.safe_dump({"board": board_text, "placements": placements}, sort_keys=False))
+    return survey

@@ -511,6 +511,10 @@ def _run_worker(
             transform = WireRoundTrip(site, scene.sensors_of(agent)).captures
     conditions = perturbation.conditions(SeedConditions.draw(variation, seed), variation)
     mec_scene = perturbation.mec_scene(scene, seed)
+    if perturbation.calibration:
+        from shared.devices.site import SiteFile
+
+        mec_scene = SiteFile.load(REPO_ROOT / perturbation.calibration).calibrated_scene(mec_scene)
     if perturbation.radar_noise == "ars408":
         from studies.evaluation.wire_path import with_ars408_noise
 

@@ -47,6 +47,9 @@ class Perturbation:
     site: str = ""  # a site file: its lidars fire their devices' rays (studies/evaluation/wire.py)
     wire: bool = False  # ... and every capture goes through its device's wire format and back
     radar_noise: str = ""  # "ars408": the MEC's radar noise model is the ARS 408's quantisation
+    calibration: str = (
+        ""  # a site file: the MEC believes its `calibration:` (studies/evaluation/calibration.py)
+    )
 
     def conditions(self, base: SeedConditions, variation: Variation) -> SeedConditions:
         """The seed's conditions with this perturbation's noise and density."""

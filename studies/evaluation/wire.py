@@ -23,23 +23,15 @@ the radar's targets (radar agent), and the paired difference over seeds with a 9
 
 from __future__ import annotations
 
-import json
-import math
-import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-from scipy import stats
-
-from shared.machine import git_commit, machine_info
 from shared.perception.config import MecSettings
 from studies.dataset.config import DatasetSettings
-from studies.evaluation import fusion as fe
 from studies.evaluation import robustness
+from studies.evaluation.arms import run_arms
 
 DEFAULT_SITE = "deploy/devices/sand_table_wire.yaml"
-T_95 = 0.975
 
 
 ARMS = (
@@ -51,27 +43,7 @@ ARMS = (
 )
 
 
-def _row(summary: dict[str, Any]) -> dict[str, Any]:
-    out = {"tracked_ap": summary["tracked"]["ap_bev_0.7"]}
-    for output in ("lidar", "radar"):
-        if output in summary:
-            out[f"{output}_ap"] = summary[output]["ap_bev_0.7"]
-            out[f"{output}_pose_p95_m"] = summary[output]["pose_error_p95_m"]
-            out[f"{output}_f1"] = summary[output].get("f1")
-    return out
-
-
-def paired(a: list[float | None], b: list[float | None]) -> dict[str, float]:
-    """Mean of b - a over the seeds where both are defined (an AP is None where a seed has nothing to
-    score), and its 95 % t-interval."""
-    d = np.asarray([y - x for x, y in zip(a, b, strict=True) if x is not None and y is not None], float)
-    if len(d) == 0:
-        return {"mean": math.nan, "ci_low": math.nan, "ci_high": math.nan}
-    mean = float(d.mean())
-    if len(d) < 2:
-        return {"mean": mean, "ci_low": math.nan, "ci_high": math.nan}
-    half = float(stats.t.ppf(T_95, len(d) - 1) * d.std(ddof=1) / math.sqrt(len(d)))
-    return {"mean": mean, "ci_low": mean - half, "ci_high": mean + half}
+COMPARISONS = (("devices", "wire"), ("sim", "devices"), ("wire", "wire_radar_model"))
 
 
 def run_wire_study(
@@ -85,47 +57,19 @@ def run_wire_study(
     out: Path,
 ) -> dict[str, Any]:
     """Every arm on every seed, one evaluation per seed (for the paired differences)."""
-    t0 = time.perf_counter()
-    per_seed: dict[str, dict[int, dict[str, Any]]] = {arm.name: {} for arm in ARMS}
-    pooled: dict[str, dict[str, Any]] = {}
-    for arm in ARMS:
-        evaluations: dict[str, fe.AgentEvaluation] = {}
-        for seed in seeds:
-            ev = fe.evaluate(agents, [seed], duration_s, warmup_s, mec, workers, dataset.variation, arm)
-            per_seed[arm.name][seed] = {a: _row(fe.summarise(e)) for a, e in ev.items() if a != "all"}
-            for name, e in ev.items():
-                if name != "all":
-                    evaluations.setdefault(name, fe.AgentEvaluation()).merge(e)
-        pooled[arm.name] = {name: _row(fe.summarise(e)) for name, e in evaluations.items()}
-        out.mkdir(parents=True, exist_ok=True)  # what is done so far survives a later failure
-        (out / "partial.json").write_text(json.dumps({"per_seed": per_seed, "pooled": pooled}, default=float))
-    differences: dict[str, dict[str, Any]] = {}
-    for base, other in (("devices", "wire"), ("sim", "devices"), ("wire", "wire_radar_model")):
-        for agent in agents:
-            for key in pooled[other][agent]:
-                if not key.endswith("_ap"):
-                    continue
-                before = [per_seed[base][s][agent].get(key) for s in seeds]
-                after = [per_seed[other][s][agent].get(key) for s in seeds]
-                pair = paired(before, after)
-                differences.setdefault(f"{other} - {base}", {}).setdefault(agent, {})[key] = pair
-    results = {
-        "agents": agents,
-        "seeds": seeds,
-        "duration_s": duration_s,
-        "warmup_s": warmup_s,
-        "site": DEFAULT_SITE,
-        "wall_s": round(time.perf_counter() - t0, 1),
-        "commit": git_commit(),
-        "machine": machine_info(),
-        "pooled": pooled,
-        "per_seed": per_seed,
-        "differences": differences,
-    }
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps(results, indent=2, default=float) + "\n")
-    (out / "partial.json").unlink(missing_ok=True)  # superseded: only a failed run leaves it
-    return results
+    return run_arms(
+        ARMS,
+        COMPARISONS,
+        dataset,
+        mec,
+        agents,
+        seeds,
+        duration_s,
+        warmup_s,
+        workers,
+        out,
+        {"site": DEFAULT_SITE},
+    )
 
 
 def markdown_table(results: dict[str, Any]) -> str:

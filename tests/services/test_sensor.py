@@ -30,6 +30,9 @@ def test_groups_name_an_agent_and_a_sensor_kind(scene: Scene) -> None:
     for bad in ("agent9-cameras", "agent1-sonars", "agent1", "agent3-radars"):
         with pytest.raises(SystemExit):
             parse_group(scene, bad)
+    assert [s.id for s in parse_group(scene, "agent2-radars", only="radar_3")] == ["radar_3"]
+    with pytest.raises(SystemExit, match="cam_2"):
+        parse_group(scene, "agent2-radars", only="radar_2,cam_2")  # not in the group
 
 
 def test_newest_due_tick_wins_and_earlier_due_ticks_count_as_skipped(scene: Scene) -> None:
