@@ -32,6 +32,7 @@ SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-4)
 MIN_VIEWS = 3  # intrinsics: board views needed
 MIN_PNP_POINTS = 4
 MIN_RIGID_POINTS = 3
+MIN_CONTRAST_LEVELS = 20.0  # black squares this much darker than white ones (0-255) to tell the order
 
 
 class CalibrationError(ValueError):
@@ -90,7 +91,10 @@ class Board:
             if along_x[0] * along_y[1] - along_x[1] * along_y[0] > 0:
                 grid = grid[:, ::-1]
             points = grid.reshape(-1, 2)
-            if not self._dark_at_origin(gray, points):
+            own_order = self._dark_at_origin(gray, points)
+            if own_order is None:
+                return None  # black and white not told apart: the order is unknown
+            if not own_order:
                 points = points[::-1]
             return np.ascontiguousarray(points) + OPENCV_TO_PROJECT_PX, self.object_points()
         dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
@@ -101,18 +105,23 @@ class Board:
         obj, img = board.matchImagePoints(corners, ids)  # type: ignore[call-overload]
         return img.reshape(-1, 2).astype(float) + OPENCV_TO_PROJECT_PX, obj.reshape(-1, 3).astype(float)
 
-    def _dark_at_origin(self, gray: NDArray[np.uint8], corners: FloatArray) -> bool:
-        """Is the square on the -x -y side of the first corner darker than the one on its +x -y side?
-        (The board's convention: that square is black; with one odd and one even count of squares,
-        the corner order read from the other end finds it white.)"""
-        origin, along_x, along_y = corners[0], corners[1] - corners[0], corners[self.cols] - corners[0]
-
-        def level(point: FloatArray) -> float:
-            x = int(np.clip(round(point[0]), 0, gray.shape[1] - 1))
-            y = int(np.clip(round(point[1]), 0, gray.shape[0] - 1))
-            return float(gray[y, x])
-
-        return level(origin - (along_x + along_y) / 2) < level(origin + (along_x - along_y) / 2)
+    def _dark_at_origin(self, gray: NDArray[np.uint8], corners: FloatArray) -> bool | None:
+        """Is the corner order the board's own (True) or the board turned 180 deg (False); None when
+        the colours do not tell. The board's convention: the square on the -x -y side of the first
+        corner is black, so is every square between the inner corners whose column + row is even;
+        with one odd and one even count of squares, the order read from the other end finds those
+        white. Judged on the squares between the inner corners (seen, since their corners were
+        found), not the outer ones: an outer square hidden behind something flipped the pose."""
+        grid = corners.reshape(self.rows, self.cols, 2)
+        centres = (grid[:-1, :-1] + grid[1:, :-1] + grid[:-1, 1:] + grid[1:, 1:]) / 4
+        x = np.clip(np.rint(centres[..., 0]).astype(int), 0, gray.shape[1] - 1)
+        y = np.clip(np.rint(centres[..., 1]).astype(int), 0, gray.shape[0] - 1)
+        levels = gray[y, x].astype(float)
+        even = (np.add.outer(np.arange(self.rows - 1), np.arange(self.cols - 1)) % 2) == 0
+        contrast = float(levels[~even].mean() - levels[even].mean())
+        if abs(contrast) < MIN_CONTRAST_LEVELS:
+            return None
+        return contrast > 0
 
 
 @dataclass(frozen=True)

@@ -28,6 +28,7 @@ from shared.calibration.solve import (
     PoseFit,
     calibrate_intrinsics,
     camera_pose,
+    pose_error,
     rigid_pose,
 )
 from shared.devices.site import CameraIntrinsics, SensorCalibration, SiteFile
@@ -35,6 +36,8 @@ from shared.scene.model import PoseSpec
 from shared.scene.scene import Scene
 
 MAX_PLACEMENT_RMS_PX = 1.0  # a board placement whose own pose fit is worse was misread: left out
+PLACEMENT_AGREE_M = 0.05  # placements' own camera poses this close agree (a misread one is far off)
+PLACEMENT_AGREE_DEG = 5.0
 
 
 def pose_spec(T: np.ndarray) -> PoseSpec:
@@ -147,26 +150,47 @@ def survey_pairs(
     return worlds, images, sensors
 
 
+def agreeing(
+    fits: list[tuple[np.ndarray, np.ndarray, PoseFit]], skipped: Skipped
+) -> list[tuple[np.ndarray, np.ndarray, PoseFit]]:
+    """The placements whose own poses agree (within PLACEMENT_AGREE_M and PLACEMENT_AGREE_DEG) with
+    the pose most of them agree with; the others are left out (listed in `skipped`): a placement read
+    wrongly (a board turned, another's survey) reprojects well on its own and would pull the joint
+    fit away."""
+
+    def agree(a: PoseFit, b: PoseFit) -> bool:
+        dt_m, dr_deg = pose_error(a.T_world_from_sensor, b.T_world_from_sensor)
+        return dt_m <= PLACEMENT_AGREE_M and dr_deg <= PLACEMENT_AGREE_DEG
+
+    best = max(fits, key=lambda f: (sum(agree(f[2], g[2]) for g in fits), -f[2].rms))
+    kept = [f for f in fits if agree(best[2], f[2])]
+    skipped.reasons += ["a placement disagrees with the others: left out"] * (len(fits) - len(kept))
+    return kept
+
+
 def camera_pose_into_site(site_path: Path, camera: str, survey: Path, skipped: Skipped) -> PoseFit:
     """Camera world pose from surveyed points seen in its images (SQPnP + refinement; the site's
     intrinsics are used) into the site file. Each placement is fitted alone first: one that
-    reprojects worse than MAX_PLACEMENT_RMS_PX was misread and is left out (listed in `skipped`)."""
+    reprojects worse than MAX_PLACEMENT_RMS_PX, or whose pose disagrees with the others', was misread
+    and is left out (listed in `skipped`)."""
     site_file = SiteFile.load(site_path)
     scene = site_file.calibrated_scene(Scene.load(site_file.scene))
     K, dist = np.asarray(scene.K(camera)), scene.distortion(camera)
     worlds, images, _ = survey_pairs(survey, skipped)
-    kept_w, kept_i = [], []
+    fits: list[tuple[np.ndarray, np.ndarray, PoseFit]] = []
     for w, i in zip(worlds, images, strict=True):
         try:
-            if camera_pose(w, i, K, dist).rms <= MAX_PLACEMENT_RMS_PX:
-                kept_w.append(w)
-                kept_i.append(i)
-            else:
-                skipped.reasons.append("a placement reprojects badly: left out")
+            fit = camera_pose(w, i, K, dist)
         except CalibrationError:
             continue
-    if not kept_w:
+        if fit.rms <= MAX_PLACEMENT_RMS_PX:
+            fits.append((w, i, fit))
+        else:
+            skipped.reasons.append("a placement reprojects badly: left out")
+    if not fits:
         raise CalibrationError("no surveyed placement usable")
+    kept = agreeing(fits, skipped)
+    kept_w, kept_i = [w for w, _, _ in kept], [i for _, i, _ in kept]
     fit = camera_pose(np.concatenate(kept_w), np.concatenate(kept_i), K, dist)
     update_site(
         site_path,

@@ -19,6 +19,7 @@ sensor-pose`, a rigid fit) is tested on its own; the simulator renders no lidar 
 from __future__ import annotations
 
 import logging
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -92,7 +93,8 @@ def run_calibration_study(
     scene = Scene.load(DEFAULT_SCENE)
     cameras = [s.id for a in agents for s in scene.sensors_of(a, "camera")]
     site_path = out / "site.yaml"
-    errors = calibrate_cameras(cameras, site_path, out / "work")
+    with tempfile.TemporaryDirectory(prefix="rmmdet-calibration-") as work:  # the rendered boards
+        errors = calibrate_cameras(cameras, site_path, Path(work))
     site_ref = (
         str(site_path.resolve().relative_to(REPO_ROOT))
         if site_path.resolve().is_relative_to(REPO_ROOT)

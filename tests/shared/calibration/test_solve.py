@@ -77,3 +77,47 @@ def test_board_specs() -> None:
     for bad in ("checkerboard:8:0.02", "chessboard:8x5:0.02", "charuco:6x4:0.04"):
         with pytest.raises(ValueError):
             Board.parse(bad)
+
+
+def board_image(board: Board, turned: bool = False, hide_bottom_row: bool = False) -> np.ndarray:
+    """A synthetic front view of `board` (30 px squares, one square of white margin): its x to the
+    right, its y up (+z towards the camera), the black origin square at the -x -y side of the first
+    inner corner (bottom left); optionally turned 180 deg, optionally with the outer square at the
+    origin hidden behind something grey (what flipped a surveyed placement)."""
+    squares_x, squares_y = board.cols + 1, board.rows + 1
+    h, w = squares_y * PX + 2 * MARGIN, squares_x * PX + 2 * MARGIN
+    img = np.full((h, w), 255, np.uint8)
+    for j in range(squares_y):
+        for i in range(squares_x):
+            if (i + j) % 2 == 0:  # (0, 0) is the origin square: black
+                top = h - MARGIN - (j + 1) * PX
+                img[top : top + PX, MARGIN + i * PX : MARGIN + (i + 1) * PX] = 0
+    if hide_bottom_row:  # up to 5 px short of the first row of corners
+        img[h - MARGIN - PX + 5 :, :] = 170
+    return np.ascontiguousarray(img[::-1, ::-1]) if turned else img
+
+
+PX, MARGIN = 30, 60
+
+
+@pytest.mark.parametrize("hide", [False, True])
+def test_the_first_corner_is_the_boards_origin_however_the_board_is_seen(hide: bool) -> None:
+    board = Board.parse("checkerboard:8x5:0.03")
+    upright = board_image(board, hide_bottom_row=hide)
+    h, w = upright.shape
+    found = board.detect(upright)
+    assert found is not None
+    # the first corner: one square right of and above the bottom-left of the pattern (+0.5: the
+    # project's pixel centres); the next along the board's x, to its right
+    assert np.allclose(found[0][0], [MARGIN + PX, h - MARGIN - PX], atol=1.0)
+    assert np.allclose(found[0][1] - found[0][0], [PX, 0], atol=1.0)
+    turned = board.detect(board_image(board, turned=True, hide_bottom_row=hide))
+    assert turned is not None
+    assert np.allclose(turned[0][0], [w - MARGIN - PX, MARGIN + PX], atol=1.0)  # the same corner, turned
+    assert np.allclose(turned[0][1] - turned[0][0], [-PX, 0], atol=1.0)
+
+
+def test_a_board_whose_colours_do_not_tell_is_not_read() -> None:
+    board = Board.parse("checkerboard:8x5:0.03")
+    faded = (board_image(board).astype(float) * 0.05 + 120).astype(np.uint8)  # 13 levels apart
+    assert board.detect(faded) is None

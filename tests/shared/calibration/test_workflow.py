@@ -70,3 +70,25 @@ def test_what_the_workflow_refuses(site: Path, tmp_path: Path) -> None:
         workflow.intrinsics_into_site(
             [tmp_path / "noise.png"], site, "cam_11", "checkerboard:8x5:0.02", False, workflow.Skipped()
         )
+
+
+def test_a_placement_that_disagrees_with_the_others_is_left_out() -> None:
+    """Three placements fitted alone: two near the camera's pose, one read turned (180 deg off, as
+    well reprojected): the joint fit takes the two."""
+    from shared.calibration.solve import PoseFit
+
+    near = transform([0.0, 0.0, 0.5], [1.0, 2.0, 0.45])
+    fits = [
+        (np.zeros((1, 3)), np.zeros((1, 2)), PoseFit(near, 0.4, 40)),
+        (np.ones((1, 3)), np.ones((1, 2)), PoseFit(transform([0.0, 0.01, 0.5], [1.01, 2.0, 0.45]), 0.3, 40)),
+        (
+            np.full((1, 3), 2.0),
+            np.full((1, 2), 2.0),
+            PoseFit(near @ transform([0.0, 0.0, np.pi], [0, 0, 0]), 0.2, 40),
+        ),
+    ]
+    skipped = workflow.Skipped()
+    kept = workflow.agreeing(fits, skipped)
+    assert [k[0][0, 0] for k in kept] == [0.0, 1.0]
+    assert skipped.reasons == ["a placement disagrees with the others: left out"]
+    assert workflow.agreeing(fits[2:], workflow.Skipped()) == fits[2:]  # alone: kept
