@@ -1,6 +1,7 @@
 """A camera stream killed and restarted on the wire path, with real processes: router + sim + the camera
 emulated on the wire (services/sensor --wire: its MJPEG server over HTTP) + the device service reading
-it (services/device, OpenCV's FFmpeg backend) + the MEC fusing it.
+it (services/device, OpenCV's FFmpeg backend) + the MEC fusing it with its radar (simulated directly,
+so that the MEC has output while the camera is gone).
 
 The emulator process is SIGKILLed (the stream's server is gone): the device service's health turns
 DEGRADED naming the camera, and the MEC's output DEGRADED naming it MISSING. The emulator is started
@@ -29,7 +30,7 @@ from tests.helpers import Router, free_port, spawn, stop
 
 pytestmark = [pytest.mark.integration, pytest.mark.fault, pytest.mark.timeout(240)]
 
-AGENT, GROUP, CAMERA = "agent2", "agent2-cameras", "cam_2"
+AGENT, GROUP, CAMERA, RADAR = "agent2", "agent2-cameras", "cam_2", "radar_2"
 STARTUP_S = 60.0
 FRAMES_WITHIN_S = 2.0  # issue 33: frames again within 2 s of the stream's return
 VERDICT_WITHIN_S = 5.0  # DEGRADED / FULL seen (generous: the bounds that matter are the MEC's own tests)
@@ -98,7 +99,21 @@ def loop(router: Router, site: tuple[Path, int]) -> Iterator[dict]:
                 *router.client_args(),
             ]
         ),
-        "mec": spawn(["-m", "services.mec", "--instance", AGENT, "--sensors", CAMERA, *router.client_args()]),
+        # its paired radar straight from the sim: the MEC goes on publishing (DEGRADED) without the camera
+        "radar": spawn(
+            ["-m", "services.sensor", "--group", "agent2-radars", "--only", RADAR, *router.client_args()]
+        ),
+        "mec": spawn(
+            [
+                "-m",
+                "services.mec",
+                "--instance",
+                AGENT,
+                "--sensors",
+                f"{CAMERA},{RADAR}",
+                *router.client_args(),
+            ]
+        ),
     }
     outputs: list[tuple[float, int, frozenset[str]]] = []  # (arrival, status, inputs not OK)
     frames: list[float] = []  # camera frame arrivals
@@ -148,7 +163,7 @@ def test_a_camera_stream_killed_and_restarted_degrades_then_recovers(loop, site,
     full = lambda o: o[1] == pb.PERCEPTION_STATUS_FULL  # noqa: E731
     wait_for("FULL output", lambda: first_output(full, 0.0), STARTUP_S, 0.1)
     wait_for("device service NOMINAL", lambda: device_health(node)[0] == NOMINAL, 10.0, 0.2)
-    pids = {name: procs[name].pid for name in ("device", "mec")}
+    pids = {name: procs[name].pid for name in ("device", "mec", "radar")}
 
     procs["emulator"].send_signal(signal.SIGKILL)  # the camera's stream is gone
     procs["emulator"].wait(5)
