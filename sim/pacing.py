@@ -16,8 +16,11 @@ sim: a killed, hung or frozen MEC or sensor service must not stop the world. Sil
 `SILENCE_PERIODS` of the consumer's own wall cadence (the longest wall gap between its recent reports,
 so a consumer that is slow because the host is slow keeps holding), at least `MIN_TIMEOUT_S` and at most
 `timeout_s`: a frozen 10 Hz sensor group holds the sim for ~0.2 s, not 1 s. A silent consumer that
-reports again holds again at once. Before its first report a consumer holds nothing (models still
-loading). Times: sim stamps in ns, wall times in monotonic seconds.
+reports again holds again once its output is back within the bound, not before: a thawed sensor group
+first works off the stale ticks left in its pipe, and the ticks it needs to catch up with are the ones
+the sim would not publish while held by it (it held the whole loop for a further `timeout_s` that way).
+Before its first report a consumer holds nothing (models still loading). Times: sim stamps in ns, wall
+times in monotonic seconds.
 """
 
 from __future__ import annotations
@@ -49,6 +52,7 @@ class _Consumer:
     heard_s: float
     gaps_ns: deque[int] = field(default_factory=lambda: deque(maxlen=PERIOD_WINDOW))
     wall_gaps_s: deque[float] = field(default_factory=lambda: deque(maxlen=PERIOD_WINDOW))
+    rejoining: bool = False  # reported after a silence, not yet back within the lag bound
 
     @property
     def period_ns(self) -> int:
@@ -91,11 +95,14 @@ class Pacer:
             self._consumers[consumer] = _Consumer(stamp_ns, now_s)
         else:
             if stamp_ns > c.stamp_ns:
-                c.gaps_ns.append(min(stamp_ns - c.stamp_ns, self.max_period_ns))
+                if c.silent(now_s, self.timeout_s):
+                    c.rejoining = True
+                elif not c.rejoining:  # a silence and the catching up after it are not its cadence
+                    c.gaps_ns.append(min(stamp_ns - c.stamp_ns, self.max_period_ns))
+                    # Wall cadence of new outputs (several outputs of one burst, e.g. a group's sensors
+                    # of one tick, are one report).
+                    c.wall_gaps_s.append(min(now_s - c.heard_s, self.timeout_s))
                 c.stamp_ns = stamp_ns
-                # Wall cadence of new outputs (several outputs of one burst, e.g. a group's sensors of
-                # one tick, are one report).
-                c.wall_gaps_s.append(min(now_s - c.heard_s, self.timeout_s))
                 c.heard_s = now_s
 
     def forget(self, consumer: str) -> None:
@@ -103,12 +110,17 @@ class Pacer:
         self._consumers.pop(consumer, None)
 
     def holding(self, tick_stamp_ns: int, now_s: float) -> str | None:
-        """The most lagging live consumer if publishing `tick_stamp_ns` would exceed the lag bound."""
+        """The most lagging live consumer if publishing `tick_stamp_ns` would exceed the lag bound (a
+        rejoining consumer found back within it holds from now on)."""
         worst: tuple[int, str] | None = None
         for name, c in self._consumers.items():
             if c.silent(now_s, self.timeout_s):
                 continue
             lag = tick_stamp_ns - c.stamp_ns - c.period_ns
+            if c.rejoining:
+                if lag > self.max_lag_ns:
+                    continue
+                c.rejoining = False
             if lag > self.max_lag_ns and (worst is None or lag > worst[0]):
                 worst = (lag, name)
         return None if worst is None else worst[1]

@@ -132,9 +132,24 @@ def test_a_frozen_fast_consumer_is_let_go_after_two_of_its_cadences() -> None:
     tick = T0 + 1300 * MS  # 0.4 s of sim time after its last output
     assert pacer.holding(tick, now_s=last_heard + 0.2) == "agent1/sensor/agent1-lidars"
     assert pacer.holding(tick, now_s=last_heard + 0.21) is None
-    # It reports again: it holds again at once if it lags.
-    pacer.on_progress("agent1/sensor/agent1-lidars", T0 + 1000 * MS, now_s=20.0)
-    assert pacer.holding(tick, now_s=20.0) == "agent1/sensor/agent1-lidars"
+
+
+def test_a_thawed_consumer_holds_again_only_once_it_has_caught_up() -> None:
+    """Thawed, a sensor group first publishes a stale tick left in its pipe; the ticks it needs to catch
+    up come only from a sim that goes on, so it holds nothing until its output is within the bound."""
+    pacer = Pacer(max_lag_s=0.1, timeout_s=1.0)
+    lidars = "agent3/sensor/agent3-lidars"
+    for k in range(10):
+        pacer.on_progress(lidars, T0 + k * 100 * MS, now_s=10.0 + k * 0.1)
+    tick = T0 + 16_000 * MS  # frozen for 15 s
+    pacer.on_progress(lidars, T0 + 1000 * MS, now_s=25.0)  # the stale tick
+    assert pacer.holding(tick, now_s=25.0) is None
+    assert pacer.holding(tick, now_s=25.5) is None
+    pacer.on_progress(lidars, tick - 100 * MS, now_s=25.6)  # caught up: in step again
+    assert pacer.holding(tick, now_s=25.6) is None
+    assert pacer.holding(tick + 300 * MS, now_s=25.7) == lidars  # and holds when it lags again
+    # Its cadence is its reports' own, not the freeze: silent after 2 x 0.1 s, not after the timeout.
+    assert pacer.holding(tick + 300 * MS, now_s=25.6 + 0.21) is None
 
 
 def test_a_slow_consumer_keeps_holding_for_its_own_cadence() -> None:
