@@ -383,6 +383,8 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 ),
             )
             core = ViewerCore(scene, network)
+            for topic, message_type in core.topics().items():
+                channels.wants(topic, message_type)  # advertised now, before any client connects
             board = DashboardState(list(scene.agents))
             last_snapshot = -math.inf
             while not shutdown.requested:

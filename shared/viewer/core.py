@@ -98,6 +98,20 @@ class ViewerCore:
 
     # --- output -------------------------------------------------------------------------------------
 
+    def topics(self) -> dict[str, type[Message]]:
+        """Every topic `draw` may name, with its message type: the service advertises them all at start
+        (a channel made while a client is connected can lose that client's subscription: foxglove-sdk
+        0.30 sends the advertisement before it records the channel for the client, and refuses a
+        subscription arriving in between as "Unknown channel ID")."""
+        fixed: dict[str, type[Message]] = {
+            TABLE: SceneUpdate,
+            FRAMES: FrameTransforms,
+            GROUND_TRUTH: SceneUpdate,
+            PLANS: SceneUpdate,
+            GRID: Grid,
+        }
+        return fixed | {tracks_topic(a): SceneUpdate for a in self.scene.agents}
+
     @property
     def plans(self) -> dict[str, RoutePlan]:
         return dict(self._plans)

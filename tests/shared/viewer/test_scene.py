@@ -208,6 +208,22 @@ def test_radar_targets_are_spheres_in_the_radar_frame() -> None:
     assert [t.text for t in entity.texts] == ["-0.50 m/s", "+0.25 m/s"]
 
 
+def test_every_topic_the_core_draws_is_known_before_it_draws(test_scene: Scene, network: RoadNetwork) -> None:
+    """The service advertises `topics()` at start: every draw of every input names one of them, with
+    its type."""
+    core = ViewerCore(test_scene, network)
+    lane = next(iter(network.lanes))
+    plan = RoutePlan(vehicle_id="v01", plan_id="a" * 32, version=1, lane_ids=[lane])
+    plan.valid_until.FromNanoseconds(STAMP_NS + 10**10)
+    core.on_plan(plan, now_s=0.0)
+    for agent in test_scene.agents:
+        core.on_tracks(agent, pb.TrackedObjects(agent_id=agent), STAMP_NS)
+    core.on_ground_truth(GroundTruth(), STAMP_NS)
+    core.on_traffic_map(TrafficMap(), STAMP_NS)
+    drawn = {d.topic: d.message_type for d in core.draw(0.0, STAMP_NS)}
+    assert drawn == core.topics()
+
+
 def test_an_older_plan_does_not_replace_a_newer_one(test_scene: Scene, network: RoadNetwork) -> None:
     """A served copy (low priority) may arrive after a newer push: the newer stays drawn."""
     core = ViewerCore(test_scene, network)
