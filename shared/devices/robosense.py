@@ -36,6 +36,8 @@ from __future__ import annotations
 import calendar
 import datetime
 import enum
+import struct
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -67,6 +69,14 @@ MSOP_DTYPE = np.dtype(
 )
 BLOCK_FLAG_VALUE = 0xFFEE
 assert _BLOCK.itemsize == 100 and MSOP_DTYPE.itemsize == PACKET_BYTES
+# What each packet is looked at for on arrival (the points are decoded a revolution at a time with
+# MSOP_DTYPE): its time fields and its blocks' azimuths, read with struct (a numpy view per packet
+# cost more than the rest of the packet's handling).
+_MSOP_TIME = struct.Struct(">20x6BHH")  # year (since 2000), month, day, hour, minute, second, ms, us
+_BLOCK_HEAD = "2xH96x"  # flag, azimuth, 32 channels
+_MSOP_AZIMUTHS = struct.Struct(">42x" + _BLOCK_HEAD * (12 - 1) + "2xH")
+assert [MSOP_DTYPE.fields[f][1] for f in ("year", "us", "blocks")] == [20, 28, 42]
+assert _MSOP_AZIMUTHS.size == 42 + 11 * _BLOCK.itemsize + 4
 
 # DIFOP field offsets (rs_driver RS16DifopPkt / RS32DifopPkt, packed).
 DIFOP_RPM_OFFSET = 8
@@ -340,20 +350,6 @@ def packet_times_ns(packets: np.ndarray) -> np.ndarray:
     )
 
 
-def packet_time_ns(packet: np.ndarray) -> int:
-    """The lidar clock's time in one MSOP packet (a record of MSOP_DTYPE), ns since the UNIX epoch."""
-    return ymd_time_ns(
-        int(packet["year"]),
-        int(packet["month"]),
-        int(packet["day"]),
-        int(packet["hour"]),
-        int(packet["minute"]),
-        int(packet["second"]),
-        int(packet["ms"]),
-        int(packet["us"]),
-    )
-
-
 @dataclass(frozen=True)
 class Points:
     """Decoded returns of some packets, in the lidar frame (see the module docstring)."""
@@ -439,11 +435,11 @@ class FrameSplitter:
         self.split_az = split_az
         self._prev = split_az
 
-    def first_new_block(self, azimuths: np.ndarray) -> int | None:
-        """Index of the block in one packet's (12,) azimuths that starts a new frame, or None."""
+    def first_new_block(self, azimuths: Sequence[int]) -> int | None:
+        """Index of the block in one packet's 12 azimuths that starts a new frame, or None."""
         found: int | None = None
         prev = self._prev
-        for i, angle in enumerate(azimuths.tolist()):
+        for i, angle in enumerate(azimuths):
             if angle >= AZIMUTH_PER_TURN:
                 continue  # not an azimuth: the block is skipped by the decoder too
             if angle < prev:
@@ -484,8 +480,15 @@ class Frame:
 @dataclass
 class _Partial:
     packets: list[bytes] = field(default_factory=list)
-    masks: list[np.ndarray] = field(default_factory=list)
+    first_block: list[int] = field(default_factory=list)  # the frame's blocks of each packet: from ...
+    end_block: list[int] = field(default_factory=list)  # ... up to this one (exclusive)
     recv_ns: list[int] = field(default_factory=list)
+
+    def masks(self) -> np.ndarray:
+        """(P, 12) bool: which blocks of each packet belong to the frame."""
+        block = np.arange(BLOCKS_PER_PACKET)
+        first = np.asarray(self.first_block)[:, None]
+        return (block >= first) & (block < np.asarray(self.end_block)[:, None])
 
 
 class LidarStream:
@@ -563,25 +566,22 @@ class LidarStream:
         if self.info is None:
             self._count("rejected/msop/no_difop")
             return []
-        packet = np.frombuffer(data, MSOP_DTYPE)[0]
-        if self.clock is StampClock.DEVICE and not self._time_plausible(packet):
+        if self.clock is StampClock.DEVICE and not self._time_plausible(_MSOP_TIME.unpack_from(data)):
             self._count("rejected/msop/bad_time")
             return []
         self._count("msop")
-        azimuths = packet["blocks"]["azimuth"]
+        azimuths = _MSOP_AZIMUTHS.unpack_from(data)
         out: list[Frame] = []
         split = self._splitter.first_new_block(azimuths)
-        mask = np.ones(BLOCKS_PER_PACKET, bool)
+        first = 0
         if split is not None:
             if split > 0:
-                head = mask.copy()
-                head[split:] = False
-                self._append(data, head, recv_ns)
+                self._append(data, 0, split, recv_ns)
             frame = self._finish()
             if frame is not None:
                 out.append(frame)
-            mask[:split] = False
-        self._append(data, mask, recv_ns)
+            first = split
+        self._append(data, first, BLOCKS_PER_PACKET, recv_ns)
         if self._ends_turn(azimuths):
             # The packet's last block is the revolution's last: the frame is whole now, not one packet
             # later when the next turn's first block crosses the split (the next turn may be late).
@@ -596,32 +596,26 @@ class LidarStream:
                 out.append(frame)
         return out
 
-    def _time_plausible(self, packet: np.ndarray) -> bool:
-        """Is the packet's time a calendar time? Quick for the same date as the last good packet's and
-        a valid time of day (the usual case); a new date, or a bad field, takes the exact check."""
-        day = (int(packet["year"]), int(packet["month"]), int(packet["day"]))
-        ok = (
-            day == self._last_day
-            and packet["hour"] < 24
-            and packet["minute"] < 60
-            and packet["second"] < 61
-            and packet["ms"] < 1000
-            and packet["us"] < 1000
-        )
-        if not ok:
-            try:
-                packet_time_ns(packet)
-            except PacketError:
-                return False
-            self._last_day = day
+    def _time_plausible(self, fields: tuple[int, ...]) -> bool:
+        """Is the packet's time (its `_MSOP_TIME` fields) a calendar time? Quick for the same date as
+        the last good packet's and a valid time of day (the usual case); a new date, or a bad field,
+        takes the exact check."""
+        day, (hour, minute, second, ms, us) = fields[:3], fields[3:]
+        if day == self._last_day and hour < 24 and minute < 60 and second < 61 and ms < 1000 and us < 1000:
+            return True
+        try:
+            ymd_time_ns(*fields)
+        except PacketError:
+            return False
+        self._last_day = day
         return True
 
-    def _ends_turn(self, azimuths: np.ndarray) -> bool:
+    def _ends_turn(self, azimuths: Sequence[int]) -> bool:
         """Does the next firing after this packet's last block cross the split azimuth?"""
-        valid = azimuths[azimuths < AZIMUTH_PER_TURN]
-        if not len(valid) or self.info is None:
+        valid = [a for a in azimuths if a < AZIMUTH_PER_TURN]
+        if not valid or self.info is None:
             return False
-        last = int(valid[-1])
+        last = valid[-1]
         step = self.model.nominal_az_step(self.info.rpm, self.info.dual)
         split = self._splitter.split_az
         return (split - last - 1) % AZIMUTH_PER_TURN < step
@@ -641,9 +635,10 @@ class LidarStream:
     def open_packets(self) -> int:
         return len(self._frame.packets)
 
-    def _append(self, data: bytes, mask: np.ndarray, recv_ns: int) -> None:
+    def _append(self, data: bytes, first_block: int, end_block: int, recv_ns: int) -> None:
         self._frame.packets.append(data)
-        self._frame.masks.append(mask)
+        self._frame.first_block.append(first_block)
+        self._frame.end_block.append(end_block)
         self._frame.recv_ns.append(recv_ns)
 
     def _finish(self) -> Frame | None:
@@ -652,7 +647,7 @@ class LidarStream:
         if not partial.packets or info is None:
             return None
         packets = np.frombuffer(b"".join(partial.packets), MSOP_DTYPE)
-        masks = np.stack(partial.masks)
+        masks = partial.masks()
         use_device = self.clock is StampClock.DEVICE and info.clock_locked
         if self.clock is StampClock.DEVICE and not info.clock_locked:
             self._count("frames/clock_unlocked")

@@ -125,9 +125,9 @@ def test_gps_lock_needs_pps_and_gprmc() -> None:
 def test_ymd_time_is_utc() -> None:
     """Disagreement: rs_driver's parseTimeYMD converts with mktime, i.e. in the host's time zone; the
     unit's clock is set from GPRMC (UTC) or PTP (TAI/UTC), so the fields are read as UTC here."""
-    packet = np.frombuffer(hand_msop([(0, {})]), rs.MSOP_DTYPE)[0]
-    assert rs.packet_time_ns(packet) == calendar.timegm((2026, 11, 26, 12, 34, 56)) * 10**9 + 789_123_000
-    assert rs.packet_time_ns(packet) == T0_NS
+    packets = np.frombuffer(hand_msop([(0, {})]), rs.MSOP_DTYPE)
+    (stamp_ns,) = rs.packet_times_ns(packets)
+    assert stamp_ns == calendar.timegm((2026, 11, 26, 12, 34, 56)) * 10**9 + 789_123_000 == T0_NS
 
 
 @pytest.mark.parametrize(
@@ -135,7 +135,7 @@ def test_ymd_time_is_utc() -> None:
 )
 def test_bad_packet_time_is_refused(ymd: bytes) -> None:
     with pytest.raises(rs.PacketError, match="bad_time"):
-        rs.packet_time_ns(np.frombuffer(hand_msop([(0, {})], ymd), rs.MSOP_DTYPE)[0])
+        rs.packet_times_ns(np.frombuffer(hand_msop([(0, {})], ymd), rs.MSOP_DTYPE))
 
 
 def test_rs16_single_return_point_known_answer() -> None:
