@@ -75,7 +75,7 @@ assert _BLOCK.itemsize == 100 and MSOP_DTYPE.itemsize == PACKET_BYTES
 _MSOP_TIME = struct.Struct(">20x6BHH")  # year (since 2000), month, day, hour, minute, second, ms, us
 _BLOCK_HEAD = "2xH96x"  # flag, azimuth, 32 channels
 _MSOP_AZIMUTHS = struct.Struct(">42x" + _BLOCK_HEAD * (12 - 1) + "2xH")
-assert [MSOP_DTYPE.fields[f][1] for f in ("year", "us", "blocks")] == [20, 28, 42]
+assert [MSOP_DTYPE.fields[f][1] for f in ("year", "us", "blocks")] == [20, 28, 42]  # type: ignore[index]
 assert _MSOP_AZIMUTHS.size == 42 + 11 * _BLOCK.itemsize + 4
 
 # DIFOP field offsets (rs_driver RS16DifopPkt / RS32DifopPkt, packed).
@@ -600,7 +600,8 @@ class LidarStream:
         """Is the packet's time (its `_MSOP_TIME` fields) a calendar time? Quick for the same date as
         the last good packet's and a valid time of day (the usual case); a new date, or a bad field,
         takes the exact check."""
-        day, (hour, minute, second, ms, us) = fields[:3], fields[3:]
+        year, month, mday, hour, minute, second, ms, us = fields
+        day = (year, month, mday)
         if day == self._last_day and hour < 24 and minute < 60 and second < 61 and ms < 1000 and us < 1000:
             return True
         try:
