@@ -36,7 +36,7 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from google.protobuf.message import Message
 from rmmdet.v1.sensors_pb2 import RadarScan, RadarTarget
 
-from shared.devices import ars408, robosense
+from shared.devices import ars408, robosense, serial_urls
 from shared.devices.site import Ars408Radar, RobosenseLidar, StreamCamera, VelodyneLidar
 from shared.perception.decode import point_cloud_message
 
@@ -334,6 +334,7 @@ class RadarSource(_Source):
 
         kwargs: dict[str, Any] = {"interface": self.spec.interface, "channel": self.spec.channel}
         if self.spec.interface == "slcan":
+            serial_urls.use()  # socket:// with a receive buffer
             kwargs |= {"bitrate": self.spec.bitrate, "sleep_after_open": 0.0}
         elif self.spec.interface == "socketcan":
             kwargs |= {"receive_own_messages": False}
