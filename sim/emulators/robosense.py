@@ -260,26 +260,30 @@ class LidarSender:
                 if not self.withheld_difop:
                     self._send(self.emulator.difop_packet(time.time_ns()), self.difop_addr)
                 next_difop = time.monotonic() + 1.0
-            packet, index, wait_s = None, 0, 0.05
+            due: list[bytes] | None = None  # packets taken off the turn now (None: none was due)
+            wait_s = 0.05
             with self._lock:
                 while self._turns and self._turns[0].next >= len(self._turns[0].packets):
                     self._turns.popleft()
                 if self._turns:
                     turn = self._turns[0]
                     # A turn with another queued behind it is late: the rest of it goes out now.
-                    paced = self.paced and len(self._turns) == 1
-                    due_ns = turn.first_ns + turn.next * interval_ns if paced else 0
-                    now_ns = time.time_ns()
-                    if now_ns >= due_ns:
-                        packet, index = turn.packets[turn.next], turn.next
-                        turn.next += 1
+                    end = len(turn.packets)
+                    if self.paced and len(self._turns) == 1:
+                        end = min(end, (time.time_ns() - turn.first_ns) // interval_ns + 1)
+                    if end > turn.next:
+                        # Every packet due by now, sent in one go (the lock is not taken per packet).
+                        cut = end if self.cut_after is None else min(end, self.cut_after)
+                        due = turn.packets[turn.next : max(cut, turn.next)]
+                        turn.next = end
                     else:
                         # Sleep at least SEND_GRANULARITY_S: the packets due meanwhile then go out
                         # together (the device's rate on average; a wake-up per packet costs the
                         # emulator more than the sending).
-                        wait_s = max((due_ns - now_ns) / 1e9, SEND_GRANULARITY_S)
-            if packet is not None:
-                if self.cut_after is None or index < self.cut_after:
+                        due_ns = turn.first_ns + turn.next * interval_ns
+                        wait_s = max((due_ns - time.time_ns()) / 1e9, SEND_GRANULARITY_S)
+            if due is not None:
+                for packet in due:
                     self._send(packet, self.msop_addr)
                 continue
             self._wake.wait(max(0.0, min(wait_s, next_difop - time.monotonic())))

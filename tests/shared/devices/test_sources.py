@@ -5,6 +5,7 @@ what is wrong in `status()` and recovers on its own, without a restart."""
 from __future__ import annotations
 
 import threading
+import socket
 import time
 from collections.abc import Callable, Iterator
 
@@ -274,3 +275,27 @@ def test_camera_stream_killed_and_restarted() -> None:
         feeder.join(2)
         source.close()
         server.stop()
+
+
+def test_a_paced_sender_spreads_a_turn_over_its_revolution_and_hurries_a_late_one() -> None:
+    """The unit's packet rate: a turn's 75 packets go out over its 100 ms, not at once; a turn handed
+    in while the previous one is still going out has that one's rest sent at once (counted)."""
+    emulator = RobosenseEmulator("rs16", samples=500)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rx:
+        rx.bind(("127.0.0.1", 0))
+        rx.settimeout(1.0)
+        sender = LidarSender(emulator, "127.0.0.1", rx.getsockname()[1], free_port())
+        try:
+            packets = turn(emulator, 0)
+            t0 = time.monotonic()
+            sender.send_turn(packets)
+            arrivals = [(rx.recv(2048), time.monotonic() - t0)[1] for _ in packets]
+            # In bursts at most SEND_GRANULARITY_S apart: half-way through by half the revolution, the
+            # last near its end (lower bounds only: a busy host sends later, never sooner).
+            assert arrivals[len(packets) // 2] >= 0.04 and arrivals[-1] >= 0.09, arrivals
+            sender.send_turn(turn(emulator, 1))
+            sender.send_turn(turn(emulator, 2))  # turn 1 still going out: its rest goes now
+            got = [rx.recv(2048) for _ in range(2 * len(packets))]
+            assert len(got) == 2 * len(packets) and sender.hurried == 1
+        finally:
+            sender.close()
