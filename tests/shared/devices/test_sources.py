@@ -4,8 +4,8 @@ what is wrong in `status()` and recovers on its own, without a restart."""
 
 from __future__ import annotations
 
-import threading
 import socket
+import threading
 import time
 from collections.abc import Callable, Iterator
 
