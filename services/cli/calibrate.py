@@ -93,7 +93,7 @@ def render_board(
     scene_path: Annotated[Path | None, typer.Option("--scene", help="scene YAML")] = None,
     views: Annotated[int, typer.Option(help="views in front of the camera (intrinsics)")] = 30,
     standing: Annotated[
-        bool, typer.Option(help="instead: the board standing on the table at surveyed places (pose)")
+        bool, typer.Option(help="instead: the board standing on the table or deck at surveyed places (pose)")
     ] = False,
     seed: Annotated[int, typer.Option(help="random views")] = 0,
 ) -> None:

@@ -134,19 +134,15 @@ def views_in_front(
     return poses
 
 
-def standing_on_table(
-    scene: Scene, camera_id: str, board: Board, ahead_m: float, side_m: float = 0.0
+def standing_on(
+    scene: Scene, camera_id: str, board: Board, ahead_m: float, side_m: float = 0.0, surface_z_m: float = 0.0
 ) -> np.ndarray:
-    """A pose (world, 4x4) of `board` standing upright on the table `ahead_m` in front of the camera's
-    foot along its heading and `side_m` to its left, its printed face turned to the camera's foot, its
-    lowest row of squares `TABLE_CLEARANCE_M` above the table: a surveyed target (every corner's
-    world position known), as a site surveys one with a total station."""
-    T_world_from_body = np.asarray(scene.T_world_from_sensor(camera_id))
-    forward = T_world_from_body[:3, 0].copy()
-    forward[2] = 0.0
-    forward /= np.linalg.norm(forward)
-    left = np.array([-forward[1], forward[0], 0.0])
-    foot = T_world_from_body[:3, 3] * np.array([1.0, 1.0, 0.0])
+    """A pose (world, 4x4) of `board` standing upright on the surface at height `surface_z_m` (the
+    table, 0, or the viaduct's deck) `ahead_m` in front of the camera's foot along its heading and
+    `side_m` to its left, its printed face turned to the camera's foot, its lowest row of squares
+    `TABLE_CLEARANCE_M` above the surface: a surveyed target (every corner's world position known), as
+    a site surveys one with a total station."""
+    forward, left, foot = _heading(scene, camera_id)
     centre = foot + forward * ahead_m + left * side_m
     # board x across (to the camera's right), y up, z (printed face) towards the camera
     R = np.column_stack([-left, [0.0, 0.0, 1.0], -forward])
@@ -155,23 +151,112 @@ def standing_on_table(
     lift = (1 + MARGIN_SQUARES) * board.square_m + TABLE_CLEARANCE_M
     T = np.eye(4)
     T[:3, :3] = R
-    T[:3, 3] = centre + left * width / 2 + np.array([0.0, 0.0, lift])
+    T[:3, 3] = centre + left * width / 2 + np.array([0.0, 0.0, surface_z_m + lift])
     return T
 
 
-def standing_placements(scene: Scene, camera_id: str, board: Board) -> list[np.ndarray]:
-    """Board poses standing on the table across the camera's lower view: two rows (0.45 and 0.6 of
-    the distance at which its optical axis meets the table) by three across (centre, +-15 % of that
-    distance to the sides), to be surveyed and photographed for the camera's pose."""
+def _heading(scene: Scene, camera_id: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The camera's heading on the table (unit), its left, and its foot (the point below it, z = 0)."""
     T_world_from_body = np.asarray(scene.T_world_from_sensor(camera_id))
-    height = T_world_from_body[2, 3]
-    down = -T_world_from_body[2, 0]  # sine of the camera's pitch below the horizon
-    axis_m = height / np.tan(np.arcsin(np.clip(down, 0.05, 0.99)))
-    return [
-        standing_on_table(scene, camera_id, board, axis_m * ahead, axis_m * side)
-        for ahead in (0.45, 0.6)
-        for side in (-0.15, 0.0, 0.15)
-    ]
+    forward = T_world_from_body[:3, 0].copy()
+    forward[2] = 0.0
+    forward /= np.linalg.norm(forward)
+    return (
+        forward,
+        np.array([-forward[1], forward[0], 0.0]),
+        T_world_from_body[:3, 3] * np.array([1.0, 1.0, 0.0]),
+    )
+
+
+def board_outline(board: Board, T_world_from_board: np.ndarray) -> np.ndarray:
+    """(4, 3) world corners of the printed board (its white margin included)."""
+    s, margin = board.square_m, MARGIN_SQUARES * board.square_m
+    x0, y0, x1, y1 = -s - margin, -s - margin, board.cols * s + margin, board.rows * s + margin
+    corners = np.array([[x0, y0, 0, 1], [x1, y0, 0, 1], [x1, y1, 0, 1], [x0, y1, 0, 1]], float)
+    return (T_world_from_board @ corners.T).T[:, :3]
+
+
+SUPPORTS = ("table", "viaduct")  # what a board may stand on
+ROWS = 3  # rows of placements at different distances
+ROW_GAP_M = 0.15  # each row of placements at least this far beyond the one before
+FLAT_M = 0.002  # a board's base is level if the surface under its ends and middle agrees this well
+IMAGE_MARGIN_PX = 8
+LENS_CLEARANCE_M = 0.05
+
+
+def standing_placements(scene: Scene, camera_id: str, board: Board, world: StaticWorld) -> list[np.ndarray]:
+    """Board poses standing on the table or the deck where the camera sees the whole board: candidates
+    on a grid ahead of the camera's foot (0.2-3 m, across +-0.6 m, 5 cm apart), each on the surface
+    under it, kept if that surface is level under the board's base, the board's outline lies inside the
+    image and no line of sight to its outline or inner corners is blocked; of those, up to `ROWS` rows
+    from the nearest on (`ROW_GAP_M` apart), three across each. The table's cameras get the table in
+    front of them; the viaduct's mast cameras, whose lower view the deck fills, the deck. (Chosen
+    against the cameras' pose errors: two rows at fixed fractions of the optical axis's reach put
+    the mast cameras' boards behind the deck and cam_5's 1 cm off.)"""
+    forward, left, foot = _heading(scene, camera_id)
+    camera = np.asarray(scene.T_world_from_sensor(camera_id))[:3, 3]
+    K = np.asarray(scene.K(camera_id))
+    T_opt = np.asarray(scene.T_optical_from_world(camera_id))
+    spec = scene.sensor(camera_id).camera
+    assert spec is not None
+    width = (board.cols + 1 + 2 * MARGIN_SQUARES) * board.square_m
+    seen: list[tuple[float, float, np.ndarray]] = []
+    for ahead in np.arange(0.2, 3.0, 0.05):
+        for side in np.arange(-0.6, 0.61, 0.05):
+            centre = foot + forward * ahead + left * side
+            found = [surface_z(world, *(centre + left * k * width / 2)[:2]) for k in (-1, 0, 1)]
+            under = [z for z in found if z is not None]
+            if len(under) < len(found) or np.ptp(under) > FLAT_M:
+                continue
+            T = standing_on(scene, camera_id, board, float(ahead), float(side), under[1])
+            outline = board_outline(board, T)
+            cam = (T_opt @ np.c_[outline, np.ones(4)].T)[:3]
+            if np.any(cam[2] <= 0):
+                continue
+            px = (K @ cam)[:2] / cam[2]
+            inside = np.all(
+                (px >= IMAGE_MARGIN_PX)
+                & (px <= np.array([[spec.width_px], [spec.height_px]]) - IMAGE_MARGIN_PX)
+            )
+            if inside and all(clear_lines(world, camera, np.vstack([outline, board_points(board, T)]))):
+                seen.append((float(ahead), float(side), T))
+    if not seen:
+        return []
+    # The nearest row seen and up to ROWS - 1 more, each the nearest ROW_GAP_M beyond the one before
+    # (near: large in the image; several depths: the pose's distance is not one plane's), each at its
+    # leftmost, middle and rightmost.
+    rows = sorted({a for a, _, _ in seen})
+    chosen = [rows[0]]
+    while len(chosen) < ROWS and (beyond := [r for r in rows if r >= chosen[-1] + ROW_GAP_M]):
+        chosen.append(beyond[0])
+    picked: list[np.ndarray] = []
+    for row in chosen:
+        in_row = sorted(((side, T) for a, side, T in seen if a == row), key=lambda st: st[0])
+        picked += [in_row[k][1] for k in dict.fromkeys([0, len(in_row) // 2, len(in_row) - 1])]
+    return picked
+
+
+def surface_z(world: StaticWorld, x: float, y: float) -> float | None:
+    """Height of the table or viaduct deck at (x, y), m; None where something else is on top or
+    nothing is there."""
+    body, _, _, position, _ = pb.rayTest([x, y, 10.0], [x, y, -1.0], physicsClientId=world.cid)[0]
+    if body < 0 or world.body_kind.get(body) not in SUPPORTS:
+        return None
+    return float(position[2])
+
+
+def board_points(board: Board, T_world_from_board: np.ndarray) -> np.ndarray:
+    """(N, 3) world positions of the board's inner corners."""
+    return board.object_points() @ T_world_from_board[:3, :3].T + T_world_from_board[:3, 3]
+
+
+def clear_lines(world: StaticWorld, camera: np.ndarray, targets: np.ndarray) -> list[bool]:
+    """For each target point: nothing of the static world between it and the camera (the board is not
+    in it); each line starts `LENS_CLEARANCE_M` out of the camera (its own mast is not in the way)."""
+    direction = (targets - camera) / np.linalg.norm(targets - camera, axis=1, keepdims=True)
+    starts = camera + direction * LENS_CLEARANCE_M
+    hits = pb.rayTestBatch(starts.tolist(), targets.tolist(), physicsClientId=world.cid)
+    return [hit[0] < 0 for hit in hits]
 
 
 def render_views(
@@ -191,14 +276,17 @@ def render_views(
 
 
 def render_standing(scene: Scene, camera_id: str, board: Board, board_text: str, out: Path) -> Path:
-    """The board standing on the table at `standing_placements`, one PNG each in `out`, and the survey
+    """The board standing on the table or deck at `standing_placements`, one PNG each in `out`, and the survey
     file naming each image with the board's surveyed pose (`board_text` as the survey's `board`)."""
     from shared.calibration.workflow import pose_spec
 
     out.mkdir(parents=True, exist_ok=True)
     placements = []
     with BoardRenderer(scene, camera_id, board) as renderer:
-        for k, T in enumerate(standing_placements(scene, camera_id, board)):
+        placements_T = standing_placements(scene, camera_id, board, renderer.static)
+        if not placements_T:
+            raise ValueError(f"{camera_id} sees no place to stand the board")
+        for k, T in enumerate(placements_T):
             name = f"{camera_id}_standing_{k:02d}.png"
             cv2.imwrite(str(out / name), cv2.cvtColor(renderer.render(T), cv2.COLOR_RGB2BGR))
             placements.append({"image": name, "pose": pose_spec(T).model_dump(exclude_none=True)})

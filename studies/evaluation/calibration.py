@@ -4,7 +4,8 @@
 1. Every camera of the agents goes through the workflow a site follows (services/cli/calibrate.py, the
    same commands): 30 simulator-rendered views of a checkerboard (8 x 5, 20 mm squares) in front of it
    -> intrinsics (square pixels, no distortion: the simulated lenses have none); the board (30 mm
-   squares) standing on the table at surveyed places -> its world pose (SQPnP + refinement). The
+   squares) standing on the table (or the viaduct's deck) at surveyed places -> its world pose (SQPnP +
+   refinement; sim/sensors/board.py chooses the places the camera sees whole). The
    recovered calibration goes into `out`/site.yaml, each camera's error against the truth into the
    results. A camera the workflow cannot calibrate (no surveyed placement in its view) keeps the scene's
    calibration and is listed as such.

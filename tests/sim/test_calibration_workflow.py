@@ -30,7 +30,7 @@ def run(*args: str) -> str:
     return result.output
 
 
-@pytest.mark.parametrize("camera", ["cam_11", "cam_41"])
+@pytest.mark.parametrize("camera", ["cam_11", "cam_41", "cam_7"])  # cam_7: a viaduct mast, board on the deck
 def test_calibrate_a_camera_end_to_end(tmp_path: Path, camera: str) -> None:
     site_path = tmp_path / "site.yaml"
     site = yaml.safe_load((REPO_ROOT / "deploy/devices/sand_table_wire.yaml").read_text())
@@ -91,3 +91,32 @@ def test_calibrate_a_camera_end_to_end(tmp_path: Path, camera: str) -> None:
     assert dt_m < POSE_TOLERANCE[0] and dr_deg < POSE_TOLERANCE[1], (dt_m, dr_deg)
     # the other sensors keep the scene's calibration
     assert np.array_equal(calibrated.K("cam_2"), truth.K("cam_2"))
+
+
+def test_the_board_stands_level_where_the_camera_sees_all_of_it() -> None:
+    """Placements for a table camera stand on the table, for a viaduct mast camera (whose lower view
+    the deck fills) on the deck; every corner of every placement projects into the image with a clear
+    line of sight; they span more than one distance and more than one side."""
+    from shared.calibration.solve import Board
+    from sim.sensors.board import board_outline, board_points, clear_lines, standing_placements
+    from sim.world import StaticWorld
+
+    scene = Scene.load(DEFAULT_SCENE)
+    board = Board.parse("checkerboard:8x5:0.03")
+    deck_z = max(point[2] for lane in scene.spec.lanes for point in lane.points_m)  # the deck's lanes
+    with StaticWorld(scene) as world:
+        for camera, floor_z in (("cam_11", 0.0), ("cam_7", deck_z)):
+            placements = standing_placements(scene, camera, board, world)
+            assert len(placements) >= 6, camera
+            eye = np.asarray(scene.T_world_from_sensor(camera))[:3, 3]
+            K, T_opt = np.asarray(scene.K(camera)), np.asarray(scene.T_optical_from_world(camera))
+            for T in placements:
+                outline = board_outline(board, T)
+                assert outline[:, 2].min() == pytest.approx(floor_z, abs=0.002), camera  # standing on it
+                points = np.vstack([outline, board_points(board, T)])
+                assert all(clear_lines(world, eye, points))
+                cam = T_opt[:3, :3] @ points.T + T_opt[:3, 3:4]
+                px = (K @ cam)[:2] / cam[2]
+                assert np.all(cam[2] > 0) and np.all(px >= 0)
+            centres = np.array([T[:3, 3] for T in placements])
+            assert np.ptp(np.linalg.norm(centres - eye, axis=1)) > 0.1  # more than one distance
