@@ -7,7 +7,8 @@ Every `--poll-s` it asks supervisord (XML-RPC on its socket) for its programs an
 its health (each report carries its pid and its main loop's heartbeat age), lets
 `shared/supervision/watchdog.py` decide, and applies the decision through supervisord: a stalled
 program is killed (supervisord's autorestart starts it afresh), a crash-looping one is stopped for its
-backoff and started again after. Its own health (scope `site`) is DEGRADED while a program is held and
+backoff and started again after; a critical program (the router) is never held, and started again if
+supervisord gives up on it. Its own health (scope `site`) is DEGRADED while a program is held and
 names it, so `rmmdet health` reports crash loops; restarts and holds are counted. Runs under the same
 supervisord (`deploy/local/supervisord.conf`); never acts on itself.
 """
@@ -37,6 +38,7 @@ log = logging.getLogger("services.watchdog")
 SCOPE = "site"
 SERVICE = "watchdog"
 DEFAULT_SUPERVISOR_URL = f"unix://{RUN_DIR / 'supervisor.sock'}"
+DEFAULT_CRITICAL = sorted(WatchdogConfig().critical)
 
 
 def supervisor_proxy(url: str) -> xmlrpc.client.ServerProxy:
@@ -73,6 +75,8 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             crash_window_s=args.crash_window_s,
             backoff_s=args.backoff_s,
             backoff_max_s=max(args.backoff_s, args.backoff_max_s),
+            min_run_s=args.min_run_s,
+            critical=frozenset(args.critical or DEFAULT_CRITICAL),
         )
     except ValueError as err:  # bad flags: one clear line, not a traceback
         raise SystemExit(f"watchdog: {err}") from None
@@ -90,12 +94,15 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
 
         node.health.set_status(status)
         log.info(
-            "watching %s: stall after %.1f s, crash loop %d starts in %.0f s, backoff %.0f s",
+            "watching %s: stall after %.1f s, crash loop %d starts in %.0f s (runs under %.0f s), backoff "
+            "%.0f s, never held: %s",
             args.supervisor_url,
             cfg.stall_after_s,
             cfg.crash_starts,
             cfg.crash_window_s,
+            cfg.min_run_s,
             cfg.backoff_s,
+            ", ".join(sorted(cfg.critical)),
         )
         while not shutdown.wait(args.poll_s):
             node.health.beat()
@@ -127,6 +134,14 @@ def add_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--crash-window-s", type=float, default=60.0)
     parser.add_argument("--backoff-s", type=float, default=30.0, help="first hold of a crash loop")
     parser.add_argument("--backoff-max-s", type=float, default=300.0)
+    parser.add_argument(
+        "--min-run-s", type=float, default=10.0, help="a run at least this long before its exit is no crash"
+    )
+    parser.add_argument(
+        "--critical",
+        action="append",
+        help=f"program never held, started again when supervisord gives up (repeatable; {DEFAULT_CRITICAL})",
+    )
 
 
 def cli(argv: list[str] | None = None) -> int:

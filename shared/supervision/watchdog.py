@@ -8,10 +8,16 @@ the programs' states and each pid's loop age and returns the actions to take:
 
 - `restart`: RUNNING with its loop not gone round for `stall_after_s` (the supervisor kills it; its
   autorestart starts it afresh);
-- `hold`: started `crash_starts` times within `crash_window_s` (exits and watchdog restarts alike):
-  stopped for `backoff_s`, doubling on every further hold up to `backoff_max_s`, reset once it has run
-  a whole window without a new start;
+- `hold`: crash-looping, i.e. started `crash_starts` times within `crash_window_s` (exits and watchdog
+  restarts alike), each run before the next start shorter than `min_run_s` (a process that ran for a
+  while and was then killed, from outside or by this watchdog, is not crash-looping: killed every 20 s,
+  the router was held dark for 30 s and more): stopped for `backoff_s`, doubling on every further hold
+  up to `backoff_max_s`, reset once it has run a whole window without a new start;
 - `release`: a hold has run out: start it again.
+A `critical` program (the router: every other process depends on it) is never held: a transient fault
+of it must not become an outage. supervisord restarts it on exit, with its own short backoff while it
+fails to start; when supervisord gives up on it (FATAL) it is started again (`release`), at most every
+`critical_retry_s`.
 Pure logic (times in seconds on any one clock); `services/watchdog` applies the actions.
 """
 
@@ -24,6 +30,7 @@ from typing import Literal
 from shared.bus.health import LOOP_STALLED_AFTER_S
 
 RUNNING = "RUNNING"
+FATAL = "FATAL"  # supervisord gave up starting it
 
 
 @dataclass(frozen=True)
@@ -33,9 +40,19 @@ class WatchdogConfig:
     crash_window_s: float = 60.0
     backoff_s: float = 30.0
     backoff_max_s: float = 300.0
+    min_run_s: float = 10.0
+    critical: frozenset[str] = frozenset({"router"})
+    critical_retry_s: float = 5.0
 
     def __post_init__(self) -> None:
-        if min(self.stall_after_s, self.crash_window_s, self.backoff_s) <= 0 or self.crash_starts < 2:
+        times = (
+            self.stall_after_s,
+            self.crash_window_s,
+            self.backoff_s,
+            self.min_run_s,
+            self.critical_retry_s,
+        )
+        if min(times) <= 0 or self.crash_starts < 2:
             raise ValueError("watchdog: times must be > 0 and crash_starts >= 2")
         if self.backoff_max_s < self.backoff_s:
             raise ValueError("watchdog: backoff_max_s < backoff_s")
@@ -65,6 +82,7 @@ class _State:
     held_until_s: float | None = None
     backoff_s: float = 0.0
     killed_pid: int = 0  # restarted already: not again while the same process lingers
+    revived_s: float = float("-inf")  # a critical program last started again after FATAL
 
 
 class Watchdog:
@@ -85,10 +103,17 @@ class Watchdog:
         for p in programs:
             st = self._programs.setdefault(p.name, _State(backoff_s=cfg.backoff_s))
             if p.start_s and p.start_s != st.last_start_s:
+                if st.last_start_s and p.start_s - st.last_start_s >= cfg.min_run_s:
+                    st.starts.clear()  # the run before this start was no crash
                 st.last_start_s = p.start_s
                 st.starts.append(p.start_s)
             while st.starts and st.starts[0] < now_s - cfg.crash_window_s:
                 st.starts.popleft()
+            if p.name in cfg.critical:
+                if p.state == FATAL and now_s - st.revived_s >= cfg.critical_retry_s:
+                    st.revived_s = now_s
+                    actions.append(Action("release", p.name, "critical: supervisord gave up, started again"))
+                st.starts.clear()  # never held
             if st.held_until_s is not None:
                 if now_s >= st.held_until_s:
                     st.held_until_s = None

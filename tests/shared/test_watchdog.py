@@ -68,3 +68,31 @@ def test_restarts_of_a_hanging_program_count_as_starts() -> None:
 def test_bad_configs_are_refused(kwargs: dict) -> None:
     with pytest.raises(ValueError):
         WatchdogConfig(**kwargs)
+
+
+def test_a_program_killed_after_running_a_while_is_no_crash_loop() -> None:
+    """SIGKILLed from outside every 20 s (what held the router dark for 30 s): each run outlasted
+    `min_run_s`, so no start sequence is a crash loop; quick deaths still are."""
+    w = Watchdog(WatchdogConfig(min_run_s=10.0))
+    actions = []
+    for k, t in enumerate((1.0, 21.0, 42.0, 62.0, 83.0)):
+        actions += w.observe(t + 0.5, [running("mec", k + 1, t)], {})
+    assert actions == [] and w.holds == 0
+    for k, t in enumerate((90.0, 93.0, 96.0)):  # now it dies within seconds of each start
+        actions += w.observe(t + 0.5, [running("mec", 10 + k, t)], {})
+    assert [a.kind for a in actions] == ["hold"]
+
+
+def test_a_critical_program_is_never_held_and_revived_when_supervisord_gives_up() -> None:
+    w = Watchdog(WatchdogConfig(critical=frozenset({"router"}), critical_retry_s=5.0))
+    actions = []
+    for k, t in enumerate((1.0, 2.0, 3.0, 4.0, 5.0)):  # a true crash loop
+        actions += w.observe(t + 0.5, [running("router", k + 1, t)], {})
+    assert actions == [] and w.held(6.0) == {}
+    fatal = Program("router", "FATAL", 0, 5.0)
+    (revive,) = w.observe(10.0, [fatal], {})
+    assert (revive.kind, revive.program) == ("release", "router")
+    assert w.observe(12.0, [fatal], {}) == []  # not again at once
+    assert [a.kind for a in w.observe(15.0, [fatal], {})] == ["release"]
+    # a FATAL program that is not critical stays as supervisord left it
+    assert Watchdog().observe(10.0, [Program("viewer", "FATAL", 0, 5.0)], {}) == []
