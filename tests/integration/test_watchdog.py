@@ -142,3 +142,43 @@ def test_a_stuck_service_is_restarted_and_a_crash_loop_held(supervised: tuple[st
         f"crash loop: no start for {gap_s:.1f} s (backoff {BACKOFF_S} s); watchdog said: {watchdog.message}"
     )
     assert gap_s >= BACKOFF_S
+
+
+def test_the_router_killed_again_and_again_is_never_held(supervised: tuple[str, str, Path]) -> None:
+    """Issue 34: the router SIGKILLed three times within seconds (a crash loop by count) is restarted
+    each time and never stopped for a backoff: every other process depends on it."""
+    url, _, logs = supervised
+    deadline = time.monotonic() + 30
+
+    def info_of(name: str) -> dict:
+        return supervisor_proxy(url).supervisor.getProcessInfo(name)  # a fresh connection each time
+
+    def router() -> dict:
+        return info_of("router")
+
+    def running_again(after_pid: int) -> dict:
+        while (info := router())["statename"] != "RUNNING" or info["pid"] == after_pid:
+            assert info["statename"] != "STOPPED", f"the router was held: {info}"
+            assert time.monotonic() < deadline, f"the router did not come back: {info}"
+            time.sleep(0.1)
+        return info
+
+    while True:
+        try:
+            info = router()
+            if info["statename"] == "RUNNING" and info_of("watchdog")["statename"] == "RUNNING":
+                break
+        except OSError:
+            pass
+        assert time.monotonic() < deadline, "supervisord did not start the programs"
+        time.sleep(0.2)
+    time.sleep(2.0)  # the watchdog has looked at least once
+    for _ in range(4):
+        supervisor_proxy(url).supervisor.signalProcess("router", "KILL")
+        info = running_again(info["pid"])
+        deadline = time.monotonic() + 30
+        time.sleep(1.5)
+    time.sleep(2.0)  # a hold would have come at the third start
+    assert router()["statename"] == "RUNNING"
+    log_text = (logs / "watchdog.log").read_text()
+    assert "hold router" not in log_text, log_text[-2000:]
