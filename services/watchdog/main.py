@@ -4,7 +4,8 @@
         [--stall-after-s 3] [--crash-starts 3] [--crash-window-s 60] [--backoff-s 30]
 
 Every `--poll-s` it asks supervisord (XML-RPC on its socket) for its programs and every service for
-its health (each report carries its pid and its main loop's heartbeat age), lets
+its health (each report carries its pid and its main loop's heartbeat age; a pid claimed by two
+replies, one of them forged, is not judged: counted and logged), lets
 `shared/supervision/watchdog.py` decide, and applies the decision through supervisord: a stalled
 program is killed (supervisord's autorestart starts it afresh), a crash-looping one is stopped for its
 backoff and started again after; a critical program (the router) is never held, and started again if
@@ -31,7 +32,7 @@ from shared.bus.node import Node
 from shared.paths import RUN_DIR
 from shared.service import run_service
 from shared.shutdown import GracefulShutdown
-from shared.supervision.watchdog import Action, Program, Watchdog, WatchdogConfig
+from shared.supervision.watchdog import Action, Program, Watchdog, WatchdogConfig, unambiguous_loop_ages
 
 log = logging.getLogger("services.watchdog")
 
@@ -39,6 +40,7 @@ SCOPE = "site"
 SERVICE = "watchdog"
 DEFAULT_SUPERVISOR_URL = f"unix://{RUN_DIR / 'supervisor.sock'}"
 DEFAULT_CRITICAL = sorted(WatchdogConfig().critical)
+CONFLICT_LOG_EVERY_S = 10.0
 
 
 def supervisor_proxy(url: str) -> xmlrpc.client.ServerProxy:
@@ -85,6 +87,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     own_pid = os.getpid()
     with Node(conf, service=SERVICE, instance=args.instance, scope=SCOPE, stop=shutdown.event) as node:
         held: dict[str, float] = {}
+        last_conflict_log = -CONFLICT_LOG_EVERY_S
 
         def status() -> tuple[int, str]:
             if held:
@@ -113,7 +116,15 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 log.warning("supervisord unreachable: %s", err)
                 continue
             reports, _ = query_health(node.session, timeout_s=args.poll_s)
-            loop_age = {r.pid: r.loop_age_s for r in reports}
+            loop_age, conflicting = unambiguous_loop_ages((r.pid, r.loop_age_s) for r in reports)
+            supervised_conflicts = conflicting & {p.pid for p in progs}
+            if supervised_conflicts:
+                node.counters.inc("health/conflicting_claims", len(supervised_conflicts))
+                if time.monotonic() - last_conflict_log >= CONFLICT_LOG_EVERY_S:
+                    last_conflict_log = time.monotonic()
+                    log.warning(
+                        "health replies disagree about pids %s: not judged", sorted(supervised_conflicts)
+                    )
             for action in watchdog.observe(time.time(), progs, loop_age):
                 log.warning("%s %s: %s", action.kind, action.program, action.reason)
                 node.counters.inc(f"actions/{action.kind}")

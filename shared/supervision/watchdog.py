@@ -24,6 +24,7 @@ Pure logic (times in seconds on any one clock); `services/watchdog` applies the 
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -56,6 +57,22 @@ class WatchdogConfig:
             raise ValueError("watchdog: times must be > 0 and crash_starts >= 2")
         if self.backoff_max_s < self.backoff_s:
             raise ValueError("watchdog: backoff_max_s < backoff_s")
+
+
+def unambiguous_loop_ages(claims: Iterable[tuple[int, float]]) -> tuple[dict[int, float], set[int]]:
+    """Each pid's loop heartbeat age from the health replies (pid, age) that claim it, and the pids
+    claimed by more than one reply. A reply's pid is the replier's own word: any process that reaches
+    the router can answer health queries claiming a supervised process's pid and a stalled loop. Every
+    supervised service (the router too) answers for itself as well, so a forged claim shows as a second
+    reply for the pid; such a pid is not judged at all (a watchdog that killed on it would be a remote
+    kill switch)."""
+    ages: dict[int, float] = {}
+    conflicting: set[int] = set()
+    for pid, age in claims:
+        if pid in ages:
+            conflicting.add(pid)
+        ages[pid] = age
+    return {pid: age for pid, age in ages.items() if pid not in conflicting}, conflicting
 
 
 @dataclass(frozen=True)

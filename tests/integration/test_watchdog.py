@@ -182,3 +182,50 @@ def test_the_router_killed_again_and_again_is_never_held(supervised: tuple[str, 
     assert router()["statename"] == "RUNNING"
     log_text = (logs / "watchdog.log").read_text()
     assert "hold router" not in log_text, log_text[-2000:]
+
+
+def test_a_forged_health_reply_does_not_get_the_router_killed(supervised: tuple[str, str, Path]) -> None:
+    """Issue 34, item 1: any process that reaches the router answers health queries claiming the
+    router's pid with a loop stalled for 999 s. The router answers for itself too: the watchdog sees
+    two replies for one pid, judges neither, and the router keeps running."""
+    from rmmdet.v1.health_pb2 import ServiceHealth
+
+    from shared.bus.codec import encode
+    from shared.bus.streams import get_stream
+
+    url, endpoint, logs = supervised
+    deadline = time.monotonic() + 30
+
+    def info_of(name: str) -> dict:
+        return supervisor_proxy(url).supervisor.getProcessInfo(name)
+
+    while True:
+        try:
+            if all(info_of(n)["statename"] == "RUNNING" for n in ("router", "watchdog")):
+                break
+        except OSError:
+            pass
+        assert time.monotonic() < deadline, "supervisord did not start the programs"
+        time.sleep(0.2)
+    router_pid = info_of("router")["pid"]
+    forged = ServiceHealth(service="router", instance="main", pid=router_pid, loop_age_s=999.0)
+    forged.header.stamp.GetCurrentTime()
+    forged.header.source_id = "site/router/main"
+    encoded = encode(forged)
+    key = get_stream("health").key(scope="site", service="forger", instance="x")
+    conf = zenoh_config(DEFAULT_CLIENT_CONFIG, connect=[endpoint])
+    with open_session(conf, timeout_s=10) as session:
+        queryable = session.declare_queryable(
+            key, lambda q: q.reply(key, encoded.payload, encoding=encoded.encoding)
+        )
+        try:
+            time.sleep(4.0)  # 16 polls of the watchdog
+            reports, errors = query_health(session, timeout_s=2.0)
+            claims = [(r.service, r.pid) for r in reports]
+            assert sum(r.pid == router_pid for r in reports) == 2, (claims, router_pid, errors)
+        finally:
+            queryable.undeclare()
+    after = info_of("router")
+    assert (after["statename"], after["pid"]) == ("RUNNING", router_pid), after
+    log_text = (logs / "watchdog.log").read_text()
+    assert "restart router" not in log_text and "disagree" in log_text, log_text[-2000:]

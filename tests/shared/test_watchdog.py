@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from shared.bus.health import LOOP_STALLED_AFTER_S
-from shared.supervision.watchdog import Program, Watchdog, WatchdogConfig
+from shared.supervision.watchdog import Program, Watchdog, WatchdogConfig, unambiguous_loop_ages
 
 
 def running(name: str, pid: int, start_s: float) -> Program:
@@ -96,3 +96,14 @@ def test_a_critical_program_is_never_held_and_revived_when_supervisord_gives_up(
     assert [a.kind for a in w.observe(15.0, [fatal], {})] == ["release"]
     # a FATAL program that is not critical stays as supervisord left it
     assert Watchdog().observe(10.0, [Program("viewer", "FATAL", 0, 5.0)], {}) == []
+
+
+def test_a_pid_claimed_by_two_health_replies_is_not_judged() -> None:
+    """A forged reply claiming the coordinator's pid with a stalled loop arrives beside the coordinator's
+    own reply: the pid is left out, so nothing is restarted on it; a pid claimed once is judged."""
+    ages, conflicting = unambiguous_loop_ages([(7, 0.1), (8, 0.2), (7, 999.0)])
+    assert ages == {8: 0.2} and conflicting == {7}
+    w = Watchdog()
+    assert w.observe(10.0, [running("coordinator", 7, 1.0)], ages) == []
+    ages, _ = unambiguous_loop_ages([(7, 5.0)])  # only its own reply: a real stall
+    assert [a.kind for a in w.observe(11.0, [running("coordinator", 7, 1.0)], ages)] == ["restart"]
