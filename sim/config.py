@@ -13,6 +13,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from shared.config import RmmdetSettings, deep_merge, load_settings, settings_config
 from shared.paths import DEFAULT_PKI_DIR, DEFAULT_SCENE, REPO_ROOT
+from shared.timebase import MAX_SIM_SPEED
 
 DEFAULT_SIM_CONFIG = REPO_ROOT / "deploy" / "sim" / "sim.yaml"
 
@@ -107,7 +108,10 @@ class SimSettings(RmmdetSettings):
     seed: int = Field(0, ge=0, description="scenario seed: traffic and sensor noise derive from it")
     tick_hz: float = Field(60.0, gt=0, description="simulation ticks per simulated second")
     speed: float = Field(
-        1.0, ge=0, description="simulated seconds per wall second; 0 = as fast as possible (lock-step)"
+        1.0,
+        ge=0,
+        le=MAX_SIM_SPEED,
+        description="simulated seconds per wall second; 0 = as fast as possible (lock-step)",
     )
     clock_publish_hz: float = Field(
         20.0,

@@ -11,7 +11,7 @@ from google.protobuf.message import Message
 
 from shared.bus.codec import register_count_cap, register_validator
 from shared.bus.streams import limits
-from shared.timebase import NS_PER_S, tick_stamp_ns
+from shared.timebase import MAX_SIM_SPEED, NS_PER_S, tick_stamp_ns
 
 #: Sanity bound for any coordinate on an 8 m x 10 m table (generous, catches unit mix-ups).
 MAX_ABS_COORD_M = 1000.0
@@ -233,8 +233,8 @@ def _ground_truth(m: Message) -> str | None:
 
 @register_validator("rmmdet.v1.SimClock")
 def _sim_clock(m: Message) -> str | None:
-    if m.real_time_factor < 0 or m.target_speed < 0:  # type: ignore[attr-defined]
-        return "negative real-time factor or target speed"
+    if m.real_time_factor < 0 or not 0 <= m.target_speed <= MAX_SIM_SPEED:  # type: ignore[attr-defined]
+        return f"negative real-time factor, or target speed outside [0, {MAX_SIM_SPEED:g}]"
     if not m.step_s > 0:  # type: ignore[attr-defined]
         return "step_s must be > 0"
     tick_hz = 1.0 / m.step_s  # type: ignore[attr-defined]

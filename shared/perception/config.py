@@ -17,6 +17,7 @@ from shared.perception.camera_only import CameraOnlyConfig
 from shared.perception.lidar_camera import LidarCameraConfig
 from shared.perception.lidar_preprocess import LidarPreprocessConfig
 from shared.perception.radar_camera import RadarCameraConfig
+from shared.scene.cadence import MAX_EVERY_N
 from shared.tracking.tracker import TrackerConfig
 
 DEFAULT_MEC_CONFIG = REPO_ROOT / "deploy" / "mec" / "mec.yaml"
@@ -44,6 +45,7 @@ class DetectorsConfig(_Model):
     camera_every_n_with_lidar: int = Field(
         10,
         ge=1,
+        le=MAX_EVERY_N,  # what a sensor group accepts in a capture demand
         description="with a lidar live, run the camera detector on every n-th frame only: the lidar finds "
         "and boxes the cars, the camera only confirms them; 1 = every frame. 10 (each camera at 1 Hz, "
         "staggered) against 5: tracked AP-BEV@0.7 / MOTA / IDF1 within 0.0005 on agents 1 and 3, tuning "

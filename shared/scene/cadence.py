@@ -48,16 +48,30 @@ class _Demand:
     until_s: float
 
 
+MAX_EVERY_N = 100  # a demand thins a sensor to every 100th frame at most (the MECs ask for 1 or 10)
+MAX_VALID_FOR_S = 10.0  # ... for 10 s at most (DemandRenewal's 3 s): a forged demand lapses soon
+MAX_CONSUMERS = 32  # demands held at once (a consumer per MEC and viewer): the table does not grow
+
+
 class CaptureDemands:
-    """The capture demands a sensor group has heard, by consumer. Times: monotonic wall seconds."""
+    """The capture demands a sensor group has heard, by consumer. Times: monotonic wall seconds.
+
+    Bounded: `every_n` up to MAX_EVERY_N, validity up to MAX_VALID_FOR_S, at most MAX_CONSUMERS
+    consumers' demands held (a new consumer's is refused while that many are valid); anything else is
+    refused (the caller counts it)."""
 
     def __init__(self) -> None:
         self._demands: dict[str, _Demand] = {}
 
     def on_demand(self, consumer: str, every_n: int, valid_for_s: float, now_s: float) -> bool:
-        """Record `consumer`'s demand; False (ignored) if it is malformed."""
-        if every_n < 1 or not valid_for_s > 0:
+        """Record `consumer`'s demand; False (ignored) if it is malformed, out of bounds, or the table
+        is full."""
+        if not 1 <= every_n <= MAX_EVERY_N or not 0 < valid_for_s <= MAX_VALID_FOR_S:
             return False
+        if consumer not in self._demands and len(self._demands) >= MAX_CONSUMERS:
+            self.every_n(now_s)  # drops the lapsed ones
+            if len(self._demands) >= MAX_CONSUMERS:
+                return False
         self._demands[consumer] = _Demand(every_n, now_s + valid_for_s)
         return True
 

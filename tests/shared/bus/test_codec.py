@@ -11,7 +11,7 @@ from rmmdet.v1.common_pb2 import Header
 from rmmdet.v1.perception_pb2 import TrackedObject, TrackedObjects
 from rmmdet.v1.planning_pb2 import RoutePlan, RouteRequest
 from rmmdet.v1.sensors_pb2 import CalibrationSet
-from rmmdet.v1.sim_pb2 import GroundTruth
+from rmmdet.v1.sim_pb2 import GroundTruth, SimClock
 
 from shared.bus.codec import (
     Counters,
@@ -27,6 +27,7 @@ from shared.bus.codec import (
 from shared.bus.node import make_header, processing_stamp
 from shared.bus.streams import all_rmmdet_message_types
 from shared.memtrace import malloc_totals_mb
+from shared.timebase import MAX_SIM_SPEED
 from tests.shared.bus.samples import fill, on_its_tick
 
 MESSAGE_TYPES = all_rmmdet_message_types()
@@ -177,6 +178,12 @@ def test_any_type_decoder_uses_the_encoding_schema() -> None:
     assert _reject(dec, b"", "application/protobuf") == RejectReason.ENCODING
 
 
+def _clock(target_speed: float) -> SimClock:
+    msg = SimClock(step_s=1 / 60, target_speed=target_speed)
+    msg.header.tick, msg.header.epoch = 120, 10**18
+    return on_its_tick(msg)
+
+
 def _gt(tick: int = 120, tick_hz: float = 60.0, epoch: int = 10**18) -> GroundTruth:
     msg = GroundTruth(tick_hz=tick_hz)
     msg.header.tick, msg.header.epoch = tick, epoch
@@ -198,6 +205,8 @@ def _gt(tick: int = 120, tick_hz: float = 60.0, epoch: int = 10**18) -> GroundTr
         (RouteRequest(vehicle_id="v", current_plan_version=2**52), "current_plan_version"),
         (RouteRequest(vehicle_id="v", current_plan_version=2**52 - 1), None),
         (TrackedObjects(objects=[TrackedObject(track_id=i) for i in range(513)]), "objects"),
+        (_clock(MAX_SIM_SPEED), None),
+        (_clock(1e12), "target speed"),  # unbounded, it moved every follower's clock at will (issue 34)
     ],
 )
 def test_physical_ranges_and_caps(msg, problem: str | None) -> None:

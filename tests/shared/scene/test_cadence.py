@@ -5,7 +5,15 @@ from __future__ import annotations
 import pytest
 
 from shared.paths import DEFAULT_SCENE
-from shared.scene.cadence import CaptureDemands, DemandRenewal, fires, frame_due
+from shared.scene.cadence import (
+    MAX_CONSUMERS,
+    MAX_EVERY_N,
+    MAX_VALID_FOR_S,
+    CaptureDemands,
+    DemandRenewal,
+    fires,
+    frame_due,
+)
 from shared.scene.scene import Scene
 
 TICK_HZ = 60.0
@@ -104,6 +112,22 @@ def test_malformed_demands_are_refused() -> None:
     assert not demands.on_demand("x", 5, valid_for_s=0.0, now_s=0.0)
     assert not demands.on_demand("x", 5, valid_for_s=float("nan"), now_s=0.0)
     assert demands.every_n(now_s=0.0) == 1
+
+
+def test_demands_are_bounded_in_cadence_validity_and_number() -> None:
+    """Issue 34, item 9: one forged `every_n = 1` demand valid for ever disabled camera thinning for
+    good, and every new source id grew the table."""
+    demands = CaptureDemands()
+    assert not demands.on_demand("x", 1, valid_for_s=1e9, now_s=0.0)
+    assert not demands.on_demand("x", MAX_EVERY_N + 1, valid_for_s=3.0, now_s=0.0)
+    assert demands.on_demand("x", MAX_EVERY_N, valid_for_s=MAX_VALID_FOR_S, now_s=0.0)
+    assert demands.every_n(now_s=MAX_VALID_FOR_S + 0.1) == 1  # lapsed
+    for k in range(MAX_CONSUMERS):
+        assert demands.on_demand(f"c{k}", 10, valid_for_s=3.0, now_s=20.0)
+    assert not demands.on_demand("one too many", 1, valid_for_s=3.0, now_s=20.0)
+    assert demands.on_demand("c0", 5, valid_for_s=3.0, now_s=22.0)  # a known consumer renews
+    assert demands.on_demand("newcomer", 10, valid_for_s=3.0, now_s=24.5)  # the rest lapsed meanwhile
+    assert demands.every_n(now_s=24.5) == 5
 
 
 def test_demand_renewal_sends_at_once_on_change_and_every_renew_period() -> None:
