@@ -11,9 +11,11 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from shared.bus.streams import limits
 from shared.config import RmmdetSettings, deep_merge, load_settings, settings_config
 from shared.paths import DEFAULT_PKI_DIR, DEFAULT_SCENE, REPO_ROOT
 from shared.timebase import MAX_SIM_SPEED
+from shared.traffic.config import PlannerConfig
 
 DEFAULT_SIM_CONFIG = REPO_ROOT / "deploy" / "sim" / "sim.yaml"
 
@@ -133,9 +135,11 @@ class SimSettings(RmmdetSettings):
         "none of them is refused",
     )
     plan_max_ttl_s: float = Field(
-        600.0,
+        default_factory=lambda: PlannerConfig().plan_ttl_s + limits().max_clock_skew_s,
         gt=0,
-        description="route_policy=plan: a plan valid for longer than this from now is refused",
+        description="route_policy=plan: a plan valid for longer than this from now is refused; by default "
+        "what the coordinator issues (its planner's plan_ttl_s) plus the bus's clock skew (a vehicle "
+        "accepted 600 s while the coordinator issued 120 s: a recorded plan outlived its run)",
     )
     traffic: TrafficSettings = TrafficSettings()
     pacing: PacingSettings = PacingSettings()

@@ -106,3 +106,22 @@ def _ec_key(tmp_path: Path) -> Path:
 
     init_pki(tmp_path / "pki", [])
     return tmp_path / "pki" / "ca.key"
+
+
+def test_a_vehicle_accepts_the_ttl_the_coordinator_issues_and_no_more(signer: PlanSigner) -> None:
+    """Issue 34, item 7: vehicles accepted 600 s while the coordinator issued 120 s. The sim's default
+    limit is the coordinator's TTL plus the bus's clock skew."""
+    from shared.bus.streams import limits
+    from shared.traffic.config import PlannerConfig
+    from sim.config import load_sim_settings
+
+    max_ttl_s = load_sim_settings().plan_max_ttl_s
+    issued_s = PlannerConfig().plan_ttl_s
+    assert max_ttl_s == issued_s + limits().max_clock_skew_s
+    v = verifier_for(signer)
+    ok = plan()
+    ok.valid_until.FromNanoseconds(NOW_NS + round(issued_s * 10**9))
+    assert plan_problem(signer.sign(ok), v, NOW_NS, max_ttl_s) is None
+    long = plan()
+    long.valid_until.FromNanoseconds(NOW_NS + round((issued_s + 1) * 10**9))
+    assert plan_problem(signer.sign(long), v, NOW_NS, max_ttl_s) == "plan_ttl"
