@@ -7,10 +7,13 @@
     GET /api/table   the table's lanes and junctions for the map, JSON (static)
     WS  /ws          the snapshot again every time it changes (at most the viewer's draw rate)
 
-Anything else gets a clear 404, counted (`rejected/http_not_found` in `counters`, which the viewer
-exports with its health); a plain GET on /ws a 426 (upgrade required, from websockets); a message sent
-on /ws closes it with 1008 and a reason (`rejected/ws_message`). Each
-connection has its own thread: a slow or stalled browser blocks only its own socket, never the viewer.
+A request whose Host is not one of the dashboard's names gets 421, one carrying a foreign Origin 403
+(another site's page reading the live state; `shared/viewer/origin.py`), counted as
+`rejected/http_421` / `rejected/http_403`. Anything else gets a clear 404, counted
+(`rejected/http_not_found` in `counters`, which the viewer exports with its health); a plain GET on /ws
+a 426 (upgrade required, from websockets); a message sent on /ws closes it with 1008 and a reason
+(`rejected/ws_message`). Each connection has its own thread: a slow or stalled browser blocks only its
+own socket, never the viewer.
 Binds to loopback unless told otherwise.
 """
 
@@ -21,6 +24,7 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Iterable
 from http import HTTPStatus
 from pathlib import Path
 from typing import Any
@@ -32,6 +36,7 @@ from websockets.http11 import Request, Response
 from websockets.sync.server import Server, ServerConnection, serve
 
 from shared.bus.codec import Counters
+from shared.viewer.origin import allowed_hosts, request_problem
 
 log = logging.getLogger("services.viewer.dashboard")
 
@@ -49,7 +54,7 @@ def response(status: HTTPStatus, body: bytes, content_type: str) -> Response:
 class DashboardServer:
     """Serves `publish`ed snapshots; `table` is the static map (lanes, junctions)."""
 
-    def __init__(self, host: str, port: int, table: dict[str, Any]) -> None:
+    def __init__(self, host: str, port: int, table: dict[str, Any], host_names: Iterable[str] = ()) -> None:
         self._table = json.dumps(table).encode()
         self._page = PAGE.read_bytes()
         self._latest = b"{}"
@@ -57,6 +62,7 @@ class DashboardServer:
         self._changed = threading.Condition()
         self._server: Server = serve(self._handle, host, port, process_request=self._route, compression=None)
         self.port = self._server.socket.getsockname()[1]
+        self._allowed = allowed_hosts(host, self.port, host_names)
         self._thread = threading.Thread(target=self._server.serve_forever, daemon=True, name="dashboard")
         self.counters = Counters()  # thread-safe: the connections' threads count here
         self._watching = 0  # open WebSocket connections
@@ -85,6 +91,12 @@ class DashboardServer:
             self._changed.notify_all()
 
     def _route(self, connection: ServerConnection, request: Request) -> Response | None:
+        refused = request_problem(request.headers.get("Host"), request.headers.get("Origin"), self._allowed)
+        if refused is not None:  # another site's page, or a DNS-rebound name (shared/viewer/origin.py)
+            self.counters.inc(f"rejected/http_{refused.value}")
+            what = "Host" if refused == HTTPStatus.MISDIRECTED_REQUEST else "Origin"
+            body = f"refused: {what} is not this dashboard's ({refused.phrase})\n".encode()
+            return response(refused, body, "text/plain; charset=utf-8")
         path = request.path.split("?", 1)[0]
         if path == "/ws":
             return None  # the WebSocket handshake goes on

@@ -338,7 +338,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     feeds = SensorFeeds(scene, context)
     try:  # a port in use is a clear one-line exit, not a traceback
         dashboard = (
-            DashboardServer(args.host, args.dashboard_port, map_of(scene, network))
+            DashboardServer(args.host, args.dashboard_port, map_of(scene, network), args.host_name or ())
             if args.dashboard_port
             else None
         )
@@ -436,6 +436,12 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
 def add_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="scene YAML")
     parser.add_argument("--host", default="127.0.0.1", help="address to serve on (default: loopback only)")
+    parser.add_argument(
+        "--host-name",
+        action="append",
+        help="a name the dashboard is reached by besides loopback and --host (repeatable): other Host "
+        "headers get 421, other Origins 403",
+    )
     parser.add_argument("--port", type=int, default=8765, help="Foxglove WebSocket port (0: any free one)")
     parser.add_argument("--mcap", type=Path, help="also write every channel into this MCAP file")
     parser.add_argument(

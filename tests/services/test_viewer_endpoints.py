@@ -44,6 +44,30 @@ def test_the_dashboard_socket_pushes_and_refuses_messages(dashboard: DashboardSe
     assert not dashboard.watched
 
 
+def test_the_dashboard_refuses_a_foreign_origin_and_a_foreign_host(dashboard: DashboardServer) -> None:
+    """Issue 34, item 10: a page elsewhere opening the dashboard's socket (foreign Origin: 403) or
+    reaching it through a DNS-rebound name (foreign Host: 421); its own page still loads."""
+    import http.client
+
+    def get(path: str, headers: dict[str, str]) -> int:
+        conn = http.client.HTTPConnection("127.0.0.1", dashboard.port, timeout=5)
+        try:
+            conn.request("GET", path, headers=headers)
+            return conn.getresponse().status
+        finally:
+            conn.close()
+
+    own = f"127.0.0.1:{dashboard.port}"
+    assert get("/api/state", {"Host": own}) == 200
+    assert get("/api/state", {"Host": own, "Origin": f"http://localhost:{dashboard.port}"}) == 200
+    assert get("/api/state", {"Host": own, "Origin": "https://attacker.example"}) == 403
+    assert get("/api/state", {"Host": f"attacker.example:{dashboard.port}"}) == 421
+    with pytest.raises(Exception, match="403"):
+        connect(f"ws://127.0.0.1:{dashboard.port}/ws", origin="https://attacker.example", open_timeout=5)  # type: ignore[arg-type]
+    counts = dashboard.counters.snapshot()
+    assert counts["rejected/http_403"] == 2 and counts["rejected/http_421"] == 1
+
+
 def test_the_foxglove_server_answers_bad_requests_with_errors(test_scene: Scene) -> None:
     context = foxglove.Context()
     server = start_view_server(context, SensorFeeds(test_scene, context), "127.0.0.1", 0)

@@ -1,0 +1,39 @@
+"""Which Host and Origin a local web endpoint (the dashboard) answers: its own names only.
+
+A page on any web site can make the browser fetch http://127.0.0.1:8080/api/state (or open the
+WebSocket), and a DNS-rebinding name can point at 127.0.0.1 while the page believes it talks to its own
+server. Two checks close both: the request's Host must be one of the server's own names (loopback and
+the address it binds; others only as configured), else 421 Misdirected Request; and a request that
+carries an Origin (browsers send it on WebSocket handshakes and cross-site requests) must come from one
+of those names too, else 403. A request without Origin (curl, scripts, a same-origin page load) is
+let through on its Host.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from http import HTTPStatus
+from urllib.parse import urlsplit
+
+LOOPBACK_NAMES = ("127.0.0.1", "localhost", "[::1]")
+ANY_ADDRESS = ("0.0.0.0", "::", "")
+
+
+def allowed_hosts(bind_host: str, port: int, extra: Iterable[str] = ()) -> frozenset[str]:
+    """Host header values the server answers: each name alone and with `:port`, lower case."""
+    names = {*LOOPBACK_NAMES, *extra}
+    if bind_host not in ANY_ADDRESS:
+        names.add(f"[{bind_host}]" if ":" in bind_host else bind_host)
+    names = {n.lower() for n in names}
+    return frozenset(names | {f"{n}:{port}" for n in names})
+
+
+def request_problem(host: str | None, origin: str | None, allowed: frozenset[str]) -> HTTPStatus | None:
+    """None if the request may be answered, else the status to refuse it with."""
+    if host is None or host.strip().lower() not in allowed:
+        return HTTPStatus.MISDIRECTED_REQUEST
+    if origin is not None:
+        parts = urlsplit(origin.strip())
+        if parts.scheme not in ("http", "https") or parts.netloc.lower() not in allowed:
+            return HTTPStatus.FORBIDDEN
+    return None
