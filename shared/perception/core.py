@@ -38,7 +38,7 @@ from shared.bus.health import CRITICAL, DEGRADED, NOMINAL
 from shared.bus.ordering import reset_after_ticks
 from shared.detection.interface import CameraDetector, LidarDetector
 from shared.perception.config import MecSettings
-from shared.perception.decode import FrameDecoder
+from shared.perception.decode import FrameDecoder, max_cloud_points
 from shared.perception.inputs import InputState, SensorMonitor, Status, StatusHysteresis
 from shared.perception.output import tracked_objects_message
 from shared.perception.pipeline import AgentInputs, AgentPipeline, AgentResult
@@ -154,7 +154,16 @@ class MecCore:
         self.pipeline = AgentPipeline(
             scene, agent_id, settings, cameras=cameras, lidar=lidar, sensor_ids=list(self.kinds)
         )
-        self.decoder = FrameDecoder()
+        self.decoder = FrameDecoder(
+            image_sizes={
+                s.id: (s.camera.width_px, s.camera.height_px) for s in specs if s.camera is not None
+            },
+            max_points={
+                s.id: max_cloud_points(s.lidar.channels, s.lidar.horizontal_samples)
+                for s in specs
+                if s.lidar is not None
+            },
+        )
         self.status = StatusHysteresis(settings.health.recover_frames)
         self.counters: Counter[str] = Counter()
         self.every_n = 1  # camera cadence asked for and expected

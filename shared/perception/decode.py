@@ -14,8 +14,11 @@ result is identical by construction; on the viaduct agent about a third of the c
 
 from __future__ import annotations
 
+import io
+
 import cv2
 import numpy as np
+import PIL.Image
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
@@ -27,6 +30,8 @@ POINT_FIELDS = ("x", "y", "z", "intensity")
 FLOAT32_BYTES = 4
 POINT_DTYPE = np.dtype("<f4")
 IMAGE_FORMATS = ("jpeg", "jpg", "png")
+MAX_IMAGE_PIXELS = 4096 * 4096  # refused unread where the camera's own size is not known
+FINEST_AZIMUTH_SAMPLES = 3600  # rays per revolution of the finest supported lidar grid (0.1 deg)
 
 
 def point_cloud_message(
@@ -43,8 +48,9 @@ def point_cloud_message(
     return msg
 
 
-def point_cloud_to_array(msg: PointCloud) -> np.ndarray:
-    """(N, 4) float32 x, y, z, intensity of a foxglove.PointCloud with float32 fields by those names."""
+def point_cloud_to_array(msg: PointCloud, max_points: int | None = None) -> np.ndarray:
+    """(N, 4) float32 x, y, z, intensity of a foxglove.PointCloud with float32 fields by those names;
+    ValueError for more than `max_points` points (counted from the stride, before anything is copied)."""
     offsets = {f.name: f.offset for f in msg.fields if f.type == PackedElementField.FLOAT32}
     missing = [name for name in POINT_FIELDS if name not in offsets]
     if missing:
@@ -53,6 +59,14 @@ def point_cloud_to_array(msg: PointCloud) -> np.ndarray:
         raise ValueError(f"bad point_stride {msg.point_stride} for {len(msg.data)} bytes")
     if any(o < 0 or o + FLOAT32_BYTES > msg.point_stride for o in offsets.values()):
         raise ValueError("a point field lies outside the point stride")
+    if len({offsets[name] // FLOAT32_BYTES for name in POINT_FIELDS}) < len(POINT_FIELDS) or any(
+        offsets[name] % FLOAT32_BYTES for name in POINT_FIELDS
+    ):
+        raise ValueError(
+            "point fields overlap or are misaligned"
+        )  # a 4-byte stride packed 2 M points in 8 MiB
+    if max_points is not None and len(msg.data) // msg.point_stride > max_points:
+        raise ValueError(f"{len(msg.data) // msg.point_stride} points, more than the lidar's {max_points}")
     rows = np.frombuffer(msg.data, np.uint8).reshape(-1, msg.point_stride)
     out = np.empty((len(rows), len(POINT_FIELDS)), np.float32)
     for i, name in enumerate(POINT_FIELDS):
@@ -61,10 +75,27 @@ def point_cloud_to_array(msg: PointCloud) -> np.ndarray:
     return out
 
 
-def image_to_array(msg: CompressedImage) -> np.ndarray:
-    """(H, W, 3) uint8 RGB of a JPEG or PNG foxglove.CompressedImage."""
+def image_size(data: bytes) -> tuple[int, int]:
+    """(width, height) px from a JPEG's or PNG's header, nothing decoded (Pillow's `open` reads the
+    header only); ValueError if there is no readable header."""
+    try:
+        with PIL.Image.open(io.BytesIO(data)) as header:
+            return header.size
+    except (OSError, ValueError, PIL.Image.DecompressionBombError) as exc:
+        raise ValueError(f"no readable image header ({exc})") from None
+
+
+def image_to_array(msg: CompressedImage, expected_size: tuple[int, int] | None = None) -> np.ndarray:
+    """(H, W, 3) uint8 RGB of a JPEG or PNG foxglove.CompressedImage. Its header's size is checked
+    first: it must be `expected_size` (width, height: its camera's calibration) when given, and at most
+    MAX_IMAGE_PIXELS in any case; a small file declaring 30000 x 30000 px is refused unread."""
     if msg.format.lower() not in IMAGE_FORMATS:
         raise ValueError(f"unsupported image format {msg.format!r}: expected one of {IMAGE_FORMATS}")
+    width, height = image_size(msg.data)
+    if expected_size is not None and (width, height) != expected_size:
+        raise ValueError(f"image is {width}x{height} px, its camera's {expected_size[0]}x{expected_size[1]}")
+    if width * height > MAX_IMAGE_PIXELS:
+        raise ValueError(f"image is {width}x{height} px, more than {MAX_IMAGE_PIXELS} px")
     bgr = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_COLOR)
     if bgr is None:
         raise ValueError(f"{msg.format} image does not decode ({len(msg.data)} bytes)")
@@ -94,14 +125,28 @@ def decode_sensor(kind: str, msg: object) -> np.ndarray | RadarTargets:
     raise ValueError(f"unknown sensor kind {kind!r}")
 
 
-class FrameDecoder:
-    """`decode_sensor` with a repeat check per camera (see the module docstring)."""
+def max_cloud_points(channels: int, horizontal_samples: int) -> int:
+    """Most points a lidar's revolution can hold: every channel on the finer of its own azimuth grid and
+    the finest supported device's, both returns (a device's cloud has its own grid, not the scene's)."""
+    return 2 * channels * max(horizontal_samples, FINEST_AZIMUTH_SAMPLES)
 
-    def __init__(self) -> None:
+
+class FrameDecoder:
+    """`decode_sensor` with a repeat check per camera (see the module docstring), and each sensor's
+    data held to its calibration: `image_sizes` (camera -> (width, height) px) and `max_points`
+    (lidar -> points per cloud) where given."""
+
+    def __init__(
+        self, image_sizes: dict[str, tuple[int, int]] | None = None, max_points: dict[str, int] | None = None
+    ) -> None:
         self._last: dict[str, tuple[bytes, np.ndarray]] = {}
         self.repeats = 0
+        self.image_sizes = image_sizes or {}
+        self.max_points = max_points or {}
 
     def decode(self, kind: str, sensor_id: str, msg: object) -> np.ndarray | RadarTargets:
+        if kind == "lidar":
+            return point_cloud_to_array(msg, self.max_points.get(sensor_id))  # type: ignore[arg-type]
         if kind != "camera":
             return decode_sensor(kind, msg)
         return self.image(sensor_id, msg)  # type: ignore[arg-type]
@@ -112,7 +157,7 @@ class FrameDecoder:
         if last is not None and last[0] == msg.data:
             self.repeats += 1
             return last[1]
-        image = image_to_array(msg)
+        image = image_to_array(msg, self.image_sizes.get(sensor_id))
         image.setflags(write=False)  # shared with the pipeline's detection cache: never modified
         self._last[sensor_id] = (msg.data, image)
         return image

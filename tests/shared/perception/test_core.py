@@ -43,7 +43,8 @@ def core_of(scene: Scene, cfg: MecSettings | None = None, cameras: CountingCamer
 
 
 def jpeg() -> CompressedImage:
-    ok, buf = cv2.imencode(".jpg", np.full((48, 64, 3), 90, np.uint8))
+    """An image of the agent's cameras' calibrated size (448 x 336 px): another size is refused."""
+    ok, buf = cv2.imencode(".jpg", np.full((336, 448, 3), 90, np.uint8))
     assert ok
     return CompressedImage(format="jpeg", data=buf.tobytes())
 
