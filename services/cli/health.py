@@ -17,10 +17,11 @@ from rmmdet.v1.health_pb2 import HealthLevel, ServiceHealth
 
 from shared.bus.codec import Counters, MessageDecoder
 from shared.bus.liveliness import alive_tokens, source_of_token
-from shared.bus.streams import sensor_group_source
+from shared.bus.streams import get_stream, sensor_group_source
 from shared.scene.scene import Scene
 
-HEALTH_KEYS = "rmmdet/@v1/*/@health/**"
+HEALTH_STREAM = get_stream("health")
+HEALTH_KEYS = HEALTH_STREAM.pattern()
 ALIVE_KEYS = "rmmdet/@v1/*/@alive/**"
 
 
@@ -57,9 +58,27 @@ def query_health(session: zenoh.Session, timeout_s: float = 2.0) -> tuple[list[S
         decoded = decoder.decode(reply.ok.payload.to_bytes(), str(reply.ok.encoding))
         if decoded is None:
             errors.append(f"{reply.ok.key_expr}: undecodable health reply")
+        elif problem := key_mismatch(str(reply.ok.key_expr), decoded.message):
+            errors.append(problem)
         else:
             reports.append(decoded.message)
     return reports, errors
+
+
+def key_mismatch(key: str, report: ServiceHealth) -> str | None:
+    """Why a health reply is not believed: its body names another service than the key it came on
+    (where an ACL binds keys to identities, the key is the one a replier cannot choose; the body is its
+    own word), or the key is no health key; None if they agree."""
+    ids = HEALTH_STREAM.ids(key)
+    if ids is None:
+        return f"{key}: not a health key"
+    said = f"{report.header.source_id or '?'} ({report.service}/{report.instance})"
+    source = f"{ids['scope']}/{ids['service']}/{ids['instance']}"
+    if (report.service, report.instance) != (ids["service"], ids["instance"]) or (
+        report.header.source_id and report.header.source_id != source
+    ):
+        return f"{key}: the reply calls itself {said}, its key {source}: not believed"
+    return None
 
 
 @dataclass

@@ -185,9 +185,10 @@ def test_the_router_killed_again_and_again_is_never_held(supervised: tuple[str, 
 
 
 def test_a_forged_health_reply_does_not_get_the_router_killed(supervised: tuple[str, str, Path]) -> None:
-    """Issue 34, item 1: any process that reaches the router answers health queries claiming the
-    router's pid with a loop stalled for 999 s. The router answers for itself too: the watchdog sees
-    two replies for one pid, judges neither, and the router keeps running."""
+    """Issue 34, item 1: any process that reaches the router answers health queries on the router's own
+    health key (nothing binds a key to its owner on one host), claiming the router's pid with a loop
+    stalled for 999 s. The router answers for itself too: the watchdog sees two replies for one pid,
+    judges neither, and the router keeps running."""
     from rmmdet.v1.health_pb2 import ServiceHealth
 
     from shared.bus.codec import encode
@@ -212,7 +213,7 @@ def test_a_forged_health_reply_does_not_get_the_router_killed(supervised: tuple[
     forged.header.stamp.GetCurrentTime()
     forged.header.source_id = "site/router/main"
     encoded = encode(forged)
-    key = get_stream("health").key(scope="site", service="forger", instance="x")
+    key = get_stream("health").key(scope="site", service="router", instance="main")
     conf = zenoh_config(DEFAULT_CLIENT_CONFIG, connect=[endpoint])
     with open_session(conf, timeout_s=10) as session:
         queryable = session.declare_queryable(

@@ -58,3 +58,17 @@ def test_a_degraded_mec_a_missing_service_and_a_silent_one_are_each_named() -> N
 def test_nothing_answering_is_not_ok_even_without_expectations() -> None:
     verdict = judge([], [], [], [])
     assert not verdict.ok and "no service answered" in verdict.problems[0]
+
+
+def test_a_health_reply_is_believed_only_for_the_key_it_came_on() -> None:
+    """Issue 34, item 5: `rmmdet health` believed the body's name over the key: a camera group could
+    answer as the lidar group."""
+    from services.cli.health import key_mismatch
+
+    key = "rmmdet/@v1/agent1/@health/sensor/agent1-lidars"
+    assert key_mismatch(key, report("agent1/sensor/agent1-lidars")) is None
+    assert "not believed" in (key_mismatch(key, report("agent1/sensor/agent1-cameras")) or "")
+    lying = report("agent1/sensor/agent1-lidars")
+    lying.header.source_id = "agent3/sensor/agent1-lidars"  # right names, another scope
+    assert "not believed" in (key_mismatch(key, lying) or "")
+    assert "not a health key" in (key_mismatch("rmmdet/@v1/agent1/@alive/sensor/x", lying) or "")
