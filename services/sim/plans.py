@@ -3,15 +3,17 @@
 Each vehicle is a client of the coordinator: once per lane (`TrafficSim.needs_plan`) it sends a
 RouteRequest on the route RPC key with a non-blocking query; the reply (or an error, or nothing by
 `plan_request_timeout_s`) is queued by the Zenoh callback and applied on the next tick, so the 60 Hz
-loop never waits for the network. Plans pushed on `rmmdet/@v1/cloud/plans/<vehicle>` are applied the
-same way. A plan is considered only if the coordinator's plan key signed it, its id is well formed
-and its TTL is within `plan_max_ttl_s` (`plan_problem`); anything else is counted under
-`rejected/plan_<reason>` and not acknowledged, and a reply that fails the checks does not stop the
-vehicle from taking a later, genuine reply to the same request (a rogue second queryable cannot answer
-for the coordinator). Every plan considered is answered with a RouteAck carrying the vehicle's decision
-(ACCEPTED, DUPLICATE, REJECTED_STALE, REJECTED_INVALID). Without a coordinator vehicles keep driving:
-no plan means the shortest route, and a plan is followed only until its TTL (`PlanExpiry`). When a
-coordinator's presence token appears (it started, or came back), every vehicle asks at once.
+loop never waits for the network. A request that went unanswered (the router restarting) is asked again
+after 1, 2, 4 and 8 s until one is answered (`RequestRetry`; `plans/retried`, `plans/given_up`). Plans
+pushed on `rmmdet/@v1/cloud/plans/<vehicle>` are applied the same way. A plan is considered only if the
+coordinator's plan key signed it, its id is well formed and its TTL is within `plan_max_ttl_s`
+(`plan_problem`); anything else is counted under `rejected/plan_<reason>` and not acknowledged, and a
+reply that fails the checks does not stop the vehicle from taking a later, genuine reply to the same
+request (a rogue second queryable cannot answer for the coordinator). Every plan considered is answered
+with a RouteAck carrying the vehicle's decision (ACCEPTED, DUPLICATE, REJECTED_STALE, REJECTED_INVALID).
+Without a coordinator vehicles keep driving: no plan means the shortest route, and a plan is followed
+only until its TTL (`PlanExpiry`). When a coordinator's presence token appears (it started, or came
+back), every vehicle asks at once.
 """
 
 from __future__ import annotations
@@ -89,6 +91,38 @@ class PlanExpiry:
         return out
 
 
+class RequestRetry:
+    """When a vehicle asks again after a request went unanswered (`no_reply`: the router restarting, the
+    coordinator not reachable for a moment): after `first_s`, doubling, at most `attempts` times in a
+    row; an answer clears it. Monotonic seconds."""
+
+    def __init__(self, first_s: float = 1.0, attempts: int = 4) -> None:
+        self.first_s, self.attempts = first_s, attempts
+        self._tries: dict[str, int] = {}
+        self._due_s: dict[str, float] = {}
+
+    def unanswered(self, vehicle_id: str, now_s: float) -> bool:
+        """A request of `vehicle_id` went unanswered: True if another is scheduled, False if it gives up."""
+        tries = self._tries.get(vehicle_id, 0)
+        if tries >= self.attempts:
+            self.answered(vehicle_id)
+            return False
+        self._tries[vehicle_id] = tries + 1
+        self._due_s[vehicle_id] = now_s + self.first_s * 2**tries
+        return True
+
+    def answered(self, vehicle_id: str) -> None:
+        self._tries.pop(vehicle_id, None)
+        self._due_s.pop(vehicle_id, None)
+
+    def due(self, now_s: float) -> list[str]:
+        """Vehicles to ask again now (each once per scheduled retry)."""
+        out = [v for v, t in self._due_s.items() if t <= now_s]
+        for v in out:
+            del self._due_s[v]
+        return out
+
+
 class PlanClient:
     def __init__(self, node: Node, traffic: TrafficSim, request_timeout_s: float, check: PlanCheck) -> None:
         self.node = node
@@ -133,6 +167,8 @@ class PlanClient:
             get_stream("alive").pattern(scope="cloud", service="coordinator"), hold_leaves=False
         )
         self._ask_all_at: float | None = None
+        self.retry = RequestRetry()
+        self._by_id = {v.id: v for v in traffic.vehicles}
 
     def close(self) -> None:
         for querier in self.queriers.values():
@@ -146,12 +182,19 @@ class PlanClient:
 
     def tick(self, stamp_ns: int) -> None:
         """Apply what arrived since the last tick, then send this tick's requests."""
+        now_s = time.monotonic()
         for outcome in self.outcomes.drain():
             if outcome.plan is None:
                 self.counters.inc(f"plans/{outcome.error}")
+                if outcome.error == "no_reply" and not self.retry.unanswered(outcome.vehicle_id, now_s):
+                    self.counters.inc("plans/given_up")
             else:
                 self.counters.inc("plans/replied")
+                self.retry.answered(outcome.vehicle_id)
                 self.apply(outcome.plan)
+        for vehicle_id in self.retry.due(now_s):
+            self.counters.inc("plans/retried")
+            self._by_id[vehicle_id].ask_now = True
         for received in self.pushed.drain():
             self.counters.inc("plans/pushed_received")
             self.apply_pushed(received)

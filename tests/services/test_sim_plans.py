@@ -91,3 +91,19 @@ def test_plans_expire_at_their_ttl_once() -> None:
     assert expiry.expired(2_000) == ["v2"]
     assert expiry.expired(2_500) == []  # reported once
     assert expiry.expired(10_000) == ["v1"]
+
+
+def test_an_unanswered_request_is_asked_again_with_backoff_until_answered() -> None:
+    """Issue 34: across a router restart a vehicle's request sometimes went unanswered for good."""
+    from services.sim.plans import RequestRetry
+
+    retry = RequestRetry(first_s=1.0, attempts=3)
+    assert retry.unanswered("v01", now_s=10.0)
+    assert retry.due(10.9) == [] and retry.due(11.0) == ["v01"] and retry.due(11.5) == []
+    assert retry.unanswered("v01", now_s=11.2)  # the retry went unanswered too: 2 s later
+    assert retry.due(13.1) == [] and retry.due(13.2) == ["v01"]
+    retry.answered("v01")  # the next one is answered: the count starts afresh
+    assert retry.unanswered("v01", now_s=20.0) and retry.due(21.0) == ["v01"]
+    assert retry.unanswered("v01", now_s=21.5) and retry.unanswered("v01", now_s=24.0)
+    assert not retry.unanswered("v01", now_s=30.0)  # a fourth in a row: given up (counted)
+    assert retry.due(100.0) == []
