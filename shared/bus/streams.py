@@ -146,6 +146,7 @@ class Limits:
     max_tick_hz: float
     max_plan_version: int
     max_claimed_plan_version: int
+    max_grid_cells: int
 
     def __post_init__(self) -> None:
         if min(self.max_clock_skew_s, self.order_reset_s, self.min_tick_hz) <= 0:
@@ -156,6 +157,8 @@ class Limits:
             raise ValueError("limits: max_objects_per_list >= 1, max_plan_version in [1, 2^63)")
         if not 0 <= self.max_claimed_plan_version < self.max_plan_version:
             raise ValueError("limits: max_claimed_plan_version in [0, max_plan_version)")
+        if self.max_grid_cells < 1:
+            raise ValueError("limits: max_grid_cells >= 1")
 
 
 @functools.cache

@@ -177,6 +177,8 @@ def _calibration(m: Message) -> str | None:
 def _traffic(m: Message) -> str | None:
     g = m.grid  # type: ignore[attr-defined]
     cells = g.column_count * g.row_count
+    if cells > limits().max_grid_cells:
+        return f"grid of {g.column_count} x {g.row_count} cells, more than {limits().max_grid_cells}"
     for name in ("vehicle_count", "mean_speed_mps", "speed_samples"):
         n = len(getattr(g, name))
         if n not in (0, cells):

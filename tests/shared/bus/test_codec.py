@@ -12,6 +12,7 @@ from rmmdet.v1.perception_pb2 import TrackedObject, TrackedObjects
 from rmmdet.v1.planning_pb2 import RoutePlan, RouteRequest
 from rmmdet.v1.sensors_pb2 import CalibrationSet
 from rmmdet.v1.sim_pb2 import GroundTruth, SimClock
+from rmmdet.v1.traffic_pb2 import TrafficGrid, TrafficMap
 
 from shared.bus.codec import (
     Counters,
@@ -207,6 +208,8 @@ def _gt(tick: int = 120, tick_hz: float = 60.0, epoch: int = 10**18) -> GroundTr
         (TrackedObjects(objects=[TrackedObject(track_id=i) for i in range(513)]), "objects"),
         (_clock(MAX_SIM_SPEED), None),
         (_clock(1e12), "target speed"),  # unbounded, it moved every follower's clock at will (issue 34)
+        (TrafficMap(grid=TrafficGrid(column_count=100_000, row_count=100_000, cell_size_m=0.25)), "cells"),
+        (TrafficMap(grid=TrafficGrid(column_count=32, row_count=40, cell_size_m=0.25)), None),
     ],
 )
 def test_physical_ranges_and_caps(msg, problem: str | None) -> None:
