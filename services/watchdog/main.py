@@ -146,7 +146,10 @@ def add_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--backoff-s", type=float, default=30.0, help="first hold of a crash loop")
     parser.add_argument("--backoff-max-s", type=float, default=300.0)
     parser.add_argument(
-        "--min-run-s", type=float, default=10.0, help="a run at least this long before its exit is no crash"
+        "--min-run-s",
+        type=float,
+        default=WatchdogConfig().min_run_s,
+        help="a run at least this long before its exit is no crash",
     )
     parser.add_argument(
         "--critical",

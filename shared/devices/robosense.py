@@ -74,7 +74,7 @@ assert _BLOCK.itemsize == 100 and MSOP_DTYPE.itemsize == PACKET_BYTES
 # cost more than the rest of the packet's handling).
 _MSOP_TIME = struct.Struct(">20x6BHH")  # year (since 2000), month, day, hour, minute, second, ms, us
 _BLOCK_HEAD = "2xH96x"  # flag, azimuth, 32 channels
-_MSOP_AZIMUTHS = struct.Struct(">42x" + _BLOCK_HEAD * (12 - 1) + "2xH")
+_MSOP_AZIMUTHS = struct.Struct(">42x" + _BLOCK_HEAD * (BLOCKS_PER_PACKET - 1) + "2xH")
 assert [MSOP_DTYPE.fields[f][1] for f in ("year", "us", "blocks")] == [20, 28, 42]  # type: ignore[index]
 assert _MSOP_AZIMUTHS.size == 42 + 11 * _BLOCK.itemsize + 4
 

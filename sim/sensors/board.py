@@ -20,6 +20,7 @@ import pybullet as pb
 import yaml
 
 from shared.calibration.solve import Board
+from shared.geometry.camera import project_points
 from shared.scene.scene import Scene
 from sim.sensors.camera import render
 from sim.world import StaticWorld
@@ -61,9 +62,7 @@ class BoardRenderer:
         self._dir = tempfile.TemporaryDirectory(prefix="rmmdet-board-")
         texture = Path(self._dir.name) / "board.png"
         cv2.imwrite(str(texture), cv2.cvtColor(board_texture(board), cv2.COLOR_RGB2BGR))
-        s, margin = board.square_m, MARGIN_SQUARES * board.square_m
-        x0, y0 = -s - margin, -s - margin  # the quad, board frame
-        x1, y1 = board.cols * s + margin, board.rows * s + margin
+        x0, y0, x1, y1 = outline_extent(board)  # the quad, board frame
         # UV v runs up the texture image (OpenGL): the image's first row, the -y edge, is v = 1
         # (tests/sim/test_board.py checks the detected corners against their projections).
         mesh = Path(self._dir.name) / "board.obj"
@@ -168,10 +167,15 @@ def _heading(scene: Scene, camera_id: str) -> tuple[np.ndarray, np.ndarray, np.n
     )
 
 
+def outline_extent(board: Board) -> tuple[float, float, float, float]:
+    """(x0, y0, x1, y1) of the printed board in its own frame, m: the pattern and its white margin."""
+    s, margin = board.square_m, MARGIN_SQUARES * board.square_m
+    return -s - margin, -s - margin, board.cols * s + margin, board.rows * s + margin
+
+
 def board_outline(board: Board, T_world_from_board: np.ndarray) -> np.ndarray:
     """(4, 3) world corners of the printed board (its white margin included)."""
-    s, margin = board.square_m, MARGIN_SQUARES * board.square_m
-    x0, y0, x1, y1 = -s - margin, -s - margin, board.cols * s + margin, board.rows * s + margin
+    x0, y0, x1, y1 = outline_extent(board)
     corners = np.array([[x0, y0, 0, 1], [x1, y0, 0, 1], [x1, y1, 0, 1], [x0, y1, 0, 1]], float)
     return (T_world_from_board @ corners.T).T[:, :3]
 
@@ -195,11 +199,13 @@ def standing_placements(scene: Scene, camera_id: str, board: Board, world: Stati
     the mast cameras' boards behind the deck and cam_5's 1 cm off.)"""
     forward, left, foot = _heading(scene, camera_id)
     camera = np.asarray(scene.T_world_from_sensor(camera_id))[:3, 3]
-    K = np.asarray(scene.K(camera_id))
+    K, dist = np.asarray(scene.K(camera_id)), scene.distortion(camera_id)
     T_opt = np.asarray(scene.T_optical_from_world(camera_id))
     spec = scene.sensor(camera_id).camera
     assert spec is not None
-    width = (board.cols + 1 + 2 * MARGIN_SQUARES) * board.square_m
+    size_px = np.array([spec.width_px, spec.height_px])
+    x0, _, x1, _ = outline_extent(board)
+    width = x1 - x0
     seen: list[tuple[float, float, np.ndarray]] = []
     for ahead in np.arange(0.2, 3.0, 0.05):
         for side in np.arange(-0.6, 0.61, 0.05):
@@ -210,14 +216,8 @@ def standing_placements(scene: Scene, camera_id: str, board: Board, world: Stati
                 continue
             T = standing_on(scene, camera_id, board, float(ahead), float(side), under[1])
             outline = board_outline(board, T)
-            cam = (T_opt @ np.c_[outline, np.ones(4)].T)[:3]
-            if np.any(cam[2] <= 0):
-                continue
-            px = (K @ cam)[:2] / cam[2]
-            inside = np.all(
-                (px >= IMAGE_MARGIN_PX)
-                & (px <= np.array([[spec.width_px], [spec.height_px]]) - IMAGE_MARGIN_PX)
-            )
+            px, _ = project_points(outline, T_opt, K, dist)  # NaN behind the camera: not inside
+            inside = np.all((px >= IMAGE_MARGIN_PX) & (px <= size_px - IMAGE_MARGIN_PX))
             if inside and all(clear_lines(world, camera, np.vstack([outline, board_points(board, T)]))):
                 seen.append((float(ahead), float(side), T))
     if not seen:

@@ -98,6 +98,7 @@ def test_the_board_stands_level_where_the_camera_sees_all_of_it() -> None:
     the deck fills) on the deck; every corner of every placement projects into the image with a clear
     line of sight; they span more than one distance and more than one side."""
     from shared.calibration.solve import Board
+    from shared.geometry.camera import project_points
     from sim.sensors.board import board_outline, board_points, clear_lines, standing_placements
     from sim.world import StaticWorld
 
@@ -115,8 +116,7 @@ def test_the_board_stands_level_where_the_camera_sees_all_of_it() -> None:
                 assert outline[:, 2].min() == pytest.approx(floor_z, abs=0.002), camera  # standing on it
                 points = np.vstack([outline, board_points(board, T)])
                 assert all(clear_lines(world, eye, points))
-                cam = T_opt[:3, :3] @ points.T + T_opt[:3, 3:4]
-                px = (K @ cam)[:2] / cam[2]
-                assert np.all(cam[2] > 0) and np.all(px >= 0)
+                px, depth_m = project_points(points, T_opt, K)
+                assert np.all(depth_m > 0) and np.all(px >= 0)
             centres = np.array([T[:3, 3] for T in placements])
             assert np.ptp(np.linalg.norm(centres - eye, axis=1)) > 0.1  # more than one distance
