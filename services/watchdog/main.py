@@ -27,7 +27,7 @@ import zenoh
 from supervisor.xmlrpc import SupervisorTransport
 
 from services.cli.health import query_health
-from shared.bus.health import DEGRADED, LOOP_STALLED_AFTER_S, NOMINAL
+from shared.bus.health import DEGRADED, NOMINAL
 from shared.bus.node import Node
 from shared.paths import RUN_DIR
 from shared.service import run_service
@@ -136,19 +136,25 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
 def add_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--supervisor-url", default=DEFAULT_SUPERVISOR_URL, help="supervisord XML-RPC URL")
     parser.add_argument("--poll-s", type=float, default=0.25, help="how often to look, s")
+    defaults = WatchdogConfig()  # the one home of the decision's defaults
     parser.add_argument(
-        "--stall-after-s", type=float, default=LOOP_STALLED_AFTER_S, help="restart a loop this stalled"
+        "--stall-after-s", type=float, default=defaults.stall_after_s, help="restart a loop this stalled"
     )
     parser.add_argument(
-        "--crash-starts", type=int, default=3, help="starts within the window that are a crash loop"
+        "--crash-starts",
+        type=int,
+        default=defaults.crash_starts,
+        help="starts within the window that are a crash loop",
     )
-    parser.add_argument("--crash-window-s", type=float, default=60.0)
-    parser.add_argument("--backoff-s", type=float, default=30.0, help="first hold of a crash loop")
-    parser.add_argument("--backoff-max-s", type=float, default=300.0)
+    parser.add_argument("--crash-window-s", type=float, default=defaults.crash_window_s)
+    parser.add_argument(
+        "--backoff-s", type=float, default=defaults.backoff_s, help="first hold of a crash loop"
+    )
+    parser.add_argument("--backoff-max-s", type=float, default=defaults.backoff_max_s)
     parser.add_argument(
         "--min-run-s",
         type=float,
-        default=WatchdogConfig().min_run_s,
+        default=defaults.min_run_s,
         help="a run at least this long before its exit is no crash",
     )
     parser.add_argument(
