@@ -142,6 +142,8 @@ class CoordinatorService:
             SERVED_COPIES_QUEUE, OverflowPolicy.DROP_OLDEST, node.counters, "dropped/plan_copies"
         )
         self.presence = node.presence(get_stream("alive").pattern(service="mec"))
+        # The vehicles' process (the sim): when it leaves, their plans end (CoordinatorCore.vehicles_left).
+        self.vehicles_presence = node.presence(get_stream("alive").pattern(scope="sim", service="sim"))
         # Object lists and the sim clock come tens of times a second: all of them silent at once is a
         # frozen link (reliability.md R2), held like a cut one.
         node.uplink.expect_traffic(settings.coverage.bus_silent_after_s, settings.coverage.bus_silence_max_s)
@@ -217,6 +219,11 @@ class CoordinatorService:
             agent = agent_of_mec_token(key)
             if agent is not None and not self.core.on_presence(agent, alive):
                 self.counters.inc("ignored/presence_unknown_agent")
+        for _key, alive in self.vehicles_presence.changes():
+            if not alive:
+                forgotten = self.core.vehicles_left()
+                self.counters.inc("vehicles/forgotten_on_leave", forgotten)
+                log.warning("the vehicles' process left the bus: %d vehicles' plans ended", forgotten)
         for item in self.acks.drain():
             for counter in self.core.receive_ack(ACKS.id_of(item.key, "vehicle"), item.message, now):
                 self.counters.inc(counter)

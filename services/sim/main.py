@@ -71,10 +71,14 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             node.subscribe_stream(stream, queue=outputs)
         # Not held: a consumer forgotten early (e.g. in a router blip) holds again at its next output.
         presence = node.presence(get_stream("alive").pattern(), hold_leaves=False) if pacing else None
+        start_wall_ns = time.time_ns()  # wall time of sim time 0: stamps are start + sim time
         plans = None
         if settings.traffic.route_policy == "plan":
             check = PlanCheck(
-                PlanVerifier.load(settings.plan_verify_keys), settings.plan_max_ttl_s, node.counters
+                PlanVerifier.load(settings.plan_verify_keys),
+                settings.plan_max_ttl_s,
+                node.counters,
+                run_start_ns=start_wall_ns,
             )
             plans = PlanClient(node, traffic, settings.plan_request_timeout_s, check)
         schedule = RealTimeSchedule(settings.speed, LATE_TOLERANCE_S, RTF_WINDOW_S)
@@ -97,7 +101,6 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                     pacer.forget(source)
 
         node.health.set_status(status)
-        start_wall_ns = time.time_ns()  # wall time of sim time 0: stamps are start + sim time
         # This run's epoch (Header.epoch): receivers restart their tick order when it changes.
         epoch = start_wall_ns
         clock_due, calib_due = (

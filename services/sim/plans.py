@@ -6,14 +6,15 @@ RouteRequest on the route RPC key with a non-blocking query; the reply (or an er
 loop never waits for the network. A request that went unanswered (the router restarting) is asked again
 after 1, 2, 4 and 8 s until one is answered (`RequestRetry`; `plans/retried`, `plans/given_up`). Plans
 pushed on `rmmdet/@v1/cloud/plans/<vehicle>` are applied the same way. A plan is considered only if the
-coordinator's plan key signed it, its id is well formed and its TTL is within `plan_max_ttl_s`
-(`plan_problem`); anything else is counted under `rejected/plan_<reason>` and not acknowledged, and a
-reply that fails the checks does not stop the vehicle from taking a later, genuine reply to the same
-request (a rogue second queryable cannot answer for the coordinator). Every plan considered is answered
-with a RouteAck carrying the vehicle's decision (ACCEPTED, DUPLICATE, REJECTED_STALE, REJECTED_INVALID).
-Without a coordinator vehicles keep driving: no plan means the shortest route, and a plan is followed
-only until its TTL (`PlanExpiry`). When a coordinator's presence token appears (it started, or came
-back), every vehicle asks at once.
+coordinator's plan key signed it, its id is well formed, it was issued during this run (a plan's
+version is its issue time: a replay from an earlier run is refused) and its TTL is within
+`plan_max_ttl_s` (`plan_problem`); anything else is counted under `rejected/plan_<reason>` and not
+acknowledged, and a reply that fails the checks does not stop the vehicle from taking a later, genuine
+reply to the same request (a rogue second queryable cannot answer for the coordinator). Every plan
+considered is answered with a RouteAck carrying the vehicle's decision (ACCEPTED, DUPLICATE,
+REJECTED_STALE, REJECTED_INVALID). Without a coordinator vehicles keep driving: no plan means the
+shortest route, and a plan is followed only until its TTL (`PlanExpiry`). When a coordinator's presence
+token appears (it started, or came back), every vehicle asks at once.
 """
 
 from __future__ import annotations
@@ -59,13 +60,16 @@ class PlanCheck:
     """`plan_problem` with the vehicles' trusted keys and TTL bound; counts what it refuses. Called on
     Zenoh threads (replies) and the main loop (pushes): stateless but for the thread-safe counters."""
 
-    def __init__(self, verifier: PlanVerifier, max_ttl_s: float, counters: Counters) -> None:
+    def __init__(
+        self, verifier: PlanVerifier, max_ttl_s: float, counters: Counters, run_start_ns: int = 0
+    ) -> None:
         self.verifier = verifier
         self.max_ttl_s = max_ttl_s
         self.counters = counters
+        self.run_start_ns = run_start_ns  # plans issued before this run are replays (plan_before_run)
 
     def accept(self, plan: RoutePlan) -> bool:
-        problem = plan_problem(plan, self.verifier, time.time_ns(), self.max_ttl_s)
+        problem = plan_problem(plan, self.verifier, time.time_ns(), self.max_ttl_s, self.run_start_ns)
         if problem is not None:
             self.counters.inc(f"rejected/{problem}")
         return problem is None

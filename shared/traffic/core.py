@@ -2,7 +2,8 @@
 
     on_objects / on_presence   the latest objects of each agent, and its coverage (LIVE/STALE/LOST)
     update_map                 merge the LIVE agents' objects -> smoothed maps -> lane conditions
-    serve                      a RouteRequest answered with a plan on the latest maps (RPC)
+    serve                      a RouteRequest answered with a plan on the latest maps (RPC), its
+                               claims checked against the plan the vehicle follows (claims.py)
     replan / due               re-check active plans; pushed plans to send or resend
     on_ack / receive_ack       delivery bookkeeping from the vehicles' acknowledgements
     tick                       the loop's cadence: coverage changes, map rebuilds and publications,
@@ -35,6 +36,7 @@ from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.timebase import NS_PER_S
 from shared.traffic import messages
+from shared.traffic.claims import Claim, Given, claim_problem, repeats
 from shared.traffic.config import CoordinatorSettings
 from shared.traffic.coverage import AgentState, CoverageTracker
 from shared.traffic.maps import AgentObjects, TrafficMapBuilder, TrafficSnapshot, merge_agents
@@ -74,6 +76,7 @@ class _Active:
     missing: frozenset[str]  # agents not LIVE in the maps the plan was made on
     message: RoutePlan  # as sent; resends repeat it unchanged (idempotent at the vehicle)
     stamp_ns: int  # data stamp of the maps it was made on
+    valid_until_ns: int  # wall clock
 
 
 class CoordinatorCore:
@@ -118,6 +121,7 @@ class CoordinatorCore:
         self._last_update_s = -math.inf
         self._seen_states = dict.fromkeys(self.agents, AgentState.LOST)  # as of the latest tick
         self.active_count = 0  # active plans, as of the latest re-plan
+        self.repeats = 0  # requests answered with the plan their unacknowledged reply carried
 
     # --- inputs ----------------------------------------------------------------------------------
 
@@ -228,13 +232,25 @@ class CoordinatorCore:
             vid = req.vehicle_id
             for gone in self.book.heard(vid, now_s):
                 self._forget(gone)
+            given, claim = self._given(vid), Claim(req.current_lane_id, req.destination_junction_id)
+            active = self._active.get(vid)
+            # The same answer to the same request, unless the coverage it was planned on has changed
+            # meanwhile (the new answer says so).
+            if active is not None and active.missing == self._missing and repeats(given, claim, wall_ns):
+                self.repeats += 1
+                return active.message, active.stamp_ns
+            problem = claim_problem(given, claim, wall_ns)
+            if problem is not None:
+                raise RequestRejected(
+                    problem,
+                    ErrorCode.ERROR_CODE_INVALID_REQUEST,
+                    f"{vid} follows a plan that does not allow lane {claim.lane!r} to {claim.destination!r}",
+                )
             try:
                 route = self.planner.plan(vid, req.current_lane_id, req.destination_junction_id, self._cond)
             except NoRouteError as err:
                 raise RequestRejected("no_route", ErrorCode.ERROR_CODE_NOT_FOUND, str(err)) from None
-            plan = self.book.issue(
-                vid, route, now_s, pushed=False, after_version=int(req.current_plan_version)
-            )
+            plan = self.book.issue(vid, route, now_s, pushed=False, wall_ns=wall_ns)
             msg = self._record(plan, req.destination_junction_id, wall_ns)
             return msg, self._map_stamp_ns
 
@@ -243,8 +259,28 @@ class CoordinatorCore:
         valid_until_ns = wall_ns + round(self.settings.planner.plan_ttl_s * NS_PER_S)
         live = [a for a in self.agents if a not in self._missing]
         msg = messages.route_plan(plan, destination, valid_until_ns, live, sorted(self._missing))
-        self._active[plan.vehicle_id] = _Active(destination, self._missing, msg, self._map_stamp_ns)
+        self._active[plan.vehicle_id] = _Active(
+            destination, self._missing, msg, self._map_stamp_ns, valid_until_ns
+        )
         return msg
+
+    def _given(self, vehicle_id: str) -> Given | None:
+        plan, active = self.book.latest(vehicle_id), self._active.get(vehicle_id)
+        if plan is None or active is None:
+            return None
+        return Given(plan, active.destination, active.valid_until_ns)
+
+    def vehicles_left(self) -> int:
+        """The process holding the vehicles left the bus (the sim restarted, or its session was cut):
+        their plans end with it, so a restarted run's vehicles are not held to the plans of the last
+        (`claims.claim_problem`). A cut session's vehicles ask again when the coordinator reappears to
+        them. Returns the number of vehicles forgotten."""
+        with self._lock:
+            vehicles = self.book.vehicles()
+            for vid in vehicles:
+                self.book.forget(vid)
+                self._forget(vid)
+            return len(vehicles)
 
     def replan(self, now_s: float, wall_ns: int) -> int:
         """Re-check every active plan on the latest maps; issue a pushed plan where a new route from
@@ -260,7 +296,7 @@ class CoordinatorCore:
                 route = self._better_route(vid, plan.route, active)
                 if route is None:
                     continue
-                new = self.book.issue(vid, route, now_s, pushed=True)
+                new = self.book.issue(vid, route, now_s, pushed=True, wall_ns=wall_ns)
                 self._record(new, active.destination, wall_ns)
                 issued += 1
         return issued

@@ -25,6 +25,19 @@ from shared.traffic.planner import Route
 PLAN_ID = re.compile(r"[0-9a-f]{32}")  # uuid4 hex, as `PlanBook.issue` makes them
 
 
+#: Plan versions count microseconds since the Unix epoch (below 2^53 until the year 2255): a plan's
+#: version is when it was issued. A restarted coordinator therefore continues above every version it
+#: issued before without trusting the version a request claims (a forged claim could push a vehicle's
+#: versions to the limit), and a vehicle can tell a plan issued before its own run started (a replay
+#: from an earlier run) from a plan of this run with no state kept across runs.
+PLAN_VERSION_NS = 1000
+
+
+def version_of(wall_ns: int) -> int:
+    """The plan version of an issue time (Unix ns)."""
+    return wall_ns // PLAN_VERSION_NS
+
+
 class Ack(Enum):
     """Mirrors rmmdet.v1.AckStatus."""
 
@@ -81,12 +94,10 @@ class PlanBook:
         self._version.pop(vehicle_id, None)
         self._heard_s.pop(vehicle_id, None)
 
-    def issue(
-        self, vehicle_id: str, route: Route, now_s: float, *, pushed: bool, after_version: int = 0
-    ) -> IssuedPlan:
-        """`after_version`: the version the vehicle says it follows; a restarted coordinator continues
-        above it (else every plan it sends would be rejected as stale)."""
-        version = max(self._version.get(vehicle_id, 0), after_version) + 1
+    def issue(self, vehicle_id: str, route: Route, now_s: float, *, pushed: bool, wall_ns: int) -> IssuedPlan:
+        """The vehicle's next plan, issued at `wall_ns` (Unix ns): its version is the issue time
+        (`version_of`), or one above the vehicle's previous version if that is later."""
+        version = max(self._version.get(vehicle_id, 0) + 1, version_of(wall_ns))
         self._version[vehicle_id] = version
         plan = IssuedPlan(vehicle_id, uuid.uuid4().hex, version, route, now_s, pushed)
         self._latest[vehicle_id] = plan
@@ -135,13 +146,16 @@ def vehicle_decision(current_version: int, current_plan_id: str, plan_id: str, v
     return None
 
 
-def plan_problem(plan: RoutePlan, verifier: PlanVerifier, now_ns: int, max_ttl_s: float) -> str | None:
+def plan_problem(
+    plan: RoutePlan, verifier: PlanVerifier, now_ns: int, max_ttl_s: float, run_start_ns: int = 0
+) -> str | None:
     """Vehicle side, before a plan is considered at all: why it is refused (the rejection counter's
     name), or None. Refused: not signed by a trusted coordinator key (`plan_unsigned`,
     `plan_unknown_key`, `plan_bad_signature`), a malformed plan id (`plan_id`), a version out of range
-    (`plan_version`: a reply's plan is not range-checked by the codec), or no TTL / one reaching
-    further than `max_ttl_s` from now (`plan_ttl`). Version order and expiry are the vehicle's
-    decision after."""
+    (`plan_version`: a reply's plan is not range-checked by the codec), issued before the vehicle's
+    run started at `run_start_ns` (Unix ns) less the clock skew allowed (`plan_before_run`: a plan of
+    an earlier run replayed, still within its TTL), or no TTL / one reaching further than `max_ttl_s`
+    from now (`plan_ttl`). Version order and expiry are the vehicle's decision after."""
     problem = verifier.problem(plan)
     if problem is not None:
         return f"plan_{problem}"
@@ -149,6 +163,8 @@ def plan_problem(plan: RoutePlan, verifier: PlanVerifier, now_ns: int, max_ttl_s
         return "plan_id"
     if not 1 <= plan.version <= limits().max_plan_version:
         return "plan_version"
+    if plan.version < version_of(run_start_ns - round(limits().max_clock_skew_s * NS_PER_S)):
+        return "plan_before_run"
     if not plan.HasField("valid_until") or plan.valid_until.ToNanoseconds() - now_ns > max_ttl_s * NS_PER_S:
         return "plan_ttl"
     return None

@@ -14,6 +14,9 @@ default system makes it. Starts the system (refuses if it is up), lets it settle
 - R1: SIGKILL the router (supervisord starts it again at once; the clients reconnect on their retry
   schedule). Measured: when every agent's object lists flow again, whether any agent changed state in
   the coordinator's maps, and the coordinator's plan counters (given up, resent) over the fault.
+- R1 xN: SIGKILL the router `--router-kills` times, `--kill-every-s` apart (issue 34): per kill, when it
+  was up again, held or not, when every agent's lists flowed and when `rmmdet health` was OK; the
+  vehicles' route requests over all of them (unanswered, asked again, given up).
 - R2: SIGSTOP the router for `--router-freeze-s` (its TCP connections stay open, nothing is forwarded),
   then SIGCONT. Measured as R1, from SIGCONT; and which programs were restarted meanwhile (a loop
   blocked on a full socket must not look stalled to the watchdog).
@@ -38,14 +41,15 @@ from typing import Any
 import zenoh
 from rmmdet.v1.perception_pb2 import INPUT_STATE_OK, PERCEPTION_STATUS_DEGRADED, PERCEPTION_STATUS_FULL
 
-from services.cli.health import query_health
+from services.cli.health import probe, query_health
 from shared.bus.codec import Counters, MessageDecoder
 from shared.bus.session import open_session
 from shared.bus.streams import get_stream
 from shared.bus.zenoh_config import DEFAULT_CLIENT_CONFIG, zenoh_config
 from shared.machine import git_commit, machine_info
-from shared.paths import REPO_ROOT
+from shared.paths import DEFAULT_SCENE, REPO_ROOT
 from shared.readme import replace_section
+from shared.scene.scene import Scene
 from tests.bench.system_bench import supervised_pids
 from tests.integration.coordinator_client import STATE_NAMES
 
@@ -107,9 +111,6 @@ def first(rows: list, pred) -> float | None:
 
 
 def sensors_of_group(group: str) -> set[str]:
-    from shared.paths import DEFAULT_SCENE
-    from shared.scene.scene import Scene
-
     agent, kind = group.split("-")
     return {s.id for s in Scene.load(DEFAULT_SCENE).sensors_of(agent, kind.removesuffix("s"))}  # type: ignore[arg-type]
 
@@ -168,6 +169,60 @@ def router_restart(watch: Watch, session: zenoh.Session) -> dict[str, Any]:
     }
 
 
+def sim_counters(session: zenoh.Session) -> dict[str, int]:
+    reports, _ = query_health(session)
+    return {c.name: c.value for r in reports if r.service == "sim" for c in r.counters}
+
+
+def health_ok_after(session: zenoh.Session, scene: Scene, t_from: float, limit_s: float) -> float | None:
+    """Seconds from `t_from` until `rmmdet health`'s verdict is OK (probing every 0.25 s), None if not
+    within `limit_s`."""
+    while time.monotonic() - t_from <= limit_s:
+        if probe(session, scene, timeout_s=1.0).ok:
+            return time.monotonic() - t_from
+        time.sleep(0.25)
+    return None
+
+
+def router_kills(
+    watch: Watch, session: zenoh.Session, kills: int, every_s: float, scene: Scene
+) -> dict[str, Any]:
+    """The router SIGKILLed `kills` times, `every_s` apart (issue 34: a transient fault of the one process
+    everything depends on must not become an outage). Per kill: when supervisord had it up again, when
+    every agent's object lists flowed again and when `rmmdet health` was OK, from its return; whether
+    the watchdog held it (not RUNNING 5 s after a kill). Over all: the vehicles' route requests
+    (requested, unanswered meanwhile, asked again, given up)."""
+    sim0 = sim_counters(session)
+    rows = []
+    for _ in range(kills):
+        old_pid = supervised_pids()["router"]
+        t_kill = time.monotonic()
+        subprocess.run([*SUPERVISORCTL, "signal", "KILL", "router"], check=True, capture_output=True)
+        while supervised_pids().get("router", old_pid) == old_pid:
+            if time.monotonic() > t_kill + 5.0:
+                break  # held or not restarted: recorded below
+            time.sleep(0.05)
+        t_back = time.monotonic()
+        held = supervised_pids().get("router", old_pid) == old_pid
+        health_s = None if held else health_ok_after(session, scene, t_back, every_s - 2.0)
+        flowing = {a: first(watch.rows(a, t_back), lambda _r: True) for a in AGENTS}
+        rows.append(
+            {
+                "router_up_after_kill_s": None if held else t_back - t_kill,
+                "held": held,
+                "objects_again_s": {a: None if t is None else t - t_back for a, t in flowing.items()},
+                "health_ok_after_s": health_s,
+            }
+        )
+        print(json.dumps(rows[-1]), flush=True)
+        time.sleep(max(0.0, t_kill + every_s - time.monotonic()))
+    time.sleep(20.0)  # the last requests' retries (1 + 2 + 4 + 8 s) are over
+    sim1 = sim_counters(session)
+    names = ("plans/requested", "plans/replied", "plans/no_reply", "plans/retried", "plans/given_up")
+    requests = {k: sim1.get(k, 0) - sim0.get(k, 0) for k in names}
+    return {"kills": kills, "every_s": every_s, "each": rows, "requests": requests}
+
+
 def router_freeze(watch: Watch, session: zenoh.Session, freeze_s: float) -> dict[str, Any]:
     before, pids = coordinator_counters(session), supervised_pids()
     t_stop = time.monotonic()
@@ -223,6 +278,20 @@ def readme_table(r: dict[str, Any]) -> str:
         f"| R1: router SIGKILLed (supervisord restarts it: up {rr['router_up_after_kill_s']:.2f} s later; "
         "times from then) | " + router_row(rr)
     ]
+    if "router_kills" in r:
+        rk = r["router_kills"]
+        each = rk["each"]
+        worst_objects = max(
+            (t for row in each for t in row["objects_again_s"].values() if t is not None), default=None
+        )
+        health = [row["health_ok_after_s"] for row in each]
+        worst_health = None if None in health else max(health, default=None)
+        rows.append(
+            f"| R1 x{rk['kills']}: router SIGKILLed {rk['kills']} times, {rk['every_s']:.0f} s apart "
+            f"(times from each return) | held {sum(row['held'] for row in each)} times; object lists "
+            f"again within {ms(worst_objects)} (worst agent, worst kill); `rmmdet health` OK within "
+            f"{ms(worst_health)}; route requests {rk['requests']} |"
+        )
     if "router_freeze" in r:
         rf = r["router_freeze"]
         rows.append(
@@ -250,6 +319,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--freeze-s", type=float, default=15.0)
     p.add_argument("--warmup-s", type=float, default=45.0)
     p.add_argument("--router-freeze-s", type=float, default=5.0, help="R2: the router SIGSTOPped this long")
+    p.add_argument("--router-kills", type=int, default=5, help="R1 xN: the router SIGKILLed this many times")
+    p.add_argument("--kill-every-s", type=float, default=15.0, help="R1 xN: seconds between the kills")
     p.add_argument("--readme", action="store_true", help="put the result in the README (fault-bench)")
     args = p.parse_args(argv)
     if supervised_pids():
@@ -268,6 +339,11 @@ def main(argv: list[str] | None = None) -> int:
         result["router"] = router_restart(watch, session)
         print(json.dumps(result["router"]), flush=True)
         time.sleep(5.0)
+        if args.router_kills:
+            scene = Scene.load(DEFAULT_SCENE)
+            result["router_kills"] = router_kills(watch, session, args.router_kills, args.kill_every_s, scene)
+            print(json.dumps(result["router_kills"]["requests"]), flush=True)
+            time.sleep(5.0)
         result["router_freeze"] = router_freeze(watch, session, args.router_freeze_s)
         print(json.dumps(result["router_freeze"]), flush=True)
         for s in subs:

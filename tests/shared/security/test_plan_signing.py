@@ -8,6 +8,7 @@ import pytest
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from rmmdet.v1.planning_pb2 import RoutePlan
 
+from shared.bus.streams import limits
 from shared.config import ConfigError
 from shared.security.pki import create_plan_key
 from shared.security.plan_signing import (
@@ -17,7 +18,7 @@ from shared.security.plan_signing import (
     load_private_key,
     load_public_key,
 )
-from shared.traffic.plans import plan_problem
+from shared.traffic.plans import plan_problem, version_of
 
 NOW_NS = 1_700_000_000 * 10**9
 PLAN_ID = "0123456789abcdef0123456789abcdef"
@@ -84,6 +85,19 @@ def test_plan_problem_checks_signature_id_and_ttl(signer: PlanSigner) -> None:
     no_ttl = plan()
     no_ttl.ClearField("valid_until")
     assert plan_problem(signer.sign(no_ttl), v, NOW_NS, 600.0) == "plan_ttl"
+
+
+def test_a_plan_issued_before_the_vehicles_run_started_is_a_replay(signer: PlanSigner) -> None:
+    """A plan's version is its issue time (µs): one issued before the run started, less the clock skew
+    allowed between hosts, is from an earlier run, however long its TTL still runs."""
+    v = verifier_for(signer)
+    skew_ns = round(limits().max_clock_skew_s * 10**9)
+    run_start_ns = NOW_NS - 10 * 10**9
+    old, fresh = plan(), plan()
+    old.version = version_of(run_start_ns - skew_ns) - 1  # 10.5 s ago: its TTL (30 s) still runs
+    fresh.version = version_of(run_start_ns - skew_ns)  # issued on a clock 0.5 s behind, at the start
+    assert plan_problem(signer.sign(old), v, NOW_NS, 600.0, run_start_ns) == "plan_before_run"
+    assert plan_problem(signer.sign(fresh), v, NOW_NS, 600.0, run_start_ns) is None
 
 
 def test_keys_load_from_files_and_bad_files_are_config_errors(tmp_path: Path) -> None:

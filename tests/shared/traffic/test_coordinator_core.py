@@ -9,6 +9,7 @@ from rmmdet.v1.planning_pb2 import RouteAck, RouteRequest
 from rmmdet.v1.traffic_pb2 import AgentState as PbState
 
 from shared.bus.health import DEGRADED, NOMINAL
+from shared.bus.streams import limits
 from shared.paths import DEFAULT_SCENE
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
@@ -17,7 +18,7 @@ from shared.traffic.config import CoordinatorSettings
 from shared.traffic.core import CoordinatorCore, RequestRejected, Tick
 from shared.traffic.coverage import AgentState
 from shared.traffic.messages import agent_objects
-from shared.traffic.plans import Ack
+from shared.traffic.plans import Ack, version_of
 from tests.integration.fake_mec import AgentCars
 
 WALL0_NS = 1_700_000_000 * NS_PER_S
@@ -97,15 +98,21 @@ def test_serve_plans_with_coverage_and_versions(scene: Scene, cars: dict[str, Ag
     feed(core, cars, 1.0, agents=["agent1", "agent3"])
     core.update_map(1.0)
     plan, stamp_ns = core.serve(request(), 1.0, WALL0_NS)
-    assert plan.lane_ids[0] == "l0" and plan.version == 1 and plan.plan_id
+    assert plan.lane_ids[0] == "l0" and plan.plan_id
     assert core.net.lane_end_junction(plan.lane_ids[-1]) == "j3"
     assert list(plan.coverage.missing_agents) == ["agent2"]
     assert sorted(plan.coverage.live_agents) == ["agent1", "agent3"]
     assert plan.valid_until.ToNanoseconds() == WALL0_NS + round(core.settings.planner.plan_ttl_s * NS_PER_S)
     assert stamp_ns == WALL0_NS + NS_PER_S
-    assert core.serve(request(), 1.1, WALL0_NS)[0].version == 2
-    # A restarted coordinator continues above the version the vehicle follows.
-    assert core.serve(request("v02", version=41), 1.2, WALL0_NS)[0].version == 42
+    # Versions are issue times (µs); one above the last within a microsecond.
+    assert plan.version == version_of(WALL0_NS)
+    core.on_ack("v01", plan.plan_id, plan.version, Ack.REJECTED_STALE, 1.0)  # (the vehicle had newer)
+    assert core.serve(request(), 1.1, WALL0_NS)[0].version == version_of(WALL0_NS) + 1
+    # The version a request claims is not trusted: it never moves the vehicle's versions.
+    claimed = limits().max_claimed_plan_version
+    assert core.serve(request("v02", version=claimed), 1.2, WALL0_NS + 5000)[0].version == version_of(
+        WALL0_NS + 5000
+    )
 
 
 def test_serve_uses_lists_that_arrived_after_the_last_map(scene: Scene, cars: dict[str, AgentCars]) -> None:
@@ -143,7 +150,7 @@ def test_a_full_plan_book_evicts_the_longest_idle_vehicle_and_serves_the_new_one
     plan, _ = core.serve(request("v03"), 0.3, WALL0_NS)  # a new vehicle is served, never locked out
     assert plan.vehicle_id == "v03" and core.vehicles_evicted == 1
     again, _ = core.serve(request("v02"), 0.4, WALL0_NS)  # the evicted one starts afresh when it asks
-    assert again.version == 1 and core.vehicles_evicted == 2
+    assert again.version == version_of(WALL0_NS) and core.vehicles_evicted == 2
 
 
 def test_vehicles_idle_past_the_limit_are_forgotten(scene: Scene) -> None:
@@ -168,7 +175,7 @@ def test_coverage_change_pushes_plan_until_acknowledged(scene: Scene, cars: dict
     due = core.due(1.0)
     assert len(due) == 1
     pushed, _, first_send = due[0]
-    assert first_send and pushed.version == 2 and list(pushed.coverage.missing_agents) == []
+    assert first_send and pushed.version == first.version + 1 and list(pushed.coverage.missing_agents) == []
     assert list(pushed.lane_ids[:2]) == list(first.lane_ids[:2])  # the first turn is kept
     assert core.replan(1.1, WALL0_NS) == 0  # still being delivered: not replanned again
     assert core.due(1.0 + delivery.ack_timeout_s / 2) == []
@@ -260,3 +267,83 @@ def test_replanning_runs_at_its_interval_of_the_clock_of_record(scene: Scene) ->
     ran = [t for t in (10.0, 11.0, 12.0, 12.5, 14.3, 20.0, 21.0) if core.replan_if_due(t, 0) is not None]
     assert ran == [12.0, 14.3, 20.0]
     assert core.next_replan_s == 22.0
+
+
+def test_a_repeated_request_gets_the_same_plan_until_its_reply_is_acknowledged(scene: Scene) -> None:
+    """A reply lost in a router restart: the vehicle asks again from the same lane for the same
+    destination and is answered with the same plan (idempotent), not a new version of it."""
+    core = make_core(scene)
+    core.update_map(0.0)
+    first, _ = core.serve(request(), 0.0, WALL0_NS)
+    again, _ = core.serve(request(), 1.0, WALL0_NS + NS_PER_S)
+    assert (again.plan_id, again.version, again.valid_until) == (
+        first.plan_id,
+        first.version,
+        first.valid_until,
+    )
+    assert core.repeats == 1
+    other, _ = core.serve(request(dest="j1"), 1.5, WALL0_NS + NS_PER_S)  # another request: a new plan
+    assert other.plan_id != first.plan_id and other.version > first.version
+    core.on_ack("v01", other.plan_id, other.version, Ack.ACCEPTED, 2.0)
+    followed, _ = core.serve(request(dest="j1"), 2.0, WALL0_NS + 2 * NS_PER_S)  # acknowledged: planned anew
+    assert followed.plan_id != other.plan_id and core.repeats == 1
+
+
+def test_claims_against_the_followed_plan_are_refused_and_leave_it_unchanged(scene: Scene) -> None:
+    """While a vehicle follows its plan (ACCEPTED, within its TTL) a request for it can only come from
+    one of the plan's lanes and for its destination (on its last lane, the next trip's): a forged one
+    asking from elsewhere or for another destination is refused, and the coordinator's record of the
+    vehicle (its plan, its load on the lanes) stays as it was."""
+    core = make_core(scene)
+    core.update_map(0.0)
+    plan, _ = core.serve(request(), 0.0, WALL0_NS)
+    lanes = list(plan.lane_ids)
+    assert len(lanes) >= 2
+    core.on_ack("v01", plan.plan_id, plan.version, Ack.ACCEPTED, 0.0)
+    latest = core.book.latest("v01")
+    off_plan = next(lane for lane in core.net.lanes if lane not in lanes)
+    other_dest = next(j for j in core.planner.junctions if j != "j3")
+    for req, reason in (
+        (request(lane=off_plan), "claim_lane"),
+        (request(lane=lanes[0], dest=other_dest), "claim_destination"),
+    ):
+        with pytest.raises(RequestRejected) as err:
+            core.serve(req, 1.0, WALL0_NS + NS_PER_S)
+        assert err.value.reason == reason and err.value.code == ErrorCode.ERROR_CODE_INVALID_REQUEST
+    assert core.book.latest("v01") is latest
+    # The vehicle itself, further along its plan: served. On the plan's last lane the next trip's
+    # destination may be asked for.
+    onward, _ = core.serve(request(lane=lanes[1]), 2.0, WALL0_NS + 2 * NS_PER_S)
+    assert onward.lane_ids[0] == lanes[1]
+    core.on_ack("v01", onward.plan_id, onward.version, Ack.ACCEPTED, 2.0)
+    last = list(onward.lane_ids)[-1]
+    next_trip, _ = core.serve(request(lane=last, dest=other_dest), 3.0, WALL0_NS + 3 * NS_PER_S)
+    assert next_trip.destination_junction_id == other_dest
+
+
+def test_claims_are_free_once_the_plan_lapsed_or_the_vehicles_left(scene: Scene) -> None:
+    core = make_core(scene)
+    core.update_map(0.0)
+    plan, _ = core.serve(request(), 0.0, WALL0_NS)
+    core.on_ack("v01", plan.plan_id, plan.version, Ack.ACCEPTED, 0.0)
+    off_plan = next(lane for lane in core.net.lanes if lane not in plan.lane_ids)
+    expired_ns = plan.valid_until.ToNanoseconds()  # the vehicle dropped it then, on the wall clock
+    assert core.serve(request(lane=off_plan), 1.0, expired_ns)[0].lane_ids[0] == off_plan
+    again, _ = core.serve(request(), 2.0, expired_ns + NS_PER_S)
+    core.on_ack("v01", again.plan_id, again.version, Ack.ACCEPTED, 2.0)
+    assert core.vehicles_left() == 1  # the sim left: its vehicles' plans end with it
+    assert core.book.latest("v01") is None
+    assert core.serve(request(lane=off_plan), 3.0, expired_ns + 2 * NS_PER_S)[0].lane_ids[0] == off_plan
+
+
+def test_a_repeated_request_is_planned_anew_once_the_coverage_changed(
+    scene: Scene, cars: dict[str, AgentCars]
+) -> None:
+    core = make_core(scene)
+    core.update_map(0.0)  # nothing LIVE
+    first, _ = core.serve(request(), 0.0, WALL0_NS)
+    feed(core, cars, 1.0)
+    core.update_map(1.0)  # every agent LIVE now
+    again, _ = core.serve(request(), 1.0, WALL0_NS + NS_PER_S)
+    assert again.plan_id != first.plan_id and list(again.coverage.missing_agents) == []
+    assert core.repeats == 0

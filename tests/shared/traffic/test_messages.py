@@ -143,7 +143,7 @@ def test_every_policy_has_a_wire_value() -> None:
 def test_route_plan_fields(policy: str) -> None:
     route = Route(["in", "ac", "cb"], ["ja", "jc"], 8.0, 5.0, policy)  # type: ignore[arg-type]
     book = PlanBook(DeliveryConfig(), max_vehicles=16)
-    book.issue("car7", route, 0.0, pushed=False, after_version=6)
+    book.issue("car7", route, 0.0, pushed=False, wall_ns=7_000)
     plan = book.latest("car7")
     assert plan is not None
     valid_until_ns = 1_500_000_000_123

@@ -1,0 +1,66 @@
+"""What a route request may claim about its vehicle, checked against what the coordinator knows.
+
+A RouteRequest names the vehicle's lane, its destination and the plan version it follows; nothing in it
+is proven (in the multi-site profile the access control proves only *who* asks: the RPC key names the
+vehicle and only its identity may query there). What the coordinator does know is the plan it last gave
+the vehicle and whether the vehicle acknowledged following it. While that plan is in force (ACCEPTED or
+DUPLICATE, before its `valid_until`), a vehicle following it can only be on one of its lanes, bound for
+its destination; on the plan's last lane the trip ends and the next trip's destination may be asked
+for. A request claiming anything else is refused and the plan stays as it was, so a forged request
+can neither re-route the vehicle nor move the coordinator's record of it (its lane loads, its re-plans).
+
+The version a request claims is never trusted (plan versions are issue times, `plans.version_of`).
+A request repeating the vehicle's latest request while its reply is unacknowledged (a reply lost in a
+router restart, asked again) is answered with the same plan: the same request gets the same answer
+(the coordinator plans anew only if the coverage changed meanwhile).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from shared.traffic.plans import Ack, IssuedPlan
+
+#: Acknowledgements by which the vehicle says it follows the plan.
+FOLLOWING = (Ack.ACCEPTED, Ack.DUPLICATE)
+
+
+@dataclass(frozen=True)
+class Claim:
+    """What a request says about its vehicle."""
+
+    lane: str
+    destination: str
+
+
+@dataclass(frozen=True)
+class Given:
+    """The vehicle's latest plan as the coordinator gave it."""
+
+    plan: IssuedPlan
+    destination: str
+    valid_until_ns: int  # wall clock, Unix ns
+
+    def in_force(self, wall_ns: int) -> bool:
+        return wall_ns < self.valid_until_ns
+
+
+def repeats(given: Given | None, claim: Claim, wall_ns: int) -> bool:
+    """The request asks again what the latest, still unacknowledged reply answered (same lane and
+    destination, within the plan's validity): answer it with that plan."""
+    if given is None or given.plan.pushed or given.plan.ack is not None or not given.in_force(wall_ns):
+        return False
+    return given.plan.route.lanes[0] == claim.lane and given.destination == claim.destination
+
+
+def claim_problem(given: Given | None, claim: Claim, wall_ns: int) -> str | None:
+    """Why the claim contradicts the plan the vehicle follows (the rejection counter's name:
+    `claim_lane`, `claim_destination`), or None."""
+    if given is None or given.plan.ack not in FOLLOWING or not given.in_force(wall_ns):
+        return None
+    lanes = given.plan.route.lanes
+    if claim.lane not in lanes:
+        return "claim_lane"
+    if claim.lane != lanes[-1] and claim.destination != given.destination:
+        return "claim_destination"
+    return None
