@@ -77,6 +77,12 @@ def parse_identity(name: str) -> Identity:
     raise ConfigError(f"identity {name!r}: not a known role (see shared/security/identities.py)")
 
 
+def is_router(name: str) -> bool:
+    """Whether identity `name` is a router's (the only identities that listen for TLS links)."""
+    m = _AGENT_RE.match(name)
+    return name in (LOCAL_ROUTER, CLOUD_ROUTER) or (m is not None and m["role"] == "router")
+
+
 def sensor_group_identity(group: str) -> str:
     """`agent1-cameras` -> `sensor-agent1-cameras`."""
     return f"sensor-{group}"

@@ -4,9 +4,11 @@ and the coordinator's Ed25519 plan-signing key (`rmmdet pki init`).
 Layout of a PKI directory (default `.run/pki`, private keys mode 0600):
 
     ca.pem, ca.key                 the CA (ECDSA P-256, self-signed, path length 0)
-    <identity>.pem, <identity>.key one leaf per identity: CN = identity, SAN = DNS:identity,
-                                   DNS:localhost, IP:127.0.0.1 and any extra names; serverAuth +
-                                   clientAuth (routers both listen and connect; clients connect)
+    <identity>.pem, <identity>.key one leaf per identity: CN = identity, SAN = DNS:identity; a
+                                   router's also DNS:localhost, IP:127.0.0.1 and its extra names,
+                                   with serverAuth + clientAuth (routers listen and connect); every
+                                   other identity's clientAuth only (it connects, never serves: a
+                                   stolen sensor key cannot pose as the router while it restarts)
     plan-signing.key / .pub        Ed25519, PKCS#8 / SubjectPublicKeyInfo PEM
 
 Zenoh's TLS links (rustls) verify chains to `ca.pem`; access control keys its rules on the leaf's
@@ -30,6 +32,7 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from shared.config import ConfigError
+from shared.security.identities import is_router
 
 CA_NAME = "ca"
 PLAN_KEY_NAME = "plan-signing"
@@ -146,18 +149,29 @@ class CertificateAuthority:
         return cls(cert, key)
 
     def issue(self, pki_dir: Path, identity: str, extra_names: tuple[str, ...] = ()) -> Paths:
-        """Create `identity`'s key and certificate, signed by this CA."""
+        """Create `identity`'s key and certificate, signed by this CA. Only a router's certificate
+        names addresses and may serve TLS; `extra_names` (addresses or DNS names) are a router's."""
+        serves = is_router(identity)
+        if extra_names and not serves:
+            raise ConfigError(f"{identity}: only a router listens; extra names {extra_names} are a router's")
         paths = identity_paths(pki_dir, identity)
         key = ec.generate_private_key(ec.SECP256R1())
         now = _now()
-        names: list[x509.GeneralName] = [x509.DNSName(identity), x509.DNSName("localhost")]
-        addresses = {ipaddress.ip_address("127.0.0.1")}
-        for extra in extra_names:
-            try:
-                addresses.add(ipaddress.ip_address(extra))
-            except ValueError:
-                names.append(x509.DNSName(extra))
-        names += [x509.IPAddress(a) for a in sorted(addresses, key=str)]
+        names: list[x509.GeneralName] = [x509.DNSName(identity)]
+        if serves:
+            names.append(x509.DNSName("localhost"))
+            addresses = {ipaddress.ip_address("127.0.0.1")}
+            for extra in extra_names:
+                try:
+                    addresses.add(ipaddress.ip_address(extra))
+                except ValueError:
+                    names.append(x509.DNSName(extra))
+            names += [x509.IPAddress(a) for a in sorted(addresses, key=str)]
+        usages = (
+            [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]
+            if serves
+            else [ExtendedKeyUsageOID.CLIENT_AUTH]
+        )
         ca_ski = self.cert.extensions.get_extension_for_class(x509.SubjectKeyIdentifier).value
         cert = (
             x509.CertificateBuilder()
@@ -170,7 +184,7 @@ class CertificateAuthority:
             .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
             .add_extension(_key_usage(ca=False), critical=True)
             .add_extension(
-                x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]),
+                x509.ExtendedKeyUsage(usages),
                 critical=False,
             )
             .add_extension(x509.SubjectAlternativeName(names), critical=False)

@@ -93,6 +93,36 @@ def test_only_clients_with_a_certificate_of_the_deployment_ca_connect(
         assert time.monotonic() - t0 < REFUSED_WITHIN_S + 2
 
 
+def rogue_router(dep: Deployment, identity: str, port: int) -> zenoh.Config:
+    """A router's config listening on `port` with `identity`'s certificate and key: a key holder posing
+    as the router (while the real one restarts, its port is free)."""
+    conf = dep.config("router-cloud")
+    tls = json.loads(conf.get_json("transport/link/tls"))
+    tls["listen_certificate"] = str(dep.pki / f"{identity}.pem")
+    tls["listen_private_key"] = str(dep.pki / f"{identity}.key")
+    conf.insert_json5("transport/link/tls", json.dumps(tls))
+    conf.insert_json5("listen/endpoints", json.dumps([f"tls/127.0.0.1:{port}"]))
+    return conf
+
+
+def test_only_a_router_certificate_can_serve_a_client(deployment: Deployment) -> None:
+    """Issue 34 item 8: a service's key (here a sensor group's) cannot pose as the router: its
+    certificate names no address and is for client authentication only, so the operator's TLS client
+    refuses it. With the router's own certificate the same listener is accepted (the control)."""
+    for identity, accepted in (("sensor-agent1-cameras", False), ("router-cloud", True)):
+        port = free_port()
+        with zenoh.open(rogue_router(deployment, identity, port)):
+            wait_port(port)
+            client = deployment.config("operator")
+            client.insert_json5("connect/endpoints", json.dumps([f"tls/127.0.0.1:{port}"]))
+            if accepted:
+                with open_session(client, timeout_s=10) as session:
+                    assert session.info.routers_zid()
+            else:
+                with pytest.raises(SessionUnavailable):
+                    open_session(client, timeout_s=REFUSED_WITHIN_S)
+
+
 # (identity, key, delivered?) — each put is made by `identity` and watched by the operator.
 PUTS = [
     ("mec-agent1", "rmmdet/@v1/agent1/objects", True),

@@ -44,6 +44,22 @@ def test_init_makes_a_ca_leaves_and_the_plan_key(tmp_path: Path) -> None:
         assert path.stat().st_mode & 0o777 == 0o600
 
 
+def test_only_a_router_certificate_may_serve_tls(tmp_path: Path) -> None:
+    """Issue 34 item 8: a client identity's leaf names no address and is for client authentication
+    only, so its key cannot pose as the router (a TLS client checks serverAuth and the address)."""
+    init_pki(tmp_path, ["sensor-agent1-cameras", "router", "router-agent2"])
+    for identity, serves in (("sensor-agent1-cameras", False), ("router", True), ("router-agent2", True)):
+        leaf = load(identity_paths(tmp_path, identity).cert)
+        usages = set(leaf.extensions.get_extension_for_class(x509.ExtendedKeyUsage).value)
+        san = leaf.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+        assert (ExtendedKeyUsageOID.SERVER_AUTH in usages) is serves, identity
+        assert ExtendedKeyUsageOID.CLIENT_AUTH in usages
+        assert bool(san.get_values_for_type(x509.IPAddress)) is serves, identity
+        assert ("localhost" in san.get_values_for_type(x509.DNSName)) is serves, identity
+    with pytest.raises(ConfigError, match="only a router"):
+        init_pki(tmp_path, ["coordinator"], {"coordinator": ("10.0.0.5",)})
+
+
 def test_init_keeps_what_exists_and_renews_only_leaves(tmp_path: Path) -> None:
     init_pki(tmp_path, ["coordinator"])
     before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
