@@ -19,7 +19,7 @@ from collections.abc import Iterable
 from typing import Any
 
 from shared.bus.streams import Stream, key_prefix, readers, streams
-from shared.security.identities import ROLES, SERVICE_OF_ROLE, Grant, parse_identity
+from shared.security.identities import ROLES, SERVICE_OF_ROLE, Grant, own_instance, parse_identity
 
 #: (message, flow) pairs at the router for each access verb, from the holder's side.
 VERB_MESSAGES: dict[str, tuple[tuple[str, str], ...]] = {
@@ -74,11 +74,14 @@ OWN_KEY_VERBS = ("serve", "token")
 
 def key_for(stream: Stream, grant: Grant, verb: str) -> str:
     """The stream's key expression confined to the grant's bindings (`*` where it has none): an agent
-    binding also fills `scope`; a node serves health and holds presence under its own service name."""
+    binding also fills `scope`; a node serves health and holds presence under its own service name and
+    instance (`identities.own_instance`)."""
     b = grant.bindings
+    own = verb in OWN_KEY_VERBS
     fill = {
         "scope": b.get("scope", b.get("agent", "*")),
-        "service": SERVICE_OF_ROLE.get(grant.role, "*") if verb in OWN_KEY_VERBS else "*",
+        "service": SERVICE_OF_ROLE.get(grant.role, "*") if own else "*",
+        "instance": own_instance(grant) if own else "*",
     }
     ids = {f: b.get(f, fill.get(f, "*")) for f in stream.fields}
     return stream.key_template.format(**ids)

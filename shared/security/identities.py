@@ -77,6 +77,18 @@ def parse_identity(name: str) -> Identity:
     raise ConfigError(f"identity {name!r}: not a known role (see shared/security/identities.py)")
 
 
+def own_instance(grant: Grant) -> str:
+    """The instance chunk of a node's own health and presence keys under `grant` (`*`: any): a sensor
+    group's is its group (`agent1-cameras`), a MEC's its agent, so a sibling of the same role cannot
+    hold another's token or answer for its health. The other roles have one identity each."""
+    b = grant.bindings
+    if grant.role == "sensors" and "agent" in b and "kind" in b:
+        return sensor_group(b["agent"], b["kind"])
+    if grant.role == "mec" and "agent" in b:
+        return b["agent"]
+    return "*"
+
+
 def is_router(name: str) -> bool:
     """Whether identity `name` is a router's (the only identities that listen for TLS links)."""
     m = _AGENT_RE.match(name)

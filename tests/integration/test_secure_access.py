@@ -203,3 +203,28 @@ def test_must_deliver_history_works_under_access_control(deployment: Deployment)
             item = sub.recv(timeout=REFUSED_WITHIN_S)
             assert item is not None, "no calibration from the publisher's cache under access control"
             assert item.message.SerializeToString() == calibration.SerializeToString()
+
+
+def test_a_node_holds_only_its_own_presence_token_and_health_key(deployment: Deployment) -> None:
+    """Issue 34 item 5: the camera group of agent1 may hold its own presence token and answer its own
+    health queries, not its sibling lidar group's (the ACL binds the instance chunk to the identity)."""
+    alive, health = get_stream("alive"), get_stream("health")
+    ids = {"own": "agent1-cameras", "sibling": "agent1-lidars"}
+    tokens = {k: alive.key(scope="agent1", service="sensor", instance=i) for k, i in ids.items()}
+    healths = {k: health.key(scope="agent1", service="sensor", instance=i) for k, i in ids.items()}
+    with deployment.session("operator") as operator, deployment.session("sensor-agent1-cameras") as cams:
+        declared = [cams.liveliness().declare_token(key) for key in tokens.values()]
+        declared += [
+            cams.declare_queryable(k, lambda q: q.reply(q.key_expr, b"ok")) for k in healths.values()
+        ]
+        time.sleep(SETTLE_S)
+        try:
+            seen = {
+                str(r.ok.key_expr) for r in operator.liveliness().get(alive.pattern(scope="agent1")) if r.ok
+            }
+            answered = {k: [r for r in operator.get(key, timeout=1.0) if r.ok] for k, key in healths.items()}
+        finally:
+            for d in declared:
+                d.undeclare()
+    assert tokens["own"] in seen and tokens["sibling"] not in seen, seen
+    assert len(answered["own"]) == 1 and answered["sibling"] == [], answered

@@ -111,3 +111,22 @@ def test_every_stream_names_known_roles_only() -> None:
     for stream in streams().values():
         assert stream.access, stream.name
     perms(*deployment_identities(Scene.load(DEFAULT_SCENE)))  # role_matches raises on an unknown role
+
+
+@pytest.mark.parametrize(
+    ("identity", "token"),
+    [
+        ("sensor-agent1-cameras", "rmmdet/@v1/agent1/@alive/sensor/agent1-cameras"),
+        ("mec-agent2", "rmmdet/@v1/agent2/@alive/mec/agent2"),
+        ("coordinator", "rmmdet/@v1/*/@alive/coordinator/*"),
+    ],
+)
+def test_a_node_holds_presence_and_serves_health_only_under_its_own_instance(
+    identity: str, token: str
+) -> None:
+    """Issue 34 item 5: a sensor group's and a MEC's instance chunk is bound to the identity (a sibling
+    group of the same agent cannot hold its token or answer its health); one-of-a-kind roles stay `*`."""
+    p = perms(identity)
+    assert {k for k in p[("liveliness_token", "ingress")] if "/@alive/" in k} == {token}
+    health = token.replace("/@alive/", "/@health/")
+    assert {k for k in p[("declare_queryable", "ingress")] if "/@health/" in k} == {health}
