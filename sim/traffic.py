@@ -65,6 +65,19 @@ class Trip:
         return self.end_s - self.start_s
 
 
+@dataclass(frozen=True)
+class PlanEnd:
+    """A vehicle stopped following its plan: `status` COMPLETED (its last lane driven) or
+    REJECTED_INVALID (a detour left it); acknowledged to the coordinator so that it no longer holds the
+    vehicle to the plan's lanes (`shared/traffic/claims.py`) nor counts its load on them."""
+
+    vehicle_id: str
+    plan_id: str
+    version: int
+    status: Ack
+    reason: str
+
+
 @dataclass
 class Vehicle:
     id: str
@@ -94,6 +107,7 @@ class Vehicle:
     plan: list[str] = field(default_factory=list)  # lanes to take, from a route plan
     plan_version: int = 0
     plan_id: str = ""
+    following: bool = False  # on an accepted plan whose end has not been reported (`PlanEnd`)
     planned_lane: str = ""  # lane on which the latest plan was asked for (one request per lane)
     ask_now: bool = False  # ask for a plan at once, wherever on the lane (a coordinator came back)
     connected: bool = True
@@ -145,6 +159,7 @@ class TrafficSim:
         self.keep_trips = keep_trips
         self.trips_completed = 0
         self.detours = 0
+        self.plan_ends: list[PlanEnd] = []  # taken (and cleared) by whoever acknowledges plans
         self.distance_m = 0.0  # driven by all vehicles together
         self._seed = seed
         self._trip_rngs: dict[int, np.random.Generator] = {}
@@ -258,6 +273,7 @@ class TrafficSim:
         v.plan = list(lanes)
         v.plan_version = version
         v.plan_id = plan_id
+        v.following = True
         return Ack.ACCEPTED
 
     def drop_plan(self, vehicle_id: str) -> bool:
@@ -267,7 +283,13 @@ class TrafficSim:
         v = self._by_id[vehicle_id]
         had = bool(v.plan)
         v.plan.clear()
+        v.following = False  # its TTL: the coordinator ends it at the same time
         return had
+
+    def _end_plan(self, v: Vehicle, status: Ack, reason: str) -> None:
+        if v.following:
+            v.following = False
+            self.plan_ends.append(PlanEnd(v.id, v.plan_id, v.plan_version, status, reason))
 
     def routing_destination(self, v: Vehicle) -> str:
         """The junction a plan made now should aim at: the next trip's when this lane ends the current."""
@@ -349,6 +371,8 @@ class TrafficSim:
             if v.path.length_m - v.s > self.cfg.junction_request_m:
                 continue
             junction = self.net.lane_end_junction(v.lane_id)
+            if v.following and not v.plan:  # at the end of the plan's last lane
+                self._end_plan(v, Ack.COMPLETED, "last lane driven")
             if junction == v.destination:
                 v.arriving = True
                 v.destination = v.next_destination
@@ -405,6 +429,7 @@ class TrafficSim:
                         continue
                     v.next_lane = detour[int(self.rng.integers(len(detour)))]
                     v.plan.clear()  # the plan no longer applies; the coordinator replans
+                    self._end_plan(v, Ack.REJECTED_INVALID, "detour: its next lane was blocked")
                     v.detours += 1
                     self.detours += 1
                 v.admitted = True

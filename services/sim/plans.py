@@ -12,9 +12,11 @@ version is its issue time: a replay from an earlier run is refused) and its TTL 
 acknowledged, and a reply that fails the checks does not stop the vehicle from taking a later, genuine
 reply to the same request (a rogue second queryable cannot answer for the coordinator). Every plan
 considered is answered with a RouteAck carrying the vehicle's decision (ACCEPTED, DUPLICATE,
-REJECTED_STALE, REJECTED_INVALID). Without a coordinator vehicles keep driving: no plan means the
-shortest route, and a plan is followed only until its TTL (`PlanExpiry`). When a coordinator's presence
-token appears (it started, or came back), every vehicle asks at once.
+REJECTED_STALE, REJECTED_INVALID), and the end of a followed plan too (COMPLETED once its last lane is
+driven, REJECTED_INVALID when a detour leaves it: `TrafficSim.plan_ends`). Without a coordinator
+vehicles keep driving: no plan means the shortest route, and a plan is followed only until its TTL
+(`PlanExpiry`). When a coordinator's presence token appears (it started, or came back), every vehicle
+asks at once.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from typing import cast
 
 import zenoh
 from google.protobuf.message import DecodeError
-from rmmdet.v1.common_pb2 import ErrorCode, ErrorResponse
+from rmmdet.v1.common_pb2 import ErrorCode, ErrorResponse, Header
 from rmmdet.v1.planning_pb2 import RouteAck, RoutePlan, RouteRequest, RouteResponse
 
 from shared.bus.codec import Counters, MessageDecoder, encode
@@ -205,6 +207,9 @@ class PlanClient:
         for vehicle_id in self.expiry.expired(time.time_ns()):
             self.counters.inc("plans/expired")
             self.traffic.drop_plan(vehicle_id)
+        for end in self.traffic.plan_ends:  # completed or left by a detour: the coordinator is told
+            self.acknowledge(end.vehicle_id, end.plan_id, end.version, end.status, end.reason, stamp_ns)
+        self.traffic.plan_ends.clear()
         if any(alive for _, alive in self.coordinators.changes()):
             self.counters.inc("plans/coordinator_joined")
             self._ask_all_at = time.monotonic() + REASK_AFTER_JOIN_S
@@ -265,15 +270,25 @@ class PlanClient:
                 self.expiry.followed(plan.vehicle_id, plan.valid_until.ToNanoseconds())
             if status is Ack.REJECTED_INVALID:
                 reason = "route does not continue from the vehicle's lane"
+        self.acknowledge(plan.vehicle_id, plan.plan_id, plan.version, status, reason, plan.header)
+
+    def acknowledge(
+        self, vehicle_id: str, plan_id: str, version: int, status: Ack, reason: str, stamp: Header | int
+    ) -> None:
+        """Publish the vehicle's RouteAck; `stamp`: the plan's header (the ack keeps its data stamp) or,
+        for a plan's end, the tick's stamp in ns."""
         self.counters.inc(f"acks/{status.name.lower()}")
         ack = RouteAck(
-            vehicle_id=plan.vehicle_id,
-            plan_id=plan.plan_id,
-            version=plan.version,
+            vehicle_id=vehicle_id,
+            plan_id=plan_id,
+            version=version,
             status=status.value,  # Ack mirrors AckStatus
             reason=reason,
         )
-        self.ack_pubs[plan.vehicle_id].put(ack, derived_from=plan.header)
+        if isinstance(stamp, Header):
+            self.ack_pubs[vehicle_id].put(ack, derived_from=stamp)
+        else:
+            self.ack_pubs[vehicle_id].put(ack, stamp_ns=stamp)
 
 
 class _ReplyHandler:

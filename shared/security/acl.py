@@ -44,13 +44,16 @@ VERB_INTEREST: dict[str, tuple[tuple[str, str], ...]] = {
     "serve": (("query", "egress"),),  # the queries it is to answer
     "query": (("declare_queryable", "egress"),),  # where to route its queries
 }
+#: Interests on the whole data space (`rmmdet/@v1/**`): only a publisher's, because a reader role
+#: subscribes to everything at once (the recorder's `rmmdet/@v1/**`). Nobody serves or queries that wide.
+WHOLE_SPACE_INTEREST = ("publish",)
 
 
 #: A must-deliver stream rides Zenoh's advanced publisher/subscriber (`Stream.advanced`), whose publisher
 #: holds a token and serves its cache under `<key>/@adv/...`: a stream verb brings these verbs on
 #: that key space (`@adv` is a verbatim chunk: no `**` grant reaches it) ...
 ADVANCED_VERBS: dict[str, tuple[str, ...]] = {
-    "publish": ("publish", "token", "serve"),
+    "publish": ("token", "serve"),  # no puts of its own there: the publishers run without heartbeats
     "subscribe": ("subscribe", "watch", "query"),
 }
 #: ... and the cache's replies carry the samples' own keys: the publisher replies, the subscriber gets them.
@@ -113,7 +116,9 @@ def grant_permissions(grants: Iterable[Grant]) -> dict[tuple[str, str], set[str]
                     for pair in VERB_MESSAGES[verb]:
                         out[pair].add(key_for(stream, grant, verb))
                     for pair in VERB_INTEREST.get(verb, ()):
-                        out[pair] |= {wide_key(stream), f"{key_prefix()}/**"}
+                        out[pair].add(wide_key(stream))
+                        if verb in WHOLE_SPACE_INTEREST and readers():
+                            out[pair].add(f"{key_prefix()}/**")
                     if stream.advanced:
                         _grant_advanced(out, stream, key_for(stream, grant, verb), verb)
     return out

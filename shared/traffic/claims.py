@@ -5,8 +5,9 @@ is proven (in the multi-site profile the access control proves only *who* asks: 
 vehicle and only its identity may query there). What the coordinator does know is the plan it last gave
 the vehicle and whether the vehicle acknowledged following it. While that plan is in force (ACCEPTED or
 DUPLICATE, before its `valid_until`), a vehicle following it can only be on one of its lanes, bound for
-its destination; on the plan's last lane the trip ends and the next trip's destination may be asked
-for. A request claiming anything else is refused and the plan stays as it was, so a forged request
+its destination; on the plan's last lane, or on a lane leaving its destination junction (a vehicle
+committed to its next lane asks from there), the trip ends and the next trip's destination may be
+asked for. A request claiming anything else is refused and the plan stays as it was, so a forged request
 can neither re-route the vehicle nor move the coordinator's record of it (its lane loads, its re-plans).
 
 The version a request claims is never trusted (plan versions are issue times, `plans.version_of`).
@@ -31,6 +32,7 @@ class Claim:
 
     lane: str
     destination: str
+    lane_start_junction: str  # where the claimed lane begins (a trip beyond the plan starts at its end)
 
 
 @dataclass(frozen=True)
@@ -59,8 +61,10 @@ def claim_problem(given: Given | None, claim: Claim, wall_ns: int) -> str | None
     if given is None or given.plan.ack not in FOLLOWING or not given.in_force(wall_ns):
         return None
     lanes = given.plan.route.lanes
-    if claim.lane not in lanes:
-        return "claim_lane"
-    if claim.lane != lanes[-1] and claim.destination != given.destination:
-        return "claim_destination"
-    return None
+    if claim.lane in lanes[:-1]:
+        return None if claim.destination == given.destination else "claim_destination"
+    # On the plan's last lane, or already committed to a lane beyond its destination junction: the
+    # trip ends there and the next one may go anywhere.
+    if claim.lane == lanes[-1] or claim.lane_start_junction == given.destination:
+        return None
+    return "claim_lane"

@@ -20,6 +20,7 @@ time when a sim runs, shared/timebase.py), wall-clock `wall_ns`.
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 from dataclasses import dataclass
@@ -43,6 +44,9 @@ from shared.traffic.maps import AgentObjects, TrafficMapBuilder, TrafficSnapshot
 from shared.traffic.planner import ONE_JUNCTION_POLICIES, LaneConditions, NoRouteError, Route, RoutePlanner
 from shared.traffic.plans import Ack, IssuedPlan, PlanBook
 
+log = logging.getLogger(__name__)
+
+CLAIM_LOG_FIRST, CLAIM_LOG_EVERY = 10, 100  # refused claims logged: the first ten, then every 100th
 GROUND_TRUTH = "ground_truth"  # the oracle object source of studies (every lane observed)
 #: Acknowledgements after which the vehicle no longer follows the plan (its lanes are no load).
 ENDED = (Ack.REJECTED_INVALID, Ack.REJECTED_STALE, Ack.COMPLETED)
@@ -122,6 +126,7 @@ class CoordinatorCore:
         self._seen_states = dict.fromkeys(self.agents, AgentState.LOST)  # as of the latest tick
         self.active_count = 0  # active plans, as of the latest re-plan
         self.repeats = 0  # requests answered with the plan their unacknowledged reply carried
+        self.claims_refused = 0  # requests refused by `claims.claim_problem`
 
     # --- inputs ----------------------------------------------------------------------------------
 
@@ -232,7 +237,12 @@ class CoordinatorCore:
             vid = req.vehicle_id
             for gone in self.book.heard(vid, now_s):
                 self._forget(gone)
-            given, claim = self._given(vid), Claim(req.current_lane_id, req.destination_junction_id)
+            claim = Claim(
+                req.current_lane_id,
+                req.destination_junction_id,
+                self.net.lane_start_junction(req.current_lane_id),
+            )
+            given = self._given(vid)
             active = self._active.get(vid)
             # The same answer to the same request, unless the coverage it was planned on has changed
             # meanwhile (the new answer says so).
@@ -241,6 +251,19 @@ class CoordinatorCore:
                 return active.message, active.stamp_ns
             problem = claim_problem(given, claim, wall_ns)
             if problem is not None:
+                self.claims_refused += 1
+                if self.claims_refused <= CLAIM_LOG_FIRST or self.claims_refused % CLAIM_LOG_EVERY == 0:
+                    assert given is not None
+                    log.warning(
+                        "%s refused (%d so far): %s asks from %s to %s, follows %s to %s",
+                        problem,
+                        self.claims_refused,
+                        vid,
+                        claim.lane,
+                        claim.destination,
+                        given.plan.route.lanes,
+                        given.destination,
+                    )
                 raise RequestRejected(
                     problem,
                     ErrorCode.ERROR_CODE_INVALID_REQUEST,

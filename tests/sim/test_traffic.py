@@ -217,3 +217,33 @@ def test_a_live_sim_counts_trips_without_logging_them(scene: Scene, network: Roa
     assert logged.trips_completed == len(logged.trips) > 0
     assert counted.trips_completed == logged.trips_completed and counted.trips == []
     assert f"{counted.trips_completed} trips" in counted.progress_text()
+
+
+def test_the_end_of_a_followed_plan_is_reported_once(scene: Scene, network: RoadNetwork) -> None:
+    """A vehicle that has driven its plan's last lane reports it COMPLETED (once); one that a detour
+    takes off its plan reports it REJECTED_INVALID. The coordinator then no longer holds it to the plan."""
+    sim = TrafficSim(
+        scene, network, TrafficSettings(vehicles=1, route_policy="plan"), seed=4, tick_hz=TICK_HZ
+    )
+    v = sim.vehicles[0]
+    target = network.successors[v.lane_id][-1]
+    assert sim.set_plan(v.id, [v.lane_id, target], version=5, plan_id="a") is Ack.ACCEPTED
+    while v.lane_id != target:
+        sim.step()
+    assert sim.plan_ends == []  # on its last lane: not yet driven
+    while v.lane_id == target:
+        sim.step()
+    assert [(e.vehicle_id, e.plan_id, e.version, e.status) for e in sim.plan_ends] == [
+        (v.id, "a", 5, Ack.COMPLETED)
+    ]
+    for _ in range(int(30 * TICK_HZ)):
+        sim.step()
+    assert len(sim.plan_ends) == 1  # once
+    sim.plan_ends.clear()
+    assert (
+        sim.set_plan(v.id, [v.lane_id, network.successors[v.lane_id][0]], version=6, plan_id="b")
+        is Ack.ACCEPTED
+    )
+    sim._end_plan(v, Ack.REJECTED_INVALID, "detour")  # as `_admit` does when the next lane is blocked
+    sim._end_plan(v, Ack.REJECTED_INVALID, "detour")
+    assert [(e.plan_id, e.status) for e in sim.plan_ends] == [("b", Ack.REJECTED_INVALID)]

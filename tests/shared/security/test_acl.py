@@ -34,14 +34,13 @@ def perms(*names: str) -> dict[tuple[str, str], set[str]]:
         ),
         ("sensor-agent1-cameras", {"rmmdet/@v1/agent1/sensor/camera/*"}),
         ("sensor-agent2-radars", {"rmmdet/@v1/agent2/sensor/radar/*"}),
-        # must-deliver streams: with their advanced publisher's own key space (heartbeat-free, but tokens
-        # and the cache live under `@adv`)
-        ("vehicle-v7", {"rmmdet/@v1/vehicles/v7/plan_ack", "rmmdet/@v1/vehicles/v7/plan_ack/@adv/**"}),
+        # must-deliver streams: no puts under their advanced publisher's `@adv` key space (it runs
+        # without heartbeats; its token and cache queryable there are granted as such, not as puts)
+        ("vehicle-v7", {"rmmdet/@v1/vehicles/v7/plan_ack"}),
         (
             "coordinator",
             {
                 "rmmdet/@v1/cloud/plans/*",
-                "rmmdet/@v1/cloud/plans/*/@adv/**",
                 "rmmdet/@v1/cloud/plans_served/*",
                 "rmmdet/@v1/cloud/maps/traffic",
             },
@@ -130,3 +129,13 @@ def test_a_node_holds_presence_and_serves_health_only_under_its_own_instance(
     assert {k for k in p[("liveliness_token", "ingress")] if "/@alive/" in k} == {token}
     health = token.replace("/@alive/", "/@health/")
     assert {k for k in p[("declare_queryable", "ingress")] if "/@health/" in k} == {health}
+
+
+def test_interest_in_the_whole_data_space_only_where_a_reader_needs_it() -> None:
+    """Issue 34 item 11: a publisher is told of the recorder's `rmmdet/@v1/**` subscription; a queryable
+    and a querier learn of queries and queryables on their own stream's key space only."""
+    p = perms("mec-agent1")
+    assert "rmmdet/@v1/**" in p[("declare_subscriber", "egress")]
+    assert "rmmdet/@v1/**" not in p[("query", "egress")]  # its health queryable
+    assert p[("query", "egress")] == {"rmmdet/@v1/*/@health/**"}
+    assert "rmmdet/@v1/**" not in perms("vehicle-v7")[("declare_queryable", "egress")]

@@ -319,6 +319,11 @@ def test_claims_against_the_followed_plan_are_refused_and_leave_it_unchanged(sce
     last = list(onward.lane_ids)[-1]
     next_trip, _ = core.serve(request(lane=last, dest=other_dest), 3.0, WALL0_NS + 3 * NS_PER_S)
     assert next_trip.destination_junction_id == other_dest
+    # Committed at the destination junction to a lane beyond it: the next trip, from that lane.
+    core.on_ack("v01", next_trip.plan_id, next_trip.version, Ack.ACCEPTED, 3.0)
+    beyond = next(lane for lane in core.net.lanes if core.net.lane_start_junction(lane) == other_dest)
+    third = next(j for j in core.planner.junctions if j not in ("j3", other_dest))
+    assert core.serve(request(lane=beyond, dest=third), 4.0, WALL0_NS + 4 * NS_PER_S)[0].lane_ids[0] == beyond
 
 
 def test_claims_are_free_once_the_plan_lapsed_or_the_vehicles_left(scene: Scene) -> None:
