@@ -219,7 +219,8 @@ def router_kills(
     time.sleep(20.0)  # the last requests' retries (1 + 2 + 4 + 8 s) are over
     sim1 = sim_counters(session)
     names = ("plans/requested", "plans/replied", "plans/no_reply", "plans/retried", "plans/given_up")
-    requests = {k: sim1.get(k, 0) - sim0.get(k, 0) for k in names}
+    errors = sorted(k for k in sim1 if k.startswith("plans/error_"))  # refused: none expected
+    requests = {k: sim1.get(k, 0) - sim0.get(k, 0) for k in (*names, *errors)}
     return {"kills": kills, "every_s": every_s, "each": rows, "requests": requests}
 
 
