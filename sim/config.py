@@ -14,6 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from shared.bus.streams import limits
 from shared.config import RmmdetSettings, deep_merge, load_settings, settings_config
 from shared.paths import DEFAULT_PKI_DIR, DEFAULT_SCENE, REPO_ROOT
+from shared.security.pki import trusted_plan_keys
 from shared.timebase import MAX_SIM_SPEED
 from shared.traffic.config import PlannerConfig
 
@@ -129,10 +130,10 @@ class SimSettings(RmmdetSettings):
         "its route and asks again on its next lane)",
     )
     plan_verify_keys: list[Path] = Field(
-        [DEFAULT_PKI_DIR / "plan-signing.pub"],
+        default_factory=lambda: trusted_plan_keys(DEFAULT_PKI_DIR),
         min_length=1,
         description="route_policy=plan: Ed25519 public keys (PEM) of the coordinator; a plan signed by "
-        "none of them is refused",
+        "none of them is refused. Default: the PKI's current plan key and the next one once staged",
     )
     plan_max_ttl_s: float = Field(
         default_factory=lambda: PlannerConfig().plan_ttl_s + limits().max_clock_skew_s,

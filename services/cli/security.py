@@ -12,7 +12,7 @@ from shared.config import ConfigError
 from shared.paths import DEFAULT_PKI_DIR, DEFAULT_SCENE
 from shared.scene.scene import Scene
 from shared.security.identities import deployment_identities, parse_identity
-from shared.security.pki import init_pki
+from shared.security.pki import init_pki, rotate_ca, rotate_plan_key
 
 pki_app = typer.Typer(no_args_is_help=True, help="local CA, service certificates, plan-signing key")
 app.add_typer(pki_app, name="pki")
@@ -34,12 +34,7 @@ def pki_init(
     ] = False,
 ) -> None:
     """Create what is missing of the CA, the plan-signing key and the service certificates."""
-    extra: dict[str, tuple[str, ...]] = {}
-    for item in name or []:
-        ident, sep, host = item.partition("=")
-        if not sep or not host:
-            raise typer.BadParameter(f"--name {item!r}: expected IDENTITY=HOST")
-        extra[ident] = (*extra.get(ident, ()), host)
+    extra = parse_names(name)
     try:
         identities = identity or deployment_identities(Scene.load(scene))
         for ident in identities:
@@ -51,3 +46,45 @@ def pki_init(
     console.print(
         f"{pki_dir}: created {', '.join(report.created) or 'nothing'}; kept {len(report.kept)} existing"
     )
+
+
+def parse_names(items: list[str] | None) -> dict[str, tuple[str, ...]]:
+    """`--name IDENTITY=HOST` options -> identity -> extra names."""
+    extra: dict[str, tuple[str, ...]] = {}
+    for item in items or []:
+        ident, sep, host = item.partition("=")
+        if not sep or not host:
+            raise typer.BadParameter(f"--name {item!r}: expected IDENTITY=HOST")
+        extra[ident] = (*extra.get(ident, ()), host)
+    return extra
+
+
+@pki_app.command("rotate")
+def pki_rotate(
+    pki_dir: Annotated[Path, typer.Option("--dir", help="PKI directory")] = DEFAULT_PKI_DIR,
+    ca: Annotated[
+        bool, typer.Option("--ca", help="a new CA and every certificate reissued under it (revokes the old)")
+    ] = False,
+    plan_key: Annotated[
+        bool,
+        typer.Option("--plan-key", help="stage the next plan key, or (run again) promote it to current"),
+    ] = False,
+    name: Annotated[
+        list[str] | None,
+        typer.Option(help="--ca: IDENTITY=HOST, an extra DNS name or IP address (as for init)"),
+    ] = None,
+) -> None:
+    """Rotate the CA (every certificate of the old one refused once the routers have the new ca.pem) or
+    the plan key in two steps: stage (restart the vehicles: they trust both), then promote (restart the
+    coordinator: it signs with the new key; vehicles started after trust only it)."""
+    if ca == plan_key:
+        raise typer.BadParameter("give exactly one of --ca and --plan-key")
+    try:
+        if ca:
+            reissued = rotate_ca(pki_dir, parse_names(name))
+            console.print(f"{pki_dir}: new CA; reissued {', '.join(reissued)}; the old CA retired")
+        else:
+            console.print(f"{pki_dir}: plan key {rotate_plan_key(pki_dir)}")
+    except ConfigError as err:
+        console.print(f"[red]{err}[/]")
+        raise typer.Exit(2) from None

@@ -10,6 +10,8 @@ Layout of a PKI directory (default `.run/pki`, private keys mode 0600):
                                    other identity's clientAuth only (it connects, never serves: a
                                    stolen sensor key cannot pose as the router while it restarts)
     plan-signing.key / .pub        Ed25519, PKCS#8 / SubjectPublicKeyInfo PEM
+    plan-signing.next.key / .pub   the staged next plan key during a rotation (`rotate_plan_key`)
+    retired/<UTC time>/            public halves of rotated-out CAs and plan keys (`rotate_ca`)
 
 Zenoh's TLS links (rustls) verify chains to `ca.pem`; access control keys its rules on the leaf's
 common name (`shared/security/acl.py`). `init` is idempotent: what exists is kept, what is missing is
@@ -36,6 +38,8 @@ from shared.security.identities import is_router
 
 CA_NAME = "ca"
 PLAN_KEY_NAME = "plan-signing"
+NEXT_PLAN_KEY_NAME = "plan-signing.next"
+RETIRED_DIR = "retired"  # public halves of rotated-out CAs and plan keys, by UTC time of rotation
 CA_VALIDITY_DAYS = 3650
 LEAF_VALIDITY_DAYS = 825  # the CA/Browser ceiling; renew with `rmmdet pki init --renew`
 #: Identities are file names and certificate CNs: keep them to a safe alphabet.
@@ -56,13 +60,21 @@ def identity_paths(pki_dir: Path, identity: str) -> Paths:
     return Paths(pki_dir / f"{identity}.pem", pki_dir / f"{identity}.key")
 
 
-def plan_key_paths(pki_dir: Path) -> Paths:
-    """The plan-signing key pair: `cert` is the public key (PEM), `key` the private key."""
-    return Paths(pki_dir / f"{PLAN_KEY_NAME}.pub", pki_dir / f"{PLAN_KEY_NAME}.key")
+def plan_key_paths(pki_dir: Path, name: str = PLAN_KEY_NAME) -> Paths:
+    """The plan-signing key pair: `cert` is the public key (PEM), `key` the private key; `name`
+    `NEXT_PLAN_KEY_NAME` for the staged next one."""
+    return Paths(pki_dir / f"{name}.pub", pki_dir / f"{name}.key")
+
+
+def trusted_plan_keys(pki_dir: Path) -> list[Path]:
+    """The public keys vehicles trust: the current plan key, and the next one once it is staged
+    (`rotate_plan_key`), so plans signed by either verify while the coordinator switches over."""
+    staged = plan_key_paths(pki_dir, NEXT_PLAN_KEY_NAME).cert
+    return [plan_key_paths(pki_dir).cert, *([staged] if staged.exists() else [])]
 
 
 def check_identity(identity: str) -> str:
-    if not IDENTITY_RE.match(identity) or identity in (CA_NAME, PLAN_KEY_NAME):
+    if not IDENTITY_RE.match(identity) or identity in (CA_NAME, PLAN_KEY_NAME, RETIRED_DIR):
         raise ConfigError(f"identity {identity!r}: use 1-63 of [a-z0-9_-], not 'ca' or 'plan-signing'")
     return identity
 
@@ -199,8 +211,8 @@ class CertificateAuthority:
         return paths
 
 
-def create_plan_key(pki_dir: Path) -> Paths:
-    paths = plan_key_paths(pki_dir)
+def create_plan_key(pki_dir: Path, name: str = PLAN_KEY_NAME) -> Paths:
+    paths = plan_key_paths(pki_dir, name)
     key = Ed25519PrivateKey.generate()
     _write_private(paths.key, _key_pem(key))
     paths.cert.write_bytes(
@@ -209,6 +221,50 @@ def create_plan_key(pki_dir: Path) -> Paths:
         )
     )
     return paths
+
+
+def _retire(pki_dir: Path, public: Path, private: Path) -> Path:
+    """Move `public` to retired/<UTC time>/ and delete `private`: what was signed by it can be told apart
+    later, but nothing can be signed with it again."""
+    folder = pki_dir / RETIRED_DIR / _now().strftime("%Y%m%dT%H%M%S.%fZ")
+    folder.mkdir(parents=True, exist_ok=True)
+    moved = folder / public.name
+    public.rename(moved)
+    private.unlink()
+    return moved
+
+
+def rotate_ca(pki_dir: Path, extra_names: dict[str, tuple[str, ...]] | None = None) -> list[str]:
+    """A new CA, and every identity of `pki_dir` reissued under it: once the routers run with the new
+    `ca.pem`, no leaf of the old CA connects (an old, stolen or renewed-away certificate is refused;
+    Zenoh's TLS has no revocation lists, so this is the revocation). The old CA's certificate is
+    retired, its key deleted. Returns the identities reissued."""
+    CertificateAuthority.load(pki_dir)  # there is one to rotate (ConfigError if not)
+    identities = sorted(
+        p.stem for p in pki_dir.glob("*.pem") if p.stem != CA_NAME and p.with_suffix(".key").exists()
+    )
+    _retire(pki_dir, pki_dir / f"{CA_NAME}.pem", pki_dir / f"{CA_NAME}.key")
+    ca = CertificateAuthority.create(pki_dir)
+    for identity in identities:
+        ca.issue(pki_dir, identity, (extra_names or {}).get(identity, ()))
+    return identities
+
+
+def rotate_plan_key(pki_dir: Path) -> str:
+    """One step of a plan-key rotation; returns which: `staged` (a next key made: vehicles restarted
+    now trust it beside the current one, `trusted_plan_keys`) or `promoted` (the next key becomes the
+    current one: the coordinator restarted now signs with it, and the retired key is trusted by no
+    vehicle started after this)."""
+    current, staged = plan_key_paths(pki_dir), plan_key_paths(pki_dir, NEXT_PLAN_KEY_NAME)
+    if not current.key.exists():
+        raise ConfigError(f"{pki_dir}: no plan key to rotate (`rmmdet pki init` first)")
+    if not staged.key.exists():
+        create_plan_key(pki_dir, NEXT_PLAN_KEY_NAME)
+        return "staged"
+    _retire(pki_dir, current.cert, current.key)
+    staged.key.rename(current.key)
+    staged.cert.rename(current.cert)
+    return "promoted"
 
 
 @dataclass

@@ -30,7 +30,7 @@ from shared.config import ConfigError, read_yaml
 from shared.paths import REPO_ROOT
 from shared.security.acl import access_control
 from shared.security.identities import CLOUD_ROUTER, parse_identity
-from shared.security.pki import identity_paths
+from shared.security.pki import identity_paths, plan_key_paths, trusted_plan_keys
 
 #: Zenoh link settings of a deployment across hosts (router <-> router and client <-> router).
 LINK_SETTINGS: dict[str, Any] = {
@@ -195,9 +195,9 @@ def default_command(identity: str) -> list[str]:
 def service_environment(identity: str, pki_dir: Path) -> dict[str, str]:
     """Settings a service needs from the PKI besides its TLS identity (plan keys)."""
     if identity == "coordinator":
-        return {"RMMDET_COORD_PLAN_SIGNING_KEY": str(pki_dir / "plan-signing.key")}
+        return {"RMMDET_COORD_PLAN_SIGNING_KEY": str(plan_key_paths(pki_dir).key)}
     if identity == "sim":
-        return {"RMMDET_SIM_PLAN_VERIFY_KEYS": json.dumps([str(pki_dir / "plan-signing.pub")])}
+        return {"RMMDET_SIM_PLAN_VERIFY_KEYS": json.dumps([str(p) for p in trusted_plan_keys(pki_dir)])}
     return {}
 
 

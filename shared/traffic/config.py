@@ -15,6 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from shared.config import RmmdetSettings, load_settings, settings_config
 from shared.paths import DEFAULT_PKI_DIR, DEFAULT_SCENE, REPO_ROOT
 from shared.scene.model import LEVEL_SEPARATION_M
+from shared.security.pki import plan_key_paths
 
 DEFAULT_COORDINATOR_CONFIG = REPO_ROOT / "deploy" / "coordinator" / "coordinator.yaml"
 
@@ -132,7 +133,7 @@ class CoordinatorSettings(RmmdetSettings):
     delivery: DeliveryConfig = DeliveryConfig()
     service: ServiceConfig = ServiceConfig()
     plan_signing_key: Path = Field(
-        DEFAULT_PKI_DIR / "plan-signing.key",
+        plan_key_paths(DEFAULT_PKI_DIR).key,
         description="Ed25519 private key (PEM) that signs every plan (`rmmdet pki init` creates it)",
     )
     map_publish_hz: float = Field(2.0, gt=0, description="traffic map update and publication rate")

@@ -11,6 +11,7 @@ fresh CA, and sessions holding the identities' certificates.
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -25,7 +26,7 @@ from shared.bus.zenoh_config import DEFAULT_CLIENT_CONFIG
 from shared.paths import DEFAULT_SCENE
 from shared.scene.calibration import calibration_set
 from shared.scene.scene import Scene
-from shared.security.pki import init_pki
+from shared.security.pki import init_pki, rotate_ca
 from tests.helpers import free_port, spawn, stop, wait_port
 from tests.integration.secure_sites import Deployment, Inbox, make_deployment, wait_for
 
@@ -228,3 +229,27 @@ def test_a_node_holds_only_its_own_presence_token_and_health_key(deployment: Dep
                 d.undeclare()
     assert tokens["own"] in seen and tokens["sibling"] not in seen, seen
     assert len(answered["own"]) == 1 and answered["sibling"] == [], answered
+
+
+def test_after_a_ca_rotation_an_old_certificate_is_refused(tmp_path: Path) -> None:
+    """Issue 34 item 3: `rmmdet pki rotate --ca` reissues every leaf under a new CA; a router started
+    with the new `ca.pem` accepts the operator's new certificate and refuses its old one (a stolen or
+    renewed-away certificate: Zenoh's TLS has no revocation lists, the CA rotation is the revocation)."""
+    layout = {"port": free_port(), "hosts": {"cloud": {"address": "127.0.0.1", "router": "router-cloud"}}}
+    dep = make_deployment(tmp_path, layout)
+    old = tmp_path / "old"
+    old.mkdir()
+    for suffix in (".pem", ".key"):
+        shutil.copy(dep.pki / f"operator{suffix}", old / f"operator{suffix}")
+    rotate_ca(dep.pki, dep.layout.certificate_names())
+    config = tmp_path / "router-cloud.json"
+    config.write_text(str(dep.config("router-cloud")))
+    router = spawn(["-m", "services.router", "--config", str(config)])
+    try:
+        wait_port(dep.layout.port)
+        with open_session(dep.config("operator"), timeout_s=10) as session:
+            assert session.info.routers_zid()
+        with pytest.raises(SessionUnavailable):
+            open_session(tls_client(dep, cert_dir=old), timeout_s=REFUSED_WITHIN_S)
+    finally:
+        stop(router)

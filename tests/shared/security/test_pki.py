@@ -7,10 +7,23 @@ from pathlib import Path
 
 import pytest
 from cryptography import x509
+from cryptography.exceptions import InvalidSignature
 from cryptography.x509.oid import ExtendedKeyUsageOID
+from rmmdet.v1.planning_pb2 import RoutePlan
 
 from shared.config import ConfigError
-from shared.security.pki import common_name, identity_paths, init_pki, plan_key_paths
+from shared.security.pki import (
+    NEXT_PLAN_KEY_NAME,
+    common_name,
+    identity_paths,
+    init_pki,
+    plan_key_paths,
+    rotate_ca,
+    rotate_plan_key,
+    trusted_plan_keys,
+)
+from shared.security.plan_signing import PlanSigner, PlanVerifier, load_private_key
+from shared.traffic.plans import plan_problem
 
 
 def load(path: Path) -> x509.Certificate:
@@ -76,3 +89,41 @@ def test_bad_identity_names_are_refused(tmp_path: Path, name: str) -> None:
     with pytest.raises(ConfigError):
         init_pki(tmp_path, [name])
     assert not (tmp_path / "ca.pem").exists()  # refused before anything is written
+
+
+def test_a_ca_rotation_reissues_every_leaf_and_the_old_ones_no_longer_chain(tmp_path: Path) -> None:
+    init_pki(tmp_path, ["operator", "router-cloud"], {"router-cloud": ("10.0.0.1",)})
+    old_leaf = load(identity_paths(tmp_path, "operator").cert)
+    assert rotate_ca(tmp_path, {"router-cloud": ("10.0.0.1",)}) == ["operator", "router-cloud"]
+    ca = load(tmp_path / "ca.pem")
+    for identity in ("operator", "router-cloud"):
+        load(identity_paths(tmp_path, identity).cert).verify_directly_issued_by(ca)
+    with pytest.raises((ValueError, InvalidSignature)):
+        old_leaf.verify_directly_issued_by(ca)
+    retired = list((tmp_path / "retired").glob("*/ca.pem"))
+    assert len(retired) == 1 and not list((tmp_path / "retired").glob("*/*.key"))  # its key is gone
+    san = load(identity_paths(tmp_path, "router-cloud").cert).extensions
+    assert ipaddress.ip_address("10.0.0.1") in san.get_extension_for_class(
+        x509.SubjectAlternativeName
+    ).value.get_values_for_type(x509.IPAddress)
+
+
+def test_a_plan_key_rotation_trusts_current_and_next_then_refuses_the_retired(tmp_path: Path) -> None:
+    """Issue 34 item 3: stage -> vehicles trust the current and the next key (plans of either verify);
+    promote -> the next is the current, and a plan signed by the retired key is refused."""
+    init_pki(tmp_path, ["coordinator"])
+    plan = RoutePlan(vehicle_id="v1", plan_id="0" * 32, version=1, lane_ids=["a"])
+    plan.valid_until.FromNanoseconds(10**18 + 10**10)
+    before = PlanSigner(load_private_key(plan_key_paths(tmp_path).key))
+    assert trusted_plan_keys(tmp_path) == [plan_key_paths(tmp_path).cert]
+    assert rotate_plan_key(tmp_path) == "staged"
+    nxt = PlanSigner(load_private_key(plan_key_paths(tmp_path, NEXT_PLAN_KEY_NAME).key))
+    during = PlanVerifier.load(trusted_plan_keys(tmp_path))
+    assert during.problem(before.sign(plan)) is None and during.problem(nxt.sign(plan)) is None
+    assert rotate_plan_key(tmp_path) == "promoted"
+    after = PlanVerifier.load(trusted_plan_keys(tmp_path))
+    assert trusted_plan_keys(tmp_path) == [plan_key_paths(tmp_path).cert]
+    assert after.problem(nxt.sign(plan)) is None
+    assert plan_problem(before.sign(plan), after, 10**18, 600.0) == "plan_unknown_key"
+    assert not plan_key_paths(tmp_path, NEXT_PLAN_KEY_NAME).key.exists()
+    assert len(list((tmp_path / "retired").glob("*/plan-signing.pub"))) == 1
