@@ -19,8 +19,10 @@ so a consumer that is slow because the host is slow keeps holding), at least `MI
 reports again holds again once its output is back within the bound, not before: a thawed sensor group
 first works off the stale ticks left in its pipe, and the ticks it needs to catch up with are the ones
 the sim would not publish while held by it (it held the whole loop for a further `timeout_s` that way).
-Before its first report a consumer holds nothing (models still loading). Times: sim stamps in ns, wall
-times in monotonic seconds.
+A consumer that keeps reporting but stays beyond the bound for `timeout_s` (wall) is let go the same
+way (`let_go`): otherwise one advancing its stamps 1 ns at a time would hold the world for ever (issue
+34, item 4). Before its first report a consumer holds nothing (models still loading). Times: sim
+stamps in ns, wall times in monotonic seconds.
 """
 
 from __future__ import annotations
@@ -53,6 +55,7 @@ class _Consumer:
     gaps_ns: deque[int] = field(default_factory=lambda: deque(maxlen=PERIOD_WINDOW))
     wall_gaps_s: deque[float] = field(default_factory=lambda: deque(maxlen=PERIOD_WINDOW))
     rejoining: bool = False  # reported after a silence, not yet back within the lag bound
+    lagging_since_s: float | None = None  # wall time its lag first went beyond the bound (None: within)
 
     @property
     def period_ns(self) -> int:
@@ -86,6 +89,7 @@ class Pacer:
         self._consumers: dict[str, _Consumer] = {}
         self.paced_by = ""  # the consumer holding the sim right now ("" when none)
         self.held_by: Counter[str] = Counter()  # wall seconds each consumer held the sim, in all
+        self.let_go: Counter[str] = Counter()  # times a consumer lagging for timeout_s was let go
 
     def on_progress(self, consumer: str, stamp_ns: int, now_s: float) -> None:
         """`consumer` published an output made from data stamped `stamp_ns` (reordered ones count too:
@@ -121,7 +125,19 @@ class Pacer:
                 if lag > self.max_lag_ns:
                     continue
                 c.rejoining = False
-            if lag > self.max_lag_ns and (worst is None or lag > worst[0]):
+            if lag <= self.max_lag_ns:
+                c.lagging_since_s = None
+                continue
+            if c.lagging_since_s is None:
+                c.lagging_since_s = now_s
+            elif now_s - c.lagging_since_s > self.timeout_s:
+                # Reporting, but not catching up for `timeout_s`: let go like a silent one (it holds
+                # again once back within the bound). A consumer advancing its stamps by 1 ns a report
+                # would otherwise hold the world for ever.
+                c.rejoining, c.lagging_since_s = True, None
+                self.let_go[name] += 1
+                continue
+            if worst is None or lag > worst[0]:
                 worst = (lag, name)
         return None if worst is None else worst[1]
 

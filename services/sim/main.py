@@ -152,11 +152,13 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 last_log = time.monotonic()
                 held_by = {k: round(v, 1) for k, v in pacer.held_by.most_common(3)}
                 log.info(
-                    "sim %.1f s, real-time factor %.2f, held %.1f s by consumers %s, %s%s",
+                    "sim %.1f s, real-time factor %.2f, held %.1f s by consumers %s (let go for lagging "
+                    "on: %s), %s%s",
                     traffic.time_s,
                     schedule.rtf,
                     schedule.held_s,
                     held_by,
+                    dict(pacer.let_go) or "none",
                     traffic.progress_text(),
                     f"; plans {plans.summary()}" if plans is not None else "",
                 )

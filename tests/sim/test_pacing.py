@@ -166,3 +166,39 @@ def test_silence_is_two_wall_cadences_within_the_floor_and_the_timeout() -> None
     assert silence_after_s([0.02, 0.03], timeout_s=1.0) == MIN_TIMEOUT_S  # never sooner than the floor
     assert silence_after_s([0.9], timeout_s=1.0) == 1.0  # never later than the timeout
     assert silence_after_s([], timeout_s=1.0) == 1.0  # cadence unknown: the timeout
+
+
+def test_a_consumer_reporting_without_catching_up_is_let_go_after_the_timeout() -> None:
+    """Issue 34 item 4: a consumer that advances its stamps 1 ns per report (never silent, always
+    lagging) holds the sim for at most `timeout_s`, then is let go (counted) until it is back within
+    the bound, like a silent one."""
+    pacer = Pacer(max_lag_s=0.1, timeout_s=1.0)
+    tick = T0 + 1000 * MS
+    stamp = T0
+    for k in range(11):  # 1.0 s of reports, 10 a second, each 1 ns newer
+        stamp += 1
+        pacer.on_progress("rogue", stamp, now_s=10.0 + k * 0.1)
+        assert pacer.holding(tick, now_s=10.0 + k * 0.1) == "rogue"
+    stamp += 1
+    pacer.on_progress("rogue", stamp, now_s=11.05)
+    assert pacer.holding(tick, now_s=11.05) is None and pacer.let_go == {"rogue": 1}
+    pacer.on_progress("rogue", tick - 50 * MS, now_s=11.1)  # back within the bound: holds again
+    assert pacer.holding(tick, now_s=11.1) is None
+    assert pacer.holding(tick + 300 * MS, now_s=11.2) == "rogue"
+
+
+def test_a_consumer_catching_up_within_the_timeout_keeps_holding() -> None:
+    """A genuine slow consumer that comes back within the bound restarts its lag clock: it is not let
+    go for lagging again later."""
+    pacer = Pacer(max_lag_s=0.1, timeout_s=1.0)
+    for k in range(5):  # 10 Hz
+        pacer.on_progress("mec1", T0 + k * 100 * MS, now_s=10.0 + k * 0.1)
+    last = T0 + 400 * MS
+    assert pacer.holding(last + 300 * MS, now_s=10.5) == "mec1"
+    pacer.on_progress("mec1", last + 100 * MS, now_s=11.2)  # within the bound at last (0.7 s later)
+    assert pacer.holding(last + 300 * MS, now_s=11.2) is None
+    assert pacer.holding(last + 500 * MS, now_s=11.3) == "mec1"
+    pacer.on_progress("mec1", last + 150 * MS, now_s=11.4)  # still lagging, still reporting
+    pacer.on_progress("mec1", last + 180 * MS, now_s=11.55)
+    # 1.1 s after it first lagged, but only 0.3 s after it lagged again: still held for, not let go
+    assert pacer.holding(last + 500 * MS, now_s=11.6) == "mec1" and pacer.let_go == {}
