@@ -36,7 +36,7 @@ from websockets.http11 import Request, Response
 from websockets.sync.server import Server, ServerConnection, serve
 
 from shared.bus.codec import Counters
-from shared.viewer.origin import allowed_hosts, request_problem
+from shared.viewer.origin import allowed_hosts, headers_problem
 
 log = logging.getLogger("services.viewer.dashboard")
 
@@ -91,7 +91,8 @@ class DashboardServer:
             self._changed.notify_all()
 
     def _route(self, connection: ServerConnection, request: Request) -> Response | None:
-        refused = request_problem(request.headers.get("Host"), request.headers.get("Origin"), self._allowed)
+        headers = request.headers
+        refused = headers_problem(headers.get_all("Host"), headers.get_all("Origin"), self._allowed)
         if refused is not None:  # another site's page, or a DNS-rebound name (shared/viewer/origin.py)
             self.counters.inc(f"rejected/http_{refused.value}")
             what = "Host" if refused == HTTPStatus.MISDIRECTED_REQUEST else "Origin"

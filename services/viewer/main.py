@@ -45,7 +45,7 @@ import sys
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -61,6 +61,7 @@ from rmmdet.v1.sensors_pb2 import RadarScan
 
 from services.cli.health import Verdict, level_name, probe
 from services.viewer.dashboard_server import DashboardServer
+from services.viewer.ws_gate import OriginGate
 from shared.bus.codec import Counters, MessageDecoder
 from shared.bus.node import Node
 from shared.bus.queues import BoundedQueue, OverflowPolicy
@@ -310,11 +311,26 @@ def health_json(verdict: Verdict) -> dict[str, Any]:
 
 
 def start_view_server(
-    context: foxglove.Context, feeds: SensorFeeds, host: str, port: int
-) -> foxglove.WebSocketServer:
+    context: foxglove.Context,
+    feeds: SensorFeeds,
+    host: str,
+    port: int,
+    host_names: Iterable[str] = (),
+    origins: Iterable[str] = (),
+) -> tuple[foxglove.WebSocketServer, OriginGate]:
     """The Foxglove WebSocket server of `context`'s channels, the sensor feeds listening to who
-    subscribes (port 0: any free one)."""
-    return foxglove.start_server(name="rmmdet", host=host, port=port, context=context, server_listener=feeds)
+    subscribes, on a loopback port of its own, and the gate that serves it on `host:port` to the
+    viewer's own names and Foxglove's web app only (services/viewer/ws_gate.py; port 0: any free one)."""
+    inner = foxglove.start_server(
+        name="rmmdet", host="127.0.0.1", port=0, context=context, server_listener=feeds
+    )
+    try:
+        gate = OriginGate(host, port, inner.port, host_names, origins)
+    except (OSError, RuntimeError):
+        inner.stop()
+        raise
+    gate.start()
+    return inner, gate
 
 
 def map_of(scene: Scene, network: RoadNetwork) -> dict[str, Any]:
@@ -342,13 +358,15 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             if args.dashboard_port
             else None
         )
-        server = start_view_server(context, feeds, args.host, args.port)
+        server, gate = start_view_server(
+            context, feeds, args.host, args.port, args.host_name or (), args.allow_origin or ()
+        )
     except (OSError, RuntimeError) as err:
         raise SystemExit(
             f"viewer: cannot serve on {args.host} ports {args.port}/{args.dashboard_port}: {err}"
         ) from None
     recording = foxglove.open_mcap(args.mcap, allow_overwrite=True, context=context) if args.mcap else None
-    log.info("Foxglove WebSocket server on ws://%s:%d", args.host, server.port)
+    log.info("Foxglove WebSocket server on ws://%s:%d", args.host, gate.port)
     if dashboard is not None:
         dashboard.start()
         log.info("dashboard on http://%s:%d/", args.host, dashboard.port)
@@ -417,6 +435,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                     last_snapshot = t0
                     dashboard.publish(board.snapshot(t0))
                     node.counters.publish(dashboard.counters.snapshot())  # refused requests, in health
+                node.counters.publish(gate.counters.snapshot())
                 for d in core.draw(t0, time.time_ns()):
                     if channels.wants(d.topic, d.message_type):
                         channels.log(d.topic, d.draw(), d.stamp_ns)
@@ -424,6 +443,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 shutdown.wait(max(0.0, period_s - (time.monotonic() - t0)))
     finally:
         feeds.close()
+        gate.stop()
         server.stop()
         if dashboard is not None:
             dashboard.stop()
@@ -443,6 +463,12 @@ def add_args(parser: argparse.ArgumentParser) -> None:
         "headers get 421, other Origins 403",
     )
     parser.add_argument("--port", type=int, default=8765, help="Foxglove WebSocket port (0: any free one)")
+    parser.add_argument(
+        "--allow-origin",
+        action="append",
+        help="a web app (scheme://name) allowed to open the Foxglove WebSocket besides the viewer's own "
+        "names and https://app.foxglove.dev (repeatable)",
+    )
     parser.add_argument("--mcap", type=Path, help="also write every channel into this MCAP file")
     parser.add_argument(
         "--dashboard-port", type=int, default=8080, help="browser dashboard's HTTP/WebSocket port (0: none)"

@@ -28,12 +28,48 @@ def allowed_hosts(bind_host: str, port: int, extra: Iterable[str] = ()) -> froze
     return frozenset(names | {f"{n}:{port}" for n in names})
 
 
-def request_problem(host: str | None, origin: str | None, allowed: frozenset[str]) -> HTTPStatus | None:
-    """None if the request may be answered, else the status to refuse it with."""
+#: Web apps allowed to open the Foxglove WebSocket besides the server's own names: Foxglove's own, which
+#: a user opens in the browser to watch a local server (the desktop app sends no Origin), and a web app
+#: served from this machine's loopback on any port (`make view-web`); `:*` matches any port.
+FOXGLOVE_APP_ORIGINS = ("https://app.foxglove.dev", "http://127.0.0.1:*", "http://localhost:*")
+
+
+def origin_listed(origin: str, origins: Iterable[str]) -> bool:
+    """`origin` (scheme://name[:port]) is one of `origins`, where `scheme://name:*` stands for any port."""
+    origin = origin.strip().lower()
+    for allowed in (o.lower() for o in origins):
+        if origin == allowed:
+            return True
+        if allowed.endswith(":*"):
+            parts = urlsplit(origin)
+            if f"{parts.scheme}://{parts.hostname}:*" == allowed and parts.port is not None:
+                return True
+    return False
+
+
+def request_problem(
+    host: str | None, origin: str | None, allowed: frozenset[str], origins: Iterable[str] = ()
+) -> HTTPStatus | None:
+    """None if the request may be answered, else the status to refuse it with. `origins`: whole
+    origins (scheme://name) allowed besides the server's own names."""
     if host is None or host.strip().lower() not in allowed:
         return HTTPStatus.MISDIRECTED_REQUEST
     if origin is not None:
         parts = urlsplit(origin.strip())
+        if origin_listed(origin, origins):
+            return None
         if parts.scheme not in ("http", "https") or parts.netloc.lower() not in allowed:
             return HTTPStatus.FORBIDDEN
     return None
+
+
+def headers_problem(
+    hosts: list[str], origin_values: list[str], allowed: frozenset[str], origins: Iterable[str] = ()
+) -> HTTPStatus | None:
+    """`request_problem` on a request's raw header values: a request without exactly one Host (421) or
+    with more than one Origin (403) is refused rather than judged on one of them."""
+    if len(hosts) != 1:
+        return HTTPStatus.MISDIRECTED_REQUEST
+    if len(origin_values) > 1:
+        return HTTPStatus.FORBIDDEN
+    return request_problem(hosts[0], origin_values[0] if origin_values else None, allowed, origins)

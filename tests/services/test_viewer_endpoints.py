@@ -4,6 +4,7 @@ malformed or impossible request with an error status instead of dropping the con
 
 from __future__ import annotations
 
+import http.client
 import json
 import time
 
@@ -70,9 +71,9 @@ def test_the_dashboard_refuses_a_foreign_origin_and_a_foreign_host(dashboard: Da
 
 def test_the_foxglove_server_answers_bad_requests_with_errors(test_scene: Scene) -> None:
     context = foxglove.Context()
-    server = start_view_server(context, SensorFeeds(test_scene, context), "127.0.0.1", 0)
+    server, gate = start_view_server(context, SensorFeeds(test_scene, context), "127.0.0.1", 0)
     try:
-        with connect(f"ws://127.0.0.1:{server.port}", subprotocols=[SUBPROTOCOL], open_timeout=5) as ws:  # type: ignore[list-item]
+        with connect(f"ws://127.0.0.1:{gate.port}", subprotocols=[SUBPROTOCOL], open_timeout=5) as ws:  # type: ignore[list-item]
             ws.send("not json")
             ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": 1, "channelId": 99999}]}))
             statuses = []
@@ -82,6 +83,46 @@ def test_the_foxglove_server_answers_bad_requests_with_errors(test_scene: Scene)
                 if isinstance(frame, str) and json.loads(frame).get("op") == "status":
                     statuses.append(json.loads(frame))
     finally:
+        gate.stop()
         server.stop()
     assert len(statuses) == 2, statuses
     assert all(s["level"] == 2 and s["message"] for s in statuses), statuses  # 2: error
+
+
+def test_the_foxglove_websocket_refuses_a_foreign_origin_or_host(test_scene: Scene) -> None:
+    """Issue 34 item 10: a page on another site cannot open the Foxglove WebSocket in the user's browser
+    (403), nor a DNS-rebound name (421); the viewer's own names, no Origin (the desktop app) and
+    Foxglove's web app are let through to the server, which then speaks to them as before."""
+    context = foxglove.Context()
+    server, gate = start_view_server(context, SensorFeeds(test_scene, context), "127.0.0.1", 0)
+    url = f"ws://127.0.0.1:{gate.port}"
+    try:
+        for origin in ("https://attacker.example", "http://127.0.0.1.attacker.example"):
+            with pytest.raises(Exception, match="403"):
+                connect(url, origin=origin, subprotocols=[SUBPROTOCOL], open_timeout=5)  # type: ignore[arg-type,list-item]
+        for hosts in ([f"attacker.example:{gate.port}"], [f"127.0.0.1:{gate.port}"] * 2):  # rebound, doubled
+            conn = http.client.HTTPConnection("127.0.0.1", gate.port, timeout=5)
+            try:
+                conn.putrequest("GET", "/", skip_host=True)
+                for host in hosts:
+                    conn.putheader("Host", host)
+                conn.endheaders()
+                assert conn.getresponse().status == 421
+            finally:
+                conn.close()
+        for origin in (
+            None,
+            f"http://localhost:{gate.port}",
+            "https://app.foxglove.dev",
+            "http://127.0.0.1:8090",
+        ):
+            with connect(url, origin=origin, subprotocols=[SUBPROTOCOL], open_timeout=5) as ws:  # type: ignore[arg-type,list-item]
+                hello = json.loads(ws.recv(timeout=5))
+                assert hello["op"] == "serverInfo" and ws.subprotocol == SUBPROTOCOL, hello
+    finally:
+        gate.stop()
+        server.stop()
+    counts = gate.counters.snapshot()
+    assert (
+        counts["rejected/http_403"] == 2 and counts["rejected/http_421"] == 2 and counts["connections"] == 4
+    )

@@ -1,0 +1,110 @@
+"""The Foxglove WebSocket behind a Host and Origin check (issue 34, item 10).
+
+foxglove-sdk's server takes every WebSocket handshake (it has no hook that sees the request's headers),
+so a page on any web site could open ws://127.0.0.1:8765 in the user's browser and read the live state
+and the camera frames. The viewer therefore runs that server on a loopback port of its own and serves
+the public port here: a handshake whose Host is not one of the viewer's names is refused with 421, one
+whose Origin is neither one of them nor a web app that may watch (Foxglove's, or one served from this
+machine's loopback such as `make view-web`: `FOXGLOVE_APP_ORIGINS`, more with `--allow-origin`) with 403
+(`shared/viewer/origin.py`, the dashboard's rule), counted; an accepted one is joined to the inner
+server with the same subprotocol and every message is passed on as it is, both ways.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Iterable
+from http import HTTPStatus
+
+from websockets.exceptions import ConnectionClosed
+from websockets.http11 import Request, Response
+from websockets.sync.client import ClientConnection, connect
+from websockets.sync.server import Server, ServerConnection, serve
+
+from services.viewer.dashboard_server import response
+from shared.bus.codec import Counters
+from shared.viewer.origin import FOXGLOVE_APP_ORIGINS, allowed_hosts, headers_problem
+
+log = logging.getLogger(__name__)
+
+#: The Foxglove WebSocket protocols (the SDK's and the older one); the client's choice is passed on.
+SUBPROTOCOLS = ("foxglove.sdk.v1", "foxglove.websocket.v1")
+
+
+class OriginGate:
+    """Serves `host:port` and passes accepted connections on to the server at 127.0.0.1:`inner_port`."""
+
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        inner_port: int,
+        host_names: Iterable[str] = (),
+        origins: Iterable[str] = (),
+    ) -> None:
+        self.inner_port = inner_port
+        self.origins = (*FOXGLOVE_APP_ORIGINS, *origins)
+        self.counters = Counters()
+        self._server: Server = serve(
+            self._handle,
+            host,
+            port,
+            process_request=self._check,
+            subprotocols=list(SUBPROTOCOLS),  # type: ignore[arg-type]
+            compression=None,
+            max_size=None,
+        )
+        self.port = self._server.socket.getsockname()[1]
+        self._allowed = allowed_hosts(host, self.port, host_names)
+        self._thread = threading.Thread(target=self._server.serve_forever, daemon=True, name="ws-gate")
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._server.shutdown()
+        self._thread.join(5.0)
+
+    def _check(self, connection: ServerConnection, request: Request) -> Response | None:
+        headers = request.headers
+        refused = headers_problem(
+            headers.get_all("Host"), headers.get_all("Origin"), self._allowed, self.origins
+        )
+        if refused is None:
+            return None
+        self.counters.inc(f"rejected/http_{refused.value}")
+        what = "Host" if refused == HTTPStatus.MISDIRECTED_REQUEST else "Origin"
+        return response(refused, f"refused: {what} not allowed ({refused.phrase})\n".encode(), "text/plain")
+
+    def _handle(self, client: ServerConnection) -> None:
+        protocols = [client.subprotocol] if client.subprotocol else list(SUBPROTOCOLS)
+        try:
+            inner = connect(
+                f"ws://127.0.0.1:{self.inner_port}",
+                subprotocols=protocols,  # type: ignore[arg-type]
+                compression=None,
+                max_size=None,
+            )
+        except (OSError, ConnectionClosed) as err:
+            self.counters.inc("errors/inner_connect")
+            log.warning("Foxglove server not reachable on port %d: %s", self.inner_port, err)
+            return
+        self.counters.inc("connections")
+        with inner:
+            upstream = threading.Thread(target=_pump, args=(client, inner), daemon=True, name="ws-gate-up")
+            upstream.start()
+            _pump(inner, client)
+            upstream.join(5.0)
+
+
+def _pump(source: ServerConnection | ClientConnection, sink: ServerConnection | ClientConnection) -> None:
+    """Every message of `source` to `sink` until either closes; then close the other."""
+    try:
+        for message in source:
+            sink.send(message)
+    except ConnectionClosed:
+        pass
+    finally:
+        source.close()
+        sink.close()
