@@ -267,6 +267,7 @@ class RoadSurface:
                 & ~parallel[:, 2]
                 & ~(parallel & ((o < lo) | (o > hi))).any(axis=1)
                 & (t_in <= t_out)
+                & np.isfinite(t_out)  # a (sub)normal ray so close to level that its crossing overflows
             )
             rows = np.flatnonzero(ok)
             ends = o[None, None, :2] + np.stack([t_in, t_out], axis=1)[rows, :, None] * rays[rows, None, :2]

@@ -82,5 +82,9 @@ def test_degenerate_rays_and_empty_queries() -> None:
     o = np.array([0.0, 1.5, 0.45])
     out = surface.first_hit(o, np.array([[1.0, 0.0, 0.0], [np.nan, 0.0, -1.0], [0.0, 0.0, 1.0]]), 0.1)
     assert np.isnan(out).all()  # level, NaN and upward (above the deck) rays meet no lane
+    # Found by hypothesis: a ray with a denormal slope reaches the planes only beyond float range.
+    assert np.isnan(
+        surface.first_hit(np.array([0.0, 0.0, 0.25]), np.array([[0.0, 0.0, 2.2e-311]]), 0.0)
+    ).all()
     assert surface.nearest_sample(np.zeros((0, 2))).shape == (0,)
     assert surface.first_hit(o, np.zeros((0, 3)), 0.1).shape == (0, 3)
