@@ -9,6 +9,8 @@ its destination; on the plan's last lane, or on a lane leaving its destination j
 committed to its next lane asks from there), the trip ends and the next trip's destination may be
 asked for. A request claiming anything else is refused and the plan stays as it was, so a forged request
 can neither re-route the vehicle nor move the coordinator's record of it (its lane loads, its re-plans).
+A vehicle that drives its plan's last lane or leaves the plan on a detour says so (COMPLETED,
+REJECTED_INVALID: `sim/traffic.py` `PlanEnd`), which ends the plan here too.
 
 The version a request claims is never trusted (plan versions are issue times, `plans.version_of`).
 A request repeating the vehicle's latest request while its reply is unacknowledged (a reply lost in a
