@@ -41,7 +41,11 @@ PLAN_KEY_NAME = "plan-signing"
 NEXT_PLAN_KEY_NAME = "plan-signing.next"
 RETIRED_DIR = "retired"  # public halves of rotated-out CAs and plan keys, by UTC time of rotation
 CA_VALIDITY_DAYS = 3650
-LEAF_VALIDITY_DAYS = 825  # the CA/Browser ceiling; renew with `rmmdet pki init --renew`
+#: Leaves are short-lived (issue 34, item 3: a leaf that lived 825 days outlived any compromise of its
+#: host): renew with `rmmdet pki init --renew` (the site launcher warns `RENEW_WITHIN_DAYS` ahead and
+#: refuses an expired one); revoke at once by rotating the CA (`rotate_ca`).
+LEAF_VALIDITY_DAYS = 90
+RENEW_WITHIN_DAYS = 14
 #: Identities are file names and certificate CNs: keep them to a safe alphabet.
 IDENTITY_RE = re.compile(r"^[a-z0-9][a-z0-9_-]{0,62}$")
 PRIVATE_MODE = 0o600
@@ -305,6 +309,11 @@ def init_pki(
             ca.issue(pki_dir, identity, extra_names.get(identity, ()))
             report.created.append(identity)
     return report
+
+
+def days_left(cert: x509.Certificate, now: dt.datetime | None = None) -> float:
+    """Days until `cert` expires (negative: expired)."""
+    return (cert.not_valid_after_utc - (now or _now())).total_seconds() / 86400.0
 
 
 def common_name(cert_path: Path) -> str:

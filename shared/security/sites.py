@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import ipaddress
 import json
+import logging
 import shlex
 import sys
 from pathlib import Path
@@ -30,7 +31,15 @@ from shared.config import ConfigError, read_yaml
 from shared.paths import REPO_ROOT
 from shared.security.acl import access_control
 from shared.security.identities import CLOUD_ROUTER, parse_identity
-from shared.security.pki import identity_paths, plan_key_paths, trusted_plan_keys
+from shared.security.pki import (
+    RENEW_WITHIN_DAYS,
+    days_left,
+    identity_paths,
+    plan_key_paths,
+    trusted_plan_keys,
+)
+
+log = logging.getLogger(__name__)
 
 #: Zenoh link settings of a deployment across hosts (router <-> router and client <-> router).
 LINK_SETTINGS: dict[str, Any] = {
@@ -202,12 +211,20 @@ def service_environment(identity: str, pki_dir: Path) -> dict[str, str]:
 
 
 def check_certificate(pki_dir: Path, identity: str, address: str | None = None) -> None:
-    """The identity's certificate exists, and names `address` when peers reach it there."""
+    """The identity's certificate exists, has not expired (warned `RENEW_WITHIN_DAYS` ahead), and names
+    `address` when peers reach it there."""
     path = identity_paths(pki_dir, identity).cert
     try:
         cert = x509.load_pem_x509_certificate(path.read_bytes())
     except (OSError, ValueError) as err:
         raise ConfigError(f"{path}: no certificate for {identity} ({err}); run `rmmdet pki init`") from None
+    left = days_left(cert)
+    if left <= 0:
+        raise ConfigError(f"{path}: {identity}'s certificate expired; renew it: rmmdet pki init --renew")
+    if left <= RENEW_WITHIN_DAYS:
+        log.warning(
+            "%s: %s's certificate expires in %.0f days: rmmdet pki init --renew", path, identity, left
+        )
     if address is not None:
         san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
         if ipaddress.ip_address(address) not in san.get_values_for_type(x509.IPAddress):

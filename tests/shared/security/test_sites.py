@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import datetime as dt
 import json
+import logging
 import re
 from pathlib import Path
 
@@ -12,8 +14,10 @@ from supervisor.datatypes import dict_of_key_value_pairs
 
 from shared.config import ConfigError
 from shared.paths import DEPLOY_DIR
+from shared.security import pki as pki_module
 from shared.security.pki import init_pki
 from shared.security.sites import (
+    check_certificate,
     identity_config,
     load_layout,
     render_host,
@@ -95,6 +99,26 @@ def test_the_cloud_certificate_must_name_its_address(tmp_path: Path) -> None:
     init_pki(tmp_path, layout.identities("cloud"))  # no --name router-cloud=10.77.0.10
     with pytest.raises(ConfigError, match=re.escape("pki init --renew --name router-cloud=10.77.0.10")):
         render_host(layout, "cloud", tmp_path, tmp_path / "out")
+
+
+def test_an_expired_certificate_is_refused_and_one_near_expiry_warned(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Issue 34 item 3: leaves live LEAF_VALIDITY_DAYS; the launcher refuses an expired one (its TLS
+    links would close) and warns RENEW_WITHIN_DAYS ahead."""
+    now = pki_module._now()
+    for identity, age_days in (("recorder", pki_module.LEAF_VALIDITY_DAYS + 1), ("operator", 80)):
+        monkeypatch.setattr(pki_module, "_now", lambda age=age_days: now - dt.timedelta(days=age))
+        init_pki(tmp_path, [identity])
+    monkeypatch.setattr(pki_module, "_now", lambda: now)
+    with pytest.raises(ConfigError, match="expired"):
+        check_certificate(tmp_path, "recorder")
+    with caplog.at_level(logging.WARNING, logger="shared.security.sites"):
+        check_certificate(tmp_path, "operator")
+    assert "expires in 10 days" in caplog.text
+    init_pki(tmp_path, ["coordinator"])
+    leaf = pki_module.x509.load_pem_x509_certificate((tmp_path / "coordinator.pem").read_bytes())
+    assert 89 < pki_module.days_left(leaf) <= pki_module.LEAF_VALIDITY_DAYS == 90
 
 
 @pytest.mark.parametrize(
