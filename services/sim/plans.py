@@ -305,8 +305,9 @@ class _ReplyHandler:
         self.failed = False  # an error or bad reply was reported: no `no_reply` on top of it
 
     def on_reply(self, reply: zenoh.Reply) -> None:
-        if self.answered:
-            return  # one coordinator answers; extra replies are ignored
+        """The first valid reply is the answer. Every reply is checked, also after the answer: a rogue
+        queryable's forged plans are refused and counted whether they come before the coordinator's
+        reply or after it; a valid extra reply is counted (`plans/extra_replies`) and not applied."""
         try:
             if reply.ok is not None:
                 sample = reply.ok
@@ -319,8 +320,11 @@ class _ReplyHandler:
                 if response.plan.vehicle_id != self.vehicle_id:
                     self.check.counters.inc("rejected/plan_wrong_vehicle")
                 elif self.check.accept(response.plan):  # else counted; a genuine reply may follow
-                    self.answered = True
-                    self.outcomes.put(Outcome(self.vehicle_id, response.plan))
+                    if self.answered:
+                        self.check.counters.inc("plans/extra_replies")
+                    else:
+                        self.answered = True
+                        self.outcomes.put(Outcome(self.vehicle_id, response.plan))
                 return
             error = ErrorResponse()
             try:
@@ -333,8 +337,9 @@ class _ReplyHandler:
             self._fail("bad_reply")
 
     def _fail(self, error: str) -> None:
-        """Report the first failure only (a valid reply may still come and is taken then)."""
-        if not self.failed:
+        """Report the first failure only, and none after the answer (a valid reply may still come and is
+        taken then)."""
+        if not self.failed and not self.answered:
             self.failed = True
             self.outcomes.put(Outcome(self.vehicle_id, None, error))
 

@@ -60,11 +60,24 @@ def test_a_forged_reply_first_does_not_hide_the_genuine_one(handler) -> None:
     h, outcomes, counters = handler
     h.on_reply(plan_reply(ROGUE, "b" * 32))  # type: ignore[arg-type]
     h.on_reply(plan_reply(GENUINE))  # type: ignore[arg-type]
-    h.on_reply(plan_reply(GENUINE, "c" * 32))  # type: ignore[arg-type]  # after the first valid: ignored
+    h.on_reply(plan_reply(GENUINE, "c" * 32))  # type: ignore[arg-type]  # after the first valid: not applied
     h.on_done()
     got = outcomes.drain()
     assert [(o.plan.plan_id if o.plan else None, o.error) for o in got] == [("a" * 32, "")]
     assert counters.get("rejected/plan_unknown_key") == 1
+
+
+def test_a_forged_reply_after_the_answer_is_still_refused_and_counted(handler) -> None:
+    """A rogue queryable slower than the coordinator shows in the counters too; an error or a valid
+    extra reply after the answer changes nothing but a count."""
+    h, outcomes, counters = handler
+    h.on_reply(plan_reply(GENUINE))  # type: ignore[arg-type]
+    h.on_reply(plan_reply(ROGUE, "b" * 32))  # type: ignore[arg-type]
+    h.on_reply(error_reply())  # type: ignore[arg-type]
+    h.on_reply(plan_reply(GENUINE, "c" * 32))  # type: ignore[arg-type]
+    h.on_done()
+    assert [(o.plan.plan_id if o.plan else None, o.error) for o in outcomes.drain()] == [("a" * 32, "")]
+    assert counters.get("rejected/plan_unknown_key") == 1 and counters.get("plans/extra_replies") == 1
 
 
 def test_an_error_reply_is_reported_once_not_again_as_no_reply(handler) -> None:
