@@ -41,8 +41,12 @@ def origin_listed(origin: str, origins: Iterable[str]) -> bool:
         if origin == allowed:
             return True
         if allowed.endswith(":*"):
-            parts = urlsplit(origin)
-            if f"{parts.scheme}://{parts.hostname}:*" == allowed and parts.port is not None:
+            try:
+                parts = urlsplit(origin)
+                port = parts.port  # ValueError for a port that is no number or out of range
+            except ValueError:
+                return False
+            if f"{parts.scheme}://{parts.hostname}:*" == allowed and port is not None:
                 return True
     return False
 
@@ -55,7 +59,10 @@ def request_problem(
     if host is None or host.strip().lower() not in allowed:
         return HTTPStatus.MISDIRECTED_REQUEST
     if origin is not None:
-        parts = urlsplit(origin.strip())
+        try:
+            parts = urlsplit(origin.strip())
+        except ValueError:  # not a URL at all (an unclosed IPv6 bracket): no origin of ours
+            return HTTPStatus.FORBIDDEN
         if origin_listed(origin, origins):
             return None
         if parts.scheme not in ("http", "https") or parts.netloc.lower() not in allowed:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from http import HTTPStatus
 
+import pytest
+
 from shared.viewer.origin import allowed_hosts, headers_problem, origin_listed, request_problem
 
 LOCAL = allowed_hosts("127.0.0.1", 8080)
@@ -56,3 +58,9 @@ def test_a_port_wildcard_matches_any_port_of_that_name_only() -> None:
     assert not origin_listed("http://127.0.0.1", local)  # no port: not the pattern
     assert not origin_listed("http://127.0.0.1.attacker.example:8090", local)
     assert not origin_listed("https://127.0.0.1:8090", local)
+
+
+@pytest.mark.parametrize("origin", ["http://127.0.0.1:abc", "http://[::1", "http://localhost:99999"])
+def test_a_malformed_origin_is_refused_not_raised(origin: str) -> None:
+    apps = ("http://127.0.0.1:*", "http://localhost:*")
+    assert request_problem("127.0.0.1:8080", origin, LOCAL, apps) == HTTPStatus.FORBIDDEN
