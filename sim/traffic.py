@@ -159,7 +159,7 @@ class TrafficSim:
         self.keep_trips = keep_trips
         self.trips_completed = 0
         self.detours = 0
-        self.plan_ends: list[PlanEnd] = []  # taken (and cleared) by whoever acknowledges plans
+        self._plan_ends: list[PlanEnd] = []  # since the last `take_plan_ends`
         self.distance_m = 0.0  # driven by all vehicles together
         self._seed = seed
         self._trip_rngs: dict[int, np.random.Generator] = {}
@@ -289,7 +289,12 @@ class TrafficSim:
     def _end_plan(self, v: Vehicle, status: Ack, reason: str) -> None:
         if v.following:
             v.following = False
-            self.plan_ends.append(PlanEnd(v.id, v.plan_id, v.plan_version, status, reason))
+            self._plan_ends.append(PlanEnd(v.id, v.plan_id, v.plan_version, status, reason))
+
+    def take_plan_ends(self) -> list[PlanEnd]:
+        """The plans vehicles stopped following since the last call, for their acknowledgements."""
+        ends, self._plan_ends = self._plan_ends, []
+        return ends
 
     def routing_destination(self, v: Vehicle) -> str:
         """The junction a plan made now should aim at: the next trip's when this lane ends the current."""

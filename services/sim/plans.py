@@ -13,7 +13,7 @@ acknowledged, and a reply that fails the checks does not stop the vehicle from t
 reply to the same request (a rogue second queryable cannot answer for the coordinator). Every plan
 considered is answered with a RouteAck carrying the vehicle's decision (ACCEPTED, DUPLICATE,
 REJECTED_STALE, REJECTED_INVALID), and the end of a followed plan too (COMPLETED once its last lane is
-driven, REJECTED_INVALID when a detour leaves it: `TrafficSim.plan_ends`). Without a coordinator
+driven, REJECTED_INVALID when a detour leaves it: `TrafficSim.take_plan_ends`). Without a coordinator
 vehicles keep driving: no plan means the shortest route, and a plan is followed only until its TTL
 (`PlanExpiry`). When a coordinator's presence token appears (it started, or came back), every vehicle
 asks at once.
@@ -207,9 +207,8 @@ class PlanClient:
         for vehicle_id in self.expiry.expired(time.time_ns()):
             self.counters.inc("plans/expired")
             self.traffic.drop_plan(vehicle_id)
-        for end in self.traffic.plan_ends:  # completed or left by a detour: the coordinator is told
+        for end in self.traffic.take_plan_ends():  # completed or left by a detour: the coordinator is told
             self.acknowledge(end.vehicle_id, end.plan_id, end.version, end.status, end.reason, stamp_ns)
-        self.traffic.plan_ends.clear()
         if any(alive for _, alive in self.coordinators.changes()):
             self.counters.inc("plans/coordinator_joined")
             self._ask_all_at = time.monotonic() + REASK_AFTER_JOIN_S

@@ -191,10 +191,9 @@ class Scheduler:
         """The vehicles' plan ends (completed, left by a detour) acknowledged, as the live vehicles do;
         then every vehicle that asks now (once per lane) sends its request and applies the plan."""
         now_s = traffic.time_s
-        for end in traffic.plan_ends:
+        for end in traffic.take_plan_ends():
             self.core.on_ack(end.vehicle_id, end.plan_id, end.version, end.status, now_s)
             self.counts[f"acks/{end.status.name.lower()}"] += 1
-        traffic.plan_ends.clear()
         for v in traffic.vehicles:
             if not traffic.needs_plan(v):
                 continue

@@ -230,20 +230,19 @@ def test_the_end_of_a_followed_plan_is_reported_once(scene: Scene, network: Road
     assert sim.set_plan(v.id, [v.lane_id, target], version=5, plan_id="a") is Ack.ACCEPTED
     while v.lane_id != target:
         sim.step()
-    assert sim.plan_ends == []  # on its last lane: not yet driven
+    assert sim.take_plan_ends() == []  # on its last lane: not yet driven
     while v.lane_id == target:
         sim.step()
-    assert [(e.vehicle_id, e.plan_id, e.version, e.status) for e in sim.plan_ends] == [
+    assert [(e.vehicle_id, e.plan_id, e.version, e.status) for e in sim.take_plan_ends()] == [
         (v.id, "a", 5, Ack.COMPLETED)
     ]
     for _ in range(int(30 * TICK_HZ)):
         sim.step()
-    assert len(sim.plan_ends) == 1  # once
-    sim.plan_ends.clear()
+    assert sim.take_plan_ends() == []  # once
     assert (
         sim.set_plan(v.id, [v.lane_id, network.successors[v.lane_id][0]], version=6, plan_id="b")
         is Ack.ACCEPTED
     )
     sim._end_plan(v, Ack.REJECTED_INVALID, "detour")  # as `_admit` does when the next lane is blocked
     sim._end_plan(v, Ack.REJECTED_INVALID, "detour")
-    assert [(e.plan_id, e.status) for e in sim.plan_ends] == [("b", Ack.REJECTED_INVALID)]
+    assert [(e.plan_id, e.status) for e in sim.take_plan_ends()] == [("b", Ack.REJECTED_INVALID)]
