@@ -10,7 +10,8 @@
 
 A sensor keeps its scene id (keys, frame ids and calibration stay the scene's); the site file says
 which device delivers it, where to listen or connect, and which clock stamps its frames:
-- `device`: the unit's own clock (Robosense: the MSOP time, trusted only while DIFOP reports GPS lock);
+- `device`: the unit's own clock (Robosense: the MSOP time, trusted only while DIFOP reports GPS lock;
+  an HTTP MJPEG camera: each part's X-Timestamp, as mjpg-streamer and ESP32 camera servers send it);
 - `receive`: the host's receive time less `latency_s` (lidar: less one packet's duration as well; CAN:
   the kernel's receive stamp where the interface gives one).
 Sensors the file does not list are not this site's (a sensor group lists all of its sensors, or none).
@@ -81,9 +82,17 @@ class Ars408Radar(_Strict):
 class StreamCamera(_Strict):
     device: Literal["stream"]
     url: str = Field(description="rtsp://, http(s)://...mjpg, a V4L2 index or device path, or a video file")
-    clock: Literal["receive"] = "receive"  # OpenCV gives no sensor clock
+    clock: Clock = "receive"  # device: HTTP MJPEG parts' X-Timestamp (OpenCV gives no sensor clock)
     latency_s: float = Field(0.0, ge=0, le=1)
     reconnect_max_s: float = Field(1.0, gt=0, description="backoff ceiling between reconnects")
+
+    @model_validator(mode="after")
+    def _device_clock_over_http(self) -> StreamCamera:
+        if self.clock == "device" and not self.url.startswith(("http://", "https://")):
+            raise ValueError(
+                f"clock: device reads an HTTP MJPEG stream's X-Timestamp; {self.url!r} is not http(s)://"
+            )
+        return self
 
 
 DeviceSpec = Annotated[RobosenseLidar | Ars408Radar | StreamCamera, Field(discriminator="device")]

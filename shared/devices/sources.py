@@ -14,7 +14,9 @@ silent (judged there, on the clock of record).
   the configuration at start and again every second until RadarState confirms it.
 - `CameraSource`: OpenCV's FFmpeg backend on the stream URL; an MJPEG source's JPEG packets are passed
   through undecoded (CAP_PROP_FORMAT -1), any other codec is decoded and encoded as JPEG; one
-  latest-frame thread per camera, reopened with backoff when a read fails.
+  latest-frame thread per camera, reopened with backoff when a read fails. A camera on its own clock
+  (`clock: device`, HTTP MJPEG only) is read part by part (shared/devices/mjpeg.py) for the capture
+  time each part's X-Timestamp header carries.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ import socket
 import struct
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Generator
 from dataclasses import dataclass
 from typing import Any
 
@@ -37,6 +39,7 @@ from google.protobuf.message import Message
 from rmmdet.v1.sensors_pb2 import RadarScan, RadarTarget
 
 from shared.devices import ars408, robosense, serial_urls
+from shared.devices.mjpeg import TIMESTAMP_HEADER, MjpegStream, StreamError
 from shared.devices.site import Ars408Radar, RobosenseLidar, StreamCamera, VelodyneLidar
 from shared.perception.decode import point_cloud_message
 
@@ -456,65 +459,120 @@ class CameraSource(_Source):
         self.timeout_s = timeout_s
         self.connected = False
         self.reconnects = 0
+        self.no_device_stamp = False  # clock: device, and the last frame came without its time
+        self._stream: MjpegStream | None = None
 
     def _run(self) -> None:
         backoff = RECONNECT_MIN_S
         while not self._stop.is_set():
-            cap = open_capture(self.spec.url, self.timeout_s)
-            if not cap.isOpened():
-                cap.release()
-                self.count("stream/open_failed")
+            frames = self._open()
+            if frames is None:
                 self._stop.wait(backoff)
                 backoff = min(backoff * 2, self.spec.reconnect_max_s)
                 continue
-            passthrough = int(cap.get(cv2.CAP_PROP_FOURCC)) == MJPEG_FOURCC and cap.set(
-                cv2.CAP_PROP_FORMAT, -1
-            )
             self.connected = True
             backoff = RECONNECT_MIN_S
             try:
-                self._read(cap, passthrough)
+                for jpeg, device_ns in frames:
+                    recv_ns = time.time_ns()
+                    if self.spec.clock == "device" and device_ns is None:
+                        self.count("clock/no_device_stamp")
+                    self.no_device_stamp = self.spec.clock == "device" and device_ns is None
+                    self._frame_out(
+                        Output(
+                            self.sensor_id,
+                            CompressedImage(frame_id=self.sensor_id, format="jpeg", data=jpeg),
+                            recv_ns if device_ns is None else device_ns,
+                            device_ns is None,
+                        )
+                    )
+                    if self._stop.is_set():
+                        break
             finally:
                 self.connected = False
-                cap.release()
+                frames.close()
             if not self._stop.is_set():
                 self.reconnects += 1
                 self.count("stream/reconnects")
 
-    def _read(self, cap: cv2.VideoCapture, passthrough: bool) -> None:
-        is_file = not (self.spec.url.isdigit() or "://" in self.spec.url or self.spec.url.startswith("/dev/"))
-        frame_s = 1.0 / cap.get(cv2.CAP_PROP_FPS) if is_file and cap.get(cv2.CAP_PROP_FPS) > 0 else 0.0
-        while not self._stop.is_set():
-            ok, frame = cap.read()
-            recv_ns = time.time_ns()
-            if not ok or frame is None:
-                self.count("stream/read_failed")
-                return
-            if passthrough:
-                jpeg = frame.tobytes()
-                if not jpeg.startswith(b"\xff\xd8"):
+    def close(self) -> None:
+        self._stop.set()
+        stream = self._stream
+        if stream is not None:
+            stream.close()  # ends a read blocked on a silent camera now, not at its timeout
+        super().close()
+
+    def _open(self) -> Generator[tuple[bytes, int | None], None, None] | None:
+        """The stream's frames as (JPEG, device time ns or None), or None (counted) if it will not open."""
+        if self.spec.clock == "device":
+            try:
+                stream = MjpegStream(self.spec.url, self.timeout_s)
+            except StreamError as exc:
+                self.count(f"stream/{exc.reason}")
+                return None
+            return self._mjpeg_frames(stream)
+        cap = open_capture(self.spec.url, self.timeout_s)
+        if not cap.isOpened():
+            cap.release()
+            self.count("stream/open_failed")
+            return None
+        return self._capture_frames(cap)
+
+    def _mjpeg_frames(self, stream: MjpegStream) -> Generator[tuple[bytes, int | None], None, None]:
+        self._stream = stream
+        try:
+            for part in stream.parts():
+                if part.stamp_problem:
+                    self.count("clock/bad_device_stamp")
+                    if self.counters_snapshot()["clock/bad_device_stamp"] == 1:  # the first only
+                        log.warning("%s: %s; stamped on receive", self.sensor_id, part.stamp_problem)
+                if not part.jpeg.startswith(b"\xff\xd8"):
                     self.count("rejected/not_jpeg")
                     continue
-            else:
-                ok, buf = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
-                if not ok:
-                    self.count("rejected/encode_failed")
-                    continue
-                jpeg = buf.tobytes()
-            self._frame_out(
-                Output(
-                    self.sensor_id,
-                    CompressedImage(frame_id=self.sensor_id, format="jpeg", data=jpeg),
-                    recv_ns,
-                    True,
-                )
-            )
-            if frame_s:
-                self._stop.wait(frame_s)  # a file plays at its own rate, not as fast as it decodes
+                yield part.jpeg, part.device_ns
+        except StreamError as exc:
+            self.count(f"stream/{exc.reason}")
+        finally:
+            self._stream = None
+            stream.close()
+
+    def _capture_frames(self, cap: cv2.VideoCapture) -> Generator[tuple[bytes, int | None], None, None]:
+        """OpenCV's reader: an MJPEG source's JPEG passed through, any other codec encoded as JPEG; no
+        device time (OpenCV gives none)."""
+        try:
+            fourcc = int(cap.get(cv2.CAP_PROP_FOURCC))
+            passthrough = fourcc == MJPEG_FOURCC and cap.set(cv2.CAP_PROP_FORMAT, -1)
+            url = self.spec.url
+            is_file = not (url.isdigit() or "://" in url or url.startswith("/dev/"))
+            fps = cap.get(cv2.CAP_PROP_FPS)
+            frame_s = 1.0 / fps if is_file and fps > 0 else 0.0
+            while not self._stop.is_set():
+                ok, frame = cap.read()
+                if not ok or frame is None:
+                    self.count("stream/read_failed")
+                    return
+                if passthrough:
+                    jpeg = frame.tobytes()
+                    if not jpeg.startswith(b"\xff\xd8"):
+                        self.count("rejected/not_jpeg")
+                        continue
+                else:
+                    ok, buf = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+                    if not ok:
+                        self.count("rejected/encode_failed")
+                        continue
+                    jpeg = buf.tobytes()
+                yield jpeg, None
+                if frame_s:
+                    self._stop.wait(frame_s)  # a file plays at its own rate, not as fast as it decodes
+        finally:
+            cap.release()
 
     def status(self) -> str:
         if not self.connected:
             return f"stream {self.spec.url} not open"
+        if self.no_device_stamp:
+            return f"no {TIMESTAMP_HEADER} from the camera: stamped on receive"
         return ""
 
 

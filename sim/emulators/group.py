@@ -119,7 +119,7 @@ class WireGroup:
             assert isinstance(targets, list)
             self.radars[sid].send_scan([radar_target(t) for t in targets])
         elif sid in self.cameras:
-            self.cameras[sid].publish(capture.message.data)  # type: ignore[attr-defined]
+            self.cameras[sid].publish(capture.message.data, capture.stamp_ns)  # type: ignore[attr-defined]
 
     def status(self) -> str:
         parts = [f"{self.late} late"] if self.late else []
