@@ -156,9 +156,9 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                         low_ms, median_ms, high_ms = stampers[sid].snap_summary_ms()
                         log.info(
                             "%s: %d frames published, %d read, stamp - capture %.1f / %.1f / %.1f ms "
-                            "(min / median / max), %d given their predecessor's capture, %s",
+                            "(min / median / max), %d given their predecessor's capture%s, %s",
                             sid, published[sid], seen[sid], low_ms, median_ms, high_ms,
-                            stampers[sid].repeated, src.counters_snapshot(),
+                            stampers[sid].repeated, stampers[sid].cycles_text(), src.counters_snapshot(),
                         )  # fmt: skip
                     if dropped["queue_full"]:
                         log.warning("%d frames dropped: publishing fell behind", dropped["queue_full"])
@@ -170,7 +170,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 start_ns = time.time_ns()
                 seen[out.sensor_id] += 1
                 spec = by_id[out.sensor_id]
-                stamp = stampers[out.sensor_id].stamp(out.stamp_ns, out.on_wall_clock)
+                stamp = stampers[out.sensor_id].stamp(out.stamp_ns, out.on_wall_clock, out.cycle)
                 every_n = demands.every_n(now)
                 if kind == "camera" and every_n != cadence["every_n"]:
                     cadence["every_n"] = every_n

@@ -13,7 +13,9 @@ which device delivers it, where to listen or connect, and which clock stamps its
 - `device`: the unit's own clock (Robosense: the MSOP time, trusted only while DIFOP reports GPS lock;
   an HTTP MJPEG camera: each part's X-Timestamp, as mjpg-streamer and ESP32 camera servers send it);
 - `receive`: the host's receive time less `latency_s` (lidar: less one packet's duration as well; CAN:
-  the kernel's receive stamp where the interface gives one).
+  the kernel's receive stamp where the interface gives one);
+- `cycle` (ARS 408): receive times as above, smoothed over the radar's measurement counter (its cycles
+  are regular: shared/devices/stamping.py `CycleFit`).
 Sensors the file does not list are not this site's (a sensor group lists all of its sensors, or none).
 """
 
@@ -75,7 +77,8 @@ class Ars408Radar(_Strict):
     bitrate: int = Field(500_000, gt=0)
     can_id: int = Field(0, ge=0, le=7, description="the radar's sensor id (adds 0x10 x id to every frame)")
     output: Literal["clusters", "objects"] = "clusters"
-    clock: Literal["receive"] = "receive"  # CAN frames carry no time
+    # CAN frames carry no time; cycle: receive times smoothed over the lists' measurement counter
+    clock: Literal["receive", "cycle"] = "receive"
     latency_s: float = Field(0.0, ge=0, le=1)
 
 

@@ -63,6 +63,7 @@ class Output:
     message: Message
     stamp_ns: int
     on_wall_clock: bool  # True: host receive time (wall); False: the device's own clock
+    cycle: int | None = None  # the device's cycle counter, where its receive times are to be smoothed
 
 
 OutputFn = Callable[[Output], None]
@@ -408,6 +409,7 @@ class RadarSource(_Source):
                             radar_scan_message(detections, self.sensor_id),
                             round(detections.stamp_s * 1e9),
                             True,
+                            detections.meas_counter if self.spec.clock == "cycle" else None,
                         )
                     )
                 else:

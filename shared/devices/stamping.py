@@ -15,6 +15,12 @@ half a period (50 ms at 10 Hz). A frame whose delay strays further is given the 
 that is what receive-time stamping does with a jittery link, and it is counted (`repeated`: a capture
 given to two frames in a row) and logged with the spread of the offsets (`snap_ns`); correcting the
 next frames to make up for it would carry one late frame's error on to every frame after it.
+
+A device that numbers its cycles (the ARS 408's measurement counter; site file `clock: cycle`) has its
+receive times smoothed (`CycleFit`): its cycles are regular, so the receive times, once on the clock of
+record and less the latency, lie on a line in the cycle number but for the link's jitter; a robust fit
+(Theil-Sen: medians, so one late frame moves nothing) gives each cycle its time on that line. The
+jitter goes, and so do the neighbouring captures it caused; what remains is the fit's error.
 """
 
 from __future__ import annotations
@@ -23,12 +29,20 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import theilslopes
 
 from shared.scene.model import SensorSpec
 from shared.scene.scene import Scene
 from shared.timebase import NS_PER_S, SimTime, tick_stamp_ns
 
 SNAP_WINDOW = 200  # recent snap offsets kept per sensor
+CYCLE_WINDOW = 64  # cycles a CycleFit fits over (6.4 s at 10 Hz: drift of a real unit's cycle is followed)
+CYCLE_MIN_FIT = 8  # cycles before the fit is trusted (before: the receive time, counted `settling`)
+CYCLE_COUNTER_MOD = 1 << 16  # the ARS 408's measurement counters are 16 bits
+# A cycle the fit puts this far from its receive time, three in a row, means the line moved (the unit
+# restarted, the sim restarted): start over. One such frame alone is a late one and gets the line's time.
+CYCLE_RESET_NS = 1_000_000_000
+CYCLE_RESET_AFTER = 3
 TOLERANCE_NS = 1_000_000  # a device stamp up to this early still belongs to the tick (Robosense: 1 us)
 
 
@@ -37,6 +51,61 @@ class Stamp:
     stamp_ns: int
     tick: int = 0
     epoch: int = 0
+
+
+class CycleFit:
+    """Times of a device's numbered cycles from their receive times (module docstring). ns in, ns out;
+    `counter` wraps at `modulus`. A jump of the counter by 0 or by more than half its range is a restart."""
+
+    def __init__(self, modulus: int = CYCLE_COUNTER_MOD, window: int = CYCLE_WINDOW) -> None:
+        self.modulus = modulus
+        self._cycles: deque[int] = deque(maxlen=window)  # unwrapped cycle numbers
+        self._times: deque[int] = deque(maxlen=window)  # their receive times, ns
+        self._last: int | None = None  # last raw counter
+        self._n = 0
+        self._astray = 0
+        self.settling = 0  # frames stamped with their receive time while the fit was too short
+        self.resets = 0
+
+    def reset(self) -> None:
+        self._cycles.clear()
+        self._times.clear()
+        self._last, self._n, self._astray = None, 0, 0
+        self.resets += 1
+
+    def stamp(self, counter: int, recv_ns: int) -> int:
+        if self._last is not None:
+            step = (counter - self._last) % self.modulus
+            if step == 0 or step > self.modulus // 2:
+                self.reset()
+            else:
+                self._n += step
+        self._last = counter
+        self._cycles.append(self._n)
+        self._times.append(recv_ns)
+        if len(self._cycles) < CYCLE_MIN_FIT:
+            self.settling += 1
+            return recv_ns
+        ref = self._times[0]
+        x = np.fromiter(self._cycles, np.float64)
+        y = (np.fromiter(self._times, np.int64) - ref) / NS_PER_S
+        slope = theilslopes(y, x).slope
+        # The intercept as the median residual: scipy's (median y - slope x median x) moves with late
+        # frames, which reorder the receive times.
+        intercept = float(np.median(y - slope * x))
+        fitted = ref + round((intercept + slope * self._n) * NS_PER_S)
+        if abs(fitted - recv_ns) > CYCLE_RESET_NS:
+            self._astray += 1
+            if self._astray >= CYCLE_RESET_AFTER:
+                self.reset()
+                self._last = counter
+                self._cycles.append(self._n)
+                self._times.append(recv_ns)
+                self.settling += 1
+                return recv_ns
+        else:
+            self._astray = 0
+        return fitted
 
 
 class Stamper:
@@ -49,12 +118,16 @@ class Stamper:
         self.unsnapped = 0
         self.repeated = 0  # frames given the same capture as the frame before them (a late one)
         self._last: tuple[int, int] | None = None  # (epoch, tick) of the last frame
+        self.cycles = CycleFit()
 
-    def stamp(self, stamp_ns: int, on_wall_clock: bool) -> Stamp:
+    def stamp(self, stamp_ns: int, on_wall_clock: bool, cycle: int | None = None) -> Stamp:
         """`stamp_ns` is wall-clock ns (receive time) when `on_wall_clock`, else the device's time
-        (already on the clock of record: a GPS-locked unit on a real site, sim time from an emulator)."""
+        (already on the clock of record: a GPS-locked unit on a real site, sim time from an emulator).
+        `cycle`: the device's cycle counter (a receive time is then smoothed over its cycles)."""
         if on_wall_clock:
             stamp_ns = self.sim_time.now_ns(stamp_ns) - self.latency_ns
+            if cycle is not None:
+                stamp_ns = self.cycles.stamp(cycle, stamp_ns)
         hz, epoch = self.sim_time.tick_hz, self.sim_time.epoch_ns
         if not self.sim_time.following or hz is None or epoch is None:
             return Stamp(stamp_ns)
@@ -72,6 +145,11 @@ class Stamper:
         snapped = tick_stamp_ns(epoch, tick, hz)
         self.snap_ns.append(stamp_ns - snapped)
         return Stamp(snapped, tick, epoch)
+
+    def cycles_text(self) -> str:
+        """The cycle fit's counts for the periodic log ('' for a device without cycles)."""
+        fit = self.cycles
+        return f", cycle fit: {fit.settling} settling, {fit.resets} restarts" if fit.settling else ""
 
     def snap_summary_ms(self) -> tuple[float, float, float]:
         """Smallest, median and largest signed offset (stamp - its capture's) over the recent frames,

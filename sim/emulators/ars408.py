@@ -119,9 +119,10 @@ class Ars408Emulator:
         put(buf, 45, 1, int(self.send_extended))
         return self.can_id(0x201), bytes(buf)
 
-    def scan_frames(self, targets: Sequence[Target]) -> list[tuple[int, bytes]]:
-        """One measurement cycle's list (the counter advances)."""
-        self.counter = (self.counter + 1) & 0xFFFF
+    def scan_frames(self, targets: Sequence[Target], cycle: int | None = None) -> list[tuple[int, bytes]]:
+        """One measurement cycle's list: the counter is `cycle` (the radar's cycle number: a list the
+        host never got still counted) or, without one, advances by one."""
+        self.counter = (self.counter + 1 if cycle is None else cycle) & 0xFFFF
         targets = list(targets)[: 250 if self.output == 2 else 100]
         frames: list[tuple[int, bytes]] = []
         if self.output == 2:
@@ -225,12 +226,12 @@ class SlcanRadarServer:
     def port(self) -> int:
         return int(self._listener.getsockname()[1])
 
-    def send_scan(self, targets: Sequence[Target]) -> None:
+    def send_scan(self, targets: Sequence[Target], cycle: int | None = None) -> None:
         """One measurement cycle's list to the client (dropped if none is connected, as on a bus with
         no other node: the radar transmits regardless)."""
         if self.bus_off:
             return
-        frames = self.emulator.scan_frames(targets)
+        frames = self.emulator.scan_frames(targets, cycle)
         self._write(b"".join(slcan_line(i, d) for i, d in frames), len(frames))
 
     def close(self) -> None:

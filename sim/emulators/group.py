@@ -20,6 +20,7 @@ from urllib.parse import urlsplit
 
 from shared.devices.site import Ars408Radar, RobosenseLidar, SiteFile, StreamCamera
 from shared.scene.model import SensorSpec
+from shared.timebase import NS_PER_S
 from sim.emulators.ars408 import Ars408Emulator, SlcanRadarServer, Target
 from sim.emulators.mjpeg import MjpegServer
 from sim.emulators.robosense import LidarSender, RobosenseEmulator
@@ -117,7 +118,9 @@ class WireGroup:
         elif sid in self.radars:
             targets = capture.data
             assert isinstance(targets, list)
-            self.radars[sid].send_scan([radar_target(t) for t in targets])
+            # The radar's cycle number: its captures are one period of sim time apart.
+            cycle = round(capture.stamp_ns / NS_PER_S * capture.spec.rate_hz)
+            self.radars[sid].send_scan([radar_target(t) for t in targets], cycle)
         elif sid in self.cameras:
             self.cameras[sid].publish(capture.message.data, capture.stamp_ns)  # type: ignore[attr-defined]
 

@@ -9,7 +9,7 @@ import yaml
 from pydantic import ValidationError
 
 from shared.devices.site import SiteFile
-from shared.devices.stamping import Stamp, Stamper
+from shared.devices.stamping import CYCLE_MIN_FIT, CYCLE_WINDOW, CycleFit, Stamp, Stamper
 from shared.paths import DEFAULT_SCENE, REPO_ROOT
 from shared.scene.scene import Scene
 from shared.timebase import SimTime, tick_stamp_ns
@@ -151,3 +151,97 @@ def test_a_bad_site_file_is_refused_naming_the_file(tmp_path: Path) -> None:
     (tmp_path / "broken.yaml").write_text("site_id: [")
     with pytest.raises(ConfigError, match="invalid YAML"):
         SiteFile.load(tmp_path / "broken.yaml")
+
+
+# --- a device's numbered cycles -----------------------------------------------------------------------
+
+CYCLE_NS = 72_000_000  # an ARS 408 cycle (about 72 ms)
+
+
+def jittered(n: int, seed: int, spread_ns: int = 45_000_000, late_every: int = 0) -> list[tuple[int, int]]:
+    """(counter, receive ns) of `n` cycles from T0: each received 0..`spread_ns` after its time (a
+    loaded host's link); every `late_every`-th a whole 400 ms late."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    t0 = 5_000_000_000
+    out = []
+    for k in range(n):
+        delay = int(rng.integers(0, spread_ns))
+        if late_every and k % late_every == late_every - 1:
+            delay = 400_000_000
+        out.append(((100 + k) & 0xFFFF, t0 + k * CYCLE_NS + delay))
+    return out
+
+
+def test_a_cycle_fit_removes_the_links_jitter() -> None:
+    """Receive times spread over 45 ms (and one in ten 400 ms late) come out on the cycles' line: once the
+    window is full, every stamp sits about the same delay after its cycle's time (spread under 20 ms,
+    where the receive times strayed over 400 ms), that delay near the link's median (22.5 ms)."""
+    import numpy as np
+
+    fit = CycleFit()
+    t0 = 5_000_000_000
+    errors = []
+    for k, (counter, recv_ns) in enumerate(jittered(300, seed=1, late_every=10)):
+        stamp = fit.stamp(counter, recv_ns)
+        if k >= CYCLE_WINDOW:
+            errors.append(stamp - (t0 + k * CYCLE_NS))
+    spread = np.ptp(errors) / 1e6
+    assert spread < 20.0 and 15.0 < np.median(errors) / 1e6 < 32.0, (spread, np.median(errors) / 1e6)
+    assert fit.settling == CYCLE_MIN_FIT - 1 and fit.resets == 0
+
+
+def test_a_cycle_fit_follows_the_units_own_cycle_and_the_counter_wrap() -> None:
+    """The fit does not need the nominal cycle: a unit 0.5 % slow is followed, across the 16-bit wrap
+    and over a lost list (the counter skips one)."""
+    import numpy as np
+
+    rng = np.random.default_rng(5)
+    fit = CycleFit()
+    cycle_ns = 72_360_000
+    t0 = 1_000_000_000
+    for counter in [*range(65_500, 65_536), *range(0, 30), *range(31, 60)]:  # 30 lost
+        n = counter if counter >= 65_500 else counter + 65_536
+        exact = t0 + (n - 65_500) * cycle_ns
+        stamp = fit.stamp(counter, exact + int(rng.integers(0, 10_000_000)))  # 0..10 ms of jitter
+    assert abs(stamp - (exact + 5_000_000)) < 2_500_000
+    assert fit.resets == 0
+
+
+def test_a_cycle_fit_starts_over_when_the_unit_or_the_clock_restarts() -> None:
+    fit = CycleFit()
+    for counter, recv_ns in jittered(20, seed=2):
+        fit.stamp(counter, recv_ns)
+    assert fit.stamp(100, 9_000_000_000) == 9_000_000_000  # the counter went back: restarted
+    assert fit.resets == 1 and fit.settling == CYCLE_MIN_FIT  # 7 before the first fit, then this one
+    fit = CycleFit()
+    for counter, recv_ns in jittered(20, seed=3):
+        fit.stamp(counter, recv_ns)
+    # The sim restarted: the counter goes on, its receive times start again near 0. One such frame is
+    # a late one (the line's time); three in a row start over.
+    stamps = [fit.stamp(120 + k, 1_000_000 + k * CYCLE_NS) for k in range(3)]
+    assert stamps[0] > 5_000_000_000 and stamps[2] == 1_000_000 + 2 * CYCLE_NS
+    assert fit.resets == 1
+
+
+def test_a_stamper_smooths_a_counted_devices_receive_times_before_it_snaps() -> None:
+    """Under a sim, radar_2 (10 Hz) received 20 ms +- 60 ms after its captures (latency 20 ms): its
+    receive times alone snap many frames onto a neighbouring capture; smoothed over its cycles, only
+    frames before the fit settles may."""
+    scene = Scene.load(DEFAULT_SCENE)
+    period_ns = 100_000_000
+    first = tick_stamp_ns(EPOCH_NS, 2, HZ)  # radar_2 captures on ticks 2, 8, 14, ...
+    plain = Stamper(scene, scene.sensor("radar_2"), SimTime(), latency_s=0.020)
+    smoothed = Stamper(scene, scene.sensor("radar_2"), SimTime(), latency_s=0.020)
+    import numpy as np
+
+    rng = np.random.default_rng(4)
+    wrong = {"plain": 0, "smoothed": 0}
+    for k in range(300):
+        at_ns = first + k * period_ns + 20_000_000 + int(rng.integers(-60_000_000, 60_000_000))
+        for name, stamper in (("plain", plain), ("smoothed", smoothed)):
+            stamper.sim_time.on_clock(at_ns, 1.0, wall_ns=at_ns, step_s=1 / HZ, epoch_ns=EPOCH_NS)
+            got = stamper.stamp(at_ns, on_wall_clock=True, cycle=k if name == "smoothed" else None)
+            wrong[name] += got.tick != 2 + 6 * k
+    assert wrong["plain"] > 20 and wrong["smoothed"] <= CYCLE_MIN_FIT, wrong

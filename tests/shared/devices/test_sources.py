@@ -162,9 +162,9 @@ class VirtualRadar:
                 can_id, data = self.emulator.state_frame()
                 self.bus.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=False))
 
-    def scan(self, n: int) -> None:
+    def scan(self, n: int, cycle: int | None = None) -> None:
         for can_id, data in self.emulator.scan_frames(
-            [Target(2.0 + i, 0.1, 0.0, -0.3, -5.0) for i in range(n)]
+            [Target(2.0 + i, 0.1, 0.0, -0.3, -5.0) for i in range(n)], cycle
         ):
             self.bus.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=False))
 
@@ -174,12 +174,12 @@ class VirtualRadar:
         self.bus.shutdown()
 
 
-@pytest.fixture
-def radar() -> Iterator[tuple[RadarSource, VirtualRadar, Collector]]:
+@pytest.fixture(params=["receive"])
+def radar(request: pytest.FixtureRequest) -> Iterator[tuple[RadarSource, VirtualRadar, Collector]]:
     channel = f"radar-{free_port()}"
     emulated = VirtualRadar(channel)
     out = Collector()
-    spec = Ars408Radar(device="ars408", interface="virtual", channel=channel)
+    spec = Ars408Radar(device="ars408", interface="virtual", channel=channel, clock=request.param)
     source = RadarSource("radar_2", spec, out)
     source.start()
     try:
@@ -198,7 +198,22 @@ def test_radar_configured_at_start_then_lists(radar) -> None:
     out.wait(1)
     ranges = sorted(t.range_m for t in out.outputs[0].message.targets)
     assert ranges == pytest.approx([2.0, 3.0, 4.0], abs=0.15)
-    assert out.outputs[0].on_wall_clock
+    assert out.outputs[0].on_wall_clock and out.outputs[0].cycle is None
+
+
+@pytest.mark.parametrize("radar", ["cycle"], indirect=True)
+def test_radar_on_a_cycle_clock_hands_on_its_measurement_counter(radar) -> None:
+    """clock: cycle: each list goes out with its receive time and the radar's counter (the cycle number,
+    16 bits), for the device service's CycleFit; clock: receive lists carry none (above)."""
+    source, emulated, out = radar
+    wait_until(lambda: source.assembler.configured, 5.0)
+    emulated.scan(1, cycle=70_000)
+    emulated.scan(1, cycle=70_002)  # a cycle lost on the way: the counter says so
+    out.wait(2)
+    assert [(o.on_wall_clock, o.cycle) for o in out.outputs] == [
+        (True, 70_000 - 65_536),
+        (True, 70_002 - 65_536),
+    ]
 
 
 def test_radar_bus_off_then_recovery(radar) -> None:
