@@ -45,6 +45,11 @@ class PursuitParams(_Model):
     lookahead_gain_s: float = Field(0.4, ge=0, description="look-ahead grows by speed x gain")
 
 
+def fleet_ids(count: int) -> list[str]:
+    """The ids of a fleet of `count` vehicles, in the order they are placed (v00, v01, ...)."""
+    return [f"v{index:02d}" for index in range(count)]
+
+
 class TrafficSettings(_Model):
     vehicles: int = Field(10, ge=0, le=200, description="number of vehicles")
     max_speed_mps: float = Field(0.5, gt=0, description="vehicle top speed (lane limits also apply)")

@@ -24,7 +24,7 @@ from shared.scene.model import LEVEL_SEPARATION_M
 from shared.scene.road_network import Path, RoadNetwork
 from shared.scene.scene import Scene
 from shared.traffic.plans import Ack, vehicle_decision
-from sim.config import TrafficSettings
+from sim.config import TrafficSettings, fleet_ids
 
 log = logging.getLogger(__name__)
 
@@ -184,7 +184,7 @@ class TrafficSim:
         if usable.sum() <= 0:
             raise ValueError("no lane is long enough to spawn vehicles on")
         spacing = SPAWN_SPACING_FACTOR * self.length_m
-        for index in range(count):
+        for index, vid in enumerate(fleet_ids(count)):
             for _ in range(SPAWN_ATTEMPTS):
                 lane_id = lanes[int(self.rng.choice(len(lanes), p=usable / usable.sum()))]
                 path = self.net.lanes[lane_id]
@@ -197,7 +197,6 @@ class TrafficSim:
             else:
                 raise ValueError(f"could not place vehicle {index}: too many vehicles for the network")
             pos = path.position(s)
-            vid = f"v{index:02d}"
             connected = bool(self.rng.uniform() < self.cfg.connected_fraction)
             vehicle = Vehicle(
                 id=vid,

@@ -13,6 +13,7 @@ from shared.paths import DEFAULT_PKI_DIR, DEFAULT_SCENE
 from shared.scene.scene import Scene
 from shared.security.identities import deployment_identities, parse_identity
 from shared.security.pki import init_pki, rotate_ca, rotate_plan_key
+from sim.config import fleet_ids, load_sim_settings
 
 pki_app = typer.Typer(no_args_is_help=True, help="local CA, service certificates, plan-signing key")
 app.add_typer(pki_app, name="pki")
@@ -36,7 +37,8 @@ def pki_init(
     """Create what is missing of the CA, the plan-signing key and the service certificates."""
     extra = parse_names(name)
     try:
-        identities = identity or deployment_identities(Scene.load(scene))
+        fleet = fleet_ids(load_sim_settings().traffic.vehicles)  # the sim's vehicles, each its own identity
+        identities = identity or deployment_identities(Scene.load(scene), fleet)
         for ident in identities:
             parse_identity(ident)
         report = init_pki(pki_dir, identities, extra, renew=renew)

@@ -15,6 +15,7 @@ possible.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import sys
 import time
@@ -31,6 +32,7 @@ from shared.bus.streams import get_stream, producer_of
 from shared.scene.calibration import calibration_set
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
+from shared.security.identities import vehicle_identity
 from shared.security.plan_signing import PlanVerifier
 from shared.service import run_service
 from shared.shutdown import GracefulShutdown
@@ -57,10 +59,26 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     traffic = TrafficSim(
         scene, RoadNetwork(scene), settings.traffic, settings.seed, settings.tick_hz, keep_trips=False
     )
+    if args.vehicle_configs is not None:
+        missing = [
+            v.id
+            for v in traffic.vehicles
+            if not (args.vehicle_configs / f"{vehicle_identity(v.id)}.json").is_file()
+        ]
+        if missing:  # such a vehicle could not ask for a plan: the sim's identity holds no vehicle's rights
+            log.error(
+                "%s: no identity config for vehicles %s (the layout lists the vehicles the sim drives)",
+                args.vehicle_configs,
+                missing,
+            )
+            return 2
     collision_every = max(1, round(settings.tick_hz / settings.collision_check_hz))
     pacer = Pacer(settings.pacing.max_lag_s, settings.pacing.consumer_timeout_s)
     pacing = settings.speed > 0 and settings.pacing.enabled
-    with Node(conf, service="sim", instance=args.instance, scope=SCOPE, stop=shutdown.event) as node:
+    with (
+        Node(conf, service="sim", instance=args.instance, scope=SCOPE, stop=shutdown.event) as node,
+        contextlib.ExitStack() as stack,
+    ):
         gt_pub, clock_pub = node.publisher("ground_truth"), node.publisher("sim_clock")
         # The scene is fixed: each agent's calibration is made once.
         calibs = {node.publisher("calibration", agent=a): calibration_set(scene, a) for a in scene.agents}
@@ -80,7 +98,12 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 node.counters,
                 run_start_ns=start_wall_ns,
             )
-            plans = PlanClient(node, traffic, settings.plan_request_timeout_s, check)
+            vehicle_nodes = (
+                open_vehicle_nodes(args.vehicle_configs, traffic, node, shutdown, stack)
+                if args.vehicle_configs is not None
+                else None
+            )
+            plans = PlanClient(node, traffic, settings.plan_request_timeout_s, check, vehicle_nodes)
         schedule = RealTimeSchedule(settings.speed, LATE_TOLERANCE_S, RTF_WINDOW_S)
 
         def status() -> tuple[int, str]:
@@ -167,12 +190,40 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     return 0
 
 
+def open_vehicle_nodes(
+    configs: Path, traffic: TrafficSim, node: Node, shutdown: GracefulShutdown, stack: contextlib.ExitStack
+) -> dict[str, Node]:
+    """Each vehicle's own session, from `<configs>/vehicle-<id>.json` (its identity's Zenoh config):
+    the vehicle asks for, hears and acknowledges its plans as itself, as a car would; the sim's own
+    identity holds no vehicle's rights. Counted into the sim's counters; no presence of their own."""
+    nodes = {}
+    for v in traffic.vehicles:
+        vehicle_node = Node(
+            zenoh.Config.from_file(str(configs / f"{vehicle_identity(v.id)}.json")),
+            service="vehicle",
+            instance=v.id,
+            scope="vehicles",
+            stop=shutdown.event,
+            announce=False,
+            counters=node.counters,
+        )
+        nodes[v.id] = stack.enter_context(vehicle_node)
+    log.info("%d vehicles on their own identities (%s)", len(nodes), configs)
+    return nodes
+
+
 def add_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--settings", type=Path, default=DEFAULT_SIM_CONFIG, help="sim settings YAML")
     parser.add_argument("--speed", type=float, default=None, help="sim seconds per wall second (0 = max)")
     parser.add_argument("--seed", type=int, default=None, help="scenario seed")
     parser.add_argument("--vehicles", type=int, default=None, help="number of vehicles")
     parser.add_argument("--report-interval-s", type=float, default=10.0, help="log interval")
+    parser.add_argument(
+        "--vehicle-configs",
+        type=Path,
+        default=None,
+        help="directory of vehicle-<id>.json Zenoh configs: each vehicle on its own identity (multi-site)",
+    )
 
 
 def cli(argv: list[str] | None = None) -> int:

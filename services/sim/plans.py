@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import cast
 
@@ -43,6 +44,7 @@ log = logging.getLogger("services.sim.plans")
 
 #: Outstanding replies held between ticks; more than one per vehicle only if ticks stall.
 REPLY_QUEUE_PER_VEHICLE = 4
+PUSHED_QUEUE = 1024  # pushed plans held between ticks
 #: After a coordinator's presence token appears, every vehicle asks for a plan this much later, wall s:
 #: the token comes with its session, the route queryable a moment after.
 REASK_AFTER_JOIN_S = 0.3
@@ -130,20 +132,33 @@ class RequestRetry:
 
 
 class PlanClient:
-    def __init__(self, node: Node, traffic: TrafficSim, request_timeout_s: float, check: PlanCheck) -> None:
+    def __init__(
+        self,
+        node: Node,
+        traffic: TrafficSim,
+        request_timeout_s: float,
+        check: PlanCheck,
+        vehicle_nodes: Mapping[str, Node] | None = None,
+    ) -> None:
+        """`vehicle_nodes`: each vehicle's own session (its identity, multi-site profile); without, every
+        vehicle asks, acks and listens on the sim's `node` (one host)."""
         self.node = node
         self.traffic = traffic
         self.counters = node.counters
         self.check = check
         rpc = get_stream("route_rpc")
+
         # One querier per vehicle, on its own key, declared for the whole run (declaring per request
         # would churn declarations). Every queryable on the key is asked (target ALL: Zenoh's default
         # asks only a "complete" one when there is one, which any client may declare) and every reply
         # is delivered as it comes (no consolidation: by default replies on one key are held and only
         # the newest is delivered, so a rogue replying last would hide the coordinator's): the first
         # valid reply is taken.
+        def node_of(vehicle_id: str) -> Node:
+            return vehicle_nodes[vehicle_id] if vehicle_nodes is not None else node
+
         self.queriers = {
-            v.id: node.session.declare_querier(
+            v.id: node_of(v.id).session.declare_querier(
                 rpc.key(vehicle=v.id),
                 target=zenoh.QueryTarget.ALL,
                 consolidation=zenoh.ConsolidationMode.NONE,
@@ -159,9 +174,16 @@ class PlanClient:
             node.counters,
             "dropped/plan_outcomes",
         )
-        self.pushed = node.subscribe_stream("route_plan", maxsize=1024)
+        self.pushed: BoundedQueue[Received] = BoundedQueue(
+            PUSHED_QUEUE, OverflowPolicy.DROP_OLDEST, node.counters, "dropped/pushed_plans"
+        )
+        if vehicle_nodes is None:
+            node.subscribe_stream("route_plan", queue=self.pushed)
+        else:  # each vehicle hears only its own plans
+            for v in traffic.vehicles:
+                vehicle_nodes[v.id].subscribe_stream("route_plan", queue=self.pushed, vehicle=v.id)
         self.ack_pubs: dict[str, Publisher] = {
-            v.id: node.publisher("route_ack", vehicle=v.id, source_id=f"vehicles/{v.id}")
+            v.id: node_of(v.id).publisher("route_ack", vehicle=v.id, source_id=f"vehicles/{v.id}")
             for v in traffic.vehicles
         }
         self._request_seq: dict[str, int] = dict.fromkeys(self.ack_pubs, 0)

@@ -299,19 +299,24 @@ class Node:
         thresholds: RateThresholds = DEFAULT_THRESHOLDS,
         open_timeout_s: float | None = None,
         stop: threading.Event | None = None,
+        announce: bool = True,
+        counters: Counters | None = None,
     ) -> None:
         """`open_timeout_s`/`stop` bound the wait for the router at `open()` (default: wait until
-        it is reachable or `stop` is set)."""
+        it is reachable or `stop` is set). `announce=False`: no presence token and no health queryable
+        (a session that only acts for another, e.g. a vehicle's identity inside the sim); `counters`: that
+        other's, so what this session refuses is counted and reported there."""
         self.service = validate_id(service, "service")
         self.instance = validate_id(instance, "instance")
         self.scope = validate_id(scope, "scope")
         self.source_id = f"{scope}/{service}/{instance}"
         self.thresholds = thresholds
-        self.counters = Counters()
+        self.counters = counters if counters is not None else Counters()
         self.health = HealthTracker(service, instance, self.counters, VERSION)
         self._conf = conf
         self._open_timeout_s = open_timeout_s
         self._stop = stop
+        self._announce = announce
         self._session: zenoh.Session | None = None
         self._declared: list[Any] = []
         self.uplink = Uplink()  # this session's link to the bus (open transports)
@@ -343,8 +348,9 @@ class Node:
                     history=True,
                 )
             )
-            self._declared.append(self._session.liveliness().declare_token(self.alive_key))
-            self._declared.append(self._session.declare_queryable(self.health_key, self._on_health_query))
+            if self._announce:
+                self._declared.append(self._session.liveliness().declare_token(self.alive_key))
+                self._declared.append(self._session.declare_queryable(self.health_key, self._on_health_query))
         except Exception:
             self.close()
             raise

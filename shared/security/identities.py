@@ -7,8 +7,9 @@ An identity's name says its role and the key bindings it is confined to:
     router-<agent>              a roadside site's router (that agent's sensor groups and MEC)
     sensor-<agent>-<kind>s      one sensor group: publishes only <agent>'s <kind> sensor keys
     mec-<agent>                 agent <agent>'s edge process
-    coordinator, recorder, operator (the `rmmdet` tool), sim (the world and its vehicles' fleet)
+    coordinator, recorder, operator (the `rmmdet` tool), sim (the world: clock, ground truth, calibration)
     vehicle-<id>                one connected vehicle: requests, receives and acks only its own plans
+                                (the sim's vehicles too: it drives each under that vehicle's identity)
 
 `proto/streams.yaml` says which role publishes, subscribes, serves or queries each stream; the access
 control rules (`shared/security/acl.py`) are those grants with each identity's bindings filled in.
@@ -17,6 +18,7 @@ control rules (`shared/security/acl.py`) are those grants with each identity's b
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 from shared.bus.streams import sensor_group
@@ -62,8 +64,8 @@ def parse_identity(name: str) -> Identity:
     """The grants an identity name stands for; ConfigError for a name that is none of the above."""
     if name in ("coordinator", "recorder", "operator"):
         return Identity(name, (Grant(name),))
-    if name == "sim":  # the world (ground truth, clock, calibration) and the vehicles it drives
-        return Identity(name, (Grant("sim"), Grant("vehicles")))
+    if name == "sim":  # the world; the vehicles it drives each have their own identity
+        return Identity(name, (Grant("sim"),))
     if name in (LOCAL_ROUTER, CLOUD_ROUTER):
         return Identity(name, (Grant("router"),))
     if m := _SENSOR_RE.match(name):
@@ -75,6 +77,14 @@ def parse_identity(name: str) -> Identity:
     if m := _VEHICLE_RE.match(name):
         return Identity(name, (Grant("vehicles", {"vehicle": m["vehicle"]}),))
     raise ConfigError(f"identity {name!r}: not a known role (see shared/security/identities.py)")
+
+
+def vehicle_identity(vehicle_id: str) -> str:
+    """The identity of the vehicle `vehicle_id`."""
+    name = f"vehicle-{vehicle_id}"
+    if not _VEHICLE_RE.match(name):
+        raise ConfigError(f"vehicle id {vehicle_id!r}: letters, digits and _ only")
+    return name
 
 
 def own_instance(grant: Grant) -> str:
@@ -107,9 +117,10 @@ def site_identities(scene: Scene, agent: str) -> list[str]:
     return [f"router-{agent}", *groups, f"mec-{agent}"]
 
 
-def deployment_identities(scene: Scene) -> list[str]:
-    """Every identity of the multi-site deployment of `scene` (and the one-host router)."""
+def deployment_identities(scene: Scene, vehicles: Sequence[str] = ()) -> list[str]:
+    """Every identity of the multi-site deployment of `scene` (and the one-host router), with the
+    connected `vehicles`' (their ids)."""
     names = [LOCAL_ROUTER, CLOUD_ROUTER, "sim", "coordinator", "recorder", "operator"]
     for agent in scene.agents:
         names += site_identities(scene, agent)
-    return names
+    return names + [vehicle_identity(v) for v in vehicles]

@@ -30,7 +30,7 @@ from shared.bus.zenoh_config import DEFAULT_CLIENT_CONFIG, DEFAULT_ROUTER_CONFIG
 from shared.config import ConfigError, read_yaml
 from shared.paths import REPO_ROOT
 from shared.security.acl import access_control
-from shared.security.identities import CLOUD_ROUTER, parse_identity
+from shared.security.identities import CLOUD_ROUTER, parse_identity, vehicle_identity
 from shared.security.pki import (
     RENEW_WITHIN_DAYS,
     days_left,
@@ -71,12 +71,19 @@ class HostSpec(_Strict):
     address: str
     router: str | None = None
     services: list[str | ServiceSpec] = []
+    vehicles: list[str] = Field(
+        [], description="ids of the vehicles the host's sim drives, each under its own identity vehicle-<id>"
+    )
 
     @model_validator(mode="after")
     def _check(self) -> HostSpec:
         ipaddress.ip_address(self.address)
         if self.router is not None and parse_identity(self.router).grants[0].role != "router":
             raise ValueError(f"router {self.router!r} is not a router identity")
+        if self.vehicles and "sim" not in [s.identity for s in self.service_specs()]:
+            raise ValueError("vehicles are listed on a host without the sim that drives them")
+        for vehicle_id in self.vehicles:
+            vehicle_identity(vehicle_id)
         return self
 
     def service_specs(self) -> list[ServiceSpec]:
@@ -94,11 +101,13 @@ class Layout(_Strict):
             raise ValueError(f"exactly one host must run {CLOUD_ROUTER}, got {clouds}")
         seen: set[str] = set()
         for spec in self.hosts.values():
-            for svc in spec.service_specs():
-                parse_identity(svc.identity)
-                if svc.identity in seen:
-                    raise ValueError(f"identity {svc.identity} on two hosts")
-                seen.add(svc.identity)
+            for identity in [s.identity for s in spec.service_specs()] + [
+                vehicle_identity(v) for v in spec.vehicles
+            ]:
+                parse_identity(identity)
+                if identity in seen:
+                    raise ValueError(f"identity {identity} twice in the layout")
+                seen.add(identity)
         return self
 
     @property
@@ -110,7 +119,11 @@ class Layout(_Strict):
 
     def identities(self, host: str) -> list[str]:
         spec = self.hosts[host]
-        return ([spec.router] if spec.router else []) + [s.identity for s in spec.service_specs()]
+        services = [s.identity for s in spec.service_specs()]
+        return ([spec.router] if spec.router else []) + services + self.vehicle_identities(host)
+
+    def vehicle_identities(self, host: str) -> list[str]:
+        return [vehicle_identity(v) for v in self.hosts[host].vehicles]
 
     def all_identities(self) -> list[str]:
         return ["operator", *(i for h in self.hosts for i in self.identities(h))]
@@ -130,7 +143,7 @@ def load_layout(path: Path) -> Layout:
 def router_subjects(layout: Layout, host: str) -> dict[str, list[str]]:
     """Certificate CN -> the identities whose grants it holds, at `host`'s router."""
     spec = layout.hosts[host]
-    subjects = {s.identity: [s.identity] for s in spec.service_specs()}
+    subjects = {i: [i] for i in layout.identities(host) if i != spec.router}
     if host == layout.cloud_host:
         subjects["operator"] = ["operator"]
         for other, other_spec in layout.hosts.items():
@@ -138,8 +151,8 @@ def router_subjects(layout: Layout, host: str) -> dict[str, list[str]]:
                 continue
             if other_spec.router:  # a site: its router speaks for its identities
                 subjects[other_spec.router] = layout.identities(other)
-            else:
-                subjects.update({s.identity: [s.identity] for s in other_spec.service_specs()})
+            else:  # a host without a router: its identities connect to the cloud's one by one
+                subjects.update({i: [i] for i in layout.identities(other)})
     else:  # the cloud router speaks for everyone not at this site
         subjects[CLOUD_ROUTER] = [i for i in layout.all_identities() if i not in layout.identities(host)]
     return subjects
@@ -258,6 +271,16 @@ environment={environment}
 """
 
 
+def write_vehicle_configs(layout: Layout, host: str, pki_dir: Path, out_dir: Path) -> Path:
+    """The Zenoh config of each vehicle identity on `host`, as `<dir>/vehicle-<id>.json` (what the sim's
+    `--vehicle-configs` reads); returns the directory."""
+    vehicles_dir = out_dir / "vehicles"
+    vehicles_dir.mkdir(parents=True, exist_ok=True)
+    for identity in layout.vehicle_identities(host):
+        (vehicles_dir / f"{identity}.json").write_text(identity_config(layout, host, identity, pki_dir))
+    return vehicles_dir
+
+
 def render_host(layout: Layout, host: str, pki_dir: Path, out_dir: Path) -> Path:
     """Write `host`'s configs and its supervisord.conf under `out_dir`; returns the latter."""
     if host not in layout.hosts:
@@ -276,6 +299,8 @@ def render_host(layout: Layout, host: str, pki_dir: Path, out_dir: Path) -> Path
         config.write_text(identity_config(layout, host, svc.identity, pki_dir))
         env = {**service_environment(svc.identity, pki_dir), **svc.env}
         args = svc.command or default_command(svc.identity)
+        if svc.identity == "sim" and spec.vehicles:
+            args = [*args, "--vehicle-configs", str(write_vehicle_configs(layout, host, pki_dir, out_dir))]
         programs.append(supervisor_program(svc.identity, args, config, env, logs))
     conf = out_dir / "supervisord.conf"
     conf.write_text(

@@ -22,6 +22,7 @@ from shared.bus.node import Node, Subscription
 from shared.bus.session import open_session
 from shared.security.pki import init_pki
 from shared.security.sites import Layout, identity_config, load_layout
+from sim.config import fleet_ids
 from tests.helpers import REPO_ROOT, Router, spawn, stop
 from tests.integration import netns
 from tests.integration.coordinator_client import MapLog
@@ -95,9 +96,10 @@ AGENTS = ("agent1", "agent2", "agent3")
 OCTETS = {"cloud": 10, "site1": 11, "site2": 12, "site3": 13, "vehicles": 20}
 
 
-def five_host_layout(hosts: netns.NetHosts, sim_args: tuple[str, ...] = ("--vehicles", "10")) -> dict:
+def five_host_layout(hosts: netns.NetHosts, vehicles: int = 10) -> dict:
     """Three sites with a stand-in MEC each (tests/integration/fake_mec.py), the cloud with the real
-    coordinator, the vehicles' host with the real sim driving connected vehicles (route policy plan)."""
+    coordinator, the vehicles' host with the real sim driving `vehicles` connected vehicles (route policy
+    plan), each on its own identity."""
     sites = {
         f"site{i}": {
             "address": hosts.address(f"site{i}"),
@@ -125,7 +127,7 @@ def five_host_layout(hosts: netns.NetHosts, sim_args: tuple[str, ...] = ("--vehi
                 "services": [
                     {
                         "identity": "sim",
-                        "command": ["-m", "services.sim", *sim_args],
+                        "command": ["-m", "services.sim", "--vehicles", str(vehicles)],
                         # The world does not wait for observers on other hosts (pacing reads their data).
                         "env": {
                             "RMMDET_SIM_TRAFFIC__ROUTE_POLICY": "plan",
@@ -133,6 +135,7 @@ def five_host_layout(hosts: netns.NetHosts, sim_args: tuple[str, ...] = ("--vehi
                         },
                     }
                 ],
+                "vehicles": fleet_ids(vehicles),
             },
         },
     }
@@ -219,9 +222,7 @@ def dump_logs(out: Path, lines: int = 15) -> str:
 
 
 @contextlib.contextmanager
-def five_hosts(
-    tmp: Path, startup_s: float, sim_args: tuple[str, ...] = ("--vehicles", "10")
-) -> Iterator[Sites]:
+def five_hosts(tmp: Path, startup_s: float, vehicles: int = 10) -> Iterator[Sites]:
     """The five hosts up, each by `deploy/sites/launch.py`, watched from the bridge as `operator`;
     yields once every agent is LIVE in the coordinator's maps (AssertionError with the logs if not
     within `startup_s`). Everything is stopped and the namespaces removed on exit."""
@@ -231,7 +232,7 @@ def five_hosts(
     watch = Watch()
     out = tmp / "out"
     try:
-        dep = make_deployment(tmp, five_host_layout(hosts, sim_args))
+        dep = make_deployment(tmp, five_host_layout(hosts, vehicles))
         for host in OCTETS:
             (out / host).mkdir(parents=True)
             args = [

@@ -141,6 +141,7 @@ PUTS = [
     ("coordinator", "rmmdet/@v1/vehicles/v1/plan_ack", False),  # forged ack
     ("recorder", "rmmdet/@v1/agent1/objects", False),  # the recorder reads only
     ("sim", "rmmdet/@v1/sim/ground_truth", True),
+    ("sim", "rmmdet/@v1/vehicles/v1/plan_ack", False),  # the world holds no vehicle's rights (issue 34 4.)
     ("mallory", "rmmdet/@v1/agent1/objects", False),  # a certificate of the CA, but no role
 ]
 
@@ -190,6 +191,20 @@ def test_a_rogue_queryable_never_answers_a_vehicle_and_a_vehicle_asks_only_for_i
             forged.undeclare()
     assert own == [b"genuine"]
     assert other == []  # vehicle-v1 may not ask for v2's plans (one plan-book entry per identity)
+
+
+def test_the_sim_cannot_ask_for_a_vehicles_plan(deployment: Deployment) -> None:
+    """The sim drives its vehicles under their own identities (`--vehicle-configs`); its own identity
+    asks for nobody's plan (a stolen sim key forges no vehicle)."""
+    rpc = get_stream("route_rpc")
+    with deployment.session("coordinator") as coordinator, deployment.session("sim") as sim:
+        genuine = coordinator.declare_queryable(rpc.pattern(), lambda q: q.reply(q.key_expr, b"genuine"))
+        time.sleep(SETTLE_S)
+        try:
+            replies = list(sim.get(rpc.key(vehicle="v1"), timeout=1.0))
+        finally:
+            genuine.undeclare()
+    assert [r for r in replies if r.ok is not None] == []
 
 
 def test_must_deliver_history_works_under_access_control(deployment: Deployment) -> None:

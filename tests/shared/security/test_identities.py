@@ -13,7 +13,7 @@ from shared.security.identities import Grant, deployment_identities, parse_ident
     ("name", "grants"),
     [
         ("coordinator", (Grant("coordinator"),)),
-        ("sim", (Grant("sim"), Grant("vehicles"))),
+        ("sim", (Grant("sim"),)),  # its vehicles each have their own identity
         ("router-cloud", (Grant("router"),)),
         ("router-agent2", (Grant("router", {"site": "agent2"}),)),
         ("mec-agent1", (Grant("mec", {"agent": "agent1"}),)),

@@ -54,6 +54,7 @@ def test_routers_see_each_other_as_their_side_of_the_link() -> None:
         "mec-agent1",
     ]
     assert cloud["sim"] == ["sim"] and cloud["coordinator"] == ["coordinator"] and "operator" in cloud
+    assert cloud["vehicle-v03"] == ["vehicle-v03"]  # each of the sim's vehicles connects as itself
     assert "mec-agent1" not in cloud  # it reaches the cloud only through its site's router
     site = router_subjects(layout, "site1")
     assert set(site) == {"sensor-agent1-cameras", "sensor-agent1-lidars", "mec-agent1", "router-cloud"}
@@ -84,6 +85,17 @@ def test_render_host_writes_configs_and_a_supervisord_conf(pki: Path, tmp_path: 
     assert (tmp_path / "coordinator.json").exists() and "RMMDET_COORD_PLAN_SIGNING_KEY" in text
     with pytest.raises(ConfigError, match="no host"):
         render_host(load_layout(THREE_SITES), "mars", pki, tmp_path)
+
+
+def test_the_vehicles_host_gives_the_sim_each_vehicles_identity(pki: Path, tmp_path: Path) -> None:
+    text = render_host(load_layout(THREE_SITES), "vehicles", pki, tmp_path).read_text()
+    command = next(ln for ln in text.splitlines() if ln.startswith("command=") and "services.sim" in ln)
+    assert f"--vehicle-configs {tmp_path / 'vehicles'}" in command
+    configs = sorted(p.name for p in (tmp_path / "vehicles").iterdir())
+    assert configs == [f"vehicle-v{i:02d}.json" for i in range(10)]
+    conf = zenoh.Config.from_json5((tmp_path / "vehicles" / "vehicle-v04.json").read_text())
+    assert get(conf, "transport/link/tls/connect_certificate").endswith("vehicle-v04.pem")
+    assert get(conf, "connect/endpoints") == ["tls/10.77.0.10:7447"]
 
 
 def test_environment_values_survive_supervisord_quoting(tmp_path: Path) -> None:
@@ -132,6 +144,12 @@ def test_an_expired_certificate_is_refused_and_one_near_expiry_warned(
         {"a": {"address": "not-an-ip", "router": "router-cloud"}},
         {"a": {"address": "10.0.0.1", "router": "router-cloud", "services": ["mallory"]}},
         {"a": {"address": "10.0.0.1", "router": "mec-agent1"}},  # not a router
+        {"a": {"address": "10.0.0.1", "router": "router-cloud", "vehicles": ["v01"]}},  # no sim to drive it
+        {"a": {"address": "10.0.0.1", "router": "router-cloud", "services": ["sim"], "vehicles": ["v-1"]}},
+        {
+            "a": {"address": "10.0.0.1", "router": "router-cloud", "services": ["sim"], "vehicles": ["v1"]},
+            "b": {"address": "10.0.0.2", "services": ["vehicle-v1"]},  # the same vehicle twice
+        },
     ],
 )
 def test_bad_layouts_are_config_errors(tmp_path: Path, hosts: dict) -> None:
