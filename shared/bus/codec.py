@@ -32,7 +32,7 @@ MAX_ATTACHMENT_BYTES = 4096
 
 
 class RejectReason(StrEnum):
-    OVERSIZE = "oversize"  # payload or attachment larger than the limit
+    OVERSIZE = "oversize"  # payload, attachment, a string or a list larger than its limit
     ENCODING = "encoding"  # not application/protobuf, or a schema other than the expected one
     DECODE = "decode"  # protobuf parse failed
     NON_FINITE = "non_finite"  # NaN or Inf in a float field
@@ -183,6 +183,56 @@ def find_non_finite(msg: Message, path: str = "") -> str | None:
     return None
 
 
+_STRING_TYPES = (FieldDescriptor.TYPE_STRING,)
+_LISTED_TYPES = (FieldDescriptor.TYPE_STRING, FieldDescriptor.TYPE_BYTES, FieldDescriptor.TYPE_MESSAGE)
+
+
+@functools.cache
+def _shape_plan(descriptor: Descriptor) -> tuple[tuple[FieldDescriptor, bool], ...]:
+    """Fields whose size `find_oversized` bounds: strings and repeated strings, bytes or messages
+    (flagged True), and messages that (transitively) hold one (False). Repeated numbers are bounded
+    by the payload cap and their own validators (a grid's cells, a cloud's points)."""
+    plan: list[tuple[FieldDescriptor, bool]] = []
+    for field in descriptor.fields:
+        if field.type in _STRING_TYPES or (field.is_repeated and field.type in _LISTED_TYPES):
+            plan.append((field, True))
+        elif (
+            field.type == FieldDescriptor.TYPE_MESSAGE
+            and field.message_type is not None
+            and not field.message_type.GetOptions().map_entry
+            and (field.message_type is descriptor or _shape_plan(field.message_type))
+        ):
+            plan.append((field, False))
+    return tuple(plan)
+
+
+def find_oversized(msg: Message, max_string_chars: int, max_list_length: int, path: str = "") -> str | None:
+    """The first string longer than `max_string_chars` or list of strings, bytes or messages longer
+    than `max_list_length` in `msg` (recursively), as 'path: what', or None. Lengths only: a list is
+    measured before any element of it is looked at."""
+    for field, sized in _shape_plan(msg.DESCRIPTOR):
+        value = getattr(msg, field.name)
+        name = f"{path}.{field.name}" if path else field.name
+        if sized:
+            if field.is_repeated and len(value) > max_list_length:
+                return f"{name}: {len(value)} items > {max_list_length}"
+            strings = (value if field.is_repeated else [value]) if field.type in _STRING_TYPES else ()
+            for i, text in enumerate(strings):
+                if len(text) > max_string_chars:
+                    where = f"{name}[{i}]" if field.is_repeated else name
+                    return f"{where}: {len(text)} chars > {max_string_chars}"
+            if field.type != FieldDescriptor.TYPE_MESSAGE:
+                continue
+        children = value if field.is_repeated else ([value] if msg.HasField(field.name) else [])
+        for i, child in enumerate(children):
+            found = find_oversized(
+                child, max_string_chars, max_list_length, f"{name}[{i}]" if field.is_repeated else name
+            )
+            if found:
+                return found
+    return None
+
+
 #: Valid google.protobuf.Timestamp values (its own definition: 0001-01-01 .. 9999-12-31; we need no
 #: time before the Unix epoch). Outside them `ToNanoseconds` and friends raise.
 TIMESTAMP_SECONDS_MAX = 253_402_300_799
@@ -270,6 +320,12 @@ def validate(msg: Message) -> None:
     problem = count_problem(msg)
     if problem:
         raise Rejected(RejectReason.RANGE, problem)
+    from shared.bus.streams import limits  # local: streams imports this module's users
+
+    bounds = limits()
+    problem = find_oversized(msg, bounds.max_string_chars, bounds.max_list_length)
+    if problem:
+        raise Rejected(RejectReason.OVERSIZE, problem)
     bad = find_non_finite(msg)
     if bad:
         raise Rejected(RejectReason.NON_FINITE, f"non-finite value in {bad}")

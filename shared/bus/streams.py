@@ -147,6 +147,8 @@ class Limits:
     max_plan_version: int
     max_claimed_plan_version: int
     max_grid_cells: int
+    max_string_chars: int
+    max_list_length: int
 
     def __post_init__(self) -> None:
         if min(self.max_clock_skew_s, self.order_reset_s, self.min_tick_hz) <= 0:
@@ -157,8 +159,8 @@ class Limits:
             raise ValueError("limits: max_objects_per_list >= 1, max_plan_version in [1, 2^63)")
         if not 0 <= self.max_claimed_plan_version < self.max_plan_version:
             raise ValueError("limits: max_claimed_plan_version in [0, max_plan_version)")
-        if self.max_grid_cells < 1:
-            raise ValueError("limits: max_grid_cells >= 1")
+        if min(self.max_grid_cells, self.max_string_chars, self.max_list_length) < 1:
+            raise ValueError("limits: max_grid_cells, max_string_chars, max_list_length >= 1")
 
 
 @functools.cache

@@ -8,7 +8,7 @@ import pytest
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from google.protobuf.message import Message
 from rmmdet.v1.common_pb2 import Header
-from rmmdet.v1.perception_pb2 import TrackedObject, TrackedObjects
+from rmmdet.v1.perception_pb2 import DetectedObject, DetectedObjects, TrackedObject, TrackedObjects
 from rmmdet.v1.planning_pb2 import RoutePlan, RouteRequest
 from rmmdet.v1.sensors_pb2 import CalibrationSet
 from rmmdet.v1.sim_pb2 import GroundTruth, SimClock
@@ -210,11 +210,27 @@ def _gt(tick: int = 120, tick_hz: float = 60.0, epoch: int = 10**18) -> GroundTr
         (_clock(1e12), "target speed"),  # unbounded, it moved every follower's clock at will (issue 34)
         (TrafficMap(grid=TrafficGrid(column_count=100_000, row_count=100_000, cell_size_m=0.25)), "cells"),
         (TrafficMap(grid=TrafficGrid(column_count=32, row_count=40, cell_size_m=0.25)), None),
+        # Strings and lists (limits.max_string_chars, max_list_length: issue 34), nested ones included
+        (RouteRequest(vehicle_id="v" * 4097), "vehicle_id: 4097 chars > 4096"),
+        (RouteRequest(vehicle_id="v" * 4096), None),
+        (RoutePlan(vehicle_id="v", plan_id="p", version=1, lane_ids=["l"] * 4097), "lane_ids: 4097 items"),
+        (
+            RoutePlan(vehicle_id="v", plan_id="p", version=1, lane_ids=["l", "x" * 5000]),
+            "lane_ids[1]: 5000 chars",
+        ),
+        (
+            lambda m: (m.header.processing.add(stage="s" * 5000), m)[1],
+            "header.processing[0].stage: 5000 chars",
+        ),
+        (
+            DetectedObjects(objects=[DetectedObject(sensor_ids=["c"] * 5000)]),
+            "objects[0].sensor_ids: 5000 items",
+        ),
     ],
 )
 def test_physical_ranges_and_caps(msg, problem: str | None) -> None:
     """streams.yaml `limits`: tick rate in [1, 1000] Hz, stamps on their tick, 512 objects, plan
-    versions <= 2^53 - 1 and claimed versions <= 2^52 - 1."""
+    versions <= 2^53 - 1 and claimed versions <= 2^52 - 1, strings and lists of at most 4096."""
     if callable(msg):
         msg = msg(_gt())
     try:  # the whole check: list caps first, then values (shared.bus.codec.validate)
