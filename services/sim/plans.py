@@ -1,4 +1,5 @@
-"""The connected vehicles' side of route planning on the bus (route_policy `plan`).
+"""The sim's fleet of connected vehicles on the bus (route_policy `plan`), each through the vehicle
+library a real car runs (shared/vehicle/plan_client.py: its request, checks, retries, expiry, acks).
 
 Each vehicle is a client of the coordinator: once per lane (`TrafficSim.needs_plan`) it sends a
 RouteRequest on the route RPC key with a non-blocking query; the reply (or an error, or nothing by
@@ -24,20 +25,16 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass
-from typing import cast
 
-import zenoh
-from google.protobuf.message import DecodeError
-from rmmdet.v1.common_pb2 import ErrorCode, ErrorResponse, Header
-from rmmdet.v1.planning_pb2 import RouteAck, RoutePlan, RouteRequest, RouteResponse
+from rmmdet.v1.common_pb2 import Header
+from rmmdet.v1.planning_pb2 import RoutePlan, RouteRequest, RouteResponse
 
-from shared.bus.codec import Counters, MessageDecoder, encode
-from shared.bus.node import Node, Publisher, Received
+from shared.bus.codec import MessageDecoder
+from shared.bus.node import Node, Received
 from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.bus.streams import get_stream
-from shared.security.plan_signing import PlanVerifier
-from shared.traffic.plans import Ack, plan_problem
+from shared.traffic.plans import Ack
+from shared.vehicle.plan_client import Outcome, PlanCheck, PlanExpiry, RequestRetry, VehicleLink
 from sim.traffic import TrafficSim, Vehicle
 
 log = logging.getLogger("services.sim.plans")
@@ -48,87 +45,6 @@ PUSHED_QUEUE = 1024  # pushed plans held between ticks
 #: After a coordinator's presence token appears, every vehicle asks for a plan this much later, wall s:
 #: the token comes with its session, the route queryable a moment after.
 REASK_AFTER_JOIN_S = 0.3
-ERROR_NAMES = {v: ErrorCode.Name(v).removeprefix("ERROR_CODE_").lower() for v in ErrorCode.values()}
-
-
-@dataclass(frozen=True)
-class Outcome:
-    """A finished request: the plan, or why there is none (`error` names the counter)."""
-
-    vehicle_id: str
-    plan: RoutePlan | None
-    error: str = ""
-
-
-class PlanCheck:
-    """`plan_problem` with the vehicles' trusted keys and TTL bound; counts what it refuses. Called on
-    Zenoh threads (replies) and the main loop (pushes): stateless but for the thread-safe counters."""
-
-    def __init__(
-        self, verifier: PlanVerifier, max_ttl_s: float, counters: Counters, run_start_ns: int = 0
-    ) -> None:
-        self.verifier = verifier
-        self.max_ttl_s = max_ttl_s
-        self.counters = counters
-        self.run_start_ns = run_start_ns  # plans issued before this run are replays (plan_before_run)
-
-    def accept(self, plan: RoutePlan) -> bool:
-        problem = plan_problem(plan, self.verifier, time.time_ns(), self.max_ttl_s, self.run_start_ns)
-        if problem is not None:
-            self.counters.inc(f"rejected/{problem}")
-        return problem is None
-
-
-class PlanExpiry:
-    """When each vehicle's followed plan runs out (`valid_until`, wall ns): the plan is dropped then and
-    the vehicle routes itself by the shortest route, as with no coordinator, until a new plan comes (it
-    asks at its next lane as always). A coordinator that is gone therefore steers nobody for longer than
-    its plans' TTL (`plan_ttl_s`, 120 s)."""
-
-    def __init__(self) -> None:
-        self._until_ns: dict[str, int] = {}
-
-    def followed(self, vehicle_id: str, valid_until_ns: int) -> None:
-        self._until_ns[vehicle_id] = valid_until_ns
-
-    def expired(self, now_ns: int) -> list[str]:
-        """Vehicles whose plan ran out by `now_ns` (each reported once)."""
-        out = [v for v, until in self._until_ns.items() if until <= now_ns]
-        for v in out:
-            del self._until_ns[v]
-        return out
-
-
-class RequestRetry:
-    """When a vehicle asks again after a request went unanswered (`no_reply`: the router restarting, the
-    coordinator not reachable for a moment): after `first_s`, doubling, at most `attempts` times in a
-    row; an answer clears it. Monotonic seconds."""
-
-    def __init__(self, first_s: float = 1.0, attempts: int = 4) -> None:
-        self.first_s, self.attempts = first_s, attempts
-        self._tries: dict[str, int] = {}
-        self._due_s: dict[str, float] = {}
-
-    def unanswered(self, vehicle_id: str, now_s: float) -> bool:
-        """A request of `vehicle_id` went unanswered: True if another is scheduled, False if it gives up."""
-        tries = self._tries.get(vehicle_id, 0)
-        if tries >= self.attempts:
-            self.answered(vehicle_id)
-            return False
-        self._tries[vehicle_id] = tries + 1
-        self._due_s[vehicle_id] = now_s + self.first_s * 2**tries
-        return True
-
-    def answered(self, vehicle_id: str) -> None:
-        self._tries.pop(vehicle_id, None)
-        self._due_s.pop(vehicle_id, None)
-
-    def due(self, now_s: float) -> list[str]:
-        """Vehicles to ask again now (each once per scheduled retry)."""
-        out = [v for v, t in self._due_s.items() if t <= now_s]
-        for v in out:
-            del self._due_s[v]
-        return out
 
 
 class PlanClient:
@@ -146,27 +62,6 @@ class PlanClient:
         self.traffic = traffic
         self.counters = node.counters
         self.check = check
-        rpc = get_stream("route_rpc")
-
-        # One querier per vehicle, on its own key, declared for the whole run (declaring per request
-        # would churn declarations). Every queryable on the key is asked (target ALL: Zenoh's default
-        # asks only a "complete" one when there is one, which any client may declare) and every reply
-        # is delivered as it comes (no consolidation: by default replies on one key are held and only
-        # the newest is delivered, so a rogue replying last would hide the coordinator's): the first
-        # valid reply is taken.
-        def node_of(vehicle_id: str) -> Node:
-            return vehicle_nodes[vehicle_id] if vehicle_nodes is not None else node
-
-        self.queriers = {
-            v.id: node_of(v.id).session.declare_querier(
-                rpc.key(vehicle=v.id),
-                target=zenoh.QueryTarget.ALL,
-                consolidation=zenoh.ConsolidationMode.NONE,
-                timeout=request_timeout_s,
-                **rpc.qos.publisher_kwargs(),
-            )
-            for v in traffic.vehicles
-        }
         self.decoder = MessageDecoder(RouteResponse, node.counters)
         self.outcomes: BoundedQueue[Outcome] = BoundedQueue(
             REPLY_QUEUE_PER_VEHICLE * max(1, len(traffic.vehicles)),
@@ -177,16 +72,20 @@ class PlanClient:
         self.pushed: BoundedQueue[Received] = BoundedQueue(
             PUSHED_QUEUE, OverflowPolicy.DROP_OLDEST, node.counters, "dropped/pushed_plans"
         )
-        if vehicle_nodes is None:
+        if vehicle_nodes is None:  # one subscription hears every vehicle's pushes
             node.subscribe_stream("route_plan", queue=self.pushed)
-        else:  # each vehicle hears only its own plans
-            for v in traffic.vehicles:
-                vehicle_nodes[v.id].subscribe_stream("route_plan", queue=self.pushed, vehicle=v.id)
-        self.ack_pubs: dict[str, Publisher] = {
-            v.id: node_of(v.id).publisher("route_ack", vehicle=v.id, source_id=f"vehicles/{v.id}")
+        self.links = {
+            v.id: VehicleLink(
+                vehicle_nodes[v.id] if vehicle_nodes is not None else node,
+                v.id,
+                request_timeout_s,
+                check,
+                self.decoder,
+                self.outcomes,
+                self.pushed if vehicle_nodes is not None else None,  # each hears only its own
+            )
             for v in traffic.vehicles
         }
-        self._request_seq: dict[str, int] = dict.fromkeys(self.ack_pubs, 0)
         self.expiry = PlanExpiry()
         # A coordinator that (re)appears serves every vehicle at once, from the vehicles' own state
         # (current lane, destination, followed version): nobody waits for its next lane to be re-planned.
@@ -199,8 +98,8 @@ class PlanClient:
         self._by_id = {v.id: v for v in traffic.vehicles}
 
     def close(self) -> None:
-        for querier in self.queriers.values():
-            querier.undeclare()
+        for link in self.links.values():
+            link.close()
 
     def summary(self) -> dict[str, int]:
         """Request and acknowledgement counters, for the periodic log."""
@@ -247,25 +146,13 @@ class PlanClient:
     def request(self, v: Vehicle, stamp_ns: int) -> None:
         lane, progress_m = self.traffic.plan_origin(v)
         req = RouteRequest(
-            vehicle_id=v.id,
             current_lane_id=lane,
             lane_progress_m=progress_m,
             destination_junction_id=self.traffic.routing_destination(v),
             current_plan_version=v.plan_version,
         )
         req.position_m.x_m, req.position_m.y_m = v.x, v.y
-        self._request_seq[v.id] += 1
-        req.header.source_id = f"vehicles/{v.id}"
-        req.header.seq = self._request_seq[v.id]
-        req.header.stamp.FromNanoseconds(stamp_ns)
-        req.header.frame_id = "world"
-        encoded = encode(req)
-        handler = _ReplyHandler(v.id, self.decoder, self.outcomes, self.check)
-        self.queriers[v.id].get(
-            zenoh.handlers.Callback(handler.on_reply, handler.on_done),
-            payload=encoded.payload,
-            encoding=encoded.encoding,
-        )
+        self.links[v.id].request(req, stamp_ns)
         self.counters.inc("plans/requested")
 
     def apply_pushed(self, received: Received) -> None:
@@ -278,7 +165,7 @@ class PlanClient:
 
     def apply(self, plan: RoutePlan) -> None:
         """Hand the plan to its vehicle and acknowledge with the vehicle's decision."""
-        if plan.vehicle_id not in self.ack_pubs:
+        if plan.vehicle_id not in self.links:
             self.counters.inc("rejected/plan_unknown_vehicle")
             return
         reason = ""
@@ -296,74 +183,6 @@ class PlanClient:
     def acknowledge(
         self, vehicle_id: str, plan_id: str, version: int, status: Ack, reason: str, stamp: Header | int
     ) -> None:
-        """Publish the vehicle's RouteAck; `stamp`: the plan's header (the ack keeps its data stamp) or,
-        for a plan's end, the tick's stamp in ns."""
+        """Publish the vehicle's RouteAck (`VehicleLink.acknowledge`), counted by status."""
         self.counters.inc(f"acks/{status.name.lower()}")
-        ack = RouteAck(
-            vehicle_id=vehicle_id,
-            plan_id=plan_id,
-            version=version,
-            status=status.value,  # Ack mirrors AckStatus
-            reason=reason,
-        )
-        if isinstance(stamp, Header):
-            self.ack_pubs[vehicle_id].put(ack, derived_from=stamp)
-        else:
-            self.ack_pubs[vehicle_id].put(ack, stamp_ns=stamp)
-
-
-class _ReplyHandler:
-    """Callbacks of one request. They run on Zenoh threads: decode and enqueue only."""
-
-    def __init__(
-        self, vehicle_id: str, decoder: MessageDecoder, outcomes: BoundedQueue[Outcome], check: PlanCheck
-    ) -> None:
-        self.vehicle_id = vehicle_id
-        self.decoder = decoder
-        self.outcomes = outcomes
-        self.check = check
-        self.answered = False
-        self.failed = False  # an error or bad reply was reported: no `no_reply` on top of it
-
-    def on_reply(self, reply: zenoh.Reply) -> None:
-        """The first valid reply is the answer. Every reply is checked, also after the answer: a rogue
-        queryable's forged plans are refused and counted whether they come before the coordinator's
-        reply or after it; a valid extra reply is counted (`plans/extra_replies`) and not applied."""
-        try:
-            if reply.ok is not None:
-                sample = reply.ok
-                attachment = sample.attachment.to_bytes() if sample.attachment is not None else None
-                decoded = self.decoder.decode(sample.payload.to_bytes(), str(sample.encoding), attachment)
-                if decoded is None:  # counted by the decoder as rejected/<reason>
-                    self._fail("bad_reply")
-                    return
-                response = cast(RouteResponse, decoded.message)
-                if response.plan.vehicle_id != self.vehicle_id:
-                    self.check.counters.inc("rejected/plan_wrong_vehicle")
-                elif self.check.accept(response.plan):  # else counted; a genuine reply may follow
-                    if self.answered:
-                        self.check.counters.inc("plans/extra_replies")
-                    else:
-                        self.answered = True
-                        self.outcomes.put(Outcome(self.vehicle_id, response.plan))
-                return
-            error = ErrorResponse()
-            try:
-                error.ParseFromString(reply.err.payload.to_bytes() if reply.err is not None else b"")
-            except DecodeError:
-                error.code = ErrorCode.ERROR_CODE_UNSPECIFIED
-            self._fail(f"error_{ERROR_NAMES.get(error.code, 'other')}")
-        except Exception:  # never raise into Zenoh's thread
-            log.exception("route reply for %s failed", self.vehicle_id)
-            self._fail("bad_reply")
-
-    def _fail(self, error: str) -> None:
-        """Report the first failure only, and none after the answer (a valid reply may still come and is
-        taken then)."""
-        if not self.failed and not self.answered:
-            self.failed = True
-            self.outcomes.put(Outcome(self.vehicle_id, None, error))
-
-    def on_done(self) -> None:
-        if not self.answered and not self.failed:
-            self.outcomes.put(Outcome(self.vehicle_id, None, "no_reply"))
+        self.links[vehicle_id].acknowledge(plan_id, version, status, reason, stamp)
