@@ -11,12 +11,10 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from shared.bus.streams import limits
 from shared.config import RmmdetSettings, deep_merge, load_settings, settings_config
-from shared.paths import DEFAULT_PKI_DIR, DEFAULT_SCENE, REPO_ROOT
-from shared.security.pki import trusted_plan_keys
+from shared.paths import DEFAULT_SCENE, REPO_ROOT
 from shared.timebase import MAX_SIM_SPEED
-from shared.traffic.config import PlannerConfig
+from shared.vehicle.config import PlanClientSettings
 
 DEFAULT_SIM_CONFIG = REPO_ROOT / "deploy" / "sim" / "sim.yaml"
 
@@ -109,7 +107,9 @@ class PacingSettings(_Model):
     )
 
 
-class SimSettings(RmmdetSettings):
+class SimSettings(RmmdetSettings, PlanClientSettings):
+    """The sim; its vehicles' plan client settings (route_policy=plan) are PlanClientSettings'."""
+
     model_config = settings_config(env_prefix="RMMDET_SIM_")
 
     scene: Path = Field(DEFAULT_SCENE, description="scene YAML")
@@ -128,25 +128,6 @@ class SimSettings(RmmdetSettings):
     )
     calibration_publish_hz: float = Field(1.0, gt=0, description="per-agent CalibrationSet republish rate")
     collision_check_hz: float = Field(10.0, gt=0, description="rate of the vehicle overlap monitor")
-    plan_request_timeout_s: float = Field(
-        1.0,
-        gt=0,
-        description="route_policy=plan: a route request unanswered by then is given up (the vehicle keeps "
-        "its route and asks again on its next lane)",
-    )
-    plan_verify_keys: list[Path] = Field(
-        default_factory=lambda: trusted_plan_keys(DEFAULT_PKI_DIR),
-        min_length=1,
-        description="route_policy=plan: Ed25519 public keys (PEM) of the coordinator; a plan signed by "
-        "none of them is refused. Default: the PKI's current plan key and the next one once staged",
-    )
-    plan_max_ttl_s: float = Field(
-        default_factory=lambda: PlannerConfig().plan_ttl_s + limits().max_clock_skew_s,
-        gt=0,
-        description="route_policy=plan: a plan valid for longer than this from now is refused; by default "
-        "what the coordinator issues (its planner's plan_ttl_s) plus the bus's clock skew (a vehicle "
-        "accepted 600 s while the coordinator issued 120 s: a recorded plan outlived its run)",
-    )
     traffic: TrafficSettings = TrafficSettings()
     pacing: PacingSettings = PacingSettings()
 
@@ -161,5 +142,5 @@ def load_sim_settings(
     settings = load_settings(SimSettings, path, **deep_merge(overrides, nested))
     if not settings.scene.is_absolute():
         settings.scene = REPO_ROOT / settings.scene
-    settings.plan_verify_keys = [k if k.is_absolute() else REPO_ROOT / k for k in settings.plan_verify_keys]
+    settings.resolve_paths()
     return settings

@@ -28,6 +28,8 @@ HELP = """`rmmdet`: command-line tool for a running RMMDet system.
     rmmdet record [--out F.mcap] [--key K ...] [--duration S]   record bus traffic to MCAP
     rmmdet replay F.mcap [--speed 1|N|0] [--key K ...] [--loop] [--live-keys]  publish a recording
                                      again, on replay/<key> unless --live-keys
+    rmmdet vehicle --id v03 [--lane L] [--ros2] [--json]   one vehicle's plan client: hear, verify,
+                                     print or forward to a ROS 2 car, and acknowledge its plans
     rmmdet snapshot [--out docs/images] [--at-s 20]   offline: camera PNGs + bird's-eye map of the sim
     rmmdet dataset generate --out DIR [--config deploy/datasets/default.yaml] [--workers 2]
     rmmdet eval detectors [--data DIR] [--split test] [--camera onnx] [--lidar pointpillars] [--out F.json]

@@ -1,4 +1,4 @@
-"""`rmmdet` commands for a running system: topics, health, wait-ready, record, replay."""
+"""`rmmdet` commands for a running system: topics, health, wait-ready, record, replay, vehicle."""
 
 from __future__ import annotations
 
@@ -19,6 +19,7 @@ from services.cli.app import (
     DATA_KEYS,
     LOOP_S,
     REPLAY_LINGER_S,
+    ZenohOptions,
     app,
     connect,
     console,
@@ -317,3 +318,36 @@ def replay_cmd(
         + (f"{achieved:.2f}x" if achieved is not None else "n/a")
         + (" [stopped]" if stats.stopped else "")
     )
+
+
+# --- vehicle ---------------------------------------------------------------------------------------
+
+
+@app.command()
+def vehicle(
+    ctx: typer.Context,
+    vehicle_id: Annotated[str, typer.Option("--id", help="the vehicle's id (e.g. v03)")],
+    lane: Annotated[str | None, typer.Option(help="the lane it is on: ask for a plan from it")] = None,
+    destination: Annotated[str | None, typer.Option(help="junction to plan to")] = None,
+    ros2: Annotated[bool, typer.Option("--ros2", help="forward plans to a ROS 2 car (deploy/ros2/)")] = False,
+    namespace: Annotated[str | None, typer.Option(help="the car's bridge namespace (default /<id>)")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="one JSON object per line")] = False,
+    plans: Annotated[int, typer.Option(help="exit after this many plans (0: run on)")] = 0,
+    duration_s: Annotated[float, typer.Option(help="exit after this long (0: run on)")] = 0.0,
+) -> None:
+    """One vehicle's plan client: hear, verify, print (or forward to a ROS 2 car), acknowledge its plans."""
+    from services.vehicle.main import cli as vehicle_cli  # local: the other commands need none of it
+
+    opts: ZenohOptions = ctx.obj
+    argv = ["--instance", vehicle_id, "--config", str(opts.config), "--plans", str(plans)]
+    argv += ["--duration-s", str(duration_s)]
+    argv += [f"--lane={lane}"] if lane is not None else []
+    argv += [f"--destination={destination}"] if destination is not None else []
+    argv += ["--ros2"] if ros2 else []
+    argv += [f"--namespace={namespace}"] if namespace is not None else []
+    argv += ["--json"] if as_json else []
+    for endpoint in opts.connect:
+        argv += ["--connect", endpoint]
+    for override in opts.cfg:
+        argv += ["--cfg", override]
+    raise typer.Exit(vehicle_cli(argv))
