@@ -206,7 +206,13 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                     offer(outcome.plan, outcome.plan.header, "requested")
                 else:
                     counters.inc(f"plans/{outcome.error}")
-                    report("no_plan", f"request failed: {outcome.error}", error=outcome.error)
+                    why = f" ({outcome.detail})" if outcome.detail else ""
+                    report(
+                        "no_plan",
+                        f"request failed: {outcome.error}{why}",
+                        error=outcome.error,
+                        detail=outcome.detail,
+                    )
                     if outcome.error == "no_reply" and not retry.unanswered(vehicle_id, now_s):
                         counters.inc("plans/given_up")
             if retry.due(now_s):

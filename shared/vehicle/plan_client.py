@@ -33,6 +33,7 @@ from shared.traffic.plans import Ack, plan_problem
 
 log = logging.getLogger(__name__)
 
+MAX_DETAIL_CHARS = 200  # of an error reply's message, kept for the vehicle's report
 ERROR_NAMES = {v: ErrorCode.Name(v).removeprefix("ERROR_CODE_").lower() for v in ErrorCode.values()}
 
 
@@ -43,6 +44,7 @@ class Outcome:
     vehicle_id: str
     plan: RoutePlan | None
     error: str = ""
+    detail: str = ""  # the coordinator's words, for an error reply (bounded by the codec's string limit)
 
 
 class PlanCheck:
@@ -222,17 +224,17 @@ class ReplyHandler:
                 error.ParseFromString(reply.err.payload.to_bytes() if reply.err is not None else b"")
             except DecodeError:
                 error.code = ErrorCode.ERROR_CODE_UNSPECIFIED
-            self._fail(f"error_{ERROR_NAMES.get(error.code, 'other')}")
+            self._fail(f"error_{ERROR_NAMES.get(error.code, 'other')}", error.message[:MAX_DETAIL_CHARS])
         except Exception:  # never raise into Zenoh's thread
             log.exception("route reply for %s failed", self.vehicle_id)
             self._fail("bad_reply")
 
-    def _fail(self, error: str) -> None:
+    def _fail(self, error: str, detail: str = "") -> None:
         """Report the first failure only, and none after the answer (a valid reply may still come and is
         taken then)."""
         if not self.failed and not self.answered:
             self.failed = True
-            self.outcomes.put(Outcome(self.vehicle_id, None, error))
+            self.outcomes.put(Outcome(self.vehicle_id, None, error, detail))
 
     def on_done(self) -> None:
         if not self.answered and not self.failed:
