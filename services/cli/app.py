@@ -31,6 +31,8 @@ HELP = """`rmmdet`: command-line tool for a running RMMDet system.
     rmmdet vehicle --id v03 [--lane L] [--ros2] [--json]   one vehicle's plan client: hear, verify,
                                      print or forward to a ROS 2 car, and acknowledge its plans
     rmmdet snapshot [--out docs/images] [--at-s 20]   offline: camera PNGs + bird's-eye map of the sim
+    rmmdet export RUN.mcap --out DIR [--format kitti|ros2]   a run's object lists and plans as KITTI
+                                     label files and a ROS 2 bag (mcap)
     rmmdet dataset generate --out DIR [--config deploy/datasets/default.yaml] [--workers 2]
     rmmdet eval detectors [--data DIR] [--split test] [--camera onnx] [--lidar pointpillars] [--out F.json]
     rmmdet eval fusion [--agent agent1] [--seed 201] [--duration-s 60] [--workers 2] [--out docs/eval/fusion]

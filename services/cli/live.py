@@ -30,7 +30,7 @@ from shared.bus.liveliness import alive_tokens
 from shared.bus.streams import get_stream
 from shared.paths import DEFAULT_SCENE
 from shared.recording.bus import REPLAY_PREFIX, ReplayPublisher, key_filter, overlapping, subscribe_recorder
-from shared.recording.reader import RecordingReader
+from shared.recording.reader import NotARecording, RecordingReader
 from shared.recording.recorder import Recorder
 from shared.recording.schedule import ReplayStats, check_speed, replay
 from shared.recording.writer import RecordingWriter, default_recording_path
@@ -282,8 +282,12 @@ def replay_cmd(
     except ValueError as err:
         raise typer.BadParameter(str(err)) from None
     selected = key_filter(check_key_exprs(key or []))
-    with RecordingReader(file) as reader:
-        keys = [k for k in reader.data_keys() if selected is None or selected(k)]
+    try:
+        with RecordingReader(file) as reader:
+            keys = [k for k in reader.data_keys() if selected is None or selected(k)]
+    except (OSError, NotARecording) as err:
+        console.print(f"[red]{file}: {err}[/]")
+        raise typer.Exit(2) from None
     if not keys:
         console.print(f"[red]nothing to replay in {file}[/]")
         raise typer.Exit(1)

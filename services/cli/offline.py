@@ -1,5 +1,5 @@
-"""`rmmdet` commands that need no running system: snapshot, dataset, eval, experiments (the studies
-run in `studies/`; these parse options and print)."""
+"""`rmmdet` commands that need no running system: snapshot, export, dataset, eval, experiments (the
+studies run in `studies/`; these parse options and print)."""
 
 from __future__ import annotations
 
@@ -34,6 +34,36 @@ def snapshot(
     settings = load_sim_settings(vehicles=vehicles, seed=seed)
     written = take_snapshot(Scene.load(settings.scene), settings, at_s, out)
     console.print(f"wrote {len(written)} images to {out}: " + ", ".join(p.name for p in written))
+
+
+@app.command()
+def export(
+    recording: Annotated[Path, typer.Argument(help="a recording (rmmdet record) of the run")],
+    out: Annotated[Path, typer.Option(help="output folder (kitti/, ros2/ inside)")],
+    fmt: Annotated[
+        list[str] | None, typer.Option("--format", help="kitti, ros2 (repeatable; default both)")
+    ] = None,
+    scene: Annotated[Path, typer.Option(help="scene YAML: the plans' lanes")] = DEFAULT_SCENE,
+    force: Annotated[bool, typer.Option(help="replace an existing output folder")] = False,
+) -> None:
+    """Offline: a run's object lists and plans as KITTI label files and a ROS 2 bag (mcap)."""
+    from shared.export.run import FORMATS, ExportError, export_recording
+    from shared.scene.road_network import RoadNetwork
+
+    try:
+        report = export_recording(
+            recording, out, RoadNetwork(Scene.load(scene)), tuple(fmt or FORMATS), force=force
+        )
+    except ExportError as err:
+        console.print(f"[red]{err}[/]")
+        raise typer.Exit(2) from None
+    lists = ", ".join(f"{a} {n}" for a, n in sorted(report.object_lists.items())) or "none"
+    console.print(
+        f"{out}: object lists {lists}; plans of {len(report.plans)} vehicles "
+        f"({sum(report.plans.values())}); {report.skipped} records of other streams skipped"
+    )
+    if report.truncated:
+        console.print(f"[yellow]{recording} is cut off: exported what was complete before the cut[/]")
 
 
 dataset_app = typer.Typer(add_completion=False, no_args_is_help=True, help="auto-labelled datasets (offline)")

@@ -27,6 +27,7 @@ from mcap.reader import McapReader, NonSeekingReader, make_reader
 from mcap.records import Channel, Schema
 from mcap.records import Message as McapMessage
 from mcap.summary import Summary
+from mcap.writer import MCAP0_MAGIC
 from rmmdet.v1.common_pb2 import Header
 
 from shared.bus.codec import has_body_header
@@ -77,6 +78,10 @@ def _encoding(schema: Schema | None, channel: Channel) -> str | None:
     return None
 
 
+class NotARecording(ValueError):
+    """The file is not an MCAP recording at all (a cut-off one is read as far as it goes)."""
+
+
 class RecordingReader:
     """Reads an MCAP recording from a path (opened and closed here) or a seekable binary stream."""
 
@@ -89,6 +94,13 @@ class RecordingReader:
             self._owns_stream = False
         self._summary: Summary | None = None
         self.truncated = False
+        start = self._stream.tell()
+        magic = self._stream.read(len(MCAP0_MAGIC))
+        self._stream.seek(start)
+        if magic != MCAP0_MAGIC:  # a foreign file is an error, not an empty recording
+            if self._owns_stream:
+                self._stream.close()
+            raise NotARecording(f"not an MCAP recording (starts {magic!r})")
         try:
             self._summary = make_reader(self._stream).get_summary()
         except _TRUNCATION_ERRORS as err:

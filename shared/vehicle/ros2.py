@@ -74,25 +74,31 @@ def plan_poses(plan: RoutePlan, network: RoadNetwork) -> np.ndarray:
     return np.concatenate(rows) if rows else np.zeros((0, 4))
 
 
+def ros_header(store: Any, stamp_ns: int, frame_id: str = FRAME_ID) -> Any:
+    """A std_msgs/msg/Header at `stamp_ns`."""
+    sec, nanosec = divmod(stamp_ns, 1_000_000_000)
+    time_cls = store.types["builtin_interfaces/msg/Time"]
+    return store.types["std_msgs/msg/Header"](stamp=time_cls(sec=sec, nanosec=nanosec), frame_id=frame_id)
+
+
+def ros_pose(store: Any, x: float, y: float, z: float, yaw_rad: float) -> Any:
+    """A geometry_msgs/msg/Pose at (x, y, z), m, turned `yaw_rad` about z."""
+    types = store.types
+    quat = types["geometry_msgs/msg/Quaternion"]
+    return types["geometry_msgs/msg/Pose"](
+        position=types["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=float(z)),
+        orientation=quat(x=0.0, y=0.0, z=math.sin(yaw_rad / 2), w=math.cos(yaw_rad / 2)),
+    )
+
+
 def plan_path_cdr(plan: RoutePlan, network: RoadNetwork, store: Any) -> bytes:
     """The plan as a CDR nav_msgs/msg/Path (module docstring)."""
-    types = store.types
-    time_cls, header_cls = types["builtin_interfaces/msg/Time"], types["std_msgs/msg/Header"]
-    sec, nanosec = divmod(path_stamp_ns(int(plan.version)), 1_000_000_000)
-    header = header_cls(stamp=time_cls(sec=sec, nanosec=nanosec), frame_id=FRAME_ID)
-    point, quat = types["geometry_msgs/msg/Point"], types["geometry_msgs/msg/Quaternion"]
-    pose, pose_stamped = types["geometry_msgs/msg/Pose"], types["geometry_msgs/msg/PoseStamped"]
+    header = ros_header(store, path_stamp_ns(int(plan.version)))
+    stamped = store.types["geometry_msgs/msg/PoseStamped"]
     poses = [
-        pose_stamped(
-            header=header,
-            pose=pose(
-                position=point(x=float(x), y=float(y), z=float(z)),
-                orientation=quat(x=0.0, y=0.0, z=math.sin(h / 2), w=math.cos(h / 2)),
-            ),
-        )
-        for x, y, z, h in plan_poses(plan, network)
+        stamped(header=header, pose=ros_pose(store, x, y, z, h)) for x, y, z, h in plan_poses(plan, network)
     ]
-    return bytes(store.serialize_cdr(types[PATH_TYPE](header=header, poses=poses), PATH_TYPE))
+    return bytes(store.serialize_cdr(store.types[PATH_TYPE](header=header, poses=poses), PATH_TYPE))
 
 
 @dataclass(frozen=True)

@@ -170,3 +170,14 @@ def test_cut_off_recording_is_read_up_to_the_last_flushed_chunk(sent: list[Sent]
     assert reader.truncated
     assert reader.info() is None
     assert list(reader.records()) == records
+
+
+@pytest.mark.parametrize("start", [b"", b"#ROSBAG V2.0\n", b"SQLite format 3\x00", b"\x89MCAP0\r"])
+def test_a_file_that_is_no_recording_is_refused_not_read_as_empty(tmp_path: Path, start: bytes) -> None:
+    """A ROS bag or any other file handed to replay or export: a clear error, never an empty run."""
+    from shared.recording.reader import NotARecording
+
+    path = tmp_path / "not.mcap"
+    path.write_bytes(start + bytes(64))
+    with pytest.raises(NotARecording, match="not an MCAP recording"):
+        RecordingReader(path)
