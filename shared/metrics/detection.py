@@ -39,7 +39,8 @@ AP is the mean, over fixed recall points ``r``, of the interpolated precision
 ``p(r) = max{precision_k : recall_k >= r}`` (0 where recall ``r`` is never reached):
 COCO uses 101 points 0, 0.01, ..., 1; KITTI R40 uses 40 points 1/40, 2/40, ..., 1. The 3D metric ranks
 all detections by score (VOC/COCO-style curve) rather than KITTI's 41 sampled score thresholds, so it
-may differ slightly from the official KITTI devkit.
+may differ from the official KITTI devkit: `evaluate_kitti(recall_sampling="devkit")` samples as the
+devkit does (`devkit_thresholds`, `devkit_ap`), which with few ground-truth boxes differs a lot.
 
 Empty inputs
 ------------
@@ -71,6 +72,9 @@ R40_NUM_POINTS = 40
 # k / 40 exactly (no linspace rounding), so recall 0.5 hits the 20th point.
 R40_RECALL_POINTS: FloatArray = np.arange(1, R40_NUM_POINTS + 1) / R40_NUM_POINTS
 KITTI_IOU_THRESHOLDS: tuple[float, ...] = (0.5, 0.7)
+# The KITTI devkit's sampling: 41 score thresholds, AP R40 over the points 1..40 (`devkit_ap`).
+DEVKIT_SAMPLE_POINTS = 41
+RecallSampling = Literal["r40", "devkit"]
 DEFAULT_DISTANCE_BANDS_M: tuple[tuple[float, float], ...] = ((0.0, 2.0), (2.0, 4.0), (4.0, float("inf")))
 ALL_BAND = "all"
 SCORE_COLUMN_2D = 4
@@ -342,12 +346,69 @@ def interpolated_ap(recall: ArrayLike, precision: ArrayLike, recall_points: Arra
     return float(values.mean())
 
 
-def _ap_result(matches: Sequence[FrameMatch], recall_points: FloatArray) -> APResult:
+def devkit_thresholds(
+    tp_scores: ArrayLike, num_gt: int, num_points: int = DEVKIT_SAMPLE_POINTS
+) -> FloatArray:
+    """The score thresholds the KITTI devkit samples its precision at (its `getThresholds`).
+
+    Walking the true positives' scores downwards, the i-th (recall ``(i+1)/num_gt``) is taken when it
+    is at least as close to the next recall step as the one after it would be, the step then
+    advancing by ``1 / (num_points - 1)``; the last true positive is always taken. Steps advance by
+    one per threshold taken, not by the recall reached: with few ground-truth boxes each true positive
+    takes one step while it adds far more recall (the devkit assumes many).
+    """
+    scores = np.sort(np.asarray(tp_scores, dtype=np.float64))[::-1]
+    step, current = 1.0 / (num_points - 1), 0.0
+    taken: list[float] = []
+    for i, score in enumerate(scores):
+        last = i == len(scores) - 1
+        left = (i + 1) / num_gt
+        right = left if last else (i + 2) / num_gt
+        if not last and (right - current) < (current - left):
+            continue
+        taken.append(float(score))
+        current += step
+    return np.asarray(taken[:num_points])
+
+
+def devkit_ap(
+    scores: ArrayLike, labels: ArrayLike, num_gt: int, num_points: int = DEVKIT_SAMPLE_POINTS
+) -> float:
+    """AP R40 with the KITTI devkit's recall sampling, on this module's matching (`MatchLabel`s).
+
+    Precision at each of `devkit_thresholds` (true and false positives with a score at or above it),
+    made non-increasing from the right, zero beyond the last threshold; the mean over the points
+    1..40 (the devkit's R40 skips point 0). NaN without ground truth. The devkit matches again at
+    each threshold; here the matching is the one made once by score, so only the sampling is the
+    devkit's.
+    """
+    if num_gt <= 0:
+        return float("nan")
+    s = np.asarray(scores, dtype=np.float64)
+    lab = np.asarray(labels, dtype=np.int64)
+    keep = lab != MatchLabel.IGNORED
+    s, lab = s[keep], lab[keep]
+    precision = np.zeros(num_points)
+    for i, threshold in enumerate(devkit_thresholds(s[lab == MatchLabel.TP], num_gt, num_points)):
+        above = s >= threshold
+        tp = int(np.sum(lab[above] == MatchLabel.TP))
+        fp = int(np.sum(lab[above] == MatchLabel.FP))
+        precision[i] = tp / (tp + fp)
+    precision = np.maximum.accumulate(precision[::-1])[::-1]
+    return float(precision[1:].mean())
+
+
+def _ap_result(
+    matches: Sequence[FrameMatch], recall_points: FloatArray, sampling: RecallSampling = "r40"
+) -> APResult:
     num_gt = sum(m.num_gt for m in matches)
     scores = np.concatenate([m.scores for m in matches]) if matches else np.zeros(0)
     labels = np.concatenate([m.labels for m in matches]) if matches else np.zeros(0, np.int64)
     curve = precision_recall_curve(scores, labels, num_gt)
-    ap = interpolated_ap(curve.recall, curve.precision, recall_points) if num_gt > 0 else float("nan")
+    if sampling == "devkit":
+        ap = devkit_ap(scores, labels, num_gt)
+    else:
+        ap = interpolated_ap(curve.recall, curve.precision, recall_points) if num_gt > 0 else float("nan")
     return APResult(
         ap=ap,
         num_gt=num_gt,
@@ -546,6 +607,7 @@ def evaluate_kitti(
     iou_thresholds: Sequence[float] = KITTI_IOU_THRESHOLDS,
     bands: Sequence[tuple[float, float]] = DEFAULT_DISTANCE_BANDS_M,
     kinds: Sequence[BoxKind] = BOX_KINDS,
+    recall_sampling: RecallSampling = "r40",
 ) -> KittiSummary:
     """KITTI-style R40 AP for BEV and 3D boxes, overall (band ``"all"``) and per distance band.
 
@@ -558,6 +620,9 @@ def evaluate_kitti(
     bands : sequence of (lo, hi)
         BEV distance bands from the agent origin, metres, ``[lo, hi)``.
     kinds : sequence of {"bev", "3d"}
+    recall_sampling : {"r40", "devkit"}
+        "r40": precision interpolated at recall 1/40 .. 40/40 (this module's default); "devkit": at the
+        KITTI devkit's 41 score thresholds (`devkit_ap`), to compare with the devkit number for number.
 
     Returns
     -------
@@ -572,7 +637,7 @@ def evaluate_kitti(
         for t in iou_thresholds:
             for label, band in labelled:
                 matches = [_match_prepared(f, kind, t, band) for f in prepared]
-                results[(kind, float(t), label)] = _ap_result(matches, R40_RECALL_POINTS)
+                results[(kind, float(t), label)] = _ap_result(matches, R40_RECALL_POINTS, recall_sampling)
     return KittiSummary(
         results=results,
         bands=tuple(label for label, _ in labelled),

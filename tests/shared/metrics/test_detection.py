@@ -372,3 +372,47 @@ def test_kitti_empty_inputs_and_rows() -> None:
         missed.ap("3d", 0.9)
     with pytest.raises(ValueError, match=r"\(N, 7\)"):
         evaluate_kitti([(nothing, np.zeros((1, 5)), NO_BOXES_3D)])
+
+
+# --- the KITTI devkit's recall sampling (evaluate_kitti(recall_sampling="devkit")) ---------------------
+
+
+def test_devkit_sampling_known_answers() -> None:
+    """Worked by hand from the devkit's getThresholds rule. Few ground truth: 4 boxes, detections
+    0.9 TP, 0.8 FP, 0.7 TP, 0.6 TP, 0.5 FP. Every true positive takes one threshold (0.9, 0.7, 0.6: one
+    recall step of 1/40 each, though each adds 1/4 of recall); precision there 1, 2/3, 3/4 -> made
+    non-increasing 1, 3/4, 3/4, then 0; AP = (3/4 + 3/4) / 40 = 0.0375, where R40 interpolation gives
+    (10 x 1 + 20 x 3/4) / 40 = 0.625."""
+    from shared.metrics.detection import devkit_ap, devkit_thresholds
+
+    tp, fp = MatchLabel.TP, MatchLabel.FP
+    scores, labels = [0.9, 0.8, 0.7, 0.6, 0.5], [tp, fp, tp, tp, fp]
+    assert list(devkit_thresholds([0.9, 0.7, 0.6], 4)) == [0.9, 0.7, 0.6]
+    assert devkit_ap(scores, labels, 4) == pytest.approx(0.0375)
+    curve = precision_recall_curve(scores, labels, 4)
+    assert interpolated_ap(curve.recall, curve.precision, R40_RECALL_POINTS) == pytest.approx(0.625)
+    # 40 boxes all found, no false positive: 40 thresholds fill points 0..39, point 40 stays 0 -> 39/40
+    perfect = np.linspace(1.0, 0.5, 40)
+    assert devkit_ap(perfect, [tp] * 40, 40) == pytest.approx(39 / 40)
+    # many boxes: a threshold about every 10th true positive, 41 in all, every point reached -> 1
+    dense = np.linspace(1.0, 0.1, 400)
+    assert len(devkit_thresholds(dense, 400)) == 41
+    assert devkit_ap(dense, [tp] * 400, 400) == pytest.approx(1.0)
+    assert math.isnan(devkit_ap([], [], 0))
+
+
+def test_evaluate_kitti_can_sample_as_the_devkit() -> None:
+    from shared.metrics.detection import devkit_ap, evaluate_kitti
+
+    gt = np.array([[0.0, 0.0, 0.0, 0.3, 0.1, 0.1, 0.0], [1.0, 1.0, 0.0, 0.3, 0.1, 0.1, 0.0]])
+    dets = np.array([[*gt[0], 0.9, 1], [5.0, 5.0, 0.0, 0.3, 0.1, 0.1, 0.0, 0.8, 1], [*gt[1], 0.7, 1]])
+    frames = [(dets, gt, np.zeros((0, 7)))]
+    r40 = evaluate_kitti(frames, bands=(), kinds=("bev",))
+    devkit = evaluate_kitti(frames, bands=(), kinds=("bev",), recall_sampling="devkit")
+    tp, fp = MatchLabel.TP, MatchLabel.FP
+    for key, result in devkit.results.items():
+        # 0.9 TP, 0.8 FP, 0.7 TP of 2 boxes: thresholds 0.9, 0.7; precision 1, 2/3 -> (2/3) / 40
+        assert (
+            result.ap == pytest.approx(devkit_ap([0.9, 0.8, 0.7], [tp, fp, tp], 2)) == pytest.approx(1 / 60)
+        )
+        assert r40.results[key].ap == pytest.approx((20 * 1 + 20 * 2 / 3) / 40), key  # the sampling differs
