@@ -33,6 +33,8 @@ HELP = """`rmmdet`: command-line tool for a running RMMDet system.
     rmmdet snapshot [--out docs/images] [--at-s 20]   offline: camera PNGs + bird's-eye map of the sim
     rmmdet export RUN.mcap --out DIR [--format kitti|ros2]   a run's object lists and plans as KITTI
                                      label files and a ROS 2 bag (mcap)
+    rmmdet import BAG... --out RUN.mcap [--map M.yaml] [--msg DIR] [--rebase]   ROS 1 / ROS 2 bags
+                                     into a recording that rmmdet replay plays to the MECs
     rmmdet dataset generate --out DIR [--config deploy/datasets/default.yaml] [--workers 2]
     rmmdet eval detectors [--data DIR] [--split test] [--camera onnx] [--lidar pointpillars] [--out F.json]
     rmmdet eval fusion [--agent agent1] [--seed 201] [--duration-s 60] [--workers 2] [--out docs/eval/fusion]

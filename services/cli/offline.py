@@ -1,5 +1,5 @@
-"""`rmmdet` commands that need no running system: snapshot, export, dataset, eval, experiments (the
-studies run in `studies/`; these parse options and print)."""
+"""`rmmdet` commands that need no running system: snapshot, import, export, dataset, eval, experiments
+(the studies run in `studies/`; these parse options and print)."""
 
 from __future__ import annotations
 
@@ -64,6 +64,39 @@ def export(
     )
     if report.truncated:
         console.print(f"[yellow]{recording} is cut off: exported what was complete before the cut[/]")
+
+
+@app.command("import")
+def import_cmd(
+    bags: Annotated[
+        list[Path], typer.Argument(help="ROS 1 .bag files or ROS 2 bag folders (sqlite3 or mcap)")
+    ],
+    out: Annotated[Path, typer.Option(help="the recording to write (MCAP; rmmdet replay plays it)")],
+    map_file: Annotated[Path | None, typer.Option("--map", help="topics: {<topic>: <sensor id>}")] = None,
+    msg: Annotated[Path | None, typer.Option(help="<pkg>/msg/<Name>.msg definitions of custom types")] = None,
+    rebase: Annotated[
+        bool, typer.Option(help="move the stamps so the first is now (for a live MEC)")
+    ] = False,
+    scene: Annotated[Path, typer.Option(help="scene YAML: its sensors")] = DEFAULT_SCENE,
+) -> None:
+    """Offline: ROS bags into the project's recording, each topic bound to one of the scene's sensors."""
+    import time
+
+    from shared.rosbag_import import BagImportError, import_bags, load_mapping
+
+    loaded = Scene.load(scene)
+    try:
+        report = import_bags(
+            bags, out, loaded, load_mapping(map_file, loaded), msg, time.time_ns() if rebase else None
+        )
+    except BagImportError as err:
+        console.print(f"[red]{err}[/]")
+        raise typer.Exit(2) from None
+    for topic, sensor in sorted(report.mapped.items()):
+        console.print(f"mapped  {topic} -> {sensor} ({report.messages.get(sensor, 0)} messages)")
+    for topic, why in sorted(report.skipped.items()):
+        console.print(f"skipped {topic}: {why}")
+    console.print(f"wrote {out}")
 
 
 dataset_app = typer.Typer(add_completion=False, no_args_is_help=True, help="auto-labelled datasets (offline)")
