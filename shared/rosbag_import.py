@@ -6,8 +6,8 @@ falls back on the ROS 2 Humble / ROS 1 Noetic stores; types neither knows, e.g. 
 `.msg` files given with `--msg DIR`: `DIR/<package>/msg/<Name>.msg`). Each topic is bound to one of
 the scene's sensors: by the mapping file (`topics: {<topic>: <sensor id>}`), or, without one, by the
 scene sensor id its name or its first message's frame id contains (the longest). Converted:
-- sensor_msgs/Image and CompressedImage -> the camera's JPEG (foxglove.CompressedImage; a JPEG is kept
-  as it is, anything else encoded);
+- sensor_msgs/Image and CompressedImage -> the camera's foxglove.CompressedImage (a JPEG or PNG kept
+  as it is, anything else encoded as PNG: lossless, so the MEC sees the bag's own pixels);
 - sensor_msgs/PointCloud2 of any field layout and byte order -> the lidar's foxglove.PointCloud (x, y,
   z and intensity; intensity scaled to [0, 1] when it is given in 0..255; points without a finite x, y,
   z dropped); a cloud without x, y or z is an error;
@@ -43,7 +43,7 @@ from shared.bus.streams import SENSOR_STREAM, get_stream, sensor_group_source
 from shared.perception.decode import point_cloud_message
 from shared.scene.scene import Scene
 
-JPEG_QUALITY = 90
+JPEG_MAGIC, PNG_MAGIC = b"\xff\xd8", b"\x89PNG\r\n\x1a\n"
 POINTFIELD_DTYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
@@ -115,22 +115,28 @@ def pointcloud2_points(msg: Any) -> tuple[np.ndarray, np.ndarray]:
     return xyz, np.clip(intensity, 0.0, 1.0)
 
 
-def image_jpeg(msg: Any, msgtype: str) -> bytes:
-    """A sensor_msgs Image or CompressedImage as JPEG bytes (a JPEG passed through)."""
+def image_data(msg: Any, msgtype: str) -> tuple[str, bytes]:
+    """A sensor_msgs Image or CompressedImage as the camera message's (format, bytes): a JPEG or PNG
+    kept byte for byte, anything else encoded as PNG (lossless: the MEC sees the bag's pixels)."""
     if msgtype.endswith("CompressedImage"):
         data = bytes(msg.data)
-        if data.startswith(b"\xff\xd8"):
-            return data
+        if data.startswith(JPEG_MAGIC):
+            return "jpeg", data
+        if data.startswith(PNG_MAGIC):
+            return "png", data
         decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
         if decoded is None:
             raise ValueError(f"CompressedImage of format {msg.format!r} does not decode")
         image = decoded
     else:
-        image = message_to_cvimage(msg, "bgr8")
-    ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+        try:
+            image = message_to_cvimage(msg, "bgr8")
+        except Exception as exc:  # rosbags-image raises on encodings and sizes it cannot take
+            raise ValueError(f"Image ({msg.encoding}, {msg.width}x{msg.height}): {exc}") from None
+    ok, buf = cv2.imencode(".png", image)
     if not ok:
-        raise ValueError("the image does not encode as JPEG")
-    return bytes(buf.tobytes())
+        raise ValueError("the image does not encode as PNG")
+    return "png", bytes(buf.tobytes())
 
 
 def radar_targets(msg: Any) -> list[RadarTarget]:
@@ -305,7 +311,8 @@ def _copy(
 
 def _convert(msg: Any, msgtype: str, sensor: str, stamp_ns: int) -> Message:
     if msgtype in IMAGE_TYPES:
-        image = CompressedImage(frame_id=sensor, format="jpeg", data=image_jpeg(msg, msgtype))
+        fmt, data = image_data(msg, msgtype)
+        image = CompressedImage(frame_id=sensor, format=fmt, data=data)
         image.timestamp.FromNanoseconds(stamp_ns)
         return image
     if msgtype == CLOUD_TYPE:
