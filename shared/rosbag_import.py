@@ -11,7 +11,13 @@ scene sensor id its name or its first message's frame id contains (the longest).
 - sensor_msgs/PointCloud2 of any field layout and byte order -> the lidar's foxglove.PointCloud (x, y,
   z and intensity; intensity scaled to [0, 1] when it is given in 0..255; points without a finite x, y,
   z dropped); a cloud without x, y or z is an error;
-- radar_msgs/RadarScan (returns: range, azimuth, elevation, doppler_velocity, amplitude) -> RadarScan.
+- radar_msgs/RadarScan (returns: range, azimuth, elevation, doppler_velocity, amplitude) -> RadarScan;
+- raw Robosense packets -> the lidar's clouds through the project's RS-LiDAR decoder
+  (shared/devices/robosense.py: DIFOP angle tables, frames split at the azimuth wrap, first returns):
+  ROS 2 rslidar_msg/RslidarPacket (`is_difop`, `data`), one packet a message, and ROS 1
+  rslidar_msgs/rslidarScan (`packets[].data`, a DIFOP topic's name containing "difop"); the unit's
+  model is the mapping's (`{<topic>: {sensor: lidar_11, device: rs16}}`: the scene's generic lidars
+  name none), each frame stamped with its last packet's message stamp (receive time) less one packet.
 Each message keeps its header stamp (or, with `rebase_to_ns`, every stamp moves by one offset so the
 first lands there: a live MEC judges freshness on its clock). Out of order stamps on a topic, a mapping
 that names an unknown sensor or binds a topic of a type that cannot be converted, a corrupt or cut-off
@@ -40,6 +46,9 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from shared.bus.codec import encode
 from shared.bus.node import make_header
 from shared.bus.streams import SENSOR_STREAM, get_stream, sensor_group_source
+from shared.devices import robosense
+from shared.devices.robosense import MODELS
+from shared.devices.sources import lidar_frame_message
 from shared.perception.decode import point_cloud_message
 from shared.scene.scene import Scene
 
@@ -48,7 +57,17 @@ POINTFIELD_DTYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 RADAR_TYPE = "radar_msgs/msg/RadarScan"
-KIND_OF_TYPE = {**dict.fromkeys(IMAGE_TYPES, "camera"), CLOUD_TYPE: "lidar", RADAR_TYPE: "radar"}
+PACKET_TYPES = (
+    "rslidar_msg/msg/RslidarPacket",
+    "rslidar_msgs/msg/rslidarScan",
+    "rslidar_msgs/msg/rslidarPacket",
+)
+KIND_OF_TYPE = {
+    **dict.fromkeys(IMAGE_TYPES, "camera"),
+    CLOUD_TYPE: "lidar",
+    RADAR_TYPE: "radar",
+    **dict.fromkeys(PACKET_TYPES, "lidar"),
+}
 INTENSITY_FULL_SCALE = 255.0  # a PointCloud2 intensity beyond 1 is taken as 0..255
 
 
@@ -62,6 +81,7 @@ class ImportReport:
     skipped: dict[str, str] = field(default_factory=dict)  # topic -> why
     messages: dict[str, int] = field(default_factory=dict)  # sensor id -> messages written
     first_stamp_ns: int | None = None
+    packet_counters: dict[str, dict[str, int]] = field(default_factory=dict)  # sensor -> the decoder's counts
     out: Path | None = None
 
 
@@ -164,7 +184,16 @@ def auto_sensor(topic: str, frame_id: str, sensor_ids: Sequence[str]) -> str | N
     return max(found, key=len) if found else None
 
 
-def load_mapping(path: Path | None, scene: Scene) -> dict[str, str] | None:
+@dataclass(frozen=True)
+class Binding:
+    """What a topic feeds: a scene sensor, and for raw Robosense packets the unit's model."""
+
+    sensor: str
+    device: str | None = None
+
+
+def load_mapping(path: Path | None, scene: Scene) -> dict[str, Binding] | None:
+    """`topics: {<topic>: <sensor id> | {sensor: <id>, device: rs16 | rs32}}`, checked against the scene."""
     if path is None:
         return None
     try:
@@ -172,14 +201,27 @@ def load_mapping(path: Path | None, scene: Scene) -> dict[str, str] | None:
     except (OSError, yaml.YAMLError) as exc:
         raise BagImportError(f"{path}: {exc}") from None
     topics = data.get("topics") if isinstance(data, dict) else None
-    if not isinstance(topics, dict) or not all(
-        isinstance(k, str) and isinstance(v, str) for k, v in topics.items()
-    ):
+    if not isinstance(topics, dict):
         raise BagImportError(f"{path}: expected `topics: {{<topic>: <sensor id>}}`")
-    unknown = sorted(v for v in topics.values() if v not in scene.sensors)
+    out: dict[str, Binding] = {}
+    for topic, value in topics.items():
+        if isinstance(value, str):
+            out[str(topic)] = Binding(value)
+            continue
+        if not (
+            isinstance(value, dict)
+            and isinstance(value.get("sensor"), str)
+            and set(value) <= {"sensor", "device"}
+        ):
+            raise BagImportError(f"{path}: topic {topic}: expected a sensor id or {{sensor, device}}")
+        device = value.get("device")
+        if device is not None and device not in MODELS:
+            raise BagImportError(f"{path}: topic {topic}: device {device!r} is none of {sorted(MODELS)}")
+        out[str(topic)] = Binding(value["sensor"], device)
+    unknown = sorted({b.sensor for b in out.values() if b.sensor not in scene.sensors})
     if unknown:
         raise BagImportError(f"{path}: sensor(s) {unknown} are not in scene {scene.scene_id}")
-    return dict(topics)
+    return out
 
 
 def _typestore(bags: Sequence[Path]) -> Any:
@@ -191,7 +233,7 @@ def import_bags(
     bags: Sequence[Path],
     out: Path,
     scene: Scene,
-    mapping: dict[str, str] | None = None,
+    mapping: dict[str, Binding] | None = None,
     msg_dir: Path | None = None,
     rebase_to_ns: int | None = None,
 ) -> ImportReport:
@@ -219,24 +261,32 @@ def import_bags(
     return report
 
 
+@dataclass(frozen=True)
+class _Bound:
+    binding: Binding
+    msgtype: str
+
+
 def _bind(
-    reader: Any, scene: Scene, mapping: dict[str, str] | None, report: ImportReport
-) -> dict[str, tuple[str, str]]:
-    """topic -> (sensor id, message type) for the topics imported; the rest go to `report.skipped`."""
-    bound: dict[str, tuple[str, str]] = {}
+    reader: Any, scene: Scene, mapping: dict[str, Binding] | None, report: ImportReport
+) -> dict[str, _Bound]:
+    """topic -> what it feeds, for the topics imported; the rest go to `report.skipped` with why."""
+    bound: dict[str, _Bound] = {}
     for topic, info in sorted(reader.topics.items()):
-        msgtype = info.msgtype
+        msgtype = info.msgtype or ""
         if mapping is not None:
-            sensor = mapping.get(topic)
-            if sensor is None:
+            binding = mapping.get(topic)
+            if binding is None:
                 report.skipped[topic] = "not in the mapping"
                 continue
         else:
-            sensor = auto_sensor(topic, _first_frame_id(reader, topic), list(scene.sensors))
-            if sensor is None:
+            found = auto_sensor(topic, _first_frame_id(reader, topic), list(scene.sensors))
+            if found is None:
                 report.skipped[topic] = "names no scene sensor"
                 continue
-        kind = KIND_OF_TYPE.get(msgtype or "")
+            binding = Binding(found)
+        sensor = binding.sensor
+        kind = KIND_OF_TYPE.get(msgtype)
         if kind is None:
             if mapping is not None:
                 raise BagImportError(f"topic {topic}: type {msgtype} cannot be imported (mapped to {sensor})")
@@ -246,7 +296,12 @@ def _bind(
             raise BagImportError(
                 f"topic {topic}: a {msgtype} cannot feed {sensor}, a {scene.sensor(sensor).kind}"
             )
-        bound[topic] = (sensor, msgtype)
+        if msgtype in PACKET_TYPES and binding.device is None:
+            raise BagImportError(
+                f"topic {topic}: Robosense packets need the unit's model: map it as "
+                f"{{sensor: {sensor}, device: rs16 | rs32}}"
+            )
+        bound[topic] = _Bound(binding, msgtype)
         report.mapped[topic] = sensor
     return bound
 
@@ -261,10 +316,17 @@ def _first_frame_id(reader: Any, topic: str) -> str:
     return ""
 
 
+def _stamp_ns(msg: Any, bag_time_ns: int) -> int:
+    """A message's header stamp (a packet's own `stamp` where it has no header), else its bag time."""
+    stamp = msg.header.stamp if hasattr(msg, "header") else getattr(msg, "stamp", None)
+    value = int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec) if stamp is not None else 0
+    return value or int(bag_time_ns)
+
+
 def _copy(
     reader: Any,
     writer: Any,
-    bound: dict[str, tuple[str, str]],
+    bound: dict[str, _Bound],
     scene: Scene,
     report: ImportReport,
     rebase_to_ns: int | None,
@@ -274,17 +336,27 @@ def _copy(
     last_stamp: dict[str, int] = {}
     offset_ns: int | None = None
     seq: dict[str, int] = {}
+    streams: dict[str, robosense.LidarStream] = {}
+
+    def write(sensor: str, message: Message, stamp_ns: int) -> None:
+        spec = scene.sensor(sensor)
+        seq[sensor] = seq.get(sensor, 0) + 1
+        source = sensor_group_source(spec.agent, spec.kind)
+        encoded = encode(message, make_header(source, seq[sensor], stamp_ns=stamp_ns, frame_id=sensor))
+        key = get_stream(SENSOR_STREAM[spec.kind]).key(agent=spec.agent, sensor=sensor)
+        writer.write(key, str(encoded.encoding), encoded.payload, encoded.attachment, stamp_ns, stamp_ns)
+        report.messages[sensor] = report.messages.get(sensor, 0) + 1
+
     for connection, bag_time_ns, raw in reader.messages(connections=connections):
         topic = connection.topic
         i = index[topic] = index.get(topic, -1) + 1
-        sensor, msgtype = bound[topic]
+        target = bound[topic]
+        sensor = target.binding.sensor
         try:
             msg = reader.deserialize(raw, connection.msgtype)
         except Exception as exc:
             raise BagImportError(f"topic {topic} message {i}: does not deserialize ({exc})") from None
-        stamp_ns = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec) or int(
-            bag_time_ns
-        )
+        stamp_ns = _stamp_ns(msg, bag_time_ns)
         if stamp_ns < last_stamp.get(topic, stamp_ns):
             raise BagImportError(
                 f"topic {topic} message {i}: stamp {stamp_ns} before the previous {last_stamp[topic]}"
@@ -294,19 +366,35 @@ def _copy(
             report.first_stamp_ns = stamp_ns
             offset_ns = 0 if rebase_to_ns is None else rebase_to_ns - stamp_ns
         stamp_ns += offset_ns
-        spec = scene.sensor(sensor)
+        if target.msgtype in PACKET_TYPES:
+            device = target.binding.device
+            assert device is not None  # _bind insists
+            stream = streams.setdefault(sensor, robosense.LidarStream(MODELS[device]))
+            for frame in _packets(stream, topic, msg, stamp_ns):
+                write(sensor, lidar_frame_message(frame, sensor), frame.stamp_ns)
+            continue
         try:
-            message = _convert(msg, msgtype, sensor, stamp_ns)
+            message = _convert(msg, target.msgtype, sensor, stamp_ns)
         except ValueError as exc:
             raise BagImportError(f"topic {topic} message {i}: {exc}") from None
-        seq[sensor] = seq.get(sensor, 0) + 1
-        header = make_header(
-            sensor_group_source(spec.agent, spec.kind), seq[sensor], stamp_ns=stamp_ns, frame_id=sensor
-        )
-        encoded = encode(message, header)
-        key = get_stream(SENSOR_STREAM[spec.kind]).key(agent=spec.agent, sensor=sensor)
-        writer.write(key, str(encoded.encoding), encoded.payload, encoded.attachment, stamp_ns, stamp_ns)
-        report.messages[sensor] = report.messages.get(sensor, 0) + 1
+        write(sensor, message, stamp_ns)
+    for sensor, stream in streams.items():
+        report.packet_counters[sensor] = dict(stream.counters)
+
+
+def _packets(stream: robosense.LidarStream, topic: str, msg: Any, stamp_ns: int) -> list[robosense.Frame]:
+    """The frames a packet message completed (bad packets are counted by the stream, as live)."""
+    frames: list[robosense.Frame] = []
+    if hasattr(msg, "packets"):  # ROS 1 rslidarScan: MSOP packets (or DIFOP ones on a difop topic)
+        payloads = [(bytes(p.data), "difop" in topic) for p in msg.packets]
+    else:  # one packet a message
+        payloads = [(bytes(msg.data), bool(getattr(msg, "is_difop", 0)) or "difop" in topic)]
+    for data, difop in payloads:
+        if difop:
+            stream.on_difop(data)
+        else:
+            frames += stream.on_msop(data, stamp_ns)
+    return frames
 
 
 def _convert(msg: Any, msgtype: str, sensor: str, stamp_ns: int) -> Message:

@@ -72,7 +72,9 @@ def import_cmd(
         list[Path], typer.Argument(help="ROS 1 .bag files or ROS 2 bag folders (sqlite3 or mcap)")
     ],
     out: Annotated[Path, typer.Option(help="the recording to write (MCAP; rmmdet replay plays it)")],
-    map_file: Annotated[Path | None, typer.Option("--map", help="topics: {<topic>: <sensor id>}")] = None,
+    map_file: Annotated[
+        Path | None, typer.Option("--map", help="topics: {<topic>: <sensor id> | {sensor, device: rs16}}")
+    ] = None,
     msg: Annotated[Path | None, typer.Option(help="<pkg>/msg/<Name>.msg definitions of custom types")] = None,
     rebase: Annotated[
         bool, typer.Option(help="move the stamps so the first is now (for a live MEC)")
@@ -96,6 +98,8 @@ def import_cmd(
         console.print(f"mapped  {topic} -> {sensor} ({report.messages.get(sensor, 0)} messages)")
     for topic, why in sorted(report.skipped.items()):
         console.print(f"skipped {topic}: {why}")
+    for sensor, counts in sorted(report.packet_counters.items()):
+        console.print(f"packets of {sensor}: {counts}")  # the decoder's counts: rejected packets by reason
     console.print(f"wrote {out}")
 
 

@@ -300,3 +300,72 @@ def test_bad_input_names_topic_and_message_and_leaves_nothing(scene, msg_dir, tm
     with pytest.raises(BagImportError):
         import_bags([tmp_path / "good"], out, scene, None, msg_dir)
     assert not out.exists() and not (tmp_path / "out.mcap.partial").exists()
+
+
+RSLIDAR_PACKET = "std_msgs/Header header\nuint8 is_difop\nuint8 is_frame_begin\nuint8[] data\n"
+
+
+def test_raw_robosense_packets_go_through_the_lidar_decoder(scene, msg_dir, tmp_path) -> None:
+    """An RS-LiDAR-16's MSOP and DIFOP packets (made by the project's emulator, one per
+    rslidar_msg/RslidarPacket message) come out as the clouds the decoder makes of the same packets."""
+    from shared.devices import robosense
+    from shared.devices.sources import lidar_frame_message
+    from sim.emulators.robosense import RobosenseEmulator
+
+    (msg_dir / "rslidar_msg" / "msg").mkdir(parents=True, exist_ok=True)
+    (msg_dir / "rslidar_msg" / "msg" / "RslidarPacket.msg").write_text(RSLIDAR_PACKET)
+    emulator = RobosenseEmulator("rs16", samples=500)
+    laser, sample = np.repeat(np.arange(16), 500), np.tile(np.arange(500), 16)
+    packets: list[tuple[int, bool, bytes]] = [(T0_NS - 1000, True, emulator.difop_packet(T0_NS))]
+    for k in range(4):
+        start = T0_NS + k * emulator.period_ns
+        turn = emulator.msop_packets(
+            laser, sample, np.full(laser.shape, 2.0 + k), np.full(laser.shape, 0.5), start
+        )
+        packets += [(start + j * 1_000_000, False, p) for j, p in enumerate(turn)]
+    expected_stream = robosense.LidarStream(robosense.MODELS["rs16"])
+    expected = []
+    for stamp, difop, data in packets:
+        if difop:
+            expected_stream.on_difop(data)
+        else:
+            expected += [lidar_frame_message(f, "lidar_11") for f in expected_stream.on_msop(data, stamp)]
+    assert len(expected) >= 3
+
+    def messages(store, k: int):
+        if k:
+            return []
+        out = []
+        for stamp, difop, data in packets:
+            h = store.types["std_msgs/msg/Header"](
+                stamp=store.types["builtin_interfaces/msg/Time"](sec=stamp // 10**9, nanosec=stamp % 10**9),
+                frame_id="rslidar",
+            )
+            msg = store.types["rslidar_msg/msg/RslidarPacket"](
+                header=h, is_difop=int(difop), is_frame_begin=0, data=np.frombuffer(data, np.uint8)
+            )
+            out.append(("/rslidar_packets", "rslidar_msg/msg/RslidarPacket", msg))
+        return out
+
+    store = store_for("mcap", msg_dir)
+    bag = tmp_path / "packets"
+    with Ros2Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        connection = writer.add_connection(
+            "/rslidar_packets", "rslidar_msg/msg/RslidarPacket", typestore=store
+        )
+        for _topic, msgtype, msg in messages(store, 0):
+            stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+            writer.write(connection, stamp, store.serialize_cdr(msg, msgtype))
+    mapping = tmp_path / "map.yaml"
+    mapping.write_text("topics:\n  /rslidar_packets: {sensor: lidar_11}\n")
+    with pytest.raises(BagImportError, match="need the unit's model"):
+        import_bags([bag], tmp_path / "x.mcap", scene, load_mapping(mapping, scene), msg_dir)
+    mapping.write_text("topics:\n  /rslidar_packets: {sensor: lidar_11, device: rs16}\n")
+    report = import_bags([bag], tmp_path / "out.mcap", scene, load_mapping(mapping, scene), msg_dir)
+    got = [decode_record(r).message for r in read_records(tmp_path / "out.mcap")]
+    assert report.messages == {"lidar_11": len(expected)}
+    assert [m.timestamp.ToNanoseconds() for m in got] == [m.timestamp.ToNanoseconds() for m in expected]
+    assert all(a.data == b.data for a, b in zip(got, expected, strict=True))
+    mapping.write_text("topics:\n  /rslidar_packets: {sensor: lidar_11, device: rs99}\n")
+    with pytest.raises(BagImportError, match="rs99"):
+        load_mapping(mapping, scene)
