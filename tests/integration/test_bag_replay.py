@@ -1,8 +1,9 @@
-"""Issue 35's acceptance for `rmmdet import`: a simulated run (agent1: four cameras, two lidars, 1.5 s
-lock-step) written as ROS bags with rosbags (ROS 1, ROS 2 sqlite3, ROS 2 mcap; two cameras as
-CompressedImage JPEG, two as raw sensor_msgs/Image; one lidar as float32 x y z intensity little-endian,
-the other as float64 x y z with a ring field, big-endian), imported, and replayed through the MEC's
-production core gives the same object lists as replaying the project's own recording of that run.
+"""Issue 35's acceptance for `rmmdet import`: a simulated run (agent1: four cameras, two lidars; agent2:
+five cameras, two radars as a custom radar_msgs type; 1.5 s lock-step) written as ROS bags with
+rosbags (ROS 1, ROS 2 sqlite3, ROS 2 mcap; some cameras as CompressedImage JPEG, some as raw
+sensor_msgs/Image; one lidar as float32 x y z intensity little-endian, the other as float64 x y z with
+a ring field, big-endian), imported, and replayed through the MEC's production core gives the same
+object lists as replaying the project's own recording of that run.
 
 Both recordings are replayed the same way, record by record in order through `MecCore.receive` /
 `step` on the records' stamps (the clock of record), the frames joined by stamp as for real sensors
@@ -16,6 +17,7 @@ import cv2
 import numpy as np
 import pytest
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from rmmdet.v1.sensors_pb2 import RadarScan
 from rosbags.rosbag1 import Writer as Ros1Writer
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Ros2Writer
@@ -30,7 +32,7 @@ from shared.perception.core import MecCore
 from shared.perception.decode import point_cloud_to_array
 from shared.recording.reader import decode_record, read_records
 from shared.recording.writer import RecordingWriter
-from shared.rosbag_import import import_bags
+from shared.rosbag_import import import_bags, register_msg_dir
 from shared.scene.scene import Scene
 from shared.timebase import NS_PER_S
 from sim.config import load_sim_settings
@@ -38,15 +40,29 @@ from sim.lockstep import LockstepSim
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
 
-AGENT = "agent1"
+# agent1: four cameras, two lidars; agent2 (the viaduct): five cameras, two radars as radar_msgs scans,
+# a type no ROS store holds (registered from its .msg text, as a site would).
+AGENTS = ("agent1", "agent2")
+RADAR_MSGS = {
+    "RadarReturn": "".join(
+        f"float32 {f}\n" for f in ("range", "azimuth", "elevation", "doppler_velocity", "amplitude")
+    ),
+    "RadarScan": "std_msgs/Header header\nradar_msgs/RadarReturn[] returns\n",
+}
 EPOCH_NS = 1_790_000_000_000_000_000
 DURATION_S = 1.5
-RAW_CAMERAS = ("cam_13", "cam_14")  # the others go in as CompressedImage JPEG
+RAW_CAMERAS = ("cam_13", "cam_14", "cam_5")  # the others go in as CompressedImage JPEG
+# Equal to this many decimals (m, rad, probability): exact for agent1; agent2's radar returns are
+# float32 in radar_msgs (the standard's own layout), the project's doubles.
+DIGITS = {"agent1": 9, "agent2": 4}
 
 
-@pytest.fixture(scope="module")
-def run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Scene, list[tuple[str, int, object]], Path]:
-    """The run's frames (sensor, stamp, message) and the project's own recording of them."""
+@pytest.fixture(scope="module", params=AGENTS)
+def run(
+    request, tmp_path_factory: pytest.TempPathFactory
+) -> tuple[str, Scene, list[tuple[str, int, object]], Path]:
+    """The agent, the run's frames (sensor, stamp, message) and the project's own recording of them."""
+    AGENT = request.param
     scene = Scene.load(DEFAULT_SCENE)
     settings = load_sim_settings(seed=3)
     frames: list[tuple[str, int, object]] = []
@@ -67,7 +83,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Scene, list[tuple[str
             enc = encode(message, header)  # type: ignore[arg-type]
             key = get_stream(SENSOR_STREAM[spec.kind]).key(agent=AGENT, sensor=sensor)
             writer.write(key, str(enc.encoding), enc.payload, enc.attachment, stamp_ns, stamp_ns)
-    return scene, frames, path
+    return AGENT, scene, frames, path
 
 
 def ros_messages(store, sensor: str, stamp_ns: int, message) -> tuple[str, str, object]:
@@ -99,6 +115,18 @@ def ros_messages(store, sensor: str, stamp_ns: int, message) -> tuple[str, str, 
                 step=w * 3,
                 data=bgr.reshape(-1),
             ),
+        )
+    if isinstance(message, RadarScan):
+        ret = types["radar_msgs/msg/RadarReturn"]
+        returns = [
+            ret(range=t.range_m, azimuth=t.azimuth_rad, elevation=t.elevation_rad,
+                doppler_velocity=t.range_rate_mps, amplitude=t.rcs_dbsm)
+            for t in message.targets
+        ]  # fmt: skip
+        return (
+            f"/{sensor}/scan",
+            "radar_msgs/msg/RadarScan",
+            types["radar_msgs/msg/RadarScan"](header=header, returns=returns),
         )
     points = point_cloud_to_array(message)  # (N, 4) float32
     field = types["sensor_msgs/msg/PointField"]
@@ -150,8 +178,16 @@ def ros_messages(store, sensor: str, stamp_ns: int, message) -> tuple[str, str, 
     return f"/{sensor}/points", "sensor_msgs/msg/PointCloud2", cloud
 
 
-def write_bag(path: Path, kind: str, frames) -> Path:
+def write_msg_dir(root: Path) -> Path:
+    (root / "radar_msgs" / "msg").mkdir(parents=True, exist_ok=True)
+    for name, text in RADAR_MSGS.items():
+        (root / "radar_msgs" / "msg" / f"{name}.msg").write_text(text)
+    return root
+
+
+def write_bag(path: Path, kind: str, frames, msg_dir: Path) -> Path:
     store = get_typestore(Stores.ROS1_NOETIC if kind == "ros1" else Stores.ROS2_HUMBLE)
+    register_msg_dir(store, msg_dir)
     if kind == "ros1":
         writer, serialize = Ros1Writer(path), store.serialize_ros1
     else:
@@ -167,14 +203,16 @@ def write_bag(path: Path, kind: str, frames) -> Path:
     return path
 
 
-def replay_objects(scene: Scene, recording: Path) -> list[tuple[int, list[str], list[tuple]]]:
+def replay_objects(
+    scene: Scene, agent: str, recording: Path, digits: int
+) -> list[tuple[int, list[str], list[tuple]]]:
     """The recording through a fresh MecCore, record by record; each published list as (stamp, the
     sensors joined, objects)."""
     records = list(read_records(recording))
     first_s = records[0].publish_time_ns / NS_PER_S
     # Real sensors carry no sim tick: the MEC joins them by stamp (bounded_wait), as on a real site.
     settings = MecSettings(sync=SyncConfig(collector="bounded_wait"))
-    core = MecCore(scene, AGENT, settings, now_s=first_s)  # inputs judged from the run's start
+    core = MecCore(scene, agent, settings, now_s=first_s)  # inputs judged from the run's start
     out = []
     for record in records:
         decoded = decode_record(record)
@@ -187,8 +225,8 @@ def replay_objects(scene: Scene, recording: Path) -> list[tuple[int, list[str], 
         result = core.step(now_s)
         if result is not None:
             objects = [
-                (o.track_id, round(o.box.center_m.x, 9), round(o.box.center_m.y, 9), round(o.box.yaw_rad, 9),
-                 round(o.existence_probability, 9))
+                (o.track_id, round(o.box.center_m.x, digits), round(o.box.center_m.y, digits),
+                 round(o.box.yaw_rad, digits), round(o.existence_probability, digits))
                 for o in result.message.objects
             ]  # fmt: skip
             out.append((result.frame.stamp_ns, sorted(result.frame.samples), objects))
@@ -197,11 +235,13 @@ def replay_objects(scene: Scene, recording: Path) -> list[tuple[int, list[str], 
 
 @pytest.mark.parametrize("kind", ["ros1", "sqlite3", "mcap"])
 def test_an_imported_bag_replays_to_the_same_object_lists(run, kind: str, tmp_path: Path) -> None:
-    scene, frames, own = run
-    bag = write_bag(tmp_path / ("run.bag" if kind == "ros1" else "run"), kind, frames)
+    agent, scene, frames, own = run
+    msg_dir = write_msg_dir(tmp_path / "msgs")
+    bag = write_bag(tmp_path / ("run.bag" if kind == "ros1" else "run"), kind, frames, msg_dir)
     imported = tmp_path / "imported.mcap"
-    report = import_bags([bag], imported, scene)
-    assert set(report.mapped.values()) == {s.id for s in scene.sensors_of(AGENT)}  # by name, no mapping
-    expected, got = replay_objects(scene, own), replay_objects(scene, imported)
+    report = import_bags([bag], imported, scene, msg_dir=msg_dir)
+    assert set(report.mapped.values()) == {s.id for s in scene.sensors_of(agent)}  # by name, no mapping
+    digits = DIGITS[agent]
+    expected, got = replay_objects(scene, agent, own, digits), replay_objects(scene, agent, imported, digits)
     assert len(expected) >= 10 and sum(len(objs) for *_, objs in expected) > 0  # a run with cars in it
     assert got == expected
