@@ -132,19 +132,36 @@ def encode(msg: Message, header: Header | None = None) -> Encoded:
 _FLOAT_TYPES = (FieldDescriptor.TYPE_DOUBLE, FieldDescriptor.TYPE_FLOAT)
 
 
+#: What each field plan looks for (`_field_plan`): floats (`find_non_finite`); strings and lists of
+#: strings, bytes or messages (`find_oversized`: repeated numbers are bounded by the payload cap and
+#: their own validators, a grid's cells, a cloud's points).
+_PLAN_WANTS: dict[str, Callable[[FieldDescriptor], bool]] = {
+    "floats": lambda f: f.type in _FLOAT_TYPES,
+    "sizes": lambda f: (
+        f.type == FieldDescriptor.TYPE_STRING
+        or (
+            f.is_repeated
+            and f.type
+            in (FieldDescriptor.TYPE_STRING, FieldDescriptor.TYPE_BYTES, FieldDescriptor.TYPE_MESSAGE)
+        )
+    ),
+}
+
+
 @functools.cache
-def _float_plan(descriptor: Descriptor) -> tuple[tuple[FieldDescriptor, bool], ...]:
-    """Fields of a message type that are floats or (transitively) contain floats, with a flag
-    telling which are floats. Strings, ints, Timestamps etc. are never visited."""
+def _field_plan(descriptor: Descriptor, wants: str) -> tuple[tuple[FieldDescriptor, bool], ...]:
+    """Fields of a message type that `_PLAN_WANTS[wants]` picks (flagged True) or that are messages
+    holding such fields, transitively (False). Nothing else is ever visited."""
+    wanted = _PLAN_WANTS[wants]
     plan: list[tuple[FieldDescriptor, bool]] = []
     for field in descriptor.fields:
-        if field.type in _FLOAT_TYPES:
+        if wanted(field):
             plan.append((field, True))
         elif (
             field.type == FieldDescriptor.TYPE_MESSAGE
             and field.message_type is not None
             and not field.message_type.GetOptions().map_entry
-            and (field.message_type is descriptor or _float_plan(field.message_type))
+            and (field.message_type is descriptor or _field_plan(field.message_type, wants))
         ):
             plan.append((field, False))
     return tuple(plan)
@@ -161,7 +178,7 @@ def _all_finite(values: Sequence[float]) -> bool:
 
 def find_non_finite(msg: Message, path: str = "") -> str | None:
     """Path of the first NaN/Inf float field in `msg` (recursively), or None."""
-    for field, is_float in _float_plan(msg.DESCRIPTOR):
+    for field, is_float in _field_plan(msg.DESCRIPTOR, "floats"):
         value = getattr(msg, field.name)
         if is_float:
             name = f"{path}.{field.name}" if path else field.name
@@ -183,40 +200,19 @@ def find_non_finite(msg: Message, path: str = "") -> str | None:
     return None
 
 
-_STRING_TYPES = (FieldDescriptor.TYPE_STRING,)
-_LISTED_TYPES = (FieldDescriptor.TYPE_STRING, FieldDescriptor.TYPE_BYTES, FieldDescriptor.TYPE_MESSAGE)
-
-
-@functools.cache
-def _shape_plan(descriptor: Descriptor) -> tuple[tuple[FieldDescriptor, bool], ...]:
-    """Fields whose size `find_oversized` bounds: strings and repeated strings, bytes or messages
-    (flagged True), and messages that (transitively) hold one (False). Repeated numbers are bounded
-    by the payload cap and their own validators (a grid's cells, a cloud's points)."""
-    plan: list[tuple[FieldDescriptor, bool]] = []
-    for field in descriptor.fields:
-        if field.type in _STRING_TYPES or (field.is_repeated and field.type in _LISTED_TYPES):
-            plan.append((field, True))
-        elif (
-            field.type == FieldDescriptor.TYPE_MESSAGE
-            and field.message_type is not None
-            and not field.message_type.GetOptions().map_entry
-            and (field.message_type is descriptor or _shape_plan(field.message_type))
-        ):
-            plan.append((field, False))
-    return tuple(plan)
-
-
 def find_oversized(msg: Message, max_string_chars: int, max_list_length: int, path: str = "") -> str | None:
     """The first string longer than `max_string_chars` or list of strings, bytes or messages longer
     than `max_list_length` in `msg` (recursively), as 'path: what', or None. Lengths only: a list is
     measured before any element of it is looked at."""
-    for field, sized in _shape_plan(msg.DESCRIPTOR):
+    for field, sized in _field_plan(msg.DESCRIPTOR, "sizes"):
         value = getattr(msg, field.name)
         name = f"{path}.{field.name}" if path else field.name
         if sized:
             if field.is_repeated and len(value) > max_list_length:
                 return f"{name}: {len(value)} items > {max_list_length}"
-            strings = (value if field.is_repeated else [value]) if field.type in _STRING_TYPES else ()
+            strings = (
+                (value if field.is_repeated else [value]) if field.type == FieldDescriptor.TYPE_STRING else ()
+            )
             for i, text in enumerate(strings):
                 if len(text) > max_string_chars:
                     where = f"{name}[{i}]" if field.is_repeated else name
