@@ -135,7 +135,10 @@ class CoordinatorService:
             clock_s=clock.now_s,
             max_future_s=bus_limits.max_clock_skew_s,
         )
-        self.acks = node.subscribe_stream("route_ack")
+        # Acks carry their plan's stamp (or a plan end's tick): the coordinator's clock of record.
+        self.acks = node.subscribe_stream(
+            "route_ack", clock_s=clock.now_s, max_future_s=bus_limits.max_clock_skew_s
+        )
         # Plans served over the RPC, copied for viewers by the main loop (the handler runs on a Zenoh
         # thread, where declaring and putting can stall the session).
         self.served: BoundedQueue[tuple[RoutePlan, int]] = BoundedQueue(

@@ -30,7 +30,7 @@ import zenoh
 
 from shared.bus.health import DEGRADED, NOMINAL
 from shared.bus.node import Node, Publisher, processing_stamp
-from shared.bus.streams import SENSOR_STREAM
+from shared.bus.streams import SENSOR_STREAM, limits
 from shared.devices.site import Ars408Radar, RobosenseLidar, SiteFile, VelodyneLidar
 from shared.devices.sources import (
     CameraSource,
@@ -100,7 +100,14 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             for spec in specs
         }
         demand_sub = (
-            node.subscribe_stream("capture_demand", agent=agent, kind=kind, maxsize=DEMAND_QUEUE)
+            node.subscribe_stream(
+                "capture_demand",
+                agent=agent,
+                kind=kind,
+                maxsize=DEMAND_QUEUE,
+                clock_s=sim_time.now_s,
+                max_future_s=limits().max_clock_skew_s,
+            )
             if kind == "camera"
             else None
         )

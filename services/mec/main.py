@@ -118,7 +118,8 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             # back to every frame if this MEC is gone (the demand lapses).
             if demand_pub is not None and core.tick_hz is not None and renewal.due(time.monotonic(), changed):
                 reason = "lidar live" if every_n > 1 else "no lidar"
-                demand_pub.put(CaptureDemand(every_n=every_n, valid_for_s=renewal.valid_for_s, reason=reason))
+                demand = CaptureDemand(every_n=every_n, valid_for_s=renewal.valid_for_s, reason=reason)
+                demand_pub.put(demand, stamp_ns=sim_time.now_ns())  # on the clock of record, as judged
             for item in items:
                 sensor_id, stamp_ns = item.key.rsplit("/", 1)[-1], item.header.stamp.ToNanoseconds()
                 arrival_ns = sim_time.now_ns(item.received_wall_ns)

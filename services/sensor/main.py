@@ -121,7 +121,14 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 max_future_s=bus_limits.max_clock_skew_s,
             )
             ticks: OrderGate | None = None
-            demand_sub = node.subscribe_stream("capture_demand", agent=agent, kind=kind, maxsize=DEMAND_QUEUE)
+            demand_sub = node.subscribe_stream(
+                "capture_demand",
+                agent=agent,
+                kind=kind,
+                maxsize=DEMAND_QUEUE,
+                clock_s=sim_time.now_s,
+                max_future_s=bus_limits.max_clock_skew_s,
+            )
             demands = CaptureDemands()
             stats = {"frames": 0, "skipped": 0, "last_tick": -1, "every_n": 1}
 
