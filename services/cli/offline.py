@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, cast
 
 import typer
 from rich.table import Table
@@ -147,6 +147,9 @@ def eval_detectors(
     limit: Annotated[int | None, typer.Option(help="at most this many images / lidar frames")] = None,
     latency_frames: Annotated[int, typer.Option(help="frames timed per detector and thread count")] = 100,
     out: Annotated[Path | None, typer.Option(help="write the results as JSON")] = None,
+    recall_sampling: Annotated[
+        str, typer.Option(help="lidar AP: r40 (recall 1/40..1) or devkit (the KITTI devkit's thresholds)")
+    ] = "r40",
 ) -> None:
     """AP of each detector on a dataset split (camera: COCO AP@0.5, AP@0.5:0.95; lidar: KITTI R40 BEV /
     3D AP at IoU 0.5 / 0.7 overall and by distance band) and latency per call (p50 / p95, 1 and 2
@@ -154,6 +157,7 @@ def eval_detectors(
     from shared.datasets.layout import SPLITS, DatasetLayout
     from shared.detection import evaluate as ev
     from shared.detection.registry import camera_detector, lidar_detector
+    from shared.metrics.detection import RecallSampling
 
     layout = DatasetLayout(data)
     if not layout.manifest.exists():
@@ -163,6 +167,8 @@ def eval_detectors(
         raise typer.Exit(2)
     if split not in SPLITS:
         raise typer.BadParameter(f"split must be one of {SPLITS}, got {split!r}")
+    if recall_sampling not in ("r40", "devkit"):
+        raise typer.BadParameter(f"recall sampling must be r40 or devkit, got {recall_sampling!r}")
     results: dict[str, list[dict[str, object]]] = {"camera": [], "lidar": []}
     camera_samples = list(ev.camera_samples(layout, split, latency_frames))
     lidar_samples = list(ev.lidar_samples(layout, split, latency_frames))
@@ -174,7 +180,8 @@ def eval_detectors(
         }
         results["camera"].append(result)
     for name in lidar if lidar is not None else ["pointpillars", "cluster", "oracle"]:
-        result = ev.evaluate_lidar(lidar_detector(name), layout, split, limit)
+        sampling = cast(RecallSampling, recall_sampling)  # checked above
+        result = ev.evaluate_lidar(lidar_detector(name), layout, split, limit, sampling)
         result["latency_ms"] = {
             f"{t}_threads": ev.lidar_latency(lidar_detector(name, threads=t), lidar_samples) for t in (1, 2)
         }

@@ -24,7 +24,7 @@ from shared.datasets import openpcdet, yolo
 from shared.datasets.images import read_rgb
 from shared.datasets.layout import DatasetLayout
 from shared.detection.interface import CameraDetector, LidarDetector
-from shared.metrics.detection import evaluate_coco, evaluate_kitti
+from shared.metrics.detection import RecallSampling, evaluate_coco, evaluate_kitti
 
 LATENCY_WARMUP = 5
 NS_PER_MS = 1e6
@@ -120,16 +120,23 @@ def lidar_latency(detector: LidarDetector, samples: list[LidarSample]) -> dict[s
 
 
 def evaluate_lidar(
-    detector: LidarDetector, layout: DatasetLayout, split: str, limit: int | None = None
+    detector: LidarDetector,
+    layout: DatasetLayout,
+    split: str,
+    limit: int | None = None,
+    recall_sampling: RecallSampling = "r40",
 ) -> dict[str, Any]:
+    """KITTI-style AP of `detector` on a split; `recall_sampling="devkit"` samples as the KITTI devkit
+    (shared/metrics/detection.py `devkit_ap`), to compare with it number for number."""
     frames = []
     samples = list(lidar_samples(layout, split, limit))
     for sample in samples:
         _set_truth(detector, sample.boxes)
         frames.append((detector.detect(sample.points), sample.boxes, sample.ignore))
-    summary = evaluate_kitti(frames)
+    summary = evaluate_kitti(frames, recall_sampling=recall_sampling)
     return {
         "detector": detector.name,
+        "recall_sampling": recall_sampling,
         "split": split,
         "frames": len(frames),
         "gt_boxes": int(sum(len(f[1]) for f in frames)),

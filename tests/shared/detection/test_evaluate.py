@@ -58,3 +58,14 @@ def test_registry_builds_by_name_and_refuses_unknown_names() -> None:
         lidar_detector("yolo")
     with pytest.raises(ValueError, match="unknown camera detector"):
         camera_detector("pointpillars")
+
+
+def test_lidar_ap_can_sample_as_the_kitti_devkit(layout: DatasetLayout) -> None:
+    """The same perfect detections: 1 interpolated at recall 1/40..1; the devkit's way one threshold per
+    true positive and a step of 1/40 each, so with few boxes the top points are never reached."""
+    r40 = ev.evaluate_lidar(OracleLidarDetector(), layout, "test")
+    devkit = ev.evaluate_lidar(OracleLidarDetector(), layout, "test", recall_sampling="devkit")
+    assert devkit["recall_sampling"] == "devkit" and r40["recall_sampling"] == "r40"
+    gt = devkit["gt_boxes"]
+    assert devkit["bev_ap70"] == pytest.approx(min(gt - 1, 40) / 40)  # thresholds fill points 0..gt-1
+    assert r40["bev_ap70"] == pytest.approx(1.0)
