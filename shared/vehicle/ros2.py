@@ -75,10 +75,11 @@ def plan_poses(plan: RoutePlan, network: RoadNetwork) -> np.ndarray:
 
 
 def ros_header(store: Any, stamp_ns: int, frame_id: str = FRAME_ID) -> Any:
-    """A std_msgs/msg/Header at `stamp_ns`."""
+    """A std_msgs/msg/Header at `stamp_ns` (ROS 1's, which also numbers messages, with seq 0)."""
     sec, nanosec = divmod(stamp_ns, 1_000_000_000)
-    time_cls = store.types["builtin_interfaces/msg/Time"]
-    return store.types["std_msgs/msg/Header"](stamp=time_cls(sec=sec, nanosec=nanosec), frame_id=frame_id)
+    time_cls, header_cls = store.types["builtin_interfaces/msg/Time"], store.types["std_msgs/msg/Header"]
+    seq = {"seq": 0} if "seq" in header_cls.__dataclass_fields__ else {}
+    return header_cls(**seq, stamp=time_cls(sec=sec, nanosec=nanosec), frame_id=frame_id)
 
 
 def ros_pose(store: Any, x: float, y: float, z: float, yaw_rad: float) -> Any:

@@ -35,8 +35,10 @@ from shared.recording.writer import RecordingWriter
 from shared.rosbag_import import import_bags, register_msg_dir
 from shared.scene.scene import Scene
 from shared.timebase import NS_PER_S
+from shared.vehicle.ros2 import ros_header
 from sim.config import load_sim_settings
 from sim.lockstep import LockstepSim
+from tests.ros_samples import pointcloud2
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
 
@@ -88,11 +90,7 @@ def run(
 
 def ros_messages(store, sensor: str, stamp_ns: int, message) -> tuple[str, str, object]:
     types = store.types
-    stamp = types["builtin_interfaces/msg/Time"](sec=stamp_ns // NS_PER_S, nanosec=stamp_ns % NS_PER_S)
-    fields = types["std_msgs/msg/Header"].__dataclass_fields__
-    header = types["std_msgs/msg/Header"](
-        **({"seq": 0} if "seq" in fields else {}), stamp=stamp, frame_id=sensor
-    )
+    header = ros_header(store, stamp_ns, sensor)
     if isinstance(message, CompressedImage):
         if sensor not in RAW_CAMERAS:
             data = np.frombuffer(message.data, np.uint8)
@@ -129,53 +127,17 @@ def ros_messages(store, sensor: str, stamp_ns: int, message) -> tuple[str, str, 
             types["radar_msgs/msg/RadarScan"](header=header, returns=returns),
         )
     points = point_cloud_to_array(message)  # (N, 4) float32
-    field = types["sensor_msgs/msg/PointField"]
-    if sensor == "lidar_11":
+    if sensor == "lidar_11":  # float32 x y z intensity, little-endian
+        dtype = np.dtype({"names": ["x", "y", "z", "intensity"], "formats": ["<f4"] * 4})
+    else:  # float64 x y z, a ring field, float32 intensity, big-endian
+        names = ["x", "y", "z", "ring", "intensity"]
         dtype = np.dtype(
-            {
-                "names": ["x", "y", "z", "intensity"],
-                "formats": ["<f4"] * 4,
-                "offsets": [0, 4, 8, 12],
-                "itemsize": 16,
-            }
+            {"names": names, "formats": [">f8", ">f8", ">f8", ">u2", ">f4"], "offsets": [0, 8, 16, 24, 28]}
         )
-        layout = [
-            field(name=n, offset=o, datatype=7, count=1)
-            for n, o in zip(("x", "y", "z", "intensity"), (0, 4, 8, 12), strict=True)
-        ]
-        big = False
-    else:
-        dtype = np.dtype(
-            {
-                "names": ["x", "y", "z", "ring", "intensity"],
-                "formats": [">f8", ">f8", ">f8", ">u2", ">f4"],
-                "offsets": [0, 8, 16, 24, 28],
-                "itemsize": 32,
-            }
-        )
-        layout = [
-            field(name=n, offset=o, datatype=8, count=1) for n, o in zip("xyz", (0, 8, 16), strict=True)
-        ]
-        layout += [
-            field(name="ring", offset=24, datatype=4, count=1),
-            field(name="intensity", offset=28, datatype=7, count=1),
-        ]
-        big = True
     data = np.zeros(len(points), dtype)
     for i, name in enumerate(("x", "y", "z", "intensity")):
         data[name] = points[:, i]
-    cloud = types["sensor_msgs/msg/PointCloud2"](
-        header=header,
-        height=1,
-        width=len(points),
-        fields=layout,
-        is_bigendian=big,
-        point_step=dtype.itemsize,
-        row_step=dtype.itemsize * len(points),
-        data=np.frombuffer(data.tobytes(), np.uint8),
-        is_dense=True,
-    )
-    return f"/{sensor}/points", "sensor_msgs/msg/PointCloud2", cloud
+    return f"/{sensor}/points", "sensor_msgs/msg/PointCloud2", pointcloud2(store, header, data)
 
 
 def write_msg_dir(root: Path) -> Path:

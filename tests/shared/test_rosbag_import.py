@@ -25,6 +25,7 @@ from shared.rosbag_import import (
     register_msg_dir,
 )
 from shared.scene.scene import Scene
+from shared.vehicle.ros2 import ros_header
 
 T0_NS = 1_700_000_000_000_000_000
 RADAR_RETURN = (
@@ -56,24 +57,14 @@ def store_for(kind: str, msg_dir: Path):
 
 
 def header(store, k: int, frame_id: str):
-    t = T0_NS + k * 100_000_000
-    return (
-        store.types["std_msgs/msg/Header"](
-            seq=k,
-            stamp=store.types["builtin_interfaces/msg/Time"](sec=t // 10**9, nanosec=t % 10**9),
-            frame_id=frame_id,
-        )
-        if "seq" in store.types["std_msgs/msg/Header"].__dataclass_fields__
-        else store.types["std_msgs/msg/Header"](
-            stamp=store.types["builtin_interfaces/msg/Time"](sec=t // 10**9, nanosec=t % 10**9),
-            frame_id=frame_id,
-        )
-    )
+    return ros_header(store, T0_NS + k * 100_000_000, frame_id)
 
 
 def cloud(store, k: int, frame_id: str, big_endian: bool, layout: str):
     """layout "xyzi": float32 x y z intensity (16 B); "padded": float64 x y z, uint8 intensity, a ring
-    field between, a 40-byte step (an unusual layout)."""
+    field between, a 40-byte step (an unusual layout). The fields written out by hand with
+    sensor_msgs/PointField's datatype numbers (7 FLOAT32, 8 FLOAT64, 4 UINT16, 2 UINT8): the known
+    answer the importer's own table is checked against."""
     order = ">" if big_endian else "<"
     field_cls = store.types["sensor_msgs/msg/PointField"]
     if layout == "xyzi":
