@@ -1,13 +1,14 @@
 """Bring up one host of a multi-host deployment: its router (if any) and its services, under supervisord.
 
-    .venv/bin/python deploy/sites/launch.py --host site1 [--layout deploy/sites/three-sites.yaml]
-        [--pki .run/pki] [--out .run/sites/site1]
+    .venv/bin/python deploy/sites/launch.py --host site1 --pki BUNDLE [--layout deploy/sites/three-sites.yaml]
+        [--out .run/sites/site1]
 
 Renders the host's Zenoh configs (mutual TLS, access control generated from proto/streams.yaml) and a
 supervisord.conf into `--out`, then runs supervisord in the foreground (SIGTERM / SIGINT stop it and
-every service). `--render-only` writes the files and exits. The PKI directory must hold the CA and the
-host's certificates (`rmmdet pki init`, then copy `ca.pem` and the host's `<identity>.pem/.key` to it;
-the coordinator's host also needs `plan-signing.key`, the vehicles' `plan-signing.pub`).
+every service). `--render-only` writes the files and exits. `--pki` is the host's bundle, made where the
+CA lives (`rmmdet pki init`, then `rmmdet pki bundle --host <name> --out DIR` and copy DIR to the host):
+the CA certificate, the host's certificates and keys, the plan-key half it uses. A directory holding the
+CA's private key is refused: a service host must never have it.
 """
 
 from __future__ import annotations
@@ -19,10 +20,8 @@ import sys
 from pathlib import Path
 
 from shared.config import ConfigError
-from shared.paths import DEFAULT_PKI_DIR, DEPLOY_DIR, RUN_DIR
-from shared.security.sites import load_layout, render_host
-
-DEFAULT_LAYOUT = DEPLOY_DIR / "sites" / "three-sites.yaml"
+from shared.paths import RUN_DIR
+from shared.security.sites import DEFAULT_LAYOUT, load_layout, render_host
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -31,7 +30,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--host", required=True, help="host name in the layout")
     parser.add_argument("--layout", type=Path, default=DEFAULT_LAYOUT)
-    parser.add_argument("--pki", type=Path, default=DEFAULT_PKI_DIR, help="PKI directory")
+    parser.add_argument("--pki", type=Path, required=True, help="the host's PKI bundle (`rmmdet pki bundle`)")
     parser.add_argument("--out", type=Path, help="output directory (default .run/sites/<host>)")
     parser.add_argument("--render-only", action="store_true", help="write the configs and exit")
     args = parser.parse_args(argv)

@@ -13,6 +13,7 @@ from shared.paths import DEFAULT_PKI_DIR, DEFAULT_SCENE
 from shared.scene.scene import Scene
 from shared.security.identities import deployment_identities, parse_identity
 from shared.security.pki import init_pki, rotate_ca, rotate_plan_key
+from shared.security.sites import DEFAULT_LAYOUT, bundle_host, load_layout
 from sim.config import fleet_ids, load_sim_settings
 
 pki_app = typer.Typer(no_args_is_help=True, help="local CA, service certificates, plan-signing key")
@@ -59,6 +60,24 @@ def parse_names(items: list[str] | None) -> dict[str, tuple[str, ...]]:
             raise typer.BadParameter(f"--name {item!r}: expected IDENTITY=HOST")
         extra[ident] = (*extra.get(ident, ()), host)
     return extra
+
+
+@pki_app.command("bundle")
+def pki_bundle(
+    host: Annotated[str, typer.Option(help="host name in the layout")],
+    out: Annotated[Path, typer.Option(help="directory to write the host's files to (give it as --pki)")],
+    pki_dir: Annotated[Path, typer.Option("--dir", help="PKI directory")] = DEFAULT_PKI_DIR,
+    layout: Annotated[Path, typer.Option(help="site layout")] = DEFAULT_LAYOUT,
+) -> None:
+    """Copy what one host needs of the PKI (the CA certificate, its identities' certificates and keys, the
+    plan-key half it uses) and nothing more: never the CA key. The site launcher refuses a PKI
+    directory that holds the CA key."""
+    try:
+        files = bundle_host(load_layout(layout), host, pki_dir, out)
+    except ConfigError as err:
+        console.print(f"[red]{err}[/]")
+        raise typer.Exit(2) from None
+    console.print(f"{out}: {len(files)} files for {host} ({', '.join(p.name for p in files)})")
 
 
 @pki_app.command("rotate")

@@ -64,6 +64,11 @@ def identity_paths(pki_dir: Path, identity: str) -> Paths:
     return Paths(pki_dir / f"{identity}.pem", pki_dir / f"{identity}.key")
 
 
+def ca_paths(pki_dir: Path) -> Paths:
+    """The CA's certificate (every host has it) and private key (only where certificates are made)."""
+    return Paths(pki_dir / f"{CA_NAME}.pem", pki_dir / f"{CA_NAME}.key")
+
+
 def plan_key_paths(pki_dir: Path, name: str = PLAN_KEY_NAME) -> Paths:
     """The plan-signing key pair: `cert` is the public key (PEM), `key` the private key; `name`
     `NEXT_PLAN_KEY_NAME` for the staged next one."""
@@ -149,19 +154,19 @@ class CertificateAuthority:
             .sign(key, hashes.SHA256())
         )
         pki_dir.mkdir(parents=True, exist_ok=True)
-        _write_private(pki_dir / f"{CA_NAME}.key", _key_pem(key))
-        (pki_dir / f"{CA_NAME}.pem").write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+        _write_private(ca_paths(pki_dir).key, _key_pem(key))
+        ca_paths(pki_dir).cert.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
         return cls(cert, key)
 
     @classmethod
     def load(cls, pki_dir: Path) -> CertificateAuthority:
         try:
-            cert = x509.load_pem_x509_certificate((pki_dir / f"{CA_NAME}.pem").read_bytes())
-            key = serialization.load_pem_private_key((pki_dir / f"{CA_NAME}.key").read_bytes(), None)
+            cert = x509.load_pem_x509_certificate(ca_paths(pki_dir).cert.read_bytes())
+            key = serialization.load_pem_private_key(ca_paths(pki_dir).key.read_bytes(), None)
         except (OSError, ValueError) as err:
             raise ConfigError(f"{pki_dir}: cannot load the CA: {err}") from None
         if not isinstance(key, ec.EllipticCurvePrivateKey):
-            raise ConfigError(f"{pki_dir}/{CA_NAME}.key: expected an EC key, got {type(key).__name__}")
+            raise ConfigError(f"{ca_paths(pki_dir).key}: expected an EC key, got {type(key).__name__}")
         return cls(cert, key)
 
     def issue(self, pki_dir: Path, identity: str, extra_names: tuple[str, ...] = ()) -> Paths:
@@ -247,7 +252,8 @@ def rotate_ca(pki_dir: Path, extra_names: dict[str, tuple[str, ...]] | None = No
     identities = sorted(
         p.stem for p in pki_dir.glob("*.pem") if p.stem != CA_NAME and p.with_suffix(".key").exists()
     )
-    _retire(pki_dir, pki_dir / f"{CA_NAME}.pem", pki_dir / f"{CA_NAME}.key")
+    ca = ca_paths(pki_dir)
+    _retire(pki_dir, ca.cert, ca.key)
     ca = CertificateAuthority.create(pki_dir)
     for identity in identities:
         ca.issue(pki_dir, identity, (extra_names or {}).get(identity, ()))
@@ -290,7 +296,7 @@ def init_pki(
         check_identity(identity)
     report = InitReport([], [])
     pki_dir.mkdir(parents=True, exist_ok=True)
-    if (pki_dir / f"{CA_NAME}.pem").exists():
+    if ca_paths(pki_dir).cert.exists():
         ca = CertificateAuthority.load(pki_dir)
         report.kept.append(CA_NAME)
     else:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import ipaddress
 import json
 import logging
+import os
 import shlex
 import sys
 from pathlib import Path
@@ -28,11 +29,13 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from shared.bus.streams import sensor_group
 from shared.bus.zenoh_config import DEFAULT_CLIENT_CONFIG, DEFAULT_ROUTER_CONFIG
 from shared.config import ConfigError, read_yaml
-from shared.paths import REPO_ROOT
+from shared.paths import DEPLOY_DIR, REPO_ROOT
 from shared.security.acl import access_control
 from shared.security.identities import CLOUD_ROUTER, parse_identity, vehicle_identity
 from shared.security.pki import (
+    PRIVATE_MODE,
     RENEW_WITHIN_DAYS,
+    ca_paths,
     days_left,
     identity_paths,
     plan_key_paths,
@@ -40,6 +43,8 @@ from shared.security.pki import (
 )
 
 log = logging.getLogger(__name__)
+
+DEFAULT_LAYOUT = DEPLOY_DIR / "sites" / "three-sites.yaml"
 
 #: Zenoh link settings of a deployment across hosts (router <-> router and client <-> router).
 LINK_SETTINGS: dict[str, Any] = {
@@ -161,7 +166,7 @@ def router_subjects(layout: Layout, host: str) -> dict[str, list[str]]:
 def tls_settings(pki_dir: Path, identity: str) -> dict[str, Any]:
     paths = identity_paths(pki_dir, identity)
     return {
-        "root_ca_certificate": str(pki_dir / "ca.pem"),
+        "root_ca_certificate": str(ca_paths(pki_dir).cert),
         "enable_mtls": True,
         "listen_certificate": str(paths.cert),
         "listen_private_key": str(paths.key),
@@ -281,11 +286,66 @@ def write_vehicle_configs(layout: Layout, host: str, pki_dir: Path, out_dir: Pat
     return vehicles_dir
 
 
-def render_host(layout: Layout, host: str, pki_dir: Path, out_dir: Path) -> Path:
-    """Write `host`'s configs and its supervisord.conf under `out_dir`; returns the latter."""
+def _host_spec(layout: Layout, host: str) -> HostSpec:
     if host not in layout.hosts:
         raise ConfigError(f"no host {host!r} in the layout (hosts: {sorted(layout.hosts)})")
-    spec = layout.hosts[host]
+    return layout.hosts[host]
+
+
+def host_files(layout: Layout, host: str, pki_dir: Path) -> list[Path]:
+    """What of the PKI `host` needs, and nothing more: the CA's certificate (never its key), the leaf and
+    key of each identity it runs (its vehicles' included), the plan key's private half where the
+    coordinator signs and the trusted public halves where vehicles verify."""
+    _host_spec(layout, host)
+    identities = layout.identities(host)
+    files = [ca_paths(pki_dir).cert]
+    for identity in identities:
+        paths = identity_paths(pki_dir, identity)
+        files += [paths.cert, paths.key]
+    if "coordinator" in identities:
+        files.append(plan_key_paths(pki_dir).key)
+    if "sim" in identities:
+        files += trusted_plan_keys(pki_dir)
+    return files
+
+
+def bundle_host(layout: Layout, host: str, pki_dir: Path, out_dir: Path) -> list[Path]:
+    """Copy `host_files` to `out_dir` (private keys mode 0600), the directory to give that host as its
+    `--pki`; returns the copies. The CA key stays where certificates are made (issue 34 item 3)."""
+    if out_dir.resolve() == pki_dir.resolve():
+        raise ConfigError(f"{out_dir}: the bundle must go to another directory than the PKI itself")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    copies = []
+    for src in host_files(layout, host, pki_dir):
+        if not src.exists():
+            raise ConfigError(
+                f"{src}: missing from the PKI; run `rmmdet pki init` (with the layout's identities)"
+            )
+        dst = out_dir / src.name
+        private = src.suffix == ".key"
+        fd = os.open(dst, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, PRIVATE_MODE if private else 0o644)
+        with os.fdopen(fd, "wb") as f:
+            f.write(src.read_bytes())
+        copies.append(dst)
+    return copies
+
+
+def refuse_ca_key(pki_dir: Path) -> None:
+    """A service host must not hold the CA's private key: whoever takes that host could issue any
+    identity. The launcher runs only from a host bundle (`rmmdet pki bundle`)."""
+    ca_key = ca_paths(pki_dir).key
+    if ca_key.exists():
+        raise ConfigError(
+            f"{ca_key}: the CA's private key is in this host's PKI directory; no service host may hold it."
+            " Give the host its bundle instead: rmmdet pki bundle --host HOST --out DIR (then --pki DIR)"
+        )
+
+
+def render_host(layout: Layout, host: str, pki_dir: Path, out_dir: Path) -> Path:
+    """Write `host`'s configs and its supervisord.conf under `out_dir`; returns the latter. Refuses a PKI
+    directory holding the CA key (`refuse_ca_key`)."""
+    spec = _host_spec(layout, host)
+    refuse_ca_key(pki_dir)
     for identity in layout.identities(host):
         address = spec.address if identity == CLOUD_ROUTER else None
         check_certificate(pki_dir, identity, address)

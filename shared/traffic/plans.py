@@ -154,8 +154,10 @@ def plan_problem(
     `plan_unknown_key`, `plan_bad_signature`), a malformed plan id (`plan_id`), a version out of range
     (`plan_version`: a reply's plan is not range-checked by the codec), issued before the vehicle's
     run started at `run_start_ns` (Unix ns) less the clock skew allowed (`plan_before_run`: a plan of
-    an earlier run replayed, still within its TTL), or no TTL / one reaching further than `max_ttl_s`
-    from now (`plan_ttl`). Version order and expiry are the vehicle's decision after."""
+    an earlier run replayed, still within its TTL), issued after `now_ns` plus that skew (`plan_future`:
+    the version is the issue time, and one far ahead would make every later plan stale), or no TTL / one
+    reaching further than `max_ttl_s` from now (`plan_ttl`). Version order and expiry are the vehicle's
+    decision after."""
     problem = verifier.problem(plan)
     if problem is not None:
         return f"plan_{problem}"
@@ -163,8 +165,11 @@ def plan_problem(
         return "plan_id"
     if not 1 <= plan.version <= limits().max_plan_version:
         return "plan_version"
-    if plan.version < version_of(run_start_ns - round(limits().max_clock_skew_s * NS_PER_S)):
+    skew_ns = round(limits().max_clock_skew_s * NS_PER_S)
+    if plan.version < version_of(run_start_ns - skew_ns):
         return "plan_before_run"
+    if plan.version > version_of(now_ns + skew_ns):
+        return "plan_future"
     if not plan.HasField("valid_until") or plan.valid_until.ToNanoseconds() - now_ns > max_ttl_s * NS_PER_S:
         return "plan_ttl"
     return None

@@ -185,13 +185,19 @@ def health_ok_after(session: zenoh.Session, scene: Scene, t_from: float, limit_s
 
 
 def router_kills(
-    watch: Watch, session: zenoh.Session, kills: int, every_s: float, scene: Scene
+    watch: Watch,
+    session: zenoh.Session,
+    kills: int,
+    every_s: float,
+    scene: Scene,
+    health_limit_s: float | None = None,
 ) -> dict[str, Any]:
     """The router SIGKILLed `kills` times, `every_s` apart (issue 34: a transient fault of the one process
     everything depends on must not become an outage). Per kill: when supervisord had it up again, when
     every agent's object lists flowed again and when `rmmdet health` was OK, from its return; whether
     the watchdog held it (not RUNNING 5 s after a kill). Over all: the vehicles' route requests
-    (requested, unanswered meanwhile, asked again, given up)."""
+    (requested, unanswered meanwhile, asked again, given up). `rmmdet health` is probed for up to
+    `health_limit_s` after each return (default: until 2 s before the next kill)."""
     sim0 = sim_counters(session)
     rows = []
     for _ in range(kills):
@@ -204,7 +210,8 @@ def router_kills(
             time.sleep(0.05)
         t_back = time.monotonic()
         held = supervised_pids().get("router", old_pid) == old_pid
-        health_s = None if held else health_ok_after(session, scene, t_back, every_s - 2.0)
+        limit_s = every_s - 2.0 if health_limit_s is None else health_limit_s
+        health_s = None if held else health_ok_after(session, scene, t_back, limit_s)
         flowing = {a: first(watch.rows(a, t_back), lambda _r: True) for a in AGENTS}
         rows.append(
             {

@@ -21,7 +21,7 @@ from rmmdet.v1.planning_pb2 import AckStatus
 from shared.bus.node import Node, Subscription
 from shared.bus.session import open_session
 from shared.security.pki import init_pki
-from shared.security.sites import Layout, identity_config, load_layout
+from shared.security.sites import Layout, bundle_host, identity_config, load_layout
 from sim.config import fleet_ids
 from tests.helpers import REPO_ROOT, Router, spawn, stop
 from tests.integration import netns
@@ -243,7 +243,9 @@ def five_hosts(tmp: Path, startup_s: float, vehicles: int = 10) -> Iterator[Site
                 "--layout",
                 str(tmp / "layout.yaml"),
             ]
-            args += ["--pki", str(dep.pki), "--out", str(out / host)]
+            bundle = out / host / "pki"  # what the host is given: never the CA key (the launcher refuses it)
+            bundle_host(dep.layout, host, dep.pki, bundle)
+            args += ["--pki", str(bundle), "--out", str(out / host)]
             with (out / host / "launcher.log").open("w") as log:
                 launchers[host] = subprocess.Popen(
                     hosts.command(host, args), cwd=REPO_ROOT, start_new_session=True, stdout=log, stderr=log

@@ -100,6 +100,18 @@ def test_a_plan_issued_before_the_vehicles_run_started_is_a_replay(signer: PlanS
     assert plan_problem(signer.sign(fresh), v, NOW_NS, 600.0, run_start_ns) is None
 
 
+def test_a_plan_issued_ahead_of_the_vehicles_clock_is_refused(signer: PlanSigner) -> None:
+    """The version is the issue time (µs) and later plans must exceed it: one issued further ahead than
+    the clock skew allowed would make every plan after it stale, so it is refused at the edge of the skew."""
+    v = verifier_for(signer)
+    skew_ns = round(limits().max_clock_skew_s * 10**9)
+    ahead, edge = plan(), plan()
+    ahead.version = version_of(NOW_NS + skew_ns) + 1
+    edge.version = version_of(NOW_NS + skew_ns)  # a coordinator whose clock runs the whole skew ahead
+    assert plan_problem(signer.sign(ahead), v, NOW_NS, 600.0) == "plan_future"
+    assert plan_problem(signer.sign(edge), v, NOW_NS, 600.0) is None
+
+
 def test_keys_load_from_files_and_bad_files_are_config_errors(tmp_path: Path) -> None:
     paths = create_plan_key(tmp_path)
     assert (paths.key.stat().st_mode & 0o777) == 0o600

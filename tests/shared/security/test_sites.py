@@ -13,10 +13,11 @@ import zenoh
 from supervisor.datatypes import dict_of_key_value_pairs
 
 from shared.config import ConfigError
-from shared.paths import DEPLOY_DIR
 from shared.security import pki as pki_module
 from shared.security.pki import init_pki
 from shared.security.sites import (
+    DEFAULT_LAYOUT,
+    bundle_host,
     check_certificate,
     identity_config,
     load_layout,
@@ -25,7 +26,7 @@ from shared.security.sites import (
     supervisor_program,
 )
 
-THREE_SITES = DEPLOY_DIR / "sites" / "three-sites.yaml"
+THREE_SITES = DEFAULT_LAYOUT
 
 
 @pytest.fixture(scope="module")
@@ -78,8 +79,13 @@ def test_endpoints_and_tls(pki: Path) -> None:
     assert get(cloud, "transport/link/tx/lease") == 1000
 
 
+def bundle(pki: Path, host: str, tmp_path: Path) -> Path:
+    bundle_host(load_layout(THREE_SITES), host, pki, tmp_path / f"{host}-pki")
+    return tmp_path / f"{host}-pki"
+
+
 def test_render_host_writes_configs_and_a_supervisord_conf(pki: Path, tmp_path: Path) -> None:
-    conf = render_host(load_layout(THREE_SITES), "cloud", pki, tmp_path)
+    conf = render_host(load_layout(THREE_SITES), "cloud", bundle(pki, "cloud", tmp_path), tmp_path)
     text = conf.read_text()
     assert "[program:router-cloud]" in text and "[program:coordinator]" in text
     assert (tmp_path / "coordinator.json").exists() and "RMMDET_COORD_PLAN_SIGNING_KEY" in text
@@ -87,8 +93,33 @@ def test_render_host_writes_configs_and_a_supervisord_conf(pki: Path, tmp_path: 
         render_host(load_layout(THREE_SITES), "mars", pki, tmp_path)
 
 
+def test_a_host_gets_what_it_runs_and_never_the_ca_key(pki: Path, tmp_path: Path) -> None:
+    """Issue 34 item 3: the CA key stays where certificates are made. A host's bundle holds the CA
+    certificate, its own identities' leaves and keys and the plan-key half it uses; the launcher
+    refuses a PKI directory with the CA key in it."""
+    layout = load_layout(THREE_SITES)
+    site1 = {p.name for p in bundle_host(layout, "site1", pki, tmp_path / "site1")}
+    own = {"router-agent1", "sensor-agent1-cameras", "sensor-agent1-lidars", "mec-agent1"}
+    assert site1 == {"ca.pem"} | {f"{i}.{ext}" for i in own for ext in ("pem", "key")}
+    cloud = {p.name for p in bundle_host(layout, "cloud", pki, tmp_path / "cloud")}
+    assert "plan-signing.key" in cloud and "plan-signing.pub" not in cloud
+    vehicles = {p.name for p in bundle_host(layout, "vehicles", pki, tmp_path / "vehicles")}
+    assert "plan-signing.pub" in vehicles and "plan-signing.key" not in vehicles
+    assert "vehicle-v04.key" in vehicles and "vehicle-v04.key" not in site1 | cloud
+    for name in ("ca.key", "operator.key"):
+        assert name not in site1 | cloud | vehicles
+    assert ((tmp_path / "site1" / "mec-agent1.key").stat().st_mode & 0o777) == 0o600
+    with pytest.raises(ConfigError, match="CA's private key"):
+        render_host(layout, "site1", pki, tmp_path / "out")
+    render_host(layout, "site1", tmp_path / "site1", tmp_path / "out")  # the bundle is enough
+    with pytest.raises(ConfigError, match="another directory"):
+        bundle_host(layout, "site1", pki, pki)
+
+
 def test_the_vehicles_host_gives_the_sim_each_vehicles_identity(pki: Path, tmp_path: Path) -> None:
-    text = render_host(load_layout(THREE_SITES), "vehicles", pki, tmp_path).read_text()
+    text = render_host(
+        load_layout(THREE_SITES), "vehicles", bundle(pki, "vehicles", tmp_path), tmp_path
+    ).read_text()
     command = next(ln for ln in text.splitlines() if ln.startswith("command=") and "services.sim" in ln)
     assert f"--vehicle-configs {tmp_path / 'vehicles'}" in command
     configs = sorted(p.name for p in (tmp_path / "vehicles").iterdir())
@@ -108,9 +139,10 @@ def test_environment_values_survive_supervisord_quoting(tmp_path: Path) -> None:
 
 def test_the_cloud_certificate_must_name_its_address(tmp_path: Path) -> None:
     layout = load_layout(THREE_SITES)
-    init_pki(tmp_path, layout.identities("cloud"))  # no --name router-cloud=10.77.0.10
+    init_pki(tmp_path / "pki", layout.identities("cloud"))  # no --name router-cloud=10.77.0.10
+    bundle_host(layout, "cloud", tmp_path / "pki", tmp_path / "cloud")
     with pytest.raises(ConfigError, match=re.escape("pki init --renew --name router-cloud=10.77.0.10")):
-        render_host(layout, "cloud", tmp_path, tmp_path / "out")
+        render_host(layout, "cloud", tmp_path / "cloud", tmp_path / "out")
 
 
 def test_an_expired_certificate_is_refused_and_one_near_expiry_warned(
