@@ -252,8 +252,8 @@ def rotate_ca(pki_dir: Path, extra_names: dict[str, tuple[str, ...]] | None = No
     identities = sorted(
         p.stem for p in pki_dir.glob("*.pem") if p.stem != CA_NAME and p.with_suffix(".key").exists()
     )
-    ca = ca_paths(pki_dir)
-    _retire(pki_dir, ca.cert, ca.key)
+    old = ca_paths(pki_dir)
+    _retire(pki_dir, old.cert, old.key)
     ca = CertificateAuthority.create(pki_dir)
     for identity in identities:
         ca.issue(pki_dir, identity, (extra_names or {}).get(identity, ()))
