@@ -1,7 +1,9 @@
-"""Detectors by name, so services and tools swap them through configuration.
+"""Detectors by name or by model card, so services and tools swap them through configuration.
 
-Camera: `onnx` (the committed model in deploy/models/camera), `oracle` (noisy ground truth).
-Lidar: `pointpillars` (deploy/models/lidar), `cluster` (classical), `oracle` (noisy ground truth).
+Camera: `onnx` (the committed model in deploy/models/camera, through its card), `oracle` (noisy ground
+truth), or the path of any camera model card (`*.yaml`, `shared.detection.card`: a YOLO-family export,
+a site's own model). Lidar: `pointpillars` (deploy/models/lidar), `cluster` (classical), `oracle`
+(noisy ground truth), or the path of a lidar model card (an OpenPCDet PointPillars export).
 Learned models load from `models_dir` (default deploy/models) in `precision` fp32 (the export) or int8
 (its static quantization beside it, `training.quantize`; shared.detection.precision names the
 file); onnxruntime uses `threads` intra-op threads. Imports are lazy: building one detector never
@@ -12,6 +14,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from shared.detection.card import is_card
 from shared.detection.interface import CameraDetector, LidarDetector
 from shared.detection.precision import model_file
 
@@ -19,6 +22,7 @@ MODELS_DIR = Path(__file__).resolve().parents[2] / "deploy" / "models"
 CAMERA_DETECTORS = ("onnx", "oracle")
 LIDAR_DETECTORS = ("pointpillars", "cluster", "oracle")
 CAMERA_MODEL = Path("camera") / "model.onnx"
+CAMERA_CARD = Path("camera") / "model.yaml"
 LIDAR_MODEL = Path("lidar") / "pointpillars.onnx"
 QUANTIZE_TOOLS = {
     CAMERA_MODEL: "training.camera.quantize",
@@ -38,17 +42,20 @@ def learned_model(models_dir: Path, model: Path, precision: str) -> Path:
 def camera_detector(
     name: str, threads: int = 2, seed: int = 0, models_dir: Path = MODELS_DIR, precision: str = "fp32"
 ) -> CameraDetector:
-    if name == "onnx":
+    if name == "onnx" or is_card(name):
         from shared.detection.camera.onnx_detector import OnnxCameraDetector
 
-        return OnnxCameraDetector(
-            learned_model(models_dir, CAMERA_MODEL, precision), intra_op_threads=threads
-        )
+        if name == "onnx":
+            learned_model(models_dir, CAMERA_MODEL, precision)  # names the tool that writes a missing one
+        card = models_dir / CAMERA_CARD if name == "onnx" else Path(name)
+        return OnnxCameraDetector.from_card(card, precision, intra_op_threads=threads)
     if name == "oracle":
         from shared.detection.oracle import OracleCameraDetector
 
         return OracleCameraDetector(seed=seed)
-    raise ValueError(f"unknown camera detector {name!r}: expected one of {CAMERA_DETECTORS}")
+    raise ValueError(
+        f"unknown camera detector {name!r}: expected one of {CAMERA_DETECTORS} or a card (.yaml)"
+    )
 
 
 def lidar_detector(

@@ -184,6 +184,16 @@ def health_ok_after(session: zenoh.Session, scene: Scene, t_from: float, limit_s
     return None
 
 
+def objects_again(watch: Watch, t_from: float, limit_s: float) -> dict[str, float | None]:
+    """When each agent's first object list after `t_from` arrived (monotonic s), waiting for them up to
+    `limit_s` after `t_from`; None for an agent with none by then."""
+    while True:
+        flowing = {a: first(watch.rows(a, t_from), lambda _r: True) for a in AGENTS}
+        if all(t is not None for t in flowing.values()) or time.monotonic() - t_from > limit_s:
+            return flowing
+        time.sleep(0.05)
+
+
 def router_kills(
     watch: Watch,
     session: zenoh.Session,
@@ -212,7 +222,8 @@ def router_kills(
         held = supervised_pids().get("router", old_pid) == old_pid
         limit_s = every_s - 2.0 if health_limit_s is None else health_limit_s
         health_s = None if held else health_ok_after(session, scene, t_back, limit_s)
-        flowing = {a: first(watch.rows(a, t_back), lambda _r: True) for a in AGENTS}
+        # Health can be OK again before the first object list arrives: wait for those too.
+        flowing = objects_again(watch, t_back, every_s - 2.0)
         rows.append(
             {
                 "router_up_after_kill_s": None if held else t_back - t_kill,

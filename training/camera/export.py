@@ -1,12 +1,13 @@
 """Export the camera detector to ONNX and check it against torch.
 
-    python -m training.camera.export --model-dir MODEL_DIR    # reads model.pt, writes model.onnx
+    python -m training.camera.export --model-dir MODEL_DIR    # reads model.pt, writes model.onnx + model.yaml
 
 The exported graph is `ExportModel` (network + box decoding): input `images` (B, H, W, 3) uint8 RGB
 letterboxed to the configured input size, output `detections` (B, N, 5) float32
 `[x0, y0, x1, y1, score]` in input pixels; the batch axis is dynamic. TorchScript exporter
 (`dynamo=False`), opset 17, constant folding (BatchNorm folds into the convolutions). After writing,
 `onnx.checker` validates the file and onnxruntime must reproduce the torch output on random images.
+Its model card (`model.yaml`, `CameraDetectorConfig.card`) goes beside it: what the MEC loads.
 """
 
 from __future__ import annotations
@@ -21,7 +22,8 @@ import onnx
 import onnxruntime as ort
 import torch
 
-from shared.detection.camera.config import ONNX_FILE, ONNX_INPUT, ONNX_OUTPUT, CameraDetectorConfig
+from shared.detection.camera.config import CARD_FILE, ONNX_FILE, ONNX_INPUT, ONNX_OUTPUT, CameraDetectorConfig
+from shared.detection.card import save_card
 from training.camera.net import CameraNet, ExportModel, load_checkpoint
 
 log = logging.getLogger(__name__)
@@ -29,6 +31,7 @@ log = logging.getLogger(__name__)
 OPSET = 17
 CHECK_BATCH = 3  # images in the torch-vs-onnxruntime check (> 1: exercises the dynamic batch axis)
 CHECK_SEED = 0
+CARD_NOTE = "model card of the project's camera detector, written by `python -m training.camera.export`"
 BOX_ATOL_PX = 1e-2  # max |torch - onnxruntime| of a box coordinate, input px
 SCORE_ATOL = 1e-4  # max |torch - onnxruntime| of a score
 
@@ -61,6 +64,7 @@ def export_onnx(model: CameraNet, cfg: CameraDetectorConfig, out_dir: Path) -> P
     onnx.checker.check_model(onnx.load(str(path)), full_check=True)
     box_err, score_err = compare_with_torch(path, model, cfg)
     log.info("exported %s: max |torch - onnxruntime| box %.2e px, score %.2e", path, box_err, score_err)
+    save_card(out_dir / CARD_FILE, cfg.card(), CARD_NOTE)
     return path
 
 

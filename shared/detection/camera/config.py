@@ -14,7 +14,11 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from shared.detection.card import CameraCard, CameraInput, CameraPost
+from shared.detection.interface import CLASS_NAMES
+
 CONFIG_FILE = "config.json"
+CARD_FILE = "model.yaml"  # the export's model card (`CameraDetectorConfig.card`)
 CHECKPOINT_FILE = "model.pt"
 ONNX_FILE = "model.onnx"
 ONNX_INPUT = "images"  # (B, H, W, 3) uint8 RGB, letterboxed to the input size
@@ -167,6 +171,27 @@ class CameraDetectorConfig(_Model):
 
     def save(self, path: Path) -> None:
         Path(path).write_text(self.model_dump_json(indent=2) + "\n")
+
+    def card(self, model: str = ONNX_FILE) -> CameraCard:
+        """The model card of this model's ONNX export (`model`, beside the card): NHWC uint8 RGB,
+        top-left letterbox, boxes decoded in the graph (layout rmmdet), one class, car."""
+        return CameraCard(
+            kind="camera",
+            model=model,
+            layout="rmmdet",
+            input=CameraInput(
+                width=self.input.width,
+                height=self.input.height,
+                tensor="nhwc_uint8",
+                colour="rgb",
+                letterbox="top_left",
+                pad_value=self.input.pad_value,
+                interpolation=self.input.interpolation,
+            ),
+            num_classes=1,
+            classes={0: CLASS_NAMES[0]},
+            post=CameraPost(**self.post.model_dump()),
+        )
 
     @classmethod
     def load(cls, path: Path) -> CameraDetectorConfig:

@@ -2,9 +2,10 @@
 evaluation and `OnnxCameraDetector`, so every path letterboxes and decodes the same way.
 
 Letterbox: an image of any size is resized by one factor `scale` (aspect kept) to fit the network
-input and placed at the top-left corner; the right and bottom remainder is padding. Continuous pixel
-coordinates (pixel (i, j) covers [i, i+1) x [j, j+1)) map as `x_input = x_original * scale`, so a
-box goes back to the original image by dividing by `scale` (and clipping to the image).
+input and placed at the top-left corner (the project's models, YOLOX) or centred (the YOLOv5/v8
+convention: `left`, `top` px of padding before it); the remainder is padding. Continuous pixel
+coordinates (pixel (i, j) covers [i, i+1) x [j, j+1)) map as `x_input = x_original * scale + left`, so
+a box goes back to the original image by the inverse (and clipping to the image).
 
 Detections: the network's decoded output is (B, N, 5) rows `[x0, y0, x1, y1, score]` in input
 pixels; `postprocess` thresholds, keeps the best `pre_nms_top_k` cells, runs NMS
@@ -15,17 +16,32 @@ original-image pixels.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import cv2
 import numpy as np
 
-from shared.detection.camera.config import InputConfig, PostprocessConfig
+from shared.detection.camera.config import PostprocessConfig
+from shared.detection.card import CameraPost
 from shared.detection.interface import empty_camera_detections
 
 CAR_CLASS_ID = 0.0
 DET_COLUMNS = 5  # x0, y0, x1, y1, score
 SCORE_COL = 4
 INTERPOLATION = {"linear": cv2.INTER_LINEAR, "area": cv2.INTER_AREA}
+
+
+class LetterboxInput(Protocol):
+    """What letterboxing needs of an input description (the project's `InputConfig`, a card's input)."""
+
+    @property
+    def width(self) -> int: ...
+    @property
+    def height(self) -> int: ...
+    @property
+    def pad_value(self) -> int: ...
+    @property
+    def interpolation(self) -> str: ...
 
 
 @dataclass(frozen=True)
@@ -35,46 +51,66 @@ class Letterbox:
     scale: float  # input px per original px
     width: int  # original image size, px
     height: int
+    left: int = 0  # padding before the image, input px (centred letterbox)
+    top: int = 0
 
     def to_input(self, boxes: np.ndarray) -> np.ndarray:
         """(n, 4) `[x0, y0, x1, y1]` original px -> input px (float32)."""
-        return (np.asarray(boxes, np.float32).reshape(-1, 4) * self.scale).astype(np.float32)
+        out = np.asarray(boxes, np.float32).reshape(-1, 4) * np.float32(self.scale)
+        out[:, 0::2] += self.left
+        out[:, 1::2] += self.top
+        return out.astype(np.float32)
 
     def to_original(self, boxes: np.ndarray) -> np.ndarray:
         """(n, 4) input px -> original px, clipped to the image (float32)."""
-        out = np.asarray(boxes, np.float32).reshape(-1, 4) / self.scale
+        out = np.array(boxes, np.float32).reshape(-1, 4)
+        out[:, 0::2] -= self.left
+        out[:, 1::2] -= self.top
+        out /= np.float32(self.scale)
         out[:, 0::2] = np.clip(out[:, 0::2], 0.0, self.width)
         out[:, 1::2] = np.clip(out[:, 1::2], 0.0, self.height)
         return out.astype(np.float32)
 
 
-def letterbox_for(width: int, height: int, cfg: InputConfig) -> Letterbox:
-    """Scale that fits a width x height image into the input (the image touches two input borders)."""
-    return Letterbox(min(cfg.width / width, cfg.height / height), width, height)
+def letterbox_for(width: int, height: int, cfg: LetterboxInput, centre: bool = False) -> Letterbox:
+    """Scale that fits a width x height image into the input (the image touches two input borders);
+    `centre`: the padding split evenly on both sides (the odd pixel after the image)."""
+    scale = min(cfg.width / width, cfg.height / height)
+    if not centre:
+        return Letterbox(scale, width, height)
+    new_w, new_h = resized_size(width, height, scale, cfg)
+    return Letterbox(scale, width, height, (cfg.width - new_w) // 2, (cfg.height - new_h) // 2)
 
 
-def letterbox_image(image: np.ndarray, cfg: InputConfig, out: np.ndarray | None = None) -> Letterbox:
+def resized_size(width: int, height: int, scale: float, cfg: LetterboxInput) -> tuple[int, int]:
+    """The image's size in the input, px."""
+    return min(cfg.width, max(1, round(width * scale))), min(cfg.height, max(1, round(height * scale)))
+
+
+def letterbox_image(
+    image: np.ndarray, cfg: LetterboxInput, out: np.ndarray | None = None, centre: bool = False
+) -> Letterbox:
     """Resize `image` (H, W, 3) uint8 into `out` (cfg.height, cfg.width, 3) uint8, padded; returns the
-    placement.
+    placement (top-left, or `centre`d).
 
     `out` defaults to a new array; pass a slice of a batch buffer to avoid a copy. Downscaling uses
     `cfg.interpolation`, upscaling always bilinear."""
     image = np.ascontiguousarray(image)  # OpenCV needs positive strides (e.g. after a flip view)
     h, w = image.shape[:2]
-    box = letterbox_for(w, h, cfg)
+    box = letterbox_for(w, h, cfg, centre)
     if out is None:
         out = np.empty((cfg.height, cfg.width, 3), np.uint8)
-    new_w = min(cfg.width, max(1, round(w * box.scale)))
-    new_h = min(cfg.height, max(1, round(h * box.scale)))
+    new_w, new_h = resized_size(w, h, box.scale, cfg)
+    x0, y0 = box.left, box.top
     if (new_w, new_h) == (w, h):
-        out[:new_h, :new_w] = image
+        out[y0 : y0 + new_h, x0 : x0 + new_w] = image
     else:
         interp = INTERPOLATION[cfg.interpolation] if box.scale < 1.0 else cv2.INTER_LINEAR
-        out[:new_h, :new_w] = cv2.resize(image, (new_w, new_h), interpolation=interp)
-    if new_w < cfg.width:
-        out[:, new_w:] = cfg.pad_value
-    if new_h < cfg.height:
-        out[new_h:, :new_w] = cfg.pad_value
+        out[y0 : y0 + new_h, x0 : x0 + new_w] = cv2.resize(image, (new_w, new_h), interpolation=interp)
+    out[:y0] = cfg.pad_value
+    out[y0 + new_h :] = cfg.pad_value
+    out[y0 : y0 + new_h, :x0] = cfg.pad_value
+    out[y0 : y0 + new_h, x0 + new_w :] = cfg.pad_value
     return box
 
 
@@ -88,7 +124,7 @@ def nms(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float, max_keep: i
     return np.asarray(keep, np.int64).reshape(-1)
 
 
-def select_detections(dets: np.ndarray, cfg: PostprocessConfig) -> np.ndarray:
+def select_detections(dets: np.ndarray, cfg: PostprocessConfig | CameraPost) -> np.ndarray:
     """One image's decoded cells (N, 5) input px -> (n, 5) after threshold, top-k and NMS, best first."""
     scores = dets[:, SCORE_COL]
     candidates = np.flatnonzero(scores >= cfg.score_threshold)

@@ -93,15 +93,15 @@ def test_batch_buffer_grows_and_shrinks(constant_detector: OnnxCameraDetector) -
 def test_config_from_the_argument_wins(tmp_path: Path) -> None:
     path = constant_model(tmp_path, SMALL, KNOWN_CELLS)
     low = SMALL.model_copy(update={"post": PostprocessConfig(score_threshold=0.01)})
-    out = OnnxCameraDetector(path, low, intra_op_threads=1).detect([np.zeros((48, 64, 3), np.uint8)])
+    out = OnnxCameraDetector(path, low.card(), intra_op_threads=1).detect([np.zeros((48, 64, 3), np.uint8)])
     np.testing.assert_allclose(out[0][:, 4], [0.9, 0.05])
 
 
 def test_input_size_mismatch_is_refused(tmp_path: Path) -> None:
     path = constant_model(tmp_path, SMALL, KNOWN_CELLS)
     other = CameraDetectorConfig(input=InputConfig(width=80, height=48))
-    with pytest.raises(ValueError, match="does not match"):
-        OnnxCameraDetector(path, other)
+    with pytest.raises(ValueError, match="does not fit the card"):
+        OnnxCameraDetector(path, other.card())
 
 
 @pytest.mark.parametrize(
@@ -153,7 +153,7 @@ def test_onnx_matches_torch(tmp_path: Path) -> None:
         rng.integers(0, 256, (480, 640, 3), dtype=np.uint8),
         rng.integers(0, 256, (300, 500, 3), np.uint8),
     ]
-    got = OnnxCameraDetector(path, cfg, intra_op_threads=1).detect(images)
+    got = OnnxCameraDetector(path, cfg.card(), intra_op_threads=1).detect(images)
     batch = np.zeros((2, cfg.input.height, cfg.input.width, 3), np.uint8)
     boxes = [letterbox_image(img, cfg.input, out=batch[i]) for i, img in enumerate(images)]
     with torch.no_grad():

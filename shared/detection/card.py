@@ -1,0 +1,219 @@
+"""Model cards: a YAML file beside an ONNX detector saying what the network expects and returns, so a
+detector trained elsewhere (a YOLO-family export, an OpenPCDet PointPillars export) runs in the MEC
+with no code change (issue 36; the paper's "any pair of 2D and 3D detectors as modules").
+
+    kind: camera                      # camera | lidar
+    model: yolov8n.onnx               # beside the card
+    layout: yolov8                    # the output layout: CAMERA_LAYOUTS / LIDAR_LAYOUTS
+    input: {width: 640, height: 640, tensor: nchw_float32, colour: rgb, scale: 0.00392156862745098,
+            letterbox: centre, pad_value: 114}
+    classes: {2: car, 5: car, 7: car} # model class index -> the project's class; others dropped
+    num_classes: 80                   # the model's class count (checked against its output shape)
+    post: {score_threshold: 0.25, nms_iou: 0.6, pre_nms_top_k: 1000, max_detections: 300}
+
+`load_card` validates a card (unknown fields, layouts, classes are errors); the detectors
+(`shared.detection.camera.card_detector`, `shared.detection.lidar.openpcdet`) check it against the ONNX
+graph's input and output shapes when they load, so a card that does not fit its model is a clear error
+at start, never an empty output.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from shared.config import ConfigError, read_yaml
+from shared.detection.interface import CLASS_NAMES
+
+CARD_SUFFIXES = (".yaml", ".yml")
+#: Camera output layouts (`shared.detection.camera.layouts`).
+CAMERA_LAYOUTS = ("rmmdet", "yolov8", "yolov5", "yolox")
+#: Lidar output layouts: the project's centre-heatmap PointPillars, OpenPCDet's anchor head.
+LIDAR_LAYOUTS = ("rmmdet_pointpillars", "openpcdet_anchor")
+
+
+class _Card(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class CameraInput(_Card):
+    """How an image becomes the network's input tensor: letterboxed (aspect kept) to width x height,
+    colour order, dtype and layout, then `(value * scale - mean) / std` per channel (float tensors)."""
+
+    width: int = Field(gt=0, description="network input width, px")
+    height: int = Field(gt=0, description="network input height, px")
+    tensor: Literal["nhwc_uint8", "nchw_float32"] = Field(
+        description="nhwc_uint8: (B, H, W, 3) bytes as they are; nchw_float32: (B, 3, H, W) float32"
+    )
+    colour: Literal["rgb", "bgr"] = Field("rgb", description="channel order the network was trained on")
+    scale: float = Field(1.0, gt=0, description="pixel values are multiplied by this (1/255: to [0, 1])")
+    mean: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="subtracted after scaling")
+    std: tuple[float, float, float] = Field((1.0, 1.0, 1.0), description="divided by after the mean")
+    letterbox: Literal["top_left", "centre"] = Field(
+        "top_left", description="where the resized image sits in the input (the rest is padding)"
+    )
+    pad_value: int = Field(114, ge=0, le=255, description="grey level of the padding")
+    interpolation: Literal["linear", "area"] = Field("linear", description="downscaling filter")
+
+    @model_validator(mode="after")
+    def _check(self) -> CameraInput:
+        if self.tensor == "nhwc_uint8" and (self.scale, self.mean, self.std) != (1.0, (0, 0, 0), (1, 1, 1)):
+            raise ValueError("an nhwc_uint8 input takes the bytes as they are: no scale, mean or std")
+        if any(s <= 0 for s in self.std):
+            raise ValueError(f"std {self.std}: every channel's must be > 0")
+        return self
+
+
+class CameraPost(_Card):
+    """Which decoded boxes are kept: score threshold, the best `pre_nms_top_k`, NMS per class."""
+
+    score_threshold: float = Field(0.25, ge=0, le=1)
+    nms_iou: float = Field(0.6, gt=0, le=1)
+    pre_nms_top_k: int = Field(1000, gt=0)
+    max_detections: int = Field(300, gt=0)
+
+
+class YoloxGrid(_Card):
+    """YOLOX's raw head output (exported without `--decode_in_inference`): boxes are offsets on the
+    stride grids, decoded here."""
+
+    strides: tuple[int, ...] = Field((8, 16, 32), description="the heads' strides, px, in output order")
+
+
+class CameraCard(_Card):
+    kind: Literal["camera"]
+    model: str = Field(description="ONNX file, relative to the card")
+    layout: Literal["rmmdet", "yolov8", "yolov5", "yolox"]
+    input: CameraInput
+    num_classes: int = Field(1, gt=0, description="the model's class count")
+    classes: dict[int, str] = Field(description="model class index -> project class; others dropped")
+    post: CameraPost = CameraPost()
+    yolox: YoloxGrid | None = Field(None, description="layout yolox: the raw grid output to decode")
+
+    @model_validator(mode="after")
+    def _check(self) -> CameraCard:
+        _check_classes(self.classes, self.num_classes)
+        if self.layout == "rmmdet" and self.num_classes != 1:
+            raise ValueError("layout rmmdet has one class (its score column)")
+        return self
+
+
+class PillarGrid(_Card):
+    """OpenPCDet's point cloud range and pillar size (`POINT_CLOUD_RANGE`, `VOXEL_SIZE`), metres."""
+
+    point_cloud_range_m: tuple[float, float, float, float, float, float] = Field(
+        description="x_min, y_min, z_min, x_max, y_max, z_max in the cloud's frame"
+    )
+    voxel_size_m: tuple[float, float, float] = Field(description="pillar x, y size and the z extent")
+    max_points_per_voxel: int = Field(32, gt=0)
+    max_voxels: int = Field(16000, gt=0)
+
+
+class Anchor(_Card):
+    """One class's anchors (OpenPCDet `ANCHOR_GENERATOR_CONFIG`): size, rotations, bottom height."""
+
+    class_name: str = Field(description="the model's class name (for messages)")
+    size_m: tuple[float, float, float] = Field(description="dx, dy, dz")
+    rotations_rad: tuple[float, ...] = Field((0.0, 1.5707963), min_length=1)
+    bottom_height_m: float = 0.0
+
+
+class LidarPost(_Card):
+    score_threshold: float = Field(0.3, ge=0, le=1)
+    nms_iou: float = Field(0.1, gt=0, le=1, description="rotated BEV IoU")
+    pre_nms_top_k: int = Field(4096, gt=0)
+    max_detections: int = Field(64, gt=0)
+
+
+class OpenPCDetHead(_Card):
+    """OpenPCDet's AnchorHeadSingle as exported: class, box and direction maps (B, H, W, A x ...), box
+    residuals by ResidualCoder, a direction classifier of `num_dir_bins` bins."""
+
+    anchors: tuple[Anchor, ...] = Field(min_length=1)
+    align_center: bool = False
+    dir_offset_rad: float = 0.78539
+    dir_limit_offset: float = 0.0
+    num_dir_bins: int = Field(2, gt=0)
+    point_features: Literal["xyzi", "augmented"] = Field(
+        "xyzi",
+        description="per point: x, y, z, intensity (the graph augments them), or OpenPCDet's PillarVFE "
+        "10 (x, y, z, i, offsets from the pillar's mean and centre) done here",
+    )
+    inputs: tuple[str, str, str] = Field(
+        ("voxels", "voxel_num_points", "voxel_coords"),
+        description="input names: points per pillar, point counts, pillar coordinates (batch, z, y, x)",
+    )
+    outputs: tuple[str, str, str] = Field(("cls_preds", "box_preds", "dir_cls_preds"))
+
+
+class LidarCard(_Card):
+    kind: Literal["lidar"]
+    model: str
+    layout: Literal["rmmdet_pointpillars", "openpcdet_anchor"]
+    classes: dict[int, str]
+    num_classes: int = Field(1, gt=0)
+    grid: PillarGrid | None = Field(None, description="layout openpcdet_anchor")
+    head: OpenPCDetHead | None = Field(None, description="layout openpcdet_anchor")
+    post: LidarPost = LidarPost()
+
+    @model_validator(mode="after")
+    def _check(self) -> LidarCard:
+        _check_classes(self.classes, self.num_classes)
+        if self.layout == "openpcdet_anchor":
+            if self.grid is None or self.head is None:
+                raise ValueError("layout openpcdet_anchor needs `grid` and `head`")
+            if len(self.head.anchors) != self.num_classes:
+                raise ValueError(f"{len(self.head.anchors)} anchor classes for {self.num_classes} classes")
+        elif self.grid is not None or self.head is not None:
+            raise ValueError("layout rmmdet_pointpillars reads its grid and head from the model's own JSON")
+        return self
+
+
+ModelCard = Annotated[CameraCard | LidarCard, Field(discriminator="kind")]
+
+
+class _CardFile(_Card):
+    card: ModelCard
+
+
+def _check_classes(classes: dict[int, str], num_classes: int) -> None:
+    if not classes:
+        raise ValueError("no class maps to one of the project's: the detector would find nothing")
+    for index, name in classes.items():
+        if not 0 <= index < num_classes:
+            raise ValueError(f"class index {index} outside the model's {num_classes} classes")
+        if name not in CLASS_NAMES:
+            raise ValueError(f"class {index} -> {name!r}: the project's classes are {CLASS_NAMES}")
+
+
+def is_card(name: str | Path) -> bool:
+    """Whether a detector name is a path to a card (rather than a registered name)."""
+    return Path(name).suffix in CARD_SUFFIXES
+
+
+def load_card(path: Path) -> CameraCard | LidarCard:
+    """A validated card (ConfigError naming the file and the field)."""
+    try:
+        data = read_yaml(path)
+        return _CardFile.model_validate({"card": data}).card
+    except ValidationError as err:
+        raise ConfigError(f"{path}: not a valid model card: {err}") from None
+
+
+def save_card(path: Path, card: CameraCard | LidarCard, note: str) -> None:
+    """Write `card` as YAML, `note` (who wrote it, from what) as its first comment line."""
+    data = card.model_dump(mode="json", exclude_none=True)
+    data["classes"] = {int(k): v for k, v in data["classes"].items()}  # JSON mode made them strings
+    body = yaml.safe_dump(data, sort_keys=False, default_flow_style=None)
+    path.write_text(f"# {note}\n{body}")
+
+
+def model_path(card_path: Path, card: CameraCard | LidarCard) -> Path:
+    """The card's ONNX file (relative to the card); ConfigError if missing."""
+    path = (card_path.parent / card.model).resolve()
+    if not path.is_file():
+        raise ConfigError(f"{card_path}: model {card.model} not found at {path}")
+    return path
