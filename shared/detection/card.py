@@ -157,7 +157,7 @@ class LidarCard(_Card):
     num_classes: int = Field(1, gt=0)
     grid: PillarGrid | None = Field(None, description="layout openpcdet_anchor")
     head: OpenPCDetHead | None = Field(None, description="layout openpcdet_anchor")
-    post: LidarPost = LidarPost()
+    post: LidarPost | None = Field(None, description="layout openpcdet_anchor (default: LidarPost())")
 
     @model_validator(mode="after")
     def _check(self) -> LidarCard:
@@ -167,9 +167,13 @@ class LidarCard(_Card):
                 raise ValueError("layout openpcdet_anchor needs `grid` and `head`")
             if len(self.head.anchors) != self.num_classes:
                 raise ValueError(f"{len(self.head.anchors)} anchor classes for {self.num_classes} classes")
-        elif self.grid is not None or self.head is not None:
-            raise ValueError("layout rmmdet_pointpillars reads its grid and head from the model's own JSON")
+        elif self.grid is not None or self.head is not None or self.post is not None:
+            raise ValueError("layout rmmdet_pointpillars reads its grid, head and post from the model's JSON")
         return self
+
+    @property
+    def post_or_default(self) -> LidarPost:
+        return self.post if self.post is not None else LidarPost()
 
 
 ModelCard = Annotated[CameraCard | LidarCard, Field(discriminator="kind")]

@@ -24,6 +24,7 @@ LIDAR_DETECTORS = ("pointpillars", "cluster", "oracle")
 CAMERA_MODEL = Path("camera") / "model.onnx"
 CAMERA_CARD = Path("camera") / "model.yaml"
 LIDAR_MODEL = Path("lidar") / "pointpillars.onnx"
+LIDAR_CARD = Path("lidar") / "pointpillars.yaml"
 QUANTIZE_TOOLS = {
     CAMERA_MODEL: "training.camera.quantize",
     LIDAR_MODEL: "training.pointpillars.quantize",
@@ -61,10 +62,12 @@ def camera_detector(
 def lidar_detector(
     name: str, threads: int = 1, seed: int = 0, models_dir: Path = MODELS_DIR, precision: str = "fp32"
 ) -> LidarDetector:
-    if name == "pointpillars":
-        from shared.detection.lidar.pointpillars.onnx_detector import OnnxPointPillars
-
-        return OnnxPointPillars(learned_model(models_dir, LIDAR_MODEL, precision), threads=threads)
+    if name == "pointpillars" or is_card(name):
+        if name == "pointpillars":
+            learned_model(models_dir, LIDAR_MODEL, precision)  # names the tool that writes a missing one
+        return lidar_from_card(
+            models_dir / LIDAR_CARD if name == "pointpillars" else Path(name), precision, threads
+        )
     if name == "cluster":
         from shared.detection.lidar.cluster import ClusterLidarDetector
 
@@ -73,4 +76,25 @@ def lidar_detector(
         from shared.detection.oracle import OracleLidarDetector
 
         return OracleLidarDetector(seed=seed)
-    raise ValueError(f"unknown lidar detector {name!r}: expected one of {LIDAR_DETECTORS}")
+    raise ValueError(f"unknown lidar detector {name!r}: expected one of {LIDAR_DETECTORS} or a card (.yaml)")
+
+
+def lidar_from_card(card_path: Path, precision: str = "fp32", threads: int = 1) -> LidarDetector:
+    """The lidar detector a card describes: the project's PointPillars (its grid and head from the JSON
+    beside the model) or an OpenPCDet anchor-head export (`shared.detection.lidar.openpcdet`)."""
+    from shared.config import ConfigError
+    from shared.detection.card import LidarCard, load_card, model_path
+
+    card = load_card(card_path)
+    if not isinstance(card, LidarCard):
+        raise ConfigError(f"{card_path}: a {card.kind} card, not a lidar detector's")
+    path = model_file(model_path(card_path, card), precision)
+    if not path.is_file():
+        raise FileNotFoundError(f"no {precision} model {path} for {card_path}")
+    if card.layout == "rmmdet_pointpillars":
+        from shared.detection.lidar.pointpillars.onnx_detector import OnnxPointPillars
+
+        return OnnxPointPillars(path, threads=threads)
+    from shared.detection.lidar.openpcdet import OpenPCDetPointPillars
+
+    return OpenPCDetPointPillars(path, card, threads=threads)
