@@ -184,8 +184,10 @@ def add_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--sensors", help="comma-separated subset of the agent's sensors to fuse (default all)"
     )
-    parser.add_argument("--camera-detector", help="override detectors.camera (onnx | oracle)")
-    parser.add_argument("--lidar-detector", help="override detectors.lidar (pointpillars | cluster | oracle)")
+    parser.add_argument("--camera-detector", help="override detectors.camera (onnx | oracle | CARD.yaml)")
+    parser.add_argument(
+        "--lidar-detector", help="override detectors.lidar (pointpillars | cluster | oracle | CARD.yaml)"
+    )
 
 
 def cli(argv: list[str] | None = None) -> int:

@@ -30,8 +30,16 @@ class _Model(BaseModel):
 
 
 class DetectorsConfig(_Model):
-    camera: str = Field("onnx", description="camera detector (shared.detection.registry): onnx | oracle")
-    lidar: str = Field("pointpillars", description="lidar detector: pointpillars | cluster | oracle")
+    camera: str = Field(
+        "onnx",
+        description="camera detector (shared.detection.registry): onnx | oracle | the path of a model card "
+        "(a YOLOv5/v8/X or other export described by its .yaml, shared.detection.card)",
+    )
+    lidar: str = Field(
+        "pointpillars",
+        description="lidar detector: pointpillars | cluster | oracle | the path of a model card (an "
+        "OpenPCDet PointPillars export)",
+    )
     camera_threads: int = Field(2, ge=1, description="onnxruntime intra-op threads of the camera model")
     lidar_threads: int = Field(2, ge=1, description="onnxruntime intra-op threads of the lidar model")
     camera_precision: Precision = Field(
