@@ -1,7 +1,8 @@
 """The `rmmdet` command-line tool's application: common Zenoh options, the console, session opening.
 
 The commands live by group: `live.py` (a running system: topics, health, wait-ready, record, replay)
-and `offline.py` (snapshot, dataset, eval, experiments; the studies themselves are in `studies/`).
+and `offline.py` (snapshot, import, export, dataset, train, eval, experiments; the studies themselves
+are in `studies/`).
 `main.py` assembles them; `rmmdet --help` lists them all.
 """
 
@@ -36,6 +37,8 @@ HELP = """`rmmdet`: command-line tool for a running RMMDet system.
     rmmdet import BAG... --out RUN.mcap [--map M.yaml] [--msg DIR] [--rebase]   ROS 1 / ROS 2 bags
                                      into a recording that rmmdet replay plays to the MECs
     rmmdet dataset generate --out DIR [--config deploy/datasets/default.yaml] [--workers 2]
+    rmmdet train camera|lidar --data DIR --out MODEL_DIR [--format yolo|kitti]   a detector trained
+                                     on a site's own data: ONNX + model card + int8 + metrics.json
     rmmdet eval detectors [--data DIR] [--split test] [--camera onnx] [--lidar pointpillars] [--out F.json]
     rmmdet eval fusion [--agent agent1] [--seed 201] [--duration-s 60] [--workers 2] [--out docs/eval/fusion]
     rmmdet experiments flow [--config deploy/experiments/flow.yaml] [--out docs/eval/flow]   flow experiment

@@ -1,4 +1,4 @@
-"""`rmmdet` commands that need no running system: snapshot, import, export, dataset, eval, experiments
+"""`rmmdet` commands that need no running system: snapshot, import, export, dataset, train, eval, experiments
 (the studies run in `studies/`; these parse options and print)."""
 
 from __future__ import annotations
@@ -130,6 +130,110 @@ def dataset_generate(
         raise typer.Exit(2) from None
     summary = generate(cfg, out, workers=workers, progress=progress)
     console.print_json(json.dumps(summary["splits"]))
+
+
+train_app = typer.Typer(
+    add_completion=False, no_args_is_help=True, help="train a detector on a site's own data (offline)"
+)
+app.add_typer(train_app, name="train")
+
+DataFormat = Annotated[str, typer.Option("--format", help="dataset format: auto | project | yolo | kitti")]
+VehicleClass = Annotated[
+    list[str] | None,
+    typer.Option("--vehicle-class", help="class name that is a car (repeatable; default car)"),
+]
+IgnoreClass = Annotated[
+    list[str] | None,
+    typer.Option("--ignore-class", help="class name whose boxes are ignored (repeatable; default van)"),
+]
+ValFraction = Annotated[float, typer.Option(help="share of a dataset without a val split used to validate")]
+
+
+def data_source(
+    fmt: str, vehicle_class: list[str] | None, ignore_class: list[str] | None, val_fraction: float
+):
+    from shared.datasets.sources import DEFAULT_IGNORE_CLASSES, DEFAULT_VEHICLE_CLASSES, DataSource
+
+    return DataSource(
+        fmt,
+        tuple(vehicle_class or DEFAULT_VEHICLE_CLASSES),
+        tuple(ignore_class or DEFAULT_IGNORE_CLASSES),
+        val_fraction,
+    )
+
+
+def print_training(metrics: dict[str, Any], out: Path, card: str) -> None:
+    console.print_json(json.dumps({k: metrics[k] for k in ("format", "val", "seconds")}, default=float))
+    console.print(f"wrote {out}: give the MEC `{out / card}` as its detector")
+
+
+@train_app.command("camera")
+def train_camera_cmd(
+    data: Annotated[Path, typer.Option(help="dataset root (YOLO data.yaml, KITTI training/, or generated)")],
+    out: Annotated[Path, typer.Option(help="model directory to write")],
+    fmt: DataFormat = "auto",
+    vehicle_class: VehicleClass = None,
+    ignore_class: IgnoreClass = None,
+    val_fraction: ValFraction = 0.2,
+    config: Annotated[Path | None, typer.Option(help="CameraDetectorConfig JSON to start from")] = None,
+    epochs: Annotated[int | None, typer.Option(help="at most this many epochs")] = None,
+    max_minutes: Annotated[float | None, typer.Option(help="training time budget")] = None,
+    quantize: Annotated[bool, typer.Option(help="also write the int8 model")] = True,
+) -> None:
+    """Train the camera detector on a dataset, export it to ONNX with its model card, quantize it to int8
+    and score both on the validation split (metrics.json beside the model)."""
+    from shared.config import ConfigError, with_overrides
+    from shared.datasets.sources import DatasetError
+    from shared.detection.camera.config import CARD_FILE, CameraDetectorConfig
+    from training.site import train_camera
+
+    log_progress()
+    cfg = CameraDetectorConfig.load(config) if config else CameraDetectorConfig()
+    overrides = {"epochs": epochs, "max_minutes": max_minutes}
+    cfg = with_overrides(cfg, {"train": {k: v for k, v in overrides.items() if v is not None}})
+    try:
+        metrics = train_camera(
+            data, out, data_source(fmt, vehicle_class, ignore_class, val_fraction), cfg, quantize
+        )
+    except (DatasetError, ConfigError, FileNotFoundError) as err:
+        console.print(f"[red]{err}[/]")
+        raise typer.Exit(2) from None
+    print_training(metrics, out, CARD_FILE)
+
+
+@train_app.command("lidar")
+def train_lidar_cmd(
+    data: Annotated[Path, typer.Option(help="dataset root (KITTI training/ with velodyne, or generated)")],
+    out: Annotated[Path, typer.Option(help="model directory to write")],
+    fmt: DataFormat = "auto",
+    vehicle_class: VehicleClass = None,
+    ignore_class: IgnoreClass = None,
+    val_fraction: ValFraction = 0.2,
+    config: Annotated[
+        Path | None, typer.Option(help="PointPillarsConfig JSON (grid, network, training)")
+    ] = None,
+    epochs: Annotated[int | None, typer.Option(help="at most this many epochs")] = None,
+    quantize: Annotated[bool, typer.Option(help="also write the int8 model")] = True,
+) -> None:
+    """Train PointPillars on a dataset, export it to ONNX with its model card, quantize it to int8 and score
+    both on the validation split (metrics.json beside the model)."""
+    from shared.config import ConfigError, with_overrides
+    from shared.datasets.sources import DatasetError
+    from shared.detection.lidar.pointpillars.config import PointPillarsConfig
+    from training.site import LIDAR_CARD, train_lidar
+
+    log_progress()
+    cfg = PointPillarsConfig.load(config) if config else PointPillarsConfig()
+    if epochs is not None:
+        cfg = with_overrides(cfg, {"train": {"epochs": epochs}})
+    try:
+        metrics = train_lidar(
+            data, out, data_source(fmt, vehicle_class, ignore_class, val_fraction), cfg, quantize
+        )
+    except (DatasetError, ConfigError, FileNotFoundError) as err:
+        console.print(f"[red]{err}[/]")
+        raise typer.Exit(2) from None
+    print_training(metrics, out, LIDAR_CARD)
 
 
 eval_app = typer.Typer(add_completion=False, no_args_is_help=True, help="evaluations (offline)")

@@ -156,10 +156,14 @@ class CoordinatorService:
     def plan(self, request: RouteRequest, start_ns: int) -> tuple[RouteResponse, int]:
         """The route RPC's handler (Zenoh thread; the core's lock guards its state)."""
         self.record_objects()  # a plan includes every list that reached the process before the request
+        ended = self.core.ended_by_request
         try:
             plan, stamp_ns = self.core.serve(request, self.clock.now_s(), start_ns)
         except RequestRejected as err:
             raise RpcRejected(err.reason, err.code, err.message) from None
+        finally:
+            if self.core.ended_by_request > ended:  # the request overtook its vehicle's plan-end ack
+                self.counters.inc("plans/ended_by_request")
         signed = self.signer.sign(plan)
         copy = RoutePlan()
         copy.CopyFrom(signed)  # published later, with its own header: not the core's plan

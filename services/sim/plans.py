@@ -96,6 +96,8 @@ class PlanClient:
         self._ask_all_at: float | None = None
         self.retry = RequestRetry()
         self._by_id = {v.id: v for v in traffic.vehicles}
+        # Each vehicle's last plan end (plan id, status), repeated in its requests (`ended_plan_id`).
+        self._ended: dict[str, tuple[str, Ack]] = {}
 
     def close(self) -> None:
         for link in self.links.values():
@@ -130,6 +132,7 @@ class PlanClient:
             self.traffic.drop_plan(vehicle_id)
         for end in self.traffic.take_plan_ends():  # completed or left by a detour: the coordinator is told
             self.acknowledge(end.vehicle_id, end.plan_id, end.version, end.status, end.reason, stamp_ns)
+            self._ended[end.vehicle_id] = (end.plan_id, end.status)
         if any(alive for _, alive in self.coordinators.changes()):
             self.counters.inc("plans/coordinator_joined")
             self._ask_all_at = time.monotonic() + REASK_AFTER_JOIN_S
@@ -151,6 +154,9 @@ class PlanClient:
             destination_junction_id=self.traffic.routing_destination(v),
             current_plan_version=v.plan_version,
         )
+        if v.id in self._ended:  # said again here: this request may overtake that ack
+            req.ended_plan_id, status = self._ended[v.id]
+            req.ended_status = status.value  # type: ignore[assignment]
         req.position_m.x_m, req.position_m.y_m = v.x, v.y
         self.links[v.id].request(req, stamp_ns)
         self.counters.inc("plans/requested")

@@ -127,6 +127,7 @@ class CoordinatorCore:
         self.active_count = 0  # active plans, as of the latest re-plan
         self.repeats = 0  # requests answered with the plan their unacknowledged reply carried
         self.claims_refused = 0  # requests refused by `claims.claim_problem`
+        self.ended_by_request = 0  # plans ended by a request's `ended_plan_id` before their ack came
 
     # --- inputs ----------------------------------------------------------------------------------
 
@@ -242,6 +243,7 @@ class CoordinatorCore:
                 req.destination_junction_id,
                 self.net.lane_start_junction(req.current_lane_id),
             )
+            self._end_named_plan(vid, req)
             given = self._given(vid)
             active = self._active.get(vid)
             # The same answer to the same request, unless the coverage it was planned on has changed
@@ -276,6 +278,25 @@ class CoordinatorCore:
             plan = self.book.issue(vid, route, now_s, pushed=False, wall_ns=wall_ns)
             msg = self._record(plan, req.destination_junction_id, wall_ns)
             return msg, self._map_stamp_ns
+
+    def _end_named_plan(self, vid: str, req: RouteRequest) -> None:
+        """A request repeats the vehicle's last plan-end acknowledgement (`ended_plan_id`, `ended_status`):
+        if that plan is still its latest, it ends now, as the ack will end it (the request may have
+        overtaken the ack: they travel apart). Caller holds the lock."""
+        status = _ACK_STATUS.get(req.ended_status)
+        latest = self.book.latest(vid)
+        if (
+            not req.ended_plan_id
+            or status not in ENDED
+            or latest is None
+            or latest.plan_id != req.ended_plan_id
+        ):
+            return
+        if latest.ack in ENDED:
+            return  # the ack came first, as it usually does
+        if self.book.on_ack(vid, latest.plan_id, latest.version, status):
+            self.planner.forget(vid)
+            self.ended_by_request += 1
 
     def _record(self, plan: IssuedPlan, destination: str, wall_ns: int) -> RoutePlan:
         self.planner.commit(plan.vehicle_id, plan.route)

@@ -36,7 +36,6 @@ from typing import Any
 
 import numpy as np
 
-from shared.datasets.layout import DatasetLayout
 from shared.detection.lidar.pointpillars.config import GridConfig, PointPillarsConfig
 from shared.detection.lidar.pointpillars.onnx_detector import OnnxPointPillars
 from shared.geometry.boxes import bev_iou_matrix
@@ -75,15 +74,12 @@ def pct(values: list[float], q: float) -> float:
 
 
 def dataset_frames(root: Path, split: str, limit: int) -> list[dict[str, Any]]:
-    from training.pointpillars.data import read_frame
+    from training.pointpillars.data import read_split
 
-    layout = DatasetLayout(root)
-    stems = layout.lidar_stems(split)[:limit]
-    frames = []
-    for stem in stems:
-        f = read_frame(layout, stem)
-        frames.append({"stem": stem, "points": f.points, "boxes": f.boxes, "ignore": f.ignore})
-    return frames
+    return [
+        {"stem": f.stem, "points": f.points, "boxes": f.boxes, "ignore": f.ignore}
+        for f in read_split(root, split, max_frames=limit)
+    ]
 
 
 def simulated_frames(count: int, seed: int = SIM_SEED) -> list[dict[str, Any]]:

@@ -1,9 +1,8 @@
 """Training data of the camera detector: a torch Dataset over the YOLO layout, augmentation, targets.
 
-`CameraDataset` reads one split of a generated dataset (`shared.datasets.layout.DatasetLayout`):
-images `camera/images/<split>/<stem>.jpg`, boxes from the YOLO labels `camera/labels/<split>/<stem>.txt`
-(`0 cx cy w h`, normalised) and, when present, the `ignore` boxes of `camera/meta/<split>/<stem>.json`
-(vehicles too occluded to label: the loss neither rewards nor penalises scores on them). Every image
+`CameraDataset` reads one split of a dataset through `shared.datasets.sources` (a generated dataset,
+or any YOLO or KITTI one): images, car boxes and, where the dataset has them, `ignore` boxes (vehicles
+too occluded to label, KITTI's DontCare: the loss neither rewards nor penalises scores on them). Every image
 is decoded once (~2 ms), letterboxed to the network input and cached in RAM as uint8 (448x336:
 452 kB an image, ~5 GB for 11k images), so an epoch costs augmentation and the network only.
 
@@ -15,7 +14,6 @@ Samples: image (H, W, 3) uint8 RGB at the input size; boxes (n, 4) and ignore (m
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,8 +24,7 @@ import torch
 from torch.utils.data import Dataset
 
 from shared.datasets.images import read_rgb
-from shared.datasets.layout import DatasetLayout
-from shared.datasets.yolo import read_yolo
+from shared.datasets.sources import DEFAULT_SOURCE, DataSource, camera_items
 from shared.detection.camera.config import AssignConfig, AugmentConfig, CameraDetectorConfig, InputConfig
 from shared.detection.camera.geometry import letterbox_image
 from training.camera.net import cell_centers
@@ -49,25 +46,6 @@ class Sample:
     image: np.ndarray  # (H, W, 3) uint8 RGB
     boxes: np.ndarray  # (n, 4) float32 [x0, y0, x1, y1]
     ignore: np.ndarray  # (m, 4) float32
-
-
-def read_label_boxes(path: Path, width: int, height: int) -> np.ndarray:
-    """YOLO label file -> (n, 4) float32 pixel boxes `[x0, y0, x1, y1]` of a width x height image
-    (none if the file is missing: an image without vehicles)."""
-    if not path.exists():
-        return np.zeros((0, 4), np.float32)
-    try:
-        boxes, _ = read_yolo(path, width, height)
-    except ValueError as err:
-        raise ValueError(f"{path}: {err}") from None
-    return boxes.astype(np.float32)
-
-
-def read_ignore_boxes(path: Path) -> np.ndarray:
-    """(m, 4) float32 pixel `ignore` boxes of a camera meta file (none if the file is missing)."""
-    if not path.exists():
-        return np.zeros((0, 4), np.float32)
-    return np.asarray(json.loads(path.read_text()).get("ignore", []), np.float32).reshape(-1, 4)
 
 
 def _clip_boxes(
@@ -153,15 +131,20 @@ class CameraDataset(Dataset):
     evenly spaced over the sorted stems (so over seeds and cameras)."""
 
     def __init__(
-        self, root: Path, split: str, cfg: CameraDetectorConfig, augment: bool, limit: int | None = None
+        self,
+        root: Path,
+        split: str,
+        cfg: CameraDetectorConfig,
+        augment: bool,
+        limit: int | None = None,
+        source: DataSource = DEFAULT_SOURCE,
     ) -> None:
-        layout = DatasetLayout(root)
-        stems = layout.camera_stems(split)
-        if limit and limit < len(stems):
-            stems = [stems[i] for i in np.linspace(0, len(stems) - 1, limit).round().astype(int)]
-        self.stems = stems
+        items = camera_items(root, split, source)
+        if limit and limit < len(items):
+            items = [items[i] for i in np.linspace(0, len(items) - 1, limit).round().astype(int)]
+        self.stems = [item.stem for item in items]
         if not self.stems:
-            raise FileNotFoundError(f"{layout.camera / 'images' / split}: no images")
+            raise FileNotFoundError(f"{root}: no {split} images")
         self.cfg = cfg
         self.augmenter = Augmenter(cfg.augment, cfg.input, cfg.assign.min_box_px) if augment else None
         self.rng = np.random.default_rng(cfg.train.seed)  # reseeded per DataLoader worker (train.py)
@@ -169,12 +152,13 @@ class CameraDataset(Dataset):
         self.images = np.empty((n, cfg.input.height, cfg.input.width, 3), np.uint8)
         self.boxes: list[np.ndarray] = []
         self.ignore: list[np.ndarray] = []
-        for i, stem in enumerate(self.stems):
-            rgb = read_rgb(layout.camera_image(split, stem))
+        for i, item in enumerate(items):
+            rgb = read_rgb(item.image)
             h, w = rgb.shape[:2]
             box = letterbox_image(rgb, cfg.input, out=self.images[i])
-            self.boxes.append(box.to_input(read_label_boxes(layout.yolo_label(split, stem), w, h)))
-            self.ignore.append(box.to_input(read_ignore_boxes(layout.camera_meta(split, stem))))
+            boxes, ignore = item.labels(w, h)
+            self.boxes.append(box.to_input(boxes))
+            self.ignore.append(box.to_input(ignore))
             if (i + 1) % LOG_EVERY_IMAGES == 0:
                 log.info("cached %d / %d %s images", i + 1, n, split)
         log.info(

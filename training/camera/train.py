@@ -36,6 +36,7 @@ from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from shared.config import with_overrides
+from shared.datasets.sources import DEFAULT_SOURCE, DataSource
 from shared.detection.camera.config import (
     CHECKPOINT_FILE,
     CONFIG_FILE,
@@ -162,6 +163,7 @@ class Trainer:
         data_root: Path,
         limit: int | None = None,
         val_limit: int | None = None,
+        source: DataSource = DEFAULT_SOURCE,
     ) -> None:
         t = cfg.train
         self.cfg = cfg
@@ -169,11 +171,11 @@ class Trainer:
         if t.threads:
             torch.set_num_threads(t.threads)
         self.device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
-        self.train_set = CameraDataset(data_root, "train", cfg, augment=True, limit=limit)
+        self.train_set = CameraDataset(data_root, "train", cfg, augment=True, limit=limit, source=source)
         self.val_set: CameraDataset | None = None
         try:
             self.val_set = CameraDataset(
-                data_root, "val", cfg, augment=False, limit=val_limit or t.val_images
+                data_root, "val", cfg, augment=False, limit=val_limit or t.val_images, source=source
             )
         except FileNotFoundError:
             log.info("no val split: validation skipped")
@@ -300,11 +302,12 @@ def train(
     out_dir: Path,
     limit: int | None = None,
     val_limit: int | None = None,
+    source: DataSource = DEFAULT_SOURCE,
 ) -> tuple[CameraNet, dict[str, Any]]:
     """Train per `cfg`, save the EMA model to `out_dir`; returns it (eval mode, CPU) and the training record.
 
     `limit` / `val_limit`: use that many images of the split (evenly spaced) instead of all."""
-    trainer = Trainer(cfg, data_root, limit, val_limit)
+    trainer = Trainer(cfg, data_root, limit, val_limit, source)
     history = trainer.run()
     model = trainer.final_model.eval()
     record: dict[str, Any] = {

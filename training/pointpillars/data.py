@@ -1,4 +1,5 @@
-"""Training data: frames of the OpenPCDet custom layout (shared/datasets/layout.py) -> pillars + targets.
+"""Training data: frames of a dataset (the project's OpenPCDet custom layout, or KITTI; read by
+shared.datasets.sources) -> pillars + targets.
 
 Frames are read once and kept in memory (a 10k-point frame is 160 kB); each `__getitem__` augments a copy
 (global flip, rotation, scaling, shift of points and boxes together), pillarises it and encodes the head
@@ -7,7 +8,6 @@ targets, so an epoch costs one numpy pass per frame on top of the network.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from shared.datasets.layout import DatasetLayout
+from shared.datasets.sources import DEFAULT_SOURCE, DataSource, lidar_items
 from shared.detection.lidar.pointpillars.coding import BOX_COLUMNS, encode_targets
 from shared.detection.lidar.pointpillars.config import AugmentConfig, GridConfig, PointPillarsConfig
 from shared.detection.lidar.pointpillars.pillars import flat_coords, pillarize
@@ -35,26 +35,15 @@ class Frame:
     ignore: np.ndarray
 
 
-def read_label_file(path: Path) -> np.ndarray:
-    """`x y z dx dy dz heading Car` lines -> (G, 7) float64."""
-    rows = [line.split()[:BOX_COLUMNS] for line in Path(path).read_text().splitlines() if line.strip()]
-    return np.asarray(rows, np.float64).reshape(-1, BOX_COLUMNS)
-
-
-def read_frame(layout: DatasetLayout, stem: str) -> Frame:
-    points = np.load(layout.pcdet_points(stem)).astype(np.float32, copy=False)
-    boxes = read_label_file(layout.pcdet_label(stem))
-    meta_path = layout.lidar_meta(stem)
-    ignore = json.loads(meta_path.read_text()).get("ignore", []) if meta_path.exists() else []
-    return Frame(stem, points, boxes, np.asarray(ignore, np.float64).reshape(-1, BOX_COLUMNS))
-
-
-def read_split(root: Path, split: str, max_frames: int | None = None) -> list[Frame]:
-    layout = DatasetLayout(root)
-    stems = layout.lidar_stems(split)
+def read_split(
+    root: Path, split: str, max_frames: int | None = None, source: DataSource = DEFAULT_SOURCE
+) -> list[Frame]:
+    """The frames of one split of any dataset `shared.datasets.sources` reads (the project's generated
+    ones, KITTI), in memory."""
+    items = lidar_items(root, split, source)
     if max_frames is not None:
-        stems = stems[:max_frames]
-    return [read_frame(layout, s) for s in stems]
+        items = items[:max_frames]
+    return [Frame(i.stem, i.points().astype(np.float32, copy=False), i.boxes, i.ignore) for i in items]
 
 
 # --- augmentation (points (N, 4) and boxes (G, 7) transformed together) ---------------------------

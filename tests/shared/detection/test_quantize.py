@@ -131,6 +131,23 @@ def test_quantize_model_keeps_the_listed_nodes_float(tmp_path: Path) -> None:
         quantize_model(src, tmp_path / "other.onnx", [], ("Conv",))
 
 
+@pytest.mark.parametrize("count", [16, 17, 33])
+def test_every_calibration_input_counts(tmp_path: Path, count: int) -> None:
+    """The calibrated range covers every input, not only the last `count % 16` (onnxruntime's
+    `CalibMaxIntermediateOutputs` drops each full batch of 16 uncounted): the first inputs reach 10x
+    higher than the last, and a bright input is reproduced after quantization. 16 inputs failed outright."""
+    src = conv_model(tmp_path / "small.onnx")
+    rng = np.random.default_rng(2)
+    feeds = [
+        {"x": rng.uniform(0, 10 if i < 16 else 1, (1, 3, 16, 16)).astype(np.float32)} for i in range(count)
+    ]
+    out = quantize_model(src, tmp_path / "small_int8.onnx", feeds, ("Conv", "Relu"), ("head",))
+    x = feeds[0]["x"]
+    expected = ort.InferenceSession(str(src)).run(None, {"x": x})[0]
+    got = ort.InferenceSession(str(out)).run(None, {"x": x})[0]
+    assert np.abs(got - expected).max() < 0.05 * np.abs(expected).max()
+
+
 def test_quantize_tools_do_not_import_torch() -> None:
     code = (
         "import sys, training.camera.quantize, training.pointpillars.quantize; "

@@ -326,6 +326,30 @@ def test_claims_against_the_followed_plan_are_refused_and_leave_it_unchanged(sce
     assert core.serve(request(lane=beyond, dest=third), 4.0, WALL0_NS + 4 * NS_PER_S)[0].lane_ids[0] == beyond
 
 
+def test_a_request_that_overtook_its_plan_end_ack_is_served(scene: Scene) -> None:
+    """A vehicle left its plan by a detour and asks from the lane it took; its REJECTED_INVALID ack (by
+    pub/sub) has not arrived yet, as after a router restart. The request repeats the end (`ended_plan_id`,
+    `ended_status`): the plan ends as the ack would have ended it and the request is served. Naming
+    another plan, or a status that is no end, changes nothing: claim_lane as before."""
+    core = make_core(scene)
+    core.update_map(0.0)
+    plan, _ = core.serve(request(), 0.0, WALL0_NS)
+    core.on_ack("v01", plan.plan_id, plan.version, Ack.ACCEPTED, 0.0)
+    off_plan = next(lane for lane in core.net.lanes if lane not in plan.lane_ids)
+    for ended_id, status in (("f" * 32, Ack.REJECTED_INVALID), (plan.plan_id, Ack.ACCEPTED)):
+        req = request(lane=off_plan)
+        req.ended_plan_id, req.ended_status = ended_id, status.value
+        with pytest.raises(RequestRejected, match="follows a plan"):
+            core.serve(req, 1.0, WALL0_NS + NS_PER_S)
+    assert core.ended_by_request == 0
+    req = request(lane=off_plan)
+    req.ended_plan_id, req.ended_status = plan.plan_id, Ack.REJECTED_INVALID.value
+    served, _ = core.serve(req, 1.0, WALL0_NS + NS_PER_S)
+    assert served.lane_ids[0] == off_plan and core.ended_by_request == 1
+    # The ack arriving afterwards is for a plan no longer the latest: ignored, nothing undone.
+    assert not core.on_ack("v01", plan.plan_id, plan.version, Ack.REJECTED_INVALID, 1.5)
+
+
 def test_claims_are_free_once_the_plan_lapsed_or_the_vehicles_left(scene: Scene) -> None:
     core = make_core(scene)
     core.update_map(0.0)

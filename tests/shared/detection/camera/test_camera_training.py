@@ -33,7 +33,6 @@ from training.camera.data import (  # noqa: E402
     Sample,
     assign_image,
     assign_targets,
-    read_label_boxes,
 )
 from training.camera.loss import aligned_iou_giou, detection_loss  # noqa: E402
 from training.camera.net import CameraNet, cell_centers, decode, load_checkpoint  # noqa: E402
@@ -64,18 +63,6 @@ def _centers() -> torch.Tensor:
 
 
 # --- labels ---------------------------------------------------------------------------------------------
-
-
-def test_read_label_boxes(tmp_path: Path) -> None:
-    path = tmp_path / "a.txt"
-    path.write_text("0 0.5 0.5 0.25 0.5\n\n0 0.1 0.2 0.1 0.2\n")
-    boxes = read_label_boxes(path, 640, 480)
-    assert boxes.dtype == np.float32
-    np.testing.assert_allclose(boxes, [[240, 120, 400, 360], [32, 48, 96, 144]], rtol=1e-6)
-    assert read_label_boxes(tmp_path / "missing.txt", 640, 480).shape == (0, 4)
-    path.write_text("0 0.5 0.5\n")
-    with pytest.raises(ValueError, match=r"a\.txt.*fields"):
-        read_label_boxes(path, 640, 480)
 
 
 # --- target assignment ----------------------------------------------------------------------------------
