@@ -130,7 +130,7 @@ models: install ## regenerate the default dataset, train + export both detectors
 	$(BIN)/python -m studies.dataset.generate --out $(DATASET) --workers 2 --no-progress
 	cp $(DATASET)/manifest.json $(MODELS_DIR)/dataset_manifest.json
 	$(BIN)/python -m training.camera.train --data $(DATASET) --out $(MODEL_RUNS)/camera --threads 2
-	mkdir -p $(MODELS_DIR)/camera && cp $(MODEL_RUNS)/camera/model.onnx $(MODEL_RUNS)/camera/config.json $(MODELS_DIR)/camera/
+	mkdir -p $(MODELS_DIR)/camera && cp $(MODEL_RUNS)/camera/model.onnx $(MODEL_RUNS)/camera/model.yaml $(MODEL_RUNS)/camera/config.json $(MODELS_DIR)/camera/
 	-cp $(MODEL_RUNS)/camera/history.json $(MODEL_RUNS)/camera/train.log $(MODELS_DIR)/camera/ 2>/dev/null
 	$(BIN)/python -m training.pointpillars.train --data $(DATASET) --out $(MODEL_RUNS)/pointpillars
 	$(BIN)/python -m training.pointpillars.export --checkpoint $(MODEL_RUNS)/pointpillars/model.pt --out $(MODELS_DIR)/lidar/pointpillars.onnx

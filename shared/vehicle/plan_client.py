@@ -223,7 +223,11 @@ class ReplyHandler:
             try:
                 error.ParseFromString(reply.err.payload.to_bytes() if reply.err is not None else b"")
             except DecodeError:
-                error.code = ErrorCode.ERROR_CODE_UNSPECIFIED
+                # Not the coordinator's answer: Zenoh's own error reply (b"Timeout" when the query got
+                # no reply in time, e.g. across a router restart). No answer, then: `on_done` reports
+                # no_reply and the vehicle asks again (it was reported as error_unspecified, not retried).
+                self.check.counters.inc("plans/transport_errors")
+                return
             self._fail(f"error_{ERROR_NAMES.get(error.code, 'other')}", error.message[:MAX_DETAIL_CHARS])
         except Exception:  # never raise into Zenoh's thread
             log.exception("route reply for %s failed", self.vehicle_id)

@@ -88,6 +88,17 @@ def test_an_error_reply_is_reported_once_not_again_as_no_reply(handler) -> None:
     assert [o.error for o in outcomes.drain()] == ["error_internal"]
 
 
+def test_zenohs_own_timeout_error_is_no_reply_and_asked_again(handler) -> None:
+    """A query that got no reply in time ends with Zenoh's error reply `b"Timeout"` (encoding
+    zenoh/string), not the coordinator's ErrorResponse: no answer, reported as no_reply (retried), not
+    as a coordinator error (error_unspecified, which no vehicle asked again)."""
+    h, outcomes, counters = handler
+    h.on_reply(Reply(err=Sample(FakeZBytes(b"Timeout"), "zenoh/string", None)))  # type: ignore[arg-type]
+    h.on_done()
+    assert [o.error for o in outcomes.drain()] == ["no_reply"]
+    assert counters.get("plans/transport_errors") == 1
+
+
 def test_nothing_valid_is_no_reply(handler) -> None:
     h, outcomes, _ = handler
     h.on_reply(plan_reply(ROGUE))  # type: ignore[arg-type]
