@@ -65,12 +65,13 @@ from services.viewer.ws_gate import OriginGate
 from shared.bus.codec import Counters, MessageDecoder
 from shared.bus.node import Node
 from shared.bus.queues import BoundedQueue, OverflowPolicy
-from shared.bus.streams import SENSOR_STREAM, get_stream
+from shared.bus.streams import SENSOR_STREAM, get_stream, limits
 from shared.paths import DEFAULT_SCENE
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.service import run_service
 from shared.shutdown import GracefulShutdown
+from shared.timebase import SimTime
 from shared.viewer.core import ViewerCore
 from shared.viewer.dashboard import DashboardState
 from shared.viewer.scene import image_annotations, radar_targets
@@ -384,21 +385,27 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 target=health_feed.run, args=(node.session, shutdown.event, watched), daemon=True
             )
             health.start()
+            clock = SimTime()  # stamps ahead of the clock of record are refused (`rejected/future`)
+            node.follow_sim_time(clock)
+            stamped = {"clock_s": clock.now_s, "max_future_s": limits().max_clock_skew_s}
             objects = {
-                a: node.subscribe_stream("objects", agent=a, maxsize=OBJECT_QUEUE) for a in scene.agents
+                a: node.subscribe_stream("objects", agent=a, maxsize=OBJECT_QUEUE, **stamped)
+                for a in scene.agents
             }
-            acks = node.subscribe_stream("route_ack", maxsize=PLAN_QUEUE)
-            ground_truth = node.subscribe_stream("ground_truth", maxsize=1)
-            traffic = node.subscribe_stream("traffic_map", maxsize=1)
+            acks = node.subscribe_stream("route_ack", maxsize=PLAN_QUEUE, **stamped)
+            ground_truth = node.subscribe_stream("ground_truth", maxsize=1, **stamped)
+            traffic = node.subscribe_stream("traffic_map", maxsize=1, **stamped)
             plans = node.subscribe_stream(
                 "route_plan",
                 queue=BoundedQueue(PLAN_QUEUE, OverflowPolicy.DROP_OLDEST, node.counters, "dropped/plans"),
+                **stamped,
             )
             served = node.subscribe_stream(  # plans vehicles asked for (the coordinator copies them)
                 "route_plan_served",
                 queue=BoundedQueue(
                     PLAN_QUEUE, OverflowPolicy.DROP_OLDEST, node.counters, "dropped/served_plans"
                 ),
+                **stamped,
             )
             core = ViewerCore(scene, network)
             for topic, message_type in core.topics().items():
