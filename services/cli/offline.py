@@ -162,7 +162,17 @@ def data_source(
     )
 
 
-def print_training(metrics: dict[str, Any], out: Path, card: str) -> None:
+def run_training(train: Any, data: Path, out: Path, source: Any, cfg: Any, quantize: bool, card: str) -> None:
+    """`training.site.train_camera` / `train_lidar`, its summary printed; a bad dataset or config exits 2."""
+    from shared.config import ConfigError
+    from shared.datasets.sources import DatasetError
+
+    log_progress()
+    try:
+        metrics = train(data, out, source, cfg, quantize)
+    except (DatasetError, ConfigError, FileNotFoundError) as err:
+        console.print(f"[red]{err}[/]")
+        raise typer.Exit(2) from None
     console.print_json(json.dumps({k: metrics[k] for k in ("format", "val", "seconds")}, default=float))
     console.print(f"wrote {out}: give the MEC `{out / card}` as its detector")
 
@@ -182,23 +192,15 @@ def train_camera_cmd(
 ) -> None:
     """Train the camera detector on a dataset, export it to ONNX with its model card, quantize it to int8
     and score both on the validation split (metrics.json beside the model)."""
-    from shared.config import ConfigError, with_overrides
-    from shared.datasets.sources import DatasetError
+    from shared.config import with_overrides
     from shared.detection.camera.config import CARD_FILE, CameraDetectorConfig
     from training.site import train_camera
 
-    log_progress()
     cfg = CameraDetectorConfig.load(config) if config else CameraDetectorConfig()
     overrides = {"epochs": epochs, "max_minutes": max_minutes}
     cfg = with_overrides(cfg, {"train": {k: v for k, v in overrides.items() if v is not None}})
-    try:
-        metrics = train_camera(
-            data, out, data_source(fmt, vehicle_class, ignore_class, val_fraction), cfg, quantize
-        )
-    except (DatasetError, ConfigError, FileNotFoundError) as err:
-        console.print(f"[red]{err}[/]")
-        raise typer.Exit(2) from None
-    print_training(metrics, out, CARD_FILE)
+    source = data_source(fmt, vehicle_class, ignore_class, val_fraction)
+    run_training(train_camera, data, out, source, cfg, quantize, CARD_FILE)
 
 
 @train_app.command("lidar")
@@ -217,23 +219,15 @@ def train_lidar_cmd(
 ) -> None:
     """Train PointPillars on a dataset, export it to ONNX with its model card, quantize it to int8 and score
     both on the validation split (metrics.json beside the model)."""
-    from shared.config import ConfigError, with_overrides
-    from shared.datasets.sources import DatasetError
+    from shared.config import with_overrides
     from shared.detection.lidar.pointpillars.config import PointPillarsConfig
     from training.site import LIDAR_CARD, train_lidar
 
-    log_progress()
     cfg = PointPillarsConfig.load(config) if config else PointPillarsConfig()
     if epochs is not None:
         cfg = with_overrides(cfg, {"train": {"epochs": epochs}})
-    try:
-        metrics = train_lidar(
-            data, out, data_source(fmt, vehicle_class, ignore_class, val_fraction), cfg, quantize
-        )
-    except (DatasetError, ConfigError, FileNotFoundError) as err:
-        console.print(f"[red]{err}[/]")
-        raise typer.Exit(2) from None
-    print_training(metrics, out, LIDAR_CARD)
+    source = data_source(fmt, vehicle_class, ignore_class, val_fraction)
+    run_training(train_lidar, data, out, source, cfg, quantize, LIDAR_CARD)
 
 
 eval_app = typer.Typer(add_completion=False, no_args_is_help=True, help="evaluations (offline)")
