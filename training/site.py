@@ -26,13 +26,15 @@ from shared.detection.camera.config import CARD_FILE, ONNX_FILE, ONNX_INPUT, Cam
 from shared.detection.card import LidarCard, save_card
 from shared.detection.lidar.pointpillars.config import PointPillarsConfig
 from shared.detection.precision import model_file
+from shared.detection.registry import LIDAR_CARD as LIDAR_CARD_PATH
+from shared.detection.registry import LIDAR_MODEL
 from shared.machine import git_commit, machine_info
 
 log = logging.getLogger(__name__)
 
 METRICS_FILE = "metrics.json"
-LIDAR_ONNX = "pointpillars.onnx"
-LIDAR_CARD = "pointpillars.yaml"
+LIDAR_ONNX = LIDAR_MODEL.name  # the names the registry knows the project's own by
+LIDAR_CARD = LIDAR_CARD_PATH.name
 CALIBRATION_FRAMES = 64  # training-split inputs the int8 calibration sees (evenly spaced)
 CAMERA_AP_IOU = 0.5
 CARD_NOTE = "model card written by `rmmdet train`"

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from shared.detection.camera.config import CARD_FILE, ONNX_FILE
 from shared.detection.card import is_card
 from shared.detection.interface import CameraDetector, LidarDetector
 from shared.detection.precision import model_file
@@ -21,8 +22,8 @@ from shared.detection.precision import model_file
 MODELS_DIR = Path(__file__).resolve().parents[2] / "deploy" / "models"
 CAMERA_DETECTORS = ("onnx", "oracle")
 LIDAR_DETECTORS = ("pointpillars", "cluster", "oracle")
-CAMERA_MODEL = Path("camera") / "model.onnx"
-CAMERA_CARD = Path("camera") / "model.yaml"
+CAMERA_MODEL = Path("camera") / ONNX_FILE
+CAMERA_CARD = Path("camera") / CARD_FILE
 LIDAR_MODEL = Path("lidar") / "pointpillars.onnx"
 LIDAR_CARD = Path("lidar") / "pointpillars.yaml"
 QUANTIZE_TOOLS = {
