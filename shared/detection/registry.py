@@ -50,7 +50,10 @@ def camera_detector(
         if name == "onnx":
             learned_model(models_dir, CAMERA_MODEL, precision)  # names the tool that writes a missing one
         card = models_dir / CAMERA_CARD if name == "onnx" else Path(name)
-        return OnnxCameraDetector.from_card(card, precision, intra_op_threads=threads)
+        detector = OnnxCameraDetector.from_card(card, precision, intra_op_threads=threads)
+        if name != "onnx":
+            detector.name = f"{detector.name}:{name}"  # results tell the cards apart
+        return detector
     if name == "oracle":
         from shared.detection.oracle import OracleCameraDetector
 
@@ -66,9 +69,11 @@ def lidar_detector(
     if name == "pointpillars" or is_card(name):
         if name == "pointpillars":
             learned_model(models_dir, LIDAR_MODEL, precision)  # names the tool that writes a missing one
-        return lidar_from_card(
-            models_dir / LIDAR_CARD if name == "pointpillars" else Path(name), precision, threads
-        )
+        card = models_dir / LIDAR_CARD if name == "pointpillars" else Path(name)
+        lidar = lidar_from_card(card, precision, threads)
+        if name != "pointpillars":
+            lidar.name = f"{lidar.name}:{name}"  # results tell the cards apart
+        return lidar
     if name == "cluster":
         from shared.detection.lidar.cluster import ClusterLidarDetector
 
