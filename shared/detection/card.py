@@ -20,13 +20,14 @@ at start, never an empty output.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Literal, TypeVar
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from shared.config import ConfigError, read_yaml
 from shared.detection.interface import CLASS_NAMES
+from shared.detection.precision import model_file
 
 CARD_SUFFIXES = (".yaml", ".yml")
 #: Camera output layouts (`shared.detection.camera.layouts`).
@@ -183,6 +184,9 @@ class _CardFile(_Card):
     card: ModelCard
 
 
+C = TypeVar("C", CameraCard, LidarCard)
+
+
 def _check_classes(classes: dict[int, str], num_classes: int) -> None:
     if not classes:
         raise ValueError("no class maps to one of the project's: the detector would find nothing")
@@ -213,6 +217,21 @@ def save_card(path: Path, card: CameraCard | LidarCard, note: str) -> None:
     data["classes"] = {int(k): v for k, v in data["classes"].items()}  # JSON mode made them strings
     body = yaml.safe_dump(data, sort_keys=False, default_flow_style=None)
     path.write_text(f"# {note}\n{body}")
+
+
+def load_card_and_model(card_path: Path, kind: type[C], precision: str = "fp32") -> tuple[C, Path]:
+    """A card of `kind` (CameraCard, LidarCard) and its model file in `precision`
+    (`shared.detection.precision`): ConfigError for an invalid card or one of the other kind,
+    FileNotFoundError for a missing model."""
+    card = load_card(card_path)
+    if not isinstance(card, kind):
+        raise ConfigError(
+            f"{card_path}: a {card.kind} card, not a {kind.__name__.removesuffix('Card').lower()} detector's"
+        )
+    path = model_file(model_path(card_path, card), precision)
+    if not path.is_file():
+        raise FileNotFoundError(f"no {precision} model {path} for {card_path}")
+    return card, path
 
 
 def model_path(card_path: Path, card: CameraCard | LidarCard) -> Path:

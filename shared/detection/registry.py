@@ -88,15 +88,9 @@ def lidar_detector(
 def lidar_from_card(card_path: Path, precision: str = "fp32", threads: int = 1) -> LidarDetector:
     """The lidar detector a card describes: the project's PointPillars (its grid and head from the JSON
     beside the model) or an OpenPCDet anchor-head export (`shared.detection.lidar.openpcdet`)."""
-    from shared.config import ConfigError
-    from shared.detection.card import LidarCard, load_card, model_path
+    from shared.detection.card import LidarCard, load_card_and_model
 
-    card = load_card(card_path)
-    if not isinstance(card, LidarCard):
-        raise ConfigError(f"{card_path}: a {card.kind} card, not a lidar detector's")
-    path = model_file(model_path(card_path, card), precision)
-    if not path.is_file():
-        raise FileNotFoundError(f"no {precision} model {path} for {card_path}")
+    card, path = load_card_and_model(card_path, LidarCard, precision)
     if card.layout == "rmmdet_pointpillars":
         from shared.detection.lidar.pointpillars.onnx_detector import OnnxPointPillars
 

@@ -25,6 +25,7 @@ from shared.detection.lidar.pointpillars.config import NetConfig as PillarNet
 from shared.detection.lidar.pointpillars.config import TrainConfig as PillarTrain
 from shared.detection.precision import model_file
 from shared.detection.registry import camera_detector, lidar_detector
+from tests.shared.detection.lidar.samples import box_surface_points
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(600)]
 
@@ -79,17 +80,9 @@ def write_yolo_roboflow(root: Path, n_train: int = 24, n_val: int = 6) -> Path:
 
 
 def car_points(x: float, y: float, yaw: float, rng: np.random.Generator, n: int = 80) -> np.ndarray:
-    """Points on the sides and top of a car standing on z = 0 (velodyne frame)."""
+    """Returns (x, y, z, intensity) on the sides and top of a car standing on z = 0 (velodyne frame)."""
     length, width, height = CAR_SIZE_M
-    u = rng.uniform(-0.5, 0.5, (n, 3)) * [length, width, height]
-    face = rng.integers(0, 5, n)
-    u[face == 0, 0], u[face == 1, 0] = length / 2, -length / 2
-    u[face == 2, 1], u[face == 3, 1] = width / 2, -width / 2
-    u[face == 4, 2] = height / 2
-    c, s = math.cos(yaw), math.sin(yaw)
-    xyz = np.stack(
-        [x + c * u[:, 0] - s * u[:, 1], y + s * u[:, 0] + c * u[:, 1], height / 2 + u[:, 2]], axis=1
-    )
+    xyz = box_surface_points(np.array([x, y, height / 2, length, width, height, yaw]), n, rng)
     return np.column_stack([xyz, np.full(n, 0.5)])
 
 

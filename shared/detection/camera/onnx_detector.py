@@ -26,7 +26,7 @@ from shared.config import ConfigError
 from shared.detection.camera.config import CONFIG_FILE, CameraDetectorConfig
 from shared.detection.camera.geometry import Letterbox, letterbox_image, select_detections
 from shared.detection.camera.layouts import decode, expected_output, project_scores
-from shared.detection.card import CameraCard, load_card, model_path
+from shared.detection.card import CameraCard, load_card_and_model
 from shared.detection.interface import (
     CAMERA_COLUMNS,
     CLASS_NAMES,
@@ -34,7 +34,6 @@ from shared.detection.interface import (
     check_images,
     empty_camera_detections,
 )
-from shared.detection.precision import model_file
 
 DEFAULT_THREADS = 2
 MS_PER_S = 1e3
@@ -89,12 +88,7 @@ class OnnxCameraDetector:
     ) -> OnnxCameraDetector:
         """The detector a card file describes (its model beside it, in `precision`:
         `shared.detection.precision`); ConfigError if the card is invalid or does not fit the model."""
-        card = load_card(card_path)
-        if not isinstance(card, CameraCard):
-            raise ConfigError(f"{card_path}: a {card.kind} card, not a camera detector's")
-        path = model_file(model_path(card_path, card), precision)
-        if not path.is_file():
-            raise FileNotFoundError(f"no {precision} model {path} for {card_path}")
+        card, path = load_card_and_model(card_path, CameraCard, precision)
         return cls(path, card, intra_op_threads=intra_op_threads)
 
     def _buffer(self, n: int) -> np.ndarray:

@@ -14,7 +14,7 @@ import pytest
 from shared.config import ConfigError
 from shared.detection.camera.config import CONFIG_FILE, CameraDetectorConfig
 from shared.detection.card import CameraCard, load_card, save_card
-from shared.detection.registry import CAMERA_CARD, MODELS_DIR, camera_detector
+from shared.detection.registry import CAMERA_CARD, LIDAR_CARD, MODELS_DIR, camera_detector, lidar_detector
 from shared.paths import DEFAULT_SCENE
 from shared.perception.config import MecSettings, SyncConfig
 from shared.perception.core import MecCore
@@ -143,3 +143,10 @@ def test_the_committed_card_is_the_one_its_training_config_gives() -> None:
     """deploy/models/camera/model.yaml is written by the export from config.json: they must agree."""
     config = CameraDetectorConfig.load(MODELS_DIR / "camera" / CONFIG_FILE)
     assert load_card(MODELS_DIR / CAMERA_CARD) == config.card()
+
+
+def test_a_card_of_the_other_kind_is_refused() -> None:
+    with pytest.raises(ConfigError, match="a lidar card, not a camera detector's"):
+        camera_detector(str(MODELS_DIR / LIDAR_CARD))
+    with pytest.raises(ConfigError, match="a camera card, not a lidar detector's"):
+        lidar_detector(str(MODELS_DIR / CAMERA_CARD))

@@ -13,6 +13,7 @@ from shared.detection.lidar.pointpillars.config import (
     PointPillarsConfig,
     TrainConfig,
 )
+from tests.shared.detection.lidar.samples import box_surface_points
 
 VEHICLE_SIZE_M = (0.33, 0.22, 0.21)
 GROUND_STEP_M = 0.04
@@ -29,18 +30,6 @@ def tiny_config() -> PointPillarsConfig:
         ),
         train=TrainConfig(epochs=1, batch_size=4, lr=5e-3, crop_size_m=0.0, num_threads=1),
     )
-
-
-def box_surface_points(box: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
-    """(n, 3) points on the four sides and the top of a (7,) box, world frame."""
-    x, y, z, dx, dy, dz, yaw = box
-    u = rng.uniform(-0.5, 0.5, (n, 3)) * [dx, dy, dz]
-    face = rng.integers(0, 5, n)
-    u[face == 0, 0], u[face == 1, 0] = dx / 2, -dx / 2
-    u[face == 2, 1], u[face == 3, 1] = dy / 2, -dy / 2
-    u[face == 4, 2] = dz / 2
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.stack([x + c * u[:, 0] - s * u[:, 1], y + s * u[:, 0] + c * u[:, 1], z + u[:, 2]], axis=1)
 
 
 @pytest.fixture
