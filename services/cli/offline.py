@@ -445,6 +445,9 @@ def eval_readme(
     robustness_dir: Annotated[Path, typer.Option("--robustness", help="robustness results")] = Path(
         "docs/eval/robustness"
     ),
+    robustness_radar: Annotated[Path, typer.Option(help="radar-noise robustness results")] = Path(
+        "docs/eval/robustness_radar"
+    ),
     flow: Annotated[Path, typer.Option(help="flow experiment results")] = Path("docs/eval/flow"),
 ) -> None:
     """Rewrite the README's evaluation and experiment sections from the results files as they are
@@ -458,10 +461,11 @@ def eval_readme(
         if path.exists():
             write_fusion_readme(json.loads(path.read_text()), split)
             console.print(f"README <- {path}")
-    path = robustness_dir / "results.json"
-    if path.exists():
-        replace_section("eval-robustness", robustness.markdown_table(json.loads(path.read_text())))
-        console.print(f"README <- {path}")
+    for folder, section in ((robustness_dir, "eval-robustness"), (robustness_radar, "eval-robustness-radar")):
+        path = folder / "results.json"
+        if path.exists():
+            replace_section(section, robustness.markdown_table(json.loads(path.read_text())))
+            console.print(f"README <- {path}")
     path = flow / "results.json"
     if path.exists():
         numbers = sorted(j.number for j in Scene.load(DEFAULT_SCENE).spec.junctions)
@@ -526,6 +530,33 @@ def eval_robustness(
     held_out_study(
         run_robustness_study, robustness.markdown_table, "eval-robustness",
         agents, seeds, duration_s, warmup_s, workers, config, out, readme,
+    )  # fmt: skip
+
+
+@eval_app.command("robustness-radar")
+def eval_robustness_radar(
+    agents: HeldOutAgents = None,
+    seeds: HeldOutSeeds = None,
+    duration_s: DurationS = 30.0,
+    warmup_s: WarmupS = 3.0,
+    workers: Workers = 2,
+    config: MecConfig = None,
+    out: Annotated[Path, typer.Option(help="results folder")] = Path("docs/eval/robustness_radar"),
+    readme: Readme = False,
+) -> None:
+    """The agents with radars (default) under 2x and 4x radar noise, each against the clean run on the
+    same seeds; the MEC keeps the scene's noise model."""
+    from functools import partial
+
+    from studies.evaluation import robustness
+    from studies.evaluation.run import run_robustness_study
+
+    scene = Scene.load(DEFAULT_SCENE)
+    radar_agents = sorted({a for a in scene.agents for s in scene.sensors_of(a) if s.kind == "radar"})
+    held_out_study(
+        partial(run_robustness_study, perturbations=robustness.RADAR_PERTURBATIONS),
+        robustness.markdown_table, "eval-robustness-radar",
+        agents or radar_agents, seeds, duration_s, warmup_s, workers, config, out, readme,
     )  # fmt: skip
 
 

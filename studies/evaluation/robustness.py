@@ -10,6 +10,9 @@ Each perturbation changes one thing of a seed's run (`studies.dataset.conditions
   per seed), while the simulator keeps the true poses;
 - `dense`: 32 vehicles, more than any tuning seed (6-24).
 
+The radar set (`RADAR_PERTURBATIONS`, run on the agents with radars): only the radars' range, azimuth and
+range-rate noise at 2x and 4x the scene's, the MEC still believing the scene's.
+
 The MEC runs unchanged (same settings, same models): the table shows what its accuracy keeps.
 """
 
@@ -40,6 +43,7 @@ class Perturbation:
 
     name: str
     noise_scale: float = 1.0  # x the largest camera / lidar noise of `Variation`, x the scene's radar noise
+    radar_noise_scale: float = 1.0  # x the scene's radar noise, the other sensors as the seed draws them
     range_delay_s: float = 0.0  # lidar and radar frames this old, stamped as new
     extrinsic_translation_m: float = 0.0  # the MEC's sensor positions off by this much ...
     extrinsic_rotation_rad: float = 0.0  # ... and its orientations by this angle
@@ -61,6 +65,8 @@ class Perturbation:
                 lidar_range_noise_std_m=self.noise_scale * max(variation.lidar_range_noise_std_m),
                 radar_noise_scale=self.noise_scale,
             )
+        if self.radar_noise_scale != 1.0:
+            out = dataclasses.replace(out, radar_noise_scale=out.radar_noise_scale * self.radar_noise_scale)
         if self.vehicles is not None:
             out = dataclasses.replace(out, vehicles=self.vehicles)
         return out
@@ -96,6 +102,10 @@ PERTURBATIONS = (
     Perturbation("delay_100ms", range_delay_s=0.1),
     Perturbation("extrinsics", extrinsic_translation_m=0.01, extrinsic_rotation_rad=math.radians(0.5)),
     Perturbation("dense", vehicles=32),
+)
+RADAR_PERTURBATIONS = (
+    Perturbation("radar_noise_x2", radar_noise_scale=2.0),
+    Perturbation("radar_noise_x4", radar_noise_scale=4.0),
 )
 
 

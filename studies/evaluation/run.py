@@ -101,12 +101,13 @@ def run_robustness_study(
     warmup_s: float,
     workers: int,
     out: Path,
+    perturbations: tuple[robustness.Perturbation, ...] = robustness.PERTURBATIONS,
 ) -> dict[str, Any]:
-    """The clean run and each perturbation of `robustness.PERTURBATIONS` on the same seeds; the tracked
-    output's accuracy per agent, and its share of the clean AP-BEV@0.7. Writes `out/results.json`."""
+    """The clean run and each of `perturbations` on the same seeds; the tracked output's accuracy per
+    agent, and its share of the clean AP-BEV@0.7. Writes `out/results.json`."""
     t0 = time.perf_counter()
     runs: dict[str, Any] = {}
-    for perturbation in (robustness.CLEAN, *robustness.PERTURBATIONS):
+    for perturbation in (robustness.CLEAN, *perturbations):
         evaluations = fe.evaluate(
             agents, seeds, duration_s, warmup_s, mec, workers, dataset.variation, perturbation
         )

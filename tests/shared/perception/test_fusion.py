@@ -136,6 +136,38 @@ def test_radar_reflection_gives_the_centre_of_a_car_with_known_heading() -> None
     assert np.linalg.norm(guess[0] - reflections[0]) == pytest.approx(0.12)
 
 
+def test_centre_over_uncertain_heading_lies_between_the_corners_it_could_be() -> None:
+    radar = np.array([0.0, 0.0])
+    # Seen end-on 4 m ahead: 0.1 rad of heading decides which rear corner reflects.
+    truth, lane_yaw = np.array([[0.05, 4.0]]), np.array([np.pi / 2])
+    for yaw_off in (-0.1, 0.1):
+        reflection = radar_camera.nearest_footprint_point(truth, lane_yaw + yaw_off, CAR[:2], radar)
+        one = radar_camera.centres_from_reflections(reflection, lane_yaw, CAR[:2], radar, 0.12)
+        mean, cov = radar_camera.centres_over_yaw(reflection, lane_yaw, 0.1, CAR[:2], radar, 0.12)
+        # The lane heading alone puts the centre a car width off for one of the two headings; the mean
+        # over headings lies within about two of its stds of the truth, the spread is mostly across.
+        across_std = np.sqrt(cov[0, 0, 0])
+        assert abs(mean[0, 0] - truth[0, 0]) <= 2 * across_std
+        assert across_std > 3 * np.sqrt(cov[0, 1, 1])
+        if abs(one[0, 0] - truth[0, 0]) > 0.15:
+            assert abs(mean[0, 0] - truth[0, 0]) < abs(one[0, 0] - truth[0, 0])
+    # Seen at 45 degrees the same corner reflects for every heading near the lane's: the mean is the
+    # centre, the spread small.
+    side = np.array([[3.0, 3.0]])
+    reflection = radar_camera.nearest_footprint_point(side, lane_yaw, CAR[:2], radar)
+    mean, cov = radar_camera.centres_over_yaw(reflection, lane_yaw, 0.05, CAR[:2], radar, 0.12)
+    assert np.linalg.norm(mean[0] - side[0]) < 0.01 and np.sqrt(np.trace(cov[0])) < 0.02
+    # No spread: the lane heading alone; unknown heading: the first guess, no spread either.
+    mean, cov = radar_camera.centres_over_yaw(reflection, lane_yaw, 0.0, CAR[:2], radar, 0.12)
+    np.testing.assert_allclose(
+        mean, radar_camera.centres_from_reflections(reflection, lane_yaw, CAR[:2], radar, 0.12)
+    )
+    assert not cov.any()
+    mean, cov = radar_camera.centres_over_yaw(reflection, np.array([np.nan]), 0.1, CAR[:2], radar, 0.12)
+    assert np.linalg.norm(mean[0] - reflection[0]) == pytest.approx(0.12)
+    np.testing.assert_allclose(cov, 0.0, atol=1e-20)
+
+
 def test_viaduct_radar_places_a_car_yawed_off_its_lane_on_the_lane(scene: Scene) -> None:
     from shared.geometry.transforms import cartesian_to_polar, invert_transform
     from shared.perception.config import MecSettings
@@ -151,21 +183,26 @@ def test_viaduct_radar_places_a_car_yawed_off_its_lane_on_the_lane(scene: Scene)
     r, az, el = cartesian_to_polar(local[None])
     scan = RadarTargets(r, az, el, np.zeros(1), np.zeros(1))
     found = {}
-    for std in (None, 0.03):
+    for lane_std, yaw_std in ((None, 0.0), (0.03, 0.0), (0.03, 0.1)):
         settings = MecSettings()
+        update = {"lane_lateral_std_m": lane_std, "lane_yaw_std_rad": yaw_std}
         settings = settings.model_copy(
-            update={"radar_camera": settings.radar_camera.model_copy(update={"lane_lateral_std_m": std})}
+            update={"radar_camera": settings.radar_camera.model_copy(update=update)}
         )
         pipe = AgentPipeline(scene, "agent2", settings, sensor_ids=["radar_2"])
         ((m,),) = pipe.radar_measurements(AgentInputs(stamp_ns=0, radar={"radar_2": scan}))
         assert m.z_m == pytest.approx(0.4 + settings.radar_camera.object_height_m / 2)
-        found[std] = m.position_m
-    off_lane = abs(found[None][0] - truth_xy[0])
+        found[lane_std, yaw_std] = abs(m.position_m - truth_xy)
+    off_lane = found[None, 0.0][0]
     assert off_lane > 0.15  # the corner on the wrong side: off by about the car's width
     # Across the line of sight the radar position has std ~0.064 m (azimuth + reflection spread), the
     # lane 0.03 m: about a fifth of the offset remains.
-    assert abs(found[0.03][0] - truth_xy[0]) < off_lane / 5
-    assert abs(found[0.03][1] - truth_xy[1]) < 0.05  # the range still places it along the lane
+    assert found[0.03, 0.0][0] < off_lane / 5
+    # With the heading uncertain the centre starts between the two corners and says so in its
+    # covariance: the lane takes most of what remains.
+    assert found[0.03, 0.1][0] < found[0.03, 0.0][0] / 2
+    for err in found.values():
+        assert err[1] < 0.05  # the range still places it along the lane
 
 
 # --- Algorithm 2 ------------------------------------------------------------------------------------

@@ -3,6 +3,7 @@ delayed range sensor delivers, and what the noise and density perturbations chan
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -16,9 +17,9 @@ from sim.sensors.rig import Capture
 from studies.dataset.conditions import SeedConditions
 from studies.dataset.config import Variation
 from studies.evaluation.fusion import RangeDelay
-from studies.evaluation.robustness import CLEAN, PERTURBATIONS, miscalibrated
+from studies.evaluation.robustness import CLEAN, PERTURBATIONS, RADAR_PERTURBATIONS, miscalibrated
 
-BY_NAME = {p.name: p for p in PERTURBATIONS}
+BY_NAME = {p.name: p for p in (*PERTURBATIONS, *RADAR_PERTURBATIONS)}
 
 
 @pytest.fixture(scope="module")
@@ -70,3 +71,9 @@ def test_noise_and_density_perturbations_change_only_their_own_conditions(scene:
     dense = BY_NAME["dense"].conditions(base, variation)
     assert dense.vehicles == 32 and dense.camera_noise_std == base.camera_noise_std
     assert "radar" not in base.model_overrides(scene)  # the scene's own radar noise when unscaled
+    for scale in (2, 4):
+        radar_only = BY_NAME[f"radar_noise_x{scale}"].conditions(base, variation)
+        radar = radar_only.model_overrides(scene)["radar"]
+        for name in ("range_noise_std_m", "azimuth_noise_std_rad", "range_rate_noise_std_mps"):
+            assert radar[name] == pytest.approx(scale * getattr(model, name))
+        assert dataclasses.replace(radar_only, radar_noise_scale=1.0) == base  # nothing else changed
