@@ -147,7 +147,7 @@ eval-fusion: install ## calibrated scores fitted on the tuning seeds, then MEC f
 
 eval-robustness: install ## fusion accuracy under 2x noise, 100 ms delay, extrinsic error, 32 vehicles vs clean (~30 min) -> docs/eval/robustness
 	$(BIN)/rmmdet eval robustness --workers 2 --readme
-	$(BIN)/rmmdet eval robustness-radar --workers 2 --readme
+	$(BIN)/rmmdet eval robustness --radar --workers 2 --readme
 
 experiments: install ## the flow experiment: oracle fitted on real-chain runs, 6 arms x 10/20/40 vehicles x 5 seeds, real chain vs oracle on 3 seeds x 10/20 vehicles (~55 min) -> docs/eval/flow
 	$(BIN)/rmmdet experiments flow --out docs/eval/flow --readme

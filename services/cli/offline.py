@@ -519,44 +519,35 @@ def eval_robustness(
     warmup_s: WarmupS = 3.0,
     workers: Workers = 2,
     config: MecConfig = None,
-    out: Annotated[Path, typer.Option(help="results folder")] = Path("docs/eval/robustness"),
+    radar: Annotated[
+        bool, typer.Option("--radar", help="the radar set instead: 2x and 4x radar noise, agents with radars")
+    ] = False,
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            help="results folder (default docs/eval/robustness, with --radar docs/eval/robustness_radar)"
+        ),
+    ] = None,
     readme: Readme = False,
 ) -> None:
     """The fusion evaluation's tracked output under 2x sensor noise, 100 ms range-sensor delay, 1 cm /
-    0.5 deg extrinsic error and 32 vehicles, each against the clean run on the same seeds."""
-    from studies.evaluation import robustness
-    from studies.evaluation.run import run_robustness_study
-
-    held_out_study(
-        run_robustness_study, robustness.markdown_table, "eval-robustness",
-        agents, seeds, duration_s, warmup_s, workers, config, out, readme,
-    )  # fmt: skip
-
-
-@eval_app.command("robustness-radar")
-def eval_robustness_radar(
-    agents: HeldOutAgents = None,
-    seeds: HeldOutSeeds = None,
-    duration_s: DurationS = 30.0,
-    warmup_s: WarmupS = 3.0,
-    workers: Workers = 2,
-    config: MecConfig = None,
-    out: Annotated[Path, typer.Option(help="results folder")] = Path("docs/eval/robustness_radar"),
-    readme: Readme = False,
-) -> None:
-    """The agents with radars (default) under 2x and 4x radar noise, each against the clean run on the
-    same seeds; the MEC keeps the scene's noise model."""
+    0.5 deg extrinsic error and 32 vehicles, each against the clean run on the same seeds; with --radar,
+    the agents with radars (default) under 2x and 4x radar noise, the MEC keeping the scene's noise model."""
     from functools import partial
 
     from studies.evaluation import robustness
     from studies.evaluation.run import run_robustness_study
 
-    scene = Scene.load(DEFAULT_SCENE)
-    radar_agents = sorted({a for a in scene.agents for s in scene.sensors_of(a) if s.kind == "radar"})
+    run: Any = run_robustness_study
+    section, default_out = "eval-robustness", Path("docs/eval/robustness")
+    if radar:
+        scene = Scene.load(DEFAULT_SCENE)
+        agents = agents or sorted({a for a in scene.agents for s in scene.sensors_of(a) if s.kind == "radar"})
+        run = partial(run_robustness_study, perturbations=robustness.RADAR_PERTURBATIONS)
+        section, default_out = "eval-robustness-radar", Path("docs/eval/robustness_radar")
     held_out_study(
-        partial(run_robustness_study, perturbations=robustness.RADAR_PERTURBATIONS),
-        robustness.markdown_table, "eval-robustness-radar",
-        agents or radar_agents, seeds, duration_s, warmup_s, workers, config, out, readme,
+        run, robustness.markdown_table, section,
+        agents, seeds, duration_s, warmup_s, workers, config, out or default_out, readme,
     )  # fmt: skip
 
 
