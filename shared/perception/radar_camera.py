@@ -6,7 +6,9 @@ Per radar scan and its paired camera:
    its height is then set to the driving surface under it plus half a car (`RoadSurface`), because
    the POI should sit on the car's centre (reference: deck + 0.11 m). The target's own height picks
    the surface where the deck crosses a table lane (`level_ranges`: a car under the deck is not put
-   on it), and the car centre is placed from the reflection with that lane's heading;
+   on it), and the car centre is placed from the reflection with that lane's heading, averaged over
+   headings a little off it (seen end-on, a few degrees decide which corner reflects), the spread
+   of those centres kept in the position's covariance;
 2. POI: the world point projected into the paired camera, with its optical depth d;
 3. ROI: a box centred on the POI of S = alpha / d + beta pixels wide and high (alpha, beta per class
    in config; the reference used 120 px m for both and beta = 0, and fed it the wrong distance);
@@ -458,9 +460,8 @@ def radar_measurements(
         on_lane = lane >= 0
         lane_yaw_now = np.where(on_lane, surface.heading_rad[lane], np.nan)
         xy, cov = constrain_to_lane(xy, cov, surface.points_m[lane, :2], lane_yaw_now, cfg.lane_lateral_std_m)
-        lane_yaw = np.where(
-            np.isfinite(lane_yaw_now), lane_yaw_now, lane_yaw
-        )  # the car's heading: its lane's
+        # The measurement's heading: its lane's where it ends up.
+        lane_yaw = np.where(np.isfinite(lane_yaw_now), lane_yaw_now, lane_yaw)
     out: list[Measurement] = []
     for k in range(len(targets)):
         if not matched[k] and not cfg.keep_unmatched_radar:
