@@ -438,6 +438,23 @@ def write_fusion_readme(results: dict[str, Any], split: str) -> None:
         replace_section("eval-fusion-kalman", text)
 
 
+@eval_app.command("compare")
+def eval_compare(
+    before: Annotated[Path, typer.Argument(help="fusion results.json before the change")],
+    after: Annotated[Path, typer.Argument(help="fusion results.json after it")],
+    agent: Annotated[str, typer.Option(help="agent (or 'all')")] = "all",
+    output: Annotated[
+        list[str] | None, typer.Option("--output", help="outputs (repeatable; default tracked)")
+    ] = None,
+) -> None:
+    """One agent's outputs in two fusion results files side by side (AP-BEV@0.7, MOTA, pose p95), as a
+    markdown table; e.g. before = `git show <commit>:docs/eval/fusion/results.json > before.json`."""
+    from studies.evaluation.compare import compare_table
+
+    files = [json.loads(p.read_text()) for p in (before, after)]
+    typer.echo(compare_table(files[0], files[1], agent, output or ["tracked"]))
+
+
 @eval_app.command("readme")
 def eval_readme(
     fusion: Annotated[Path, typer.Option(help="held-out fusion results")] = Path("docs/eval/fusion"),
