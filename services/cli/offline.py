@@ -440,8 +440,10 @@ def write_fusion_readme(results: dict[str, Any], split: str) -> None:
 
 @eval_app.command("compare")
 def eval_compare(
-    before: Annotated[Path, typer.Argument(help="fusion results.json before the change")],
-    after: Annotated[Path, typer.Argument(help="fusion results.json after it")],
+    before: Annotated[
+        Path, typer.Argument(exists=True, dir_okay=False, help="fusion results.json before the change")
+    ],
+    after: Annotated[Path, typer.Argument(exists=True, dir_okay=False, help="fusion results.json after it")],
     agent: Annotated[str, typer.Option(help="agent (or 'all')")] = "all",
     output: Annotated[
         list[str] | None, typer.Option("--output", help="outputs (repeatable; default tracked)")
@@ -451,7 +453,14 @@ def eval_compare(
     markdown table; e.g. before = `git show <commit>:docs/eval/fusion/results.json > before.json`."""
     from studies.evaluation.compare import compare_table
 
-    files = [json.loads(p.read_text()) for p in (before, after)]
+    files = []
+    for path in (before, after):
+        try:
+            files.append(json.loads(path.read_text()))
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise typer.BadParameter(f"{path} is not a results file: {exc}") from exc
+        if not isinstance(files[-1], dict) or agent not in files[-1]:
+            raise typer.BadParameter(f"{path} has no results for agent {agent!r}")
     typer.echo(compare_table(files[0], files[1], agent, output or ["tracked"]))
 
 
@@ -559,7 +568,7 @@ def eval_robustness(
     section, default_out = "eval-robustness", Path("docs/eval/robustness")
     if radar:
         scene = Scene.load(DEFAULT_SCENE)
-        agents = agents or sorted({a for a in scene.agents for s in scene.sensors_of(a) if s.kind == "radar"})
+        agents = agents or sorted(a for a in scene.agents if scene.sensors_of(a, "radar"))
         run = partial(run_robustness_study, perturbations=robustness.RADAR_PERTURBATIONS)
         section, default_out = "eval-robustness-radar", Path("docs/eval/robustness_radar")
     held_out_study(
