@@ -248,6 +248,13 @@ def eval_detectors(
     recall_sampling: Annotated[
         str, typer.Option(help="lidar AP: r40 (recall 1/40..1) or devkit (the KITTI devkit's thresholds)")
     ] = "r40",
+    readme: Annotated[
+        bool,
+        typer.Option(
+            help="rewrite the README's detector table (needs --out; previous models' results "
+            "beside it, if there, as previous_metrics.json)"
+        ),
+    ] = False,
 ) -> None:
     """AP of each detector on a dataset split (camera: COCO AP@0.5, AP@0.5:0.95; lidar: KITTI R40 BEV /
     3D AP at IoU 0.5 / 0.7 overall and by distance band) and latency per call (p50 / p95, 1 and 2
@@ -267,6 +274,8 @@ def eval_detectors(
         raise typer.BadParameter(f"split must be one of {SPLITS}, got {split!r}")
     if recall_sampling not in ("r40", "devkit"):
         raise typer.BadParameter(f"recall sampling must be r40 or devkit, got {recall_sampling!r}")
+    if readme and out is None:
+        raise typer.BadParameter("--readme writes the table from the results file: give --out")
     results: dict[str, list[dict[str, object]]] = {"camera": [], "lidar": []}
     camera_samples = list(ev.camera_samples(layout, split, latency_frames))
     lidar_samples = list(ev.lidar_samples(layout, split, latency_frames))
@@ -315,11 +324,25 @@ def eval_detectors(
             + ", ".join(f"{b['band']} {b['ap']:.3f} ({b['num_gt']} GT)" for b in bands)  # type: ignore[index]
         )
     if out is not None:
+        from shared.machine import git_commit, machine_info
+
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(
-            json.dumps({"data": str(data), "split": split, **results}, indent=2, default=float) + "\n"
-        )
+        record = {"data": str(data), "split": split, "commit": git_commit(), "machine": machine_info()}
+        out.write_text(json.dumps({**record, **results}, indent=2, default=float) + "\n")
         console.print(f"results: {out}")
+        if readme:
+            write_detector_readme(out)
+
+
+def write_detector_readme(path: Path) -> None:
+    """The README's detector table from the results file `path`, with the previous models' results
+    beside it when `previous_metrics.json` sits next to it."""
+    from shared.readme import replace_section
+    from studies.evaluation import detectors
+
+    previous_path = path.parent / detectors.PREVIOUS_FILE
+    previous = json.loads(previous_path.read_text()) if previous_path.exists() else None
+    replace_section(detectors.SECTION, detectors.markdown_table(json.loads(path.read_text()), previous))
 
 
 @eval_app.command("fusion")
@@ -377,7 +400,7 @@ def eval_fusion(
     for row in fe.table_rows(results, agents):
         table.add_row(*row)
     if readme:
-        write_fusion_readme(results, split)
+        write_fusion_readme(results, split, out)
     console.print(table)
     console.print(f"results: {out / 'results.json'}")
 
@@ -425,14 +448,20 @@ def eval_calibrate_scores(
     console.print(table)
 
 
-def write_fusion_readme(results: dict[str, Any], split: str) -> None:
-    """The README sections of one fusion split's results: its table, and the noise experiment's line."""
+def write_fusion_readme(results: dict[str, Any], split: str, folder: Path) -> None:
+    """The README sections of one fusion split's results (from `folder`): its table, under it the previous
+    models' figures when `previous_results.json` is there, and the noise experiment's line."""
     from shared.readme import replace_section
     from studies.evaluation import fusion as fe
     from studies.evaluation import kalman_noise
+    from studies.evaluation.compare import PREVIOUS_FILE, previous_section
 
     section = "eval-fusion" if split == "test" else "eval-fusion-tuning"
-    replace_section(section, fe.markdown_table(results, results["agents"]))
+    text = fe.markdown_table(results, results["agents"])
+    previous = folder / PREVIOUS_FILE
+    if previous.exists():
+        text += "\n\n" + previous_section(json.loads(previous.read_text()), results, str(previous))
+    replace_section(section, text)
     if "kalman_noise" in results:
         text = kalman_noise.markdown(results["kalman_noise"], results["seeds"][0], results["duration_s"])
         replace_section("eval-fusion-kalman", text)
@@ -444,14 +473,18 @@ def eval_compare(
         Path, typer.Argument(exists=True, dir_okay=False, help="fusion results.json before the change")
     ],
     after: Annotated[Path, typer.Argument(exists=True, dir_okay=False, help="fusion results.json after it")],
-    agent: Annotated[str, typer.Option(help="agent (or 'all')")] = "all",
+    agents: Annotated[
+        list[str] | None,
+        typer.Option("--agent", help="agents or 'all' (repeatable; default every agent, then all)"),
+    ] = None,
     output: Annotated[
         list[str] | None, typer.Option("--output", help="outputs (repeatable; default tracked)")
     ] = None,
 ) -> None:
-    """One agent's outputs in two fusion results files side by side (AP-BEV@0.7, MOTA, pose p95), as a
-    markdown table; e.g. before = `git show <commit>:docs/eval/fusion/results.json > before.json`."""
-    from studies.evaluation.compare import compare_table
+    """Agents' outputs in two fusion results files side by side (AP-BEV@0.7, MOTA, pose p95), as
+    markdown tables, with the paired difference over seeds where both files have per-seed figures;
+    e.g. before = `git show <commit>:docs/eval/fusion/results.json > before.json`."""
+    from studies.evaluation.compare import compare_tables
 
     files = []
     for path in (before, after):
@@ -459,9 +492,14 @@ def eval_compare(
             files.append(json.loads(path.read_text()))
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             raise typer.BadParameter(f"{path} is not a results file: {exc}") from exc
-        if not isinstance(files[-1], dict) or agent not in files[-1]:
-            raise typer.BadParameter(f"{path} has no results for agent {agent!r}")
-    typer.echo(compare_table(files[0], files[1], agent, output or ["tracked"]))
+        if not isinstance(files[-1], dict):
+            raise typer.BadParameter(f"{path} is not a results file: not a JSON object")
+    agents = agents or [*files[1].get("agents", []), "all"]
+    for path, results in zip((before, after), files, strict=True):
+        missing = [a for a in agents if a not in results]
+        if missing:
+            raise typer.BadParameter(f"{path} has no results for agent {', '.join(missing)}")
+    typer.echo(compare_tables(files[0], files[1], agents, output or ["tracked"]))
 
 
 @eval_app.command("readme")
@@ -475,6 +513,9 @@ def eval_readme(
         "docs/eval/robustness_radar"
     ),
     flow: Annotated[Path, typer.Option(help="flow experiment results")] = Path("docs/eval/flow"),
+    detectors: Annotated[Path, typer.Option(help="detector results (rmmdet eval detectors --out)")] = Path(
+        "deploy/models/metrics.json"
+    ),
 ) -> None:
     """Rewrite the README's evaluation and experiment sections from the results files as they are
     (no re-run)."""
@@ -482,10 +523,13 @@ def eval_readme(
     from studies.evaluation import robustness
     from studies.experiments.report import readme_section
 
+    if detectors.exists():
+        write_detector_readme(detectors)
+        console.print(f"README <- {detectors}")
     for folder, split in ((tuning, "tuning"), (fusion, "test")):
         path = folder / "results.json"
         if path.exists():
-            write_fusion_readme(json.loads(path.read_text()), split)
+            write_fusion_readme(json.loads(path.read_text()), split, folder)
             console.print(f"README <- {path}")
     for folder, section in ((robustness_dir, "eval-robustness"), (robustness_radar, "eval-robustness-radar")):
         path = folder / "results.json"

@@ -6,22 +6,17 @@ differences between arms over the seeds with a 95 % t-interval. Used by `rmmdet 
 from __future__ import annotations
 
 import json
-import math
 import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
-
-import numpy as np
-from scipy import stats
 
 from shared.machine import git_commit, machine_info
 from shared.perception.config import MecSettings
 from studies.dataset.config import DatasetSettings
 from studies.evaluation import fusion as fe
 from studies.evaluation import robustness
-
-T_95 = 0.975
+from studies.stats import paired_differences
 
 
 def row(summary: dict[str, Any]) -> dict[str, Any]:
@@ -36,15 +31,9 @@ def row(summary: dict[str, Any]) -> dict[str, Any]:
 
 def paired(a: list[float | None], b: list[float | None]) -> dict[str, float]:
     """Mean of b - a over the seeds where both are defined (an AP is None where a seed has nothing to
-    score), and its 95 % t-interval."""
-    d = np.asarray([y - x for x, y in zip(a, b, strict=True) if x is not None and y is not None], float)
-    if len(d) == 0:
-        return {"mean": math.nan, "ci_low": math.nan, "ci_high": math.nan}
-    mean = float(d.mean())
-    if len(d) < 2:
-        return {"mean": mean, "ci_low": math.nan, "ci_high": math.nan}
-    half = float(stats.t.ppf(T_95, len(d) - 1) * d.std(ddof=1) / math.sqrt(len(d)))
-    return {"mean": mean, "ci_low": mean - half, "ci_high": mean + half}
+    score), and its 95 % t-interval as bounds."""
+    d = paired_differences(a, b)
+    return {"mean": d["mean"], "ci_low": d["mean"] - d["ci95"], "ci_high": d["mean"] + d["ci95"]}
 
 
 def run_arms(

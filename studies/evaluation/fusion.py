@@ -544,9 +544,11 @@ def evaluate(
     workers: int,
     variation: Variation,
     perturbation: robustness.Perturbation = robustness.CLEAN,
+    per_seed: dict[str, dict[str, dict[str, float | None]]] | None = None,
 ) -> dict[str, AgentEvaluation]:
     """Every (agent, seed) run under the seed's conditions drawn from `variation` (and `perturbation`),
-    merged per agent and over all agents (key "all")."""
+    merged per agent and over all agents (key "all"); with `per_seed`, each run's `seed_row` is put
+    there as per_seed[agent][str(seed)] (for paired comparisons over seeds)."""
     import multiprocessing as mp
 
     if workers > 1:
@@ -562,22 +564,37 @@ def evaluate(
         for s in seeds
     ]
     per_agent: dict[str, AgentEvaluation] = {a: AgentEvaluation() for a in agents}
+
+    def add(agent: str, seed: int, ev: AgentEvaluation, wall_s: float) -> None:
+        log.info("%s seed %d: %d frames in %.0f s", agent, seed, ev.frames, wall_s)
+        per_agent[agent].merge(ev)
+        if per_seed is not None:
+            per_seed.setdefault(agent, {})[str(seed)] = seed_row(ev)
+        bar.update()
+
     # A progress bar on a terminal (tqdm disables itself when stderr is not one: logs stay clean).
     bar = tqdm(total=len(jobs), desc="agent runs", unit="run", disable=None)
     if workers <= 1:
-        results = map(_run_worker, jobs)
-        for agent, seed, ev, wall_s in results:
-            log.info("%s seed %d: %d frames in %.0f s", agent, seed, ev.frames, wall_s)
-            per_agent[agent].merge(ev)
-            bar.update()
+        for result in map(_run_worker, jobs):
+            add(*result)
     else:
         with mp.get_context("spawn").Pool(workers) as pool:
-            for agent, seed, ev, wall_s in pool.imap_unordered(_run_worker, jobs):
-                log.info("%s seed %d: %d frames in %.0f s", agent, seed, ev.frames, wall_s)
-                per_agent[agent].merge(ev)
-                bar.update()
+            for result in pool.imap_unordered(_run_worker, jobs):
+                add(*result)
     bar.close()
     return {**per_agent, "all": merge_agents(per_agent)}
+
+
+def seed_row(ev: AgentEvaluation, output: str = "tracked") -> dict[str, float | None]:
+    """One run's `output` by the figures compared across seeds: AP-BEV@0.7 and MOTA (None where the
+    run has nothing to score)."""
+    acc = ev.fusion.get(output)
+    trk = ev.tracking.get(output)
+    mota = trk.summary()["mota"] if trk is not None else None
+    return {
+        "ap_bev_0.7": acc.ap_bev((0.7,))["ap_bev_0.7"] if acc is not None else None,
+        "mota": None if mota is None else float(mota),
+    }
 
 
 TRACKED_SINGLE = "tracked_"

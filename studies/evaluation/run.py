@@ -36,7 +36,10 @@ def run_fusion_study(
     """Evaluate `seeds` (the fusion split `split`, "" for chosen seeds) under each seed's conditions;
     summarise per agent and for all; write `out/results.json` and plots; the results."""
     t0 = time.perf_counter()
-    evaluations = fe.evaluate(agents, seeds, duration_s, warmup_s, mec, workers, dataset.variation)
+    per_seed: dict[str, dict[str, dict[str, float | None]]] = {}
+    evaluations = fe.evaluate(
+        agents, seeds, duration_s, warmup_s, mec, workers, dataset.variation, per_seed=per_seed
+    )
     results: dict[str, Any] = {
         "split": split,
         "agents": agents,
@@ -52,6 +55,7 @@ def run_fusion_study(
         summary = fe.summarise(ev)
         summary["fusion_gain"] = fe.fusion_gain(summary)
         results[name] = summary
+    results["per_seed"] = per_seed  # tracked AP / MOTA per (agent, seed): paired comparisons
     out.mkdir(parents=True, exist_ok=True)
     results["heat_maps"] = fe.write_heat_maps(evaluations["all"], scene, out)
     if noise:

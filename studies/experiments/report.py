@@ -8,14 +8,12 @@ Statistics per (fleet size, policy) over seeds: mean and a 95 % confidence inter
 from __future__ import annotations
 
 import logging
-import math
 import re
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy import stats
 from tqdm import tqdm
 
 from shared.scene.scene import Scene
@@ -24,6 +22,7 @@ from sim.config import SimSettings
 from studies.experiments.config import FlowExperimentSettings
 from studies.experiments.flow import RunResult, run_flow
 from studies.parallel import run_jobs
+from studies.stats import mean_ci, paired_cell
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +41,6 @@ BASELINE: PolicyName = "shortest"
 #: Paired differences of a policy minus the baseline, per seed; "matched_travel_time_s" is over the
 #: trips both runs completed (same vehicle, same k-th trip).
 PAIRED = ("trips_per_hour", "matched_travel_time_s", "travel_time_mean_s", "delay_mean_s", "distance_m")
-CONFIDENCE = 0.95
 _FORMAT = {
     "total_flow": "{:.0f}",
     "trips_per_hour": "{:.0f}",
@@ -58,19 +56,6 @@ def _mean_ci_cells(row: dict[str, Any]) -> list[str]:
         f = _FORMAT.get(m, "{:.1f}")
         cells.append(f"{f.format(row[m]['mean'])} ± {f.format(row[m]['ci95'])}")
     return cells
-
-
-def mean_ci(values: list[float]) -> dict[str, float]:
-    """Mean and half-width of its `CONFIDENCE` interval."""
-    x = np.asarray([v for v in values if v is not None], float)
-    if len(x) == 0:
-        return {"mean": math.nan, "ci95": math.nan, "n": 0}
-    half = (
-        float(stats.t.ppf(0.5 + CONFIDENCE / 2, len(x) - 1) * x.std(ddof=1) / math.sqrt(len(x)))
-        if len(x) > 1
-        else math.nan
-    )
-    return {"mean": float(x.mean()), "ci95": half, "n": len(x)}
 
 
 def _worker(job: tuple[str, int, int, str, str, str]) -> RunResult:
@@ -163,14 +148,6 @@ def _matched_travel_time_difference(run: RunResult, base: RunResult) -> float | 
     theirs = {(v, k): t for v, k, t, _ in base.trips}
     common = mine.keys() & theirs.keys()
     return float(np.mean([mine[c] - theirs[c] for c in common])) if common else None
-
-
-def _paired_cell(d: dict[str, float], fmt: str) -> str:
-    """`+x ± ci`, bold when the interval excludes zero."""
-    if not d.get("n") or not math.isfinite(d["ci95"]):
-        return "-"
-    text = f"{fmt.format(d['mean'])} ± {fmt.replace('+', '').format(d['ci95'])}"
-    return f"**{text}**" if abs(d["mean"]) > d["ci95"] else text
 
 
 def acceptance(agg: dict[str, dict[str, Any]]) -> dict[str, Any]:
@@ -286,7 +263,7 @@ def readme_section(results: dict[str, Any], junction_numbers: list[int]) -> str:
         for n, row in paired.items():
             for policy, d in sorted(row.items(), key=lambda kv: order.get(kv[0], len(order))):
                 cells = [
-                    _paired_cell(d[m], "{:+.0f}" if m in ("trips_per_hour", "distance_m") else "{:+.1f}")
+                    paired_cell(d[m], "{:+.0f}" if m in ("trips_per_hour", "distance_m") else "{:+.1f}")
                     for m in PAIRED
                 ]
                 lines.append(f"| {n} | `{policy}` | " + " | ".join(cells) + " |")
@@ -375,7 +352,7 @@ def real_chain_lines(full: dict[str, Any]) -> list[str]:
             )
             agree = full["agreement"].get(f"{arm}_{n}_vehicles_agrees_with_oracle")
             cells = [
-                _paired_cell(d[m], "{:+.0f}" if m == "trips_per_hour" else "{:+.1f}")
+                paired_cell(d[m], "{:+.0f}" if m == "trips_per_hour" else "{:+.1f}")
                 for m in ("trips_per_hour", "matched_travel_time_s", "travel_time_mean_s")
             ]
             counts = [f"{x['mean']:.0f} ± {x['ci95']:.0f}" for x in (real, oracle)]

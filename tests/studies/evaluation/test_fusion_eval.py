@@ -46,6 +46,10 @@ def test_short_run_scores_every_output_and_merges(scene: Scene) -> None:
     assert summary["fused"]["velocity_count"] == 0 and summary["fused"]["aos_kitti_mean"] is not None
     assert tracked["tracking"]["motp_m"] is not None
     assert {"detect_2d", "detect_3d", "fuse", "track"} <= set(summary["latency_ms"])
+    # The per-seed row (paired comparisons) holds the run's own tracked figures.
+    row = fe.seed_row(ev)
+    assert row == {"ap_bev_0.7": tracked["ap_bev_0.7"], "mota": tracked["tracking"]["mota"]}
+    assert fe.seed_row(ev, "radar") == {"ap_bev_0.7": None, "mota": None}  # agent3 has no radar
     both = fe.AgentEvaluation()
     both.merge(ev)
     both.merge(ev)

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 
@@ -170,14 +168,6 @@ def test_error_observer_fit_known_answer(setup) -> None:  # type: ignore[no-unty
     assert model.agents[agent].false_positives_per_list == 0.5
     assert model.latency_s == pytest.approx(0.2)
     assert model.matched == 2
-
-
-def test_mean_ci_known_answer() -> None:
-    out = report.mean_ci([1.0, 2.0, 3.0])
-    # t(0.975, 2) = 4.3027; sd = 1; half-width = 4.3027 / sqrt(3)
-    assert out["mean"] == pytest.approx(2.0)
-    assert out["ci95"] == pytest.approx(4.302653 / math.sqrt(3), rel=1e-5)
-    assert math.isnan(report.mean_ci([5.0])["ci95"])
 
 
 def _result(policy: str, vehicles: int, seed: int, flow: int, trip_s: float) -> RunResult:
