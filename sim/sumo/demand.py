@@ -1,6 +1,11 @@
 """Demand per seed: `randomTrips.py` draws trips over a network, `duarouter` routes them on free-flow
 times, both seeded, so a (network, seed, demand) triple always gives the same vehicles and routes.
 
+Trips go from junction to junction (`--junction-taz`): a vehicle leaves its origin junction by whichever
+edge is shortest and arrives at its destination junction by whichever edge is shortest, which is what
+the coordinator plans (a route to a junction); edge-to-edge trips would make a route that must drive a
+given last edge, longer than the junction-to-junction route an arm could then take instead.
+
 The routed file holds `<vehicle>`s with explicit `<route edges>`: loaded as they are, SUMO drives the
 shortest paths of the empty network with no rerouting (the "no rerouting" baseline); trips without
 routes would be routed at insertion on the network's live edge weights instead
@@ -52,6 +57,7 @@ def routed_demand(net: Path, spec: DemandSpec, seed: int, out: Path) -> Path:
             f"--fringe-factor={spec.fringe_factor}",
             f"--min-distance={spec.min_distance_m}",
             "--validate",
+            "--junction-taz",  # junction to junction, as the coordinator plans (module docstring)
             "--prefix=v",
         ]
     )
@@ -62,6 +68,7 @@ def routed_demand(net: Path, spec: DemandSpec, seed: int, out: Path) -> Path:
             f"--route-files={trips}",
             f"--output-file={out}",
             f"--seed={seed}",
+            "--junction-taz=true",
             "--no-step-log=true",
             "--no-warnings=true",
             "--ignore-errors=false",  # an unroutable trip after validation is a bug: fail loudly
