@@ -1,0 +1,232 @@
+"""Regions of a road network, one coordinator shard each (issue 37), and routes across them.
+
+Partition (`partition_junctions`): the junction graph (a node per junction, an edge per road, weighted
+by its lanes) is cut by recursive Kernighan-Lin bisection (networkx), always the largest region next,
+until there are `regions`: balanced halves with few roads cut. The result is configuration
+(`RegionMap.save` / `load`), so a deployment pins its shard map.
+
+A lane belongs to the region of its end junction: the vehicle on it decides there next, so that
+region's shard owns it. Lanes whose two junctions are in different regions are *crossing lanes*; a
+vehicle driving one is being handed over.
+
+Routes across regions (`Overlay`, Customizable Route Planning on the lane graph: Delling et al. 2011,
+`../shared/reference/city-scale.md` §7): each region publishes, for every crossing lane that enters it
+and every one that leaves it, the fastest time between them inside the region (its *clique*) and the
+lanes of that path. A route from a lane to a junction in another region is the fastest path over the
+crossing lanes and the cliques, with the source region's own lanes at the start and the destination
+region's at the end; turns are the lane graph's, so the overlay's times equal the whole graph's.
+Times in seconds; `lane_time_s[k]` is the time to drive lane k (sorted lane ids) and its connector.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import networkx as nx
+import numpy as np
+from numpy.typing import NDArray
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import dijkstra
+
+from shared.scene.road_network import RoadNetwork
+
+FloatArray = NDArray[np.float64]
+
+
+def partition_junctions(network: RoadNetwork, regions: int, seed: int = 0) -> dict[str, int]:
+    """Junction -> region 0..regions-1: recursive Kernighan-Lin bisection of the largest region."""
+    junctions = sorted({network.lane_start_junction(lane) for lane in network.lanes} | {
+        network.lane_end_junction(lane) for lane in network.lanes})  # fmt: skip
+    if not 1 <= regions <= len(junctions):
+        raise ValueError(f"regions must be within 1..{len(junctions)} junctions, got {regions}")
+    graph = nx.Graph()
+    graph.add_nodes_from(junctions)
+    for lane in network.lanes:
+        a, b = network.lane_start_junction(lane), network.lane_end_junction(lane)
+        if a != b:
+            weight = graph.get_edge_data(a, b, {"weight": 0})["weight"]
+            graph.add_edge(a, b, weight=weight + 1)
+    parts: list[set[str]] = [set(junctions)]
+    while len(parts) < regions:
+        largest = max(range(len(parts)), key=lambda k: (len(parts[k]), -k))
+        part = parts.pop(largest)
+        first, second = nx.community.kernighan_lin_bisection(graph.subgraph(part), weight="weight", seed=seed)
+        parts[largest:largest] = [set(first), set(second)]
+    # Regions numbered by their smallest junction id: the same cut always gets the same numbers.
+    parts.sort(key=min)
+    return {j: k for k, part in enumerate(parts) for j in part}
+
+
+@dataclass(frozen=True)
+class RegionMap:
+    """Which shard owns what: junction -> region (lanes follow their end junction)."""
+
+    region_of_junction: Mapping[str, int]
+
+    @property
+    def regions(self) -> int:
+        return max(self.region_of_junction.values()) + 1
+
+    def lane_region(self, network: RoadNetwork, lane: str) -> int:
+        return self.region_of_junction[network.lane_end_junction(lane)]
+
+    def crossing_lanes(self, network: RoadNetwork) -> list[str]:
+        """Lanes from a junction of one region to a junction of another (sorted)."""
+        r = self.region_of_junction
+        return sorted(
+            lane
+            for lane in network.lanes
+            if r[network.lane_start_junction(lane)] != r[network.lane_end_junction(lane)]
+        )
+
+    def save(self, path: Path) -> None:
+        path.write_text(
+            json.dumps({"regions": dict(sorted(self.region_of_junction.items()))}, indent=1) + "\n"
+        )
+
+    @classmethod
+    def load(cls, path: Path, network: RoadNetwork | None = None) -> RegionMap:
+        """The map of `path`; with `network`, every junction of it must have a region (ValueError)."""
+        data = json.loads(path.read_text())
+        regions = {str(j): int(k) for j, k in data["regions"].items()}
+        if network is not None:
+            junctions = {network.lane_end_junction(lane) for lane in network.lanes}
+            missing = sorted(junctions - set(regions))
+            if missing:
+                raise ValueError(f"{path}: junctions without a region: {missing[:5]}")
+        if sorted(set(regions.values())) != list(range(len(set(regions.values())))):
+            raise ValueError(f"{path}: regions must be numbered 0..n-1")
+        return cls(regions)
+
+
+@dataclass(frozen=True)
+class Clique:
+    """One region's published crossing times: `time_s[i, j]` from entering lane `entering[i]` (driven)
+    to leaving lane `leaving[j]` (driven), inside the region; inf where none; `paths[(a, b)]` the lanes
+    strictly between them."""
+
+    region: int
+    entering: list[str]
+    leaving: list[str]
+    time_s: FloatArray
+    paths: dict[tuple[str, str], list[str]]
+
+
+class Overlay:
+    """The lane graph split by a `RegionMap`; per-region searches and the overlay route across them."""
+
+    def __init__(self, network: RoadNetwork, regions: RegionMap) -> None:
+        self.net = network
+        self.regions = regions
+        self.lane_ids = sorted(network.lanes)
+        self.index = {lane: k for k, lane in enumerate(self.lane_ids)}
+        self.lane_region = np.array([regions.lane_region(network, lane) for lane in self.lane_ids])
+        self.start_region = np.array(
+            [regions.region_of_junction[network.lane_start_junction(lane)] for lane in self.lane_ids]
+        )
+        self.crossing = regions.crossing_lanes(network)
+        edges = list(network.graph.edges)
+        self._src = np.array([self.index[a] for a, _ in edges], dtype=np.int64)
+        self._dst = np.array([self.index[b] for _, b in edges], dtype=np.int64)
+        self.end_junction = [network.lane_end_junction(lane) for lane in self.lane_ids]
+
+    def _graph(self, lane_time_s: FloatArray, region: int | None) -> csr_matrix:
+        """The lane graph with edge a->b costing lane b's time; only edges inside `region` (both lanes
+        owned by it, or a crossing lane leaving it as the last step) when given."""
+        keep = np.ones(len(self._src), bool)
+        if region is not None:
+            keep = (self.lane_region[self._src] == region) & (
+                (self.lane_region[self._dst] == region) | (self.start_region[self._dst] == region)
+            )
+        n = len(self.lane_ids)
+        # A zero cost would vanish from the sparse matrix: lanes take at least a microsecond.
+        cost = np.maximum(lane_time_s[self._dst[keep]], 1e-6)
+        return csr_matrix((cost, (self._src[keep], self._dst[keep])), shape=(n, n))
+
+    def clique(self, region: int, lane_time_s: FloatArray) -> Clique:
+        """Region `region`'s crossing times on `lane_time_s` (what its shard publishes)."""
+        entering = [c for c in self.crossing if self.lane_region[self.index[c]] == region]
+        leaving = [c for c in self.crossing if self.start_region[self.index[c]] == region]
+        times = np.full((len(entering), len(leaving)), np.inf)
+        paths: dict[tuple[str, str], list[str]] = {}
+        if entering and leaving:
+            graph = self._graph(lane_time_s, region)
+            dist, pred = dijkstra(graph, indices=[self.index[c] for c in entering], return_predecessors=True)
+            for i, a in enumerate(entering):
+                for j, b in enumerate(leaving):
+                    t = dist[i, self.index[b]]
+                    if np.isfinite(t) and a != b:
+                        times[i, j] = t
+                        paths[(a, b)] = self._walk(pred[i], self.index[a], self.index[b])[1:-1]
+        return Clique(region, entering, leaving, times, paths)
+
+    def _walk(self, pred: NDArray[np.int64], source: int, target: int) -> list[str]:
+        out = [target]
+        while out[-1] != source:
+            out.append(int(pred[out[-1]]))
+        return [self.lane_ids[k] for k in reversed(out)]
+
+    def route(
+        self, from_lane: str, destination: str, lane_time_s: FloatArray, cliques: Mapping[int, Clique]
+    ) -> list[str]:
+        """Lanes after `from_lane` to one ending at junction `destination`, fastest over the overlay:
+        the source region's lanes to a leaving crossing lane, cliques between crossing lanes, the
+        destination region's lanes from an entering one. ValueError when unreachable."""
+        src_region = int(self.lane_region[self.index[from_lane]])
+        dst_region = self.regions.region_of_junction[destination]
+        ends = [k for k, j in enumerate(self.end_junction) if j == destination]
+        # Overlay nodes: the crossing lanes (k), plus a source (n) and a sink (n + 1).
+        n = len(self.crossing)
+        node = {c: k for k, c in enumerate(self.crossing)}
+        rows: list[int] = []
+        cols: list[int] = []
+        cost: list[float] = []
+        legs: dict[tuple[int, int], list[str]] = {}
+
+        def add(a: int, b: int, t: float, leg: list[str]) -> None:
+            rows.append(a)
+            cols.append(b)
+            cost.append(max(float(t), 1e-6))  # a zero cost would vanish from the sparse matrix
+            legs[(a, b)] = leg
+
+        start = self._graph(lane_time_s, src_region)
+        dist, pred = dijkstra(start, indices=self.index[from_lane], return_predecessors=True)
+        for c in cliques[src_region].leaving:
+            t = dist[self.index[c]]
+            if np.isfinite(t):
+                add(n, node[c], t, self._walk(pred, self.index[from_lane], self.index[c])[1:])
+        for clique in cliques.values():
+            for i, a in enumerate(clique.entering):
+                for j, b in enumerate(clique.leaving):
+                    if np.isfinite(clique.time_s[i, j]):
+                        add(node[a], node[b], clique.time_s[i, j], [*clique.paths[(a, b)], b])
+        if src_region == dst_region:  # the route may stay inside, or leave and come back
+            inside = [k for k in ends if np.isfinite(dist[k]) and k != self.index[from_lane]]
+            if inside:
+                best = min(inside, key=lambda k: dist[k])
+                add(n, n + 1, dist[best], self._walk(pred, self.index[from_lane], best)[1:])
+        end_graph = self._graph(lane_time_s, dst_region)
+        for c in cliques[dst_region].entering:
+            d, p = dijkstra(end_graph, indices=self.index[c], return_predecessors=True)
+            reach = [k for k in ends if np.isfinite(d[k])]
+            if self.end_junction[self.index[c]] == destination:
+                add(node[c], n + 1, 0.0, [])
+            elif reach:
+                best = min(reach, key=lambda k: d[k])
+                add(node[c], n + 1, d[best], self._walk(p, self.index[c], best)[1:])
+        overlay = csr_matrix((cost, (rows, cols)), shape=(n + 2, n + 2))
+        d, p = dijkstra(overlay, indices=n, return_predecessors=True)
+        if not np.isfinite(d[n + 1]):
+            raise ValueError(f"junction {destination} is unreachable from lane {from_lane}")
+        hops = [n + 1]
+        while hops[-1] != n:
+            hops.append(int(p[hops[-1]]))
+        hops.reverse()
+        lanes: list[str] = []
+        for hop in itertools.pairwise(hops):
+            lanes += legs[hop]
+        return lanes

@@ -1,0 +1,80 @@
+"""Regions of a road network: balanced partitions pinned as configuration, crossing lanes, and overlay
+routes across regions exactly as fast as the fastest route on the whole lane graph (CRP's promise)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.sparse.csgraph import dijkstra
+
+from shared.paths import DEFAULT_SCENE
+from shared.scene.road_network import RoadNetwork
+from shared.scene.scene import Scene
+from shared.traffic.regions import Overlay, RegionMap, partition_junctions
+from sim.sumo import network as sumo_network
+from sim.sumo.scene import RoadsideLayout, scene_from_sumo
+
+
+@pytest.fixture(scope="module")
+def grid(tmp_path_factory: pytest.TempPathFactory) -> RoadNetwork:
+    net = sumo_network.grid_network(
+        sumo_network.GridSpec(junctions_per_side=5), tmp_path_factory.mktemp("grid") / "g.net.xml"
+    )
+    scene, _ = scene_from_sumo(net, RoadsideLayout(()))
+    return RoadNetwork(scene)
+
+
+def test_partitions_are_balanced_reproducible_and_pinned(grid: RoadNetwork, tmp_path: Path) -> None:
+    for k in (1, 2, 3, 4):
+        regions = partition_junctions(grid, k, seed=0)
+        sizes = np.bincount(list(regions.values()))
+        assert len(regions) == 25 and len(sizes) == k and sizes.max() - sizes.min() <= 25 // k
+        assert regions == partition_junctions(grid, k, seed=0)
+    four = RegionMap(partition_junctions(grid, 4))
+    crossing = four.crossing_lanes(grid)
+    # A 5 x 5 grid (40 two-way roads) cut in 4: at best 10 roads; Kernighan-Lin's bisections within
+    # 16 (seed 0 cuts 15), each road a lane each way.
+    assert 0 < len(crossing) <= 32 and len(crossing) % 2 == 0
+    four.save(tmp_path / "regions.json")
+    assert RegionMap.load(tmp_path / "regions.json", grid) == four
+    (tmp_path / "bad.json").write_text('{"regions": {"a0": 0}}')
+    with pytest.raises(ValueError, match="junctions without a region"):
+        RegionMap.load(tmp_path / "bad.json", grid)
+    with pytest.raises(ValueError, match="regions must be within"):
+        partition_junctions(grid, 26)
+
+
+@pytest.mark.parametrize("regions", [1, 2, 4])
+def test_overlay_routes_are_as_fast_as_the_whole_graph(grid: RoadNetwork, regions: int) -> None:
+    overlay = Overlay(grid, RegionMap(partition_junctions(grid, regions)))
+    rng = np.random.default_rng(regions)
+    junctions = sorted(set(overlay.end_junction))
+    for trial in range(40):
+        lane_time_s = rng.uniform(5.0, 60.0, len(overlay.lane_ids))  # congestion anywhere
+        cliques = {r: overlay.clique(r, lane_time_s) for r in range(regions)}
+        start = overlay.lane_ids[rng.integers(len(overlay.lane_ids))]
+        destination = junctions[rng.integers(len(junctions))]
+        if grid.lane_end_junction(start) == destination:
+            continue
+        lanes = overlay.route(start, destination, lane_time_s, cliques)
+        assert grid.is_valid_route(start, lanes) and grid.lane_end_junction(lanes[-1]) == destination
+        dist = dijkstra(overlay._graph(lane_time_s, None), indices=overlay.index[start])
+        ends = [k for k, j in enumerate(overlay.end_junction) if j == destination]
+        best = min(dist[k] for k in ends)
+        got = sum(lane_time_s[overlay.index[lane]] for lane in lanes)
+        assert got == pytest.approx(best, rel=1e-9), (trial, start, destination)
+
+
+def test_the_sand_table_splits_too() -> None:
+    net = RoadNetwork(Scene.load(DEFAULT_SCENE))
+    regions = RegionMap(partition_junctions(net, 2))
+    assert regions.regions == 2 and regions.crossing_lanes(net)
+    overlay = Overlay(net, regions)
+    times = np.full(len(overlay.lane_ids), 10.0)
+    cliques = {r: overlay.clique(r, times) for r in range(2)}
+    for lane in overlay.lane_ids:
+        for junction in sorted(set(overlay.end_junction) - {net.lane_end_junction(lane)}):
+            route = overlay.route(lane, junction, times, cliques)
+            assert net.is_valid_route(lane, route) and net.lane_end_junction(route[-1]) == junction
