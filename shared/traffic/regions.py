@@ -105,15 +105,19 @@ class RegionMap:
 
 @dataclass(frozen=True)
 class Clique:
-    """One region's published crossing times: `time_s[i, j]` from entering lane `entering[i]` (driven)
-    to leaving lane `leaving[j]` (driven), inside the region; inf where none; `paths[(a, b)]` the lanes
-    strictly between them."""
+    """One region's published crossing times, inside the region, inf where there is no way: `time_s[i,
+    j]` from entering lane `entering[i]` (driven) to leaving lane `leaving[j]` (driven), `paths[(a, b)]`
+    the lanes strictly between; `to_junction_s[i, k]` from `entering[i]` to a lane ending at junction
+    `junctions[k]`, `junction_paths[(a, junction)]` the lanes after `a` up to that lane."""
 
     region: int
     entering: list[str]
     leaving: list[str]
     time_s: FloatArray
     paths: dict[tuple[str, str], list[str]]
+    junctions: list[str]
+    to_junction_s: FloatArray
+    junction_paths: dict[tuple[str, str], list[str]]
 
 
 class Overlay:
@@ -132,11 +136,21 @@ class Overlay:
         edges = list(network.graph.edges)
         self._src = np.array([self.index[a] for a, _ in edges], dtype=np.int64)
         self._dst = np.array([self.index[b] for _, b in edges], dtype=np.int64)
+        # Driving a junction's connector onto lane b at b's free speed, as the planner costs it.
+        free_mps = np.array([network.scene.lanes[lane].speed_limit_mps for lane in self.lane_ids])
+        connector_m = np.array(
+            [network.graph.edges[a, b]["weight"] - network.lanes[b].length_m for a, b in edges]
+        )
+        self._connector_s = connector_m / free_mps[self._dst]
+        self._edge = {(a, b): k for k, (a, b) in enumerate(edges)}
         self.end_junction = [network.lane_end_junction(lane) for lane in self.lane_ids]
+        self._ends: dict[str, list[int]] = {}
+        for k, junction in enumerate(self.end_junction):
+            self._ends.setdefault(junction, []).append(k)
 
     def _graph(self, lane_time_s: FloatArray, region: int | None) -> csr_matrix:
-        """The lane graph with edge a->b costing lane b's time; only edges inside `region` (both lanes
-        owned by it, or a crossing lane leaving it as the last step) when given."""
+        """The lane graph with edge a->b costing its connector and lane b's time; only edges inside
+        `region` (both lanes owned by it, or a crossing lane leaving it as the last step) when given."""
         keep = np.ones(len(self._src), bool)
         if region is not None:
             keep = (self.lane_region[self._src] == region) & (
@@ -144,16 +158,26 @@ class Overlay:
             )
         n = len(self.lane_ids)
         # A zero cost would vanish from the sparse matrix: lanes take at least a microsecond.
-        cost = np.maximum(lane_time_s[self._dst[keep]], 1e-6)
+        cost = np.maximum(self._connector_s[keep] + lane_time_s[self._dst[keep]], 1e-6)
         return csr_matrix((cost, (self._src[keep], self._dst[keep])), shape=(n, n))
+
+    def route_time_s(self, from_lane: str, lanes: list[str], lane_time_s: FloatArray) -> float:
+        """Time of `lanes` after `from_lane`: each connector and lane, as the overlay costs them."""
+        total = 0.0
+        for a, b in itertools.pairwise([from_lane, *lanes]):
+            total += self._connector_s[self._edge[(a, b)]] + lane_time_s[self.index[b]]
+        return float(total)
 
     def clique(self, region: int, lane_time_s: FloatArray) -> Clique:
         """Region `region`'s crossing times on `lane_time_s` (what its shard publishes)."""
         entering = [c for c in self.crossing if self.lane_region[self.index[c]] == region]
         leaving = [c for c in self.crossing if self.start_region[self.index[c]] == region]
+        junctions = sorted(j for j, r in self.regions.region_of_junction.items() if r == region)
         times = np.full((len(entering), len(leaving)), np.inf)
+        to_junction = np.full((len(entering), len(junctions)), np.inf)
         paths: dict[tuple[str, str], list[str]] = {}
-        if entering and leaving:
+        junction_paths: dict[tuple[str, str], list[str]] = {}
+        if entering:
             graph = self._graph(lane_time_s, region)
             dist, pred = dijkstra(graph, indices=[self.index[c] for c in entering], return_predecessors=True)
             for i, a in enumerate(entering):
@@ -162,7 +186,24 @@ class Overlay:
                     if np.isfinite(t) and a != b:
                         times[i, j] = t
                         paths[(a, b)] = self._walk(pred[i], self.index[a], self.index[b])[1:-1]
-        return Clique(region, entering, leaving, times, paths)
+                for k, junction in enumerate(junctions):
+                    leg = self._to_junction(dist[i], pred[i], self.index[a], junction)
+                    if leg is not None:
+                        to_junction[i, k], junction_paths[(a, junction)] = leg
+        return Clique(region, entering, leaving, times, paths, junctions, to_junction, junction_paths)
+
+    def _to_junction(
+        self, dist: FloatArray, pred: NDArray[np.int64], source: int, junction: str
+    ) -> tuple[float, list[str]] | None:
+        """From lane `source` (searched: `dist`, `pred`) to the nearest lane ending at `junction`: its
+        time and the lanes after `source` (none when `source` itself ends there); None if unreachable."""
+        if self.end_junction[source] == junction:
+            return 0.0, []
+        ends = [k for k in self._ends[junction] if k != source and np.isfinite(dist[k])]
+        if not ends:
+            return None
+        best = min(ends, key=lambda k: dist[k])
+        return float(dist[best]), self._walk(pred, source, best)[1:]
 
     def _walk(self, pred: NDArray[np.int64], source: int, target: int) -> list[str]:
         out = [target]
@@ -174,11 +215,12 @@ class Overlay:
         self, from_lane: str, destination: str, lane_time_s: FloatArray, cliques: Mapping[int, Clique]
     ) -> list[str]:
         """Lanes after `from_lane` to one ending at junction `destination`, fastest over the overlay:
-        the source region's lanes to a leaving crossing lane, cliques between crossing lanes, the
-        destination region's lanes from an entering one. ValueError when unreachable."""
+        the source region's lanes (timed by `lane_time_s`: a shard knows its own lanes) to a leaving
+        crossing lane, then every region's clique (`cliques`, the source region's own included): its
+        crossing times and, in the destination's region, its times to the destination. A region
+        without a clique is not crossed. ValueError when unreachable."""
         src_region = int(self.lane_region[self.index[from_lane]])
         dst_region = self.regions.region_of_junction[destination]
-        ends = [k for k, j in enumerate(self.end_junction) if j == destination]
         # Overlay nodes: the crossing lanes (k), plus a source (n) and a sink (n + 1).
         n = len(self.crossing)
         node = {c: k for k, c in enumerate(self.crossing)}
@@ -195,7 +237,7 @@ class Overlay:
 
         start = self._graph(lane_time_s, src_region)
         dist, pred = dijkstra(start, indices=self.index[from_lane], return_predecessors=True)
-        for c in cliques[src_region].leaving:
+        for c in (c for c in self.crossing if self.start_region[self.index[c]] == src_region):
             t = dist[self.index[c]]
             if np.isfinite(t):
                 add(n, node[c], t, self._walk(pred, self.index[from_lane], self.index[c])[1:])
@@ -205,19 +247,15 @@ class Overlay:
                     if np.isfinite(clique.time_s[i, j]):
                         add(node[a], node[b], clique.time_s[i, j], [*clique.paths[(a, b)], b])
         if src_region == dst_region:  # the route may stay inside, or leave and come back
-            inside = [k for k in ends if np.isfinite(dist[k]) and k != self.index[from_lane]]
-            if inside:
-                best = min(inside, key=lambda k: dist[k])
-                add(n, n + 1, dist[best], self._walk(pred, self.index[from_lane], best)[1:])
-        end_graph = self._graph(lane_time_s, dst_region)
-        for c in cliques[dst_region].entering:
-            d, p = dijkstra(end_graph, indices=self.index[c], return_predecessors=True)
-            reach = [k for k in ends if np.isfinite(d[k])]
-            if self.end_junction[self.index[c]] == destination:
-                add(node[c], n + 1, 0.0, [])
-            elif reach:
-                best = min(reach, key=lambda k: d[k])
-                add(node[c], n + 1, d[best], self._walk(p, self.index[c], best)[1:])
+            leg = self._to_junction(dist, pred, self.index[from_lane], destination)
+            if leg is not None and leg[1]:
+                add(n, n + 1, *leg)
+        end = cliques.get(dst_region)
+        if end is not None and destination in end.junctions:
+            k = end.junctions.index(destination)
+            for i, c in enumerate(end.entering):
+                if np.isfinite(end.to_junction_s[i, k]):
+                    add(node[c], n + 1, end.to_junction_s[i, k], end.junction_paths[(c, destination)])
         overlay = csr_matrix((cost, (rows, cols)), shape=(n + 2, n + 2))
         d, p = dijkstra(overlay, indices=n, return_predecessors=True)
         if not np.isfinite(d[n + 1]):

@@ -63,7 +63,7 @@ def test_overlay_routes_are_as_fast_as_the_whole_graph(grid: RoadNetwork, region
         dist = dijkstra(overlay._graph(lane_time_s, None), indices=overlay.index[start])
         ends = [k for k, j in enumerate(overlay.end_junction) if j == destination]
         best = min(dist[k] for k in ends)
-        got = sum(lane_time_s[overlay.index[lane]] for lane in lanes)
+        got = overlay.route_time_s(start, lanes, lane_time_s)
         assert got == pytest.approx(best, rel=1e-9), (trial, start, destination)
 
 
@@ -78,3 +78,26 @@ def test_the_sand_table_splits_too() -> None:
         for junction in sorted(set(overlay.end_junction) - {net.lane_end_junction(lane)}):
             route = overlay.route(lane, junction, times, cliques)
             assert net.is_valid_route(lane, route) and net.lane_end_junction(route[-1]) == junction
+
+
+def test_a_region_s_clique_steers_routes_and_a_prior_stands_in_for_a_lost_one(grid: RoadNetwork) -> None:
+    regions = RegionMap(partition_junctions(grid, 2))
+    overlay = Overlay(grid, regions)
+    free = np.full(len(overlay.lane_ids), 10.0)
+    jammed = free * 100.0
+    start = next(lane for lane in overlay.lane_ids if overlay.lane_region[overlay.index[lane]] == 0)
+    home = next(
+        j
+        for j, r in sorted(regions.region_of_junction.items())
+        if r == 0 and j != grid.lane_end_junction(start)
+    )
+    away = next(j for j, r in sorted(regions.region_of_junction.items()) if r == 1)
+    # Region 1 reports a jam: a trip inside region 0 does not cut through it.
+    cliques = {0: overlay.clique(0, free), 1: overlay.clique(1, jammed)}
+    route = overlay.route(start, home, free, cliques)
+    assert all(regions.region_of_junction[grid.lane_end_junction(lane)] == 0 for lane in route)
+    # Region 1's shard is gone: without its clique nothing in it is reachable; a free-flow prior stands in.
+    with pytest.raises(ValueError, match="unreachable"):
+        overlay.route(start, away, free, {0: cliques[0]})
+    prior = overlay.route(start, away, free, {0: cliques[0], 1: overlay.clique(1, free)})
+    assert grid.is_valid_route(start, prior) and grid.lane_end_junction(prior[-1]) == away
