@@ -41,8 +41,16 @@ from shared.traffic.claims import Claim, Given, claim_problem, repeats
 from shared.traffic.config import CoordinatorSettings
 from shared.traffic.coverage import AgentState, CoverageTracker
 from shared.traffic.maps import AgentObjects, TrafficMapBuilder, TrafficSnapshot, merge_agents
-from shared.traffic.planner import ONE_JUNCTION_POLICIES, LaneConditions, NoRouteError, Route, RoutePlanner
+from shared.traffic.planner import (
+    ONE_JUNCTION_POLICIES,
+    LaneConditions,
+    NoRouteError,
+    Route,
+    RoutePlanner,
+    ShardView,
+)
 from shared.traffic.plans import Ack, IssuedPlan, PlanBook
+from shared.traffic.regions import Clique
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +80,15 @@ class Tick:
     replanned: int | None  # plans issued by a re-plan (sent by `due`); None when none was due
 
 
+@dataclass(frozen=True)
+class Handover:
+    """A vehicle passed between shards: its latest plan, its version counter, the core's record."""
+
+    plan: IssuedPlan
+    version: int
+    active: _Active
+
+
 @dataclass
 class _Active:
     """What the coordinator keeps about a vehicle's latest plan beyond the PlanBook."""
@@ -95,19 +112,34 @@ class CoordinatorCore:
     ground_truth : bool
         Studies only: one object source, `GROUND_TRUTH`, that sees every lane (the oracle maps of the
         `dynamic_ground_truth` baseline) instead of the scene's agents and their areas.
+    shard : ShardView, optional
+        One region of a sharded coordinator (shared/traffic/regions.py): only the agents `shard_agents`
+        feed it, it serves only vehicles on lanes it owns ("not_owner" otherwise) and plans over the
+        overlay; a vehicle that enters its region comes with its plan (`adopt`, from the last owner's
+        `release`).
     """
 
     def __init__(
-        self, scene: Scene, settings: CoordinatorSettings, max_vehicles: int, ground_truth: bool = False
+        self,
+        scene: Scene,
+        settings: CoordinatorSettings,
+        max_vehicles: int,
+        ground_truth: bool = False,
+        shard: ShardView | None = None,
+        shard_agents: list[str] | None = None,
     ) -> None:
         self.settings = settings
         self.ground_truth = ground_truth
-        self.agents = [GROUND_TRUTH] if ground_truth else list(scene.agents)
+        self.shard = shard
+        if ground_truth:
+            self.agents = [GROUND_TRUTH]
+        else:
+            self.agents = list(scene.agents) if shard_agents is None else sorted(shard_agents)
         network = RoadNetwork(scene)
         self.net = network
         self.coverage = CoverageTracker(self.agents, settings.coverage)
         self.builder = TrafficMapBuilder(scene, network, settings.maps)
-        self.planner = RoutePlanner(scene, network, settings.planner)
+        self.planner = RoutePlanner(scene, network, settings.planner, shard)
         self.book = PlanBook(settings.delivery, max_vehicles)
         self._lock = threading.Lock()
         self._objects: dict[str, AgentObjects] = {}
@@ -229,6 +261,12 @@ class CoordinatorCore:
                 "unknown_junction",
                 ErrorCode.ERROR_CODE_NOT_FOUND,
                 f"unknown junction {req.destination_junction_id!r}",
+            )
+        if self.shard is not None and not self.shard.owns(req.current_lane_id):
+            raise RequestRejected(
+                "not_owner",
+                ErrorCode.ERROR_CODE_NOT_FOUND,
+                f"lane {req.current_lane_id!r} is not in region {self.shard.region}",
             )
         with self._lock:
             if self.dirty or self.snapshot is None:
@@ -436,6 +474,40 @@ class CoordinatorCore:
             if recorded and status in ENDED:
                 self.planner.forget(vehicle_id)
             return recorded
+
+    # --- shards: handing a vehicle over ---------------------------------------------------------
+
+    def release(self, vehicle_id: str) -> Handover | None:
+        """Hand the vehicle over: its latest plan and what the core keeps of it leave this core (None
+        if it has none); the next owner `adopt`s them, so the vehicle has one owner at a time and its
+        plan, version and claims carry on."""
+        with self._lock:
+            plan, active = self.book.latest(vehicle_id), self._active.get(vehicle_id)
+            if plan is None or active is None:
+                return None
+            version = self.book.version(vehicle_id)
+            self.book.forget(vehicle_id)
+            self._forget(vehicle_id)
+            return Handover(plan, version, active)
+
+    def adopt(self, handover: Handover, now_s: float) -> None:
+        """Take over a vehicle released by another shard (its plan and versions continue here)."""
+        with self._lock:
+            vid = handover.plan.vehicle_id
+            for gone in self.book.heard(vid, now_s):
+                self._forget(gone)
+            self.book.adopt(handover.plan, handover.version)
+            self._active[vid] = handover.active
+            if handover.plan.ack not in ENDED:
+                self.planner.commit(vid, handover.plan.route)
+
+    def owns_vehicle(self, vehicle_id: str) -> bool:
+        return self.book.latest(vehicle_id) is not None
+
+    def clique(self) -> Clique:
+        """A shard's crossing times on its latest maps, for the other shards (regions.Clique)."""
+        with self._lock:
+            return self.planner.clique(self._cond)
 
     def _forget(self, vehicle_id: str) -> None:
         """Drop an evicted vehicle's plan state (its load on the lanes included)."""

@@ -11,7 +11,9 @@ Policies (`PlannerConfig.policy`):
                        it, so successive plans spread over alternatives instead of all taking one road
 
 A route is a list of lanes starting with the vehicle's current lane; consecutive lanes meet at a
-junction. Units: metres, seconds, m/s.
+junction. A shard of a sharded coordinator (`ShardView`) plans the same way over the overlay of regions
+(shared/traffic/regions.py): its own lanes at their times, other regions by the cliques they published.
+Units: metres, seconds, m/s.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.traffic.config import PlannerConfig, PolicyName
 from shared.traffic.maps import TrafficSnapshot
+from shared.traffic.regions import Clique, Overlay
 
 ONE_JUNCTION_POLICIES = ("random", "paper_rule")
 FloatArray = NDArray[np.float64]
@@ -69,6 +72,19 @@ class NoRouteError(ValueError):
     """Unknown lane or junction, or the destination cannot be reached."""
 
 
+@dataclass
+class ShardView:
+    """A coordinator shard's place in a sharded network: the overlay, its region, and the latest clique
+    each other region published (a region without one is not crossed; a lost shard's: a prior)."""
+
+    overlay: Overlay
+    region: int
+    cliques: dict[int, Clique] = field(default_factory=dict)
+
+    def owns(self, lane: str) -> bool:
+        return bool(self.overlay.lane_region[self.overlay.index[lane]] == self.region)
+
+
 class RoutePlanner:
     """Plans routes for vehicles; remembers what it planned so later plans account for that load.
 
@@ -76,10 +92,13 @@ class RoutePlanner:
     Dijkstra on a sparse lane graph whose edge costs are rewritten in place per plan: a plan costs
     tens of microseconds, so a coordinator can replan a whole fleet at every map update."""
 
-    def __init__(self, scene: Scene, network: RoadNetwork, cfg: PlannerConfig) -> None:
+    def __init__(
+        self, scene: Scene, network: RoadNetwork, cfg: PlannerConfig, shard: ShardView | None = None
+    ) -> None:
         self.scene = scene
         self.net = network
         self.cfg = cfg
+        self.shard = shard
         self.rng = np.random.default_rng(cfg.seed)
         self.free_speed_mps = {lane.id: lane.speed_limit_mps for lane in scene.spec.lanes}
         self.lane_area = {lane.id: lane.area for lane in scene.spec.lanes}
@@ -215,9 +234,31 @@ class RoutePlanner:
             lanes = [current_lane, options[int(self.rng.integers(len(options)))]]
         elif policy == "paper_rule":
             lanes = [current_lane, min(options, key=lambda lane: self._paper_score(lane, cond))]
+        elif self.shard is not None:
+            lanes = self._fastest_sharded(self.shard, current_lane, destination, times)
         else:
             lanes = self._fastest(current_lane, destination, times)
         return self._route(lanes, times, policy)
+
+    def clique(self, cond: LaneConditions, policy: PolicyName | None = None) -> Clique:
+        """This shard's clique on `cond` (what it publishes to the other shards)."""
+        if self.shard is None:
+            raise ValueError("not a shard: no region to publish")
+        times = self._lane_times(cond, policy or self.cfg.policy, self._load)
+        return self.shard.overlay.clique(self.shard.region, times)
+
+    def _fastest_sharded(
+        self, shard: ShardView, current_lane: str, destination: str, times: FloatArray
+    ) -> list[str]:
+        """`_fastest` over the overlay: the own region on `times` (its own clique too, for a route that
+        leaves and comes back), the others by their published cliques."""
+        if self.net.lane_end_junction(current_lane) == destination:
+            return [current_lane]
+        cliques = {**shard.cliques, shard.region: shard.overlay.clique(shard.region, times)}
+        try:
+            return [current_lane, *shard.overlay.route(current_lane, destination, times, cliques)]
+        except ValueError as err:
+            raise NoRouteError(str(err)) from None
 
     def route(self, vehicle_id: str, lanes: list[str], cond: LaneConditions, policy: PolicyName) -> Route:
         """`lanes` (the vehicle's current lane first) as a Route, timed like a plan for this vehicle."""

@@ -106,6 +106,16 @@ class PlanBook:
     def latest(self, vehicle_id: str) -> IssuedPlan | None:
         return self._latest.get(vehicle_id)
 
+    def version(self, vehicle_id: str) -> int:
+        """The vehicle's latest version (0: none issued here)."""
+        return self._version.get(vehicle_id, 0)
+
+    def adopt(self, plan: IssuedPlan, version: int) -> None:
+        """Take over a vehicle's latest plan and version counter from another shard's book (the caller
+        has called `heard` for it)."""
+        self._latest[plan.vehicle_id] = plan
+        self._version[plan.vehicle_id] = max(version, self._version.get(plan.vehicle_id, 0))
+
     def vehicles(self) -> list[str]:
         return list(self._latest)
 

@@ -268,3 +268,16 @@ class Overlay:
         for hop in itertools.pairwise(hops):
             lanes += legs[hop]
         return lanes
+
+
+def agent_regions(
+    agents: Mapping[str, list[str]], network: RoadNetwork, regions: RegionMap
+) -> dict[str, int]:
+    """Agent -> the region owning most of the lanes it covers (`agents`: lane -> its agents, as
+    `shared.traffic.lanes.lane_agents` gives), ties to the lower region; an agent covering no lane is
+    left out."""
+    votes: dict[str, list[int]] = {}
+    for lane, lane_agents in agents.items():
+        for agent in lane_agents:
+            votes.setdefault(agent, []).append(regions.lane_region(network, lane))
+    return {a: int(np.bincount(v).argmax()) for a, v in votes.items()}

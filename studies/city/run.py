@@ -31,12 +31,14 @@ from shared.config import with_overrides
 from shared.scene.road_network import RoadNetwork
 from shared.timebase import NS_PER_S
 from shared.traffic.config import CoordinatorSettings
-from shared.traffic.core import CoordinatorCore, RequestRejected
+from shared.traffic.core import RequestRejected
+from shared.traffic.regions import RegionMap, partition_junctions
 from sim.sumo import trips
 from sim.sumo.clients import SumoPlanClients
 from sim.sumo.network import TABLE_SCALE
 from sim.sumo.scene import UNCOVERED_AREA, RoadsideLayout, scene_from_sumo
 from sim.sumo.world import Rerouting, SumoWorld
+from studies.city.shards import ShardedCoordinator
 from studies.experiments.oracle import OracleAgents, OracleErrorModel
 
 log = logging.getLogger(__name__)
@@ -60,7 +62,11 @@ class CityRun:
     adaptation_steps: int = 180  # samples (one per step) averaged into an edge's travel time
     request_before_m: float = 1.0  # table metres before a lane's end at which a vehicle asks
     profile: str = "agent1"  # the fitted agent whose perception errors every roadside agent has
-    max_vehicles: int = 10_000  # plans tracked at once by the coordinator
+    max_vehicles: int = 10_000  # plans tracked at once by each coordinator shard
+    shards: int = 1  # coordinator regions (studies/city/shards.py)
+    kill_shard: int | None = None  # a shard to kill at `kill_at_s` ...
+    kill_at_s: float = 0.0
+    restart_after_s: float | None = None  # ... and restart this much later (None: never)
 
 
 def roadside_model(model: OracleErrorModel, agents: list[str], profile: str) -> OracleErrorModel:
@@ -96,6 +102,8 @@ def run_arm(
         counts.update(world.counts)
         if isinstance(driver, Coordinated):
             counts.update({f"clients/{k}": n for k, n in driver.clients.counts.items()})
+            counts.update({f"shards/{k}": n for k, n in driver.coordinator.counts.items()})
+            counts["shards/max_owners"] = driver.max_owners
     wall_s, cpu_s = time.perf_counter() - t0, time.process_time() - cpu0
     summary = trips.summarise(tripinfo, 0.0, end_s)
     return {
@@ -143,26 +151,44 @@ class CoveredRerouting:
 
 
 class Coordinated:
-    """`rmmdet`: the coordinator core fed by the roadside agents, serving the vehicles' plan clients."""
+    """`rmmdet`: the coordinator (its shards) fed by the roadside agents, serving the plan clients."""
 
     def __init__(
         self, run: CityRun, world: SumoWorld, coordinator: CoordinatorSettings, model: OracleErrorModel
     ) -> None:
         scene, ids = scene_from_sumo(run.net, run.layout)
         settings = with_overrides(coordinator, {"planner": {"seed": run.seed}})
-        self.core = CoordinatorCore(scene, settings, run.max_vehicles)
+        regions = RegionMap(partition_junctions(RoadNetwork(scene), run.shards, seed=run.seed))
+        self.coordinator = ShardedCoordinator(scene, settings, regions, run.max_vehicles)
         agents = sorted(scene.agents)
         self.oracle = OracleAgents(
             scene, RoadNetwork(scene), roadside_model(model, agents, run.profile), run.seed
         )
         self.clients = SumoPlanClients(world, ids, run.request_before_m)
         self.world = world
+        self.run = run
         self.map_every = max(1, round(run.map_period_s / run.step_s))
         self.steps = 0
+        self.max_owners = 0
+
+    def _faults(self, now_s: float) -> None:
+        run, shards = self.run, self.coordinator.shards
+        if run.kill_shard is None:
+            return
+        if (
+            now_s >= run.kill_at_s
+            and shards[run.kill_shard] is not None
+            and not self.coordinator.counts["killed"]
+        ):
+            self.coordinator.kill(run.kill_shard)
+        back = run.restart_after_s
+        if back is not None and now_s >= run.kill_at_s + back and shards[run.kill_shard] is None:
+            self.coordinator.restart(run.kill_shard)
 
     def step(self, counts: Counter[str]) -> None:
         now_s = self.world.time_s
         now_ns = round(now_s * NS_PER_S)  # lock step: the sim clock is every party's clock
+        self._faults(now_s)
         self.clients.sync()
         if self.steps % self.map_every == 0:
             states = self.world.vehicles()
@@ -171,26 +197,24 @@ class Coordinated:
             vel = np.zeros((len(states), 3))
             speed = states.speed_mps / TABLE_SCALE
             vel[:, 0], vel[:, 1] = speed * np.cos(states.yaw_rad), speed * np.sin(states.yaw_rad)
-            for objects in self.oracle(pos, vel):
-                self.core.on_objects(objects.agent_id, objects, now_ns, now_s)
-            self.core.tick(now_s, now_ns)
-            for plan, _stamp_ns, _first in self.core.due(now_s):
+            for plan in self.coordinator.update(self.oracle(pos, vel), now_s, now_ns):
                 self._deliver(plan, now_s, now_ns, counts, "pushed")
         self.steps += 1
         for end in self.clients.take_plan_ends():
-            self.core.on_ack(end.vehicle_id, end.plan_id, end.version, end.status, now_s)
+            self.coordinator.on_ack(end.vehicle_id, end.plan_id, end.version, end.status, now_s)
         self.clients.expire(now_ns)
         for req in self.clients.requests():
             try:
-                plan, _ = self.core.serve(req, now_s, now_ns)
+                plan = self.coordinator.serve(req, now_s, now_ns)
             except RequestRejected as err:
                 counts[f"plans/{err.reason}"] += 1
                 continue
             self._deliver(plan, now_s, now_ns, counts, "served")
+        self.max_owners = max([self.max_owners, *map(len, self.coordinator.owners().values())])
 
     def _deliver(self, plan: Any, now_s: float, now_ns: int, counts: Counter[str], how: str) -> None:
         status = self.clients.offer(plan, now_ns)
-        self.core.on_ack(plan.vehicle_id, plan.plan_id, int(plan.version), status, now_s)
+        self.coordinator.on_ack(plan.vehicle_id, plan.plan_id, int(plan.version), status, now_s)
         counts[f"plans/{how}"] += 1
 
 

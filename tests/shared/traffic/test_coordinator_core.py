@@ -376,3 +376,38 @@ def test_a_repeated_request_is_planned_anew_once_the_coverage_changed(
     again, _ = core.serve(request(), 1.0, WALL0_NS + NS_PER_S)
     assert again.plan_id != first.plan_id and list(again.coverage.missing_agents) == []
     assert core.repeats == 0
+
+
+def test_shards_serve_only_their_lanes_and_hand_a_vehicle_over_with_its_plan(scene: Scene) -> None:
+    from shared.traffic.planner import ShardView
+    from shared.traffic.regions import Overlay, RegionMap, partition_junctions
+
+    net = RoadNetwork(scene)
+    regions = RegionMap(partition_junctions(net, 2))
+    overlay = Overlay(net, regions)
+    cores = [
+        CoordinatorCore(scene, CoordinatorSettings(), 16, shard=ShardView(overlay, r), shard_agents=[])
+        for r in range(2)
+    ]
+    for r, core in enumerate(cores):
+        assert core.shard is not None
+        core.shard.cliques = {o: other.clique() for o, other in enumerate(cores) if o != r}
+    lane = next(lane for lane in sorted(net.lanes) if regions.lane_region(net, lane) == 0)
+    far = next(j for j, r in sorted(regions.region_of_junction.items()) if r == 1)
+    with pytest.raises(RequestRejected) as refused:
+        cores[1].serve(request("v01", lane, far), 1.0, WALL0_NS)
+    assert refused.value.reason == "not_owner"
+    plan, _ = cores[0].serve(request("v01", lane, far), 1.0, WALL0_NS)
+    assert (
+        net.is_valid_route(lane, list(plan.lane_ids[1:])) and net.lane_end_junction(plan.lane_ids[-1]) == far
+    )
+    cores[0].on_ack("v01", plan.plan_id, plan.version, Ack.ACCEPTED, 1.0)
+    # The vehicle reaches region 1: its plan moves there, and only there.
+    assert cores[1].release("v01") is None  # region 1 never held it
+    handover = cores[0].release("v01")
+    assert handover is not None and not cores[0].owns_vehicle("v01")
+    cores[1].adopt(handover, 2.0)
+    assert cores[1].owns_vehicle("v01") and cores[1].book.latest("v01").plan_id == plan.plan_id
+    crossing = next(lane for lane in plan.lane_ids if regions.lane_region(net, lane) == 1)
+    later, _ = cores[1].serve(request("v01", crossing, far, plan.version), 2.0, WALL0_NS + NS_PER_S)
+    assert later.version > plan.version  # versions carry on across shards
