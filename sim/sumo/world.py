@@ -164,6 +164,10 @@ class SumoWorld:
         libsumo.vehicle.rerouteTraveltime(vehicle_id, False)
         self.counts["rerouted"] += 1
 
+    def running(self) -> int:
+        """Vehicles on the network now."""
+        return int(libsumo.vehicle.getIDCount())
+
     def expected_vehicles(self) -> int:
         """Vehicles still running or waiting to depart."""
         return int(libsumo.simulation.getMinExpectedNumber())

@@ -94,6 +94,7 @@ def run_arm(
         driver = _driver(run, arm, world, coordinator, model)
         while world.time_s < run.duration_s and world.expected_vehicles() > 0:
             world.step()
+            counts["vehicle_seconds"] += world.running() * run.step_s
             if driver is not None:
                 t = time.perf_counter()
                 driver.step(counts)
@@ -114,6 +115,7 @@ def run_arm(
         "trips": asdict(summary),
         "counts": dict(counts),
         "driver_ms": _percentiles(step_ms),
+        "shard_ms": driver.coordinator.timing() if isinstance(driver, Coordinated) else {},
         "wall_s": wall_s,
         "cpu_s_per_sim_s": cpu_s / max(end_s, 1e-9),
     }
@@ -210,6 +212,7 @@ class Coordinated:
                 counts[f"plans/{err.reason}"] += 1
                 continue
             self._deliver(plan, now_s, now_ns, counts, "served")
+        self.coordinator.end_step()
         self.max_owners = max([self.max_owners, *map(len, self.coordinator.owners().values())])
 
     def _deliver(self, plan: Any, now_s: float, now_ns: int, counts: Counter[str], how: str) -> None:

@@ -12,6 +12,7 @@ Zenoh (a query to the other shards for the vehicle) is the same two calls.
 from __future__ import annotations
 
 import logging
+import time
 from collections import Counter
 from typing import Any
 
@@ -56,6 +57,8 @@ class ShardedCoordinator:
         )
         self.priors = {r: self.overlay.clique(r, free) for r in range(regions.regions)}
         self.counts: Counter[str] = Counter()
+        self.busy_s: Counter[int] = Counter()  # this step's work per shard, s
+        self.step_ms: dict[int, list[float]] = {}  # per shard, its work in each step, ms
 
     def _start(self, region: int) -> CoordinatorCore:
         if self.regions.regions == 1:  # one shard: the coordinator as it runs unsharded
@@ -79,20 +82,33 @@ class ShardedCoordinator:
     def update(self, objects: list[AgentObjects], now_s: float, now_ns: int) -> list[RoutePlan]:
         """Every live shard takes its agents' objects and ticks; cliques are exchanged; the plans due."""
         live = self.live()
+        mine: dict[int, list[AgentObjects]] = {r: [] for r in live}
         for o in objects:
-            core = live.get(self.agent_region.get(o.agent_id, -1))
-            if core is not None:
-                core.on_objects(o.agent_id, o, now_ns, now_s)
+            region = self.agent_region.get(o.agent_id, -1)
+            if region in mine:
+                mine[region].append(o)
         due: list[RoutePlan] = []
-        for core in live.values():
+        published = {}
+        for r, core in live.items():
+            t0 = time.perf_counter()  # one shard's map + re-plan work: what its own process would do
+            for o in mine[r]:
+                core.on_objects(o.agent_id, o, now_ns, now_s)
             core.tick(now_s, now_ns)
             due += [plan for plan, _stamp_ns, _first in core.due(now_s)]
-        if self.regions.regions > 1:
-            published = {r: core.clique() for r, core in live.items()}
-            for r, core in live.items():
-                assert core.shard is not None
+            if self.regions.regions > 1:
+                published[r] = core.clique()
+            self.busy_s[r] += time.perf_counter() - t0
+        for r, core in live.items():
+            if core.shard is not None:
                 core.shard.cliques = {k: c for k, c in {**self.priors, **published}.items() if k != r}
         return due
+
+    def end_step(self) -> None:
+        """Close a step's timing: each live shard's busy time in it (map updates and plans) is kept."""
+        for r, busy in self.busy_s.items():
+            if self.shards.get(r) is not None:
+                self.step_ms.setdefault(r, []).append(busy * 1e3)
+        self.busy_s = Counter()
 
     def serve(self, req: RouteRequest, now_s: float, wall_ns: int) -> RoutePlan:
         """The owner shard's plan for `req` (taking the vehicle over first if another shard holds it).
@@ -115,7 +131,9 @@ class ShardedCoordinator:
                 if handover is not None:
                     core.adopt(handover, now_s)
                     self.counts["handovers"] += 1
+        t0 = time.perf_counter()
         plan, _ = core.serve(req, now_s, wall_ns)
+        self.busy_s[region] += time.perf_counter() - t0
         self.counts[f"served/{region}"] += 1
         for event in ("killed", "restarted"):
             if self.counts[event]:
@@ -135,5 +153,11 @@ class ShardedCoordinator:
                 out.setdefault(vid, []).append(r)
         return out
 
-    def summary(self) -> dict[str, Any]:
-        return {"shards": self.regions.regions, **self.counts}
+    def timing(self) -> dict[str, Any]:
+        """Per shard: its work per step (map updates + plans) p50 / p95 ms, and its total s."""
+        out = {}
+        for r, ms in sorted(self.step_ms.items()):
+            a = np.asarray(ms)
+            out[str(r)] = {"p50_ms": float(np.percentile(a, 50)), "p95_ms": float(np.percentile(a, 95)),
+                           "busy_s": float(a.sum() / 1e3)}  # fmt: skip
+        return out

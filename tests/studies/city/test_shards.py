@@ -38,6 +38,7 @@ def _run(run: CityRun, tmp_path: Path) -> dict[str, int]:
     assert result["trips"]["trips"] == 50 and result["trips"]["unfinished"] == 0  # everyone home
     counts: dict[str, int] = result["counts"]
     assert counts["shards/max_owners"] == 1  # never two owners (checked after every step)
+    assert set(result["shard_ms"]) == {"0", "1"} and all(s["p95_ms"] > 0 for s in result["shard_ms"].values())
     return counts
 
 
