@@ -88,13 +88,14 @@ def run_arm(
     t0, cpu0 = time.perf_counter(), time.process_time()
     counts: Counter[str] = Counter()
     step_ms: list[float] = []
+    vehicle_s = 0.0  # vehicle-seconds on the network
     with SumoWorld(
         run.net, run.routes, run.seed, run.step_s, rerouting if arm == "sumo_oracle" else None, tripinfo
     ) as world:
         driver = _driver(run, arm, world, coordinator, model)
         while world.time_s < run.duration_s and world.expected_vehicles() > 0:
             world.step()
-            counts["vehicle_seconds"] += world.running() * run.step_s
+            vehicle_s += world.running() * run.step_s
             if driver is not None:
                 t = time.perf_counter()
                 driver.step(counts)
@@ -112,6 +113,7 @@ def run_arm(
         "seed": run.seed,
         "coverage": list(run.layout.junctions),
         "sim_s": end_s,
+        "running_mean": vehicle_s / max(end_s, 1e-9),
         "trips": asdict(summary),
         "counts": dict(counts),
         "driver_ms": _percentiles(step_ms),

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections import Counter
+from collections import Counter, defaultdict
 from typing import Any
 
 import numpy as np
@@ -57,7 +57,7 @@ class ShardedCoordinator:
         )
         self.priors = {r: self.overlay.clique(r, free) for r in range(regions.regions)}
         self.counts: Counter[str] = Counter()
-        self.busy_s: Counter[int] = Counter()  # this step's work per shard, s
+        self.busy_s: defaultdict[int, float] = defaultdict(float)  # this step's work per shard, s
         self.step_ms: dict[int, list[float]] = {}  # per shard, its work in each step, ms
 
     def _start(self, region: int) -> CoordinatorCore:
@@ -108,7 +108,7 @@ class ShardedCoordinator:
         for r, busy in self.busy_s.items():
             if self.shards.get(r) is not None:
                 self.step_ms.setdefault(r, []).append(busy * 1e3)
-        self.busy_s = Counter()
+        self.busy_s = defaultdict(float)
 
     def serve(self, req: RouteRequest, now_s: float, wall_ns: int) -> RoutePlan:
         """The owner shard's plan for `req` (taking the vehicle over first if another shard holds it).

@@ -58,7 +58,7 @@ def bench(args: argparse.Namespace, work: Path) -> dict[str, Any]:
             )
             shard_ms = result["shard_ms"]
             busy_s = sum(s["busy_s"] for s in shard_ms.values())
-            running = result["counts"].get("vehicle_seconds", 0) / result["sim_s"]
+            running = result["running_mean"]
             row = {
                 "vehicles": vehicles,
                 "shards": shards,
