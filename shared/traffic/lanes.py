@@ -78,12 +78,16 @@ def lane_agents(scene: Scene, network: RoadNetwork, min_fraction: float = 0.0) -
     for agent in scene.spec.agents:
         for area in agent.areas:
             area_agent[area].append(agent.id)
+    lane_ids = list(network.lanes)
+    sizes = [len(network.lanes[lane].points) for lane in lane_ids]
+    # Every lane's samples at once (one vectorised lookup per area, not one per point).
+    area_index = scene.area_indices(np.concatenate([network.lanes[lane].points for lane in lane_ids]))
     out: dict[str, list[str]] = {}
-    for lane_id, path in network.lanes.items():
+    for lane_id, n, idx in zip(lane_ids, sizes, np.split(area_index, np.cumsum(sizes)[:-1]), strict=True):
         counts: dict[str, int] = defaultdict(int)
-        for x, y, z in path.points:
-            area_here = scene.area_of(float(x), float(y), float(z))
-            for agent_id in area_agent.get(area_here or "", []):
-                counts[agent_id] += 1
-        out[lane_id] = sorted(a for a, c in counts.items() if c > min_fraction * len(path.points))
+        areas, hits = np.unique(idx[idx >= 0], return_counts=True)
+        for k, c in zip(areas, hits, strict=True):
+            for agent_id in area_agent.get(scene.spec.areas[k].id, []):
+                counts[agent_id] += int(c)
+        out[lane_id] = sorted(a for a, c in counts.items() if c > min_fraction * n)
     return out

@@ -75,7 +75,8 @@ class NoRouteError(ValueError):
 @dataclass
 class ShardView:
     """A coordinator shard's place in a sharded network: the overlay, its region, and the latest clique
-    each other region published (a region without one is not crossed; a lost shard's: a prior)."""
+    each region published, its own included (a region without one is not crossed; a lost shard's: a
+    prior)."""
 
     overlay: Overlay
     region: int
@@ -250,11 +251,14 @@ class RoutePlanner:
     def _fastest_sharded(
         self, shard: ShardView, current_lane: str, destination: str, times: FloatArray
     ) -> list[str]:
-        """`_fastest` over the overlay: the own region on `times` (its own clique too, for a route that
-        leaves and comes back), the others by their published cliques."""
+        """`_fastest` over the overlay: the own region on `times`, the others by their published cliques
+        (the own one too, for a route that leaves and comes back: as published at the last map update,
+        else computed now)."""
         if self.net.lane_end_junction(current_lane) == destination:
             return [current_lane]
-        cliques = {**shard.cliques, shard.region: shard.overlay.clique(shard.region, times)}
+        cliques = shard.cliques
+        if shard.region not in cliques:
+            cliques = {**cliques, shard.region: shard.overlay.clique(shard.region, times)}
         try:
             return [current_lane, *shard.overlay.route(current_lane, destination, times, cliques)]
         except ValueError as err:

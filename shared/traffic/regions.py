@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,6 +36,8 @@ from scipy.sparse.csgraph import dijkstra
 from shared.scene.road_network import RoadNetwork
 
 FloatArray = NDArray[np.float64]
+#: The overlay's sink: "arrived at the destination junction" (next hop of a crossing lane's last leg).
+SINK = -1
 
 
 def partition_junctions(network: RoadNetwork, regions: int, seed: int = 0) -> dict[str, int]:
@@ -143,6 +146,23 @@ class Overlay:
         )
         self._connector_s = connector_m / free_mps[self._dst]
         self._edge = {(a, b): k for k, (a, b) in enumerate(edges)}
+        self._graphs: dict[int | None, tuple[csr_matrix, NDArray[np.int64]]] = {}
+        self.crossing_index = {c: k for k, c in enumerate(self.crossing)}
+        self._leaving: dict[int, list[str]] = {r: [] for r in range(regions.regions)}
+        for c in self.crossing:
+            self._leaving[int(self.start_region[self.index[c]])].append(c)
+        # Searches that depend only on the published cliques, kept while the same cliques object is used.
+        self._sink_cache_of: object = None
+        self._sink_cache: dict[
+            tuple[int, str], tuple[FloatArray, NDArray[np.int64], dict[tuple[int, int], list[str]]]
+        ] = {}
+        self._edges_of: object = None
+        self._edges: tuple[list[int], list[int], list[float], dict[tuple[int, int], list[str]]] = (
+            [],
+            [],
+            [],
+            {},
+        )
         self.end_junction = [network.lane_end_junction(lane) for lane in self.lane_ids]
         self._ends: dict[str, list[int]] = {}
         for k, junction in enumerate(self.end_junction):
@@ -150,16 +170,23 @@ class Overlay:
 
     def _graph(self, lane_time_s: FloatArray, region: int | None) -> csr_matrix:
         """The lane graph with edge a->b costing its connector and lane b's time; only edges inside
-        `region` (both lanes owned by it, or a crossing lane leaving it as the last step) when given."""
-        keep = np.ones(len(self._src), bool)
-        if region is not None:
-            keep = (self.lane_region[self._src] == region) & (
-                (self.lane_region[self._dst] == region) | (self.start_region[self._dst] == region)
+        `region` (both lanes owned by it, or a crossing lane leaving it as the last step) when given.
+        Each region's matrix is built once; its costs are rewritten in place per call."""
+        if region not in self._graphs:
+            keep = np.flatnonzero(
+                np.ones(len(self._src), bool)
+                if region is None
+                else (self.lane_region[self._src] == region)
+                & ((self.lane_region[self._dst] == region) | (self.start_region[self._dst] == region))
             )
-        n = len(self.lane_ids)
+            n = len(self.lane_ids)
+            # Data = edge number + 1 while building, so each stored slot maps back to its edge.
+            graph = csr_matrix((keep + 1.0, (self._src[keep], self._dst[keep])), shape=(n, n))
+            self._graphs[region] = (graph, graph.data.astype(np.int64) - 1)
+        graph, edge = self._graphs[region]
         # A zero cost would vanish from the sparse matrix: lanes take at least a microsecond.
-        cost = np.maximum(self._connector_s[keep] + lane_time_s[self._dst[keep]], 1e-6)
-        return csr_matrix((cost, (self._src[keep], self._dst[keep])), shape=(n, n))
+        graph.data[:] = np.maximum(self._connector_s[edge] + lane_time_s[self._dst[edge]], 1e-6)
+        return graph
 
     def route_time_s(self, from_lane: str, lanes: list[str], lane_time_s: FloatArray) -> float:
         """Time of `lanes` after `from_lane`: each connector and lane, as the overlay costs them."""
@@ -218,56 +245,87 @@ class Overlay:
         the source region's lanes (timed by `lane_time_s`: a shard knows its own lanes) to a leaving
         crossing lane, then every region's clique (`cliques`, the source region's own included): its
         crossing times and, in the destination's region, its times to the destination. A region
-        without a clique is not crossed. ValueError when unreachable."""
+        without a clique is not crossed. ValueError when unreachable. The overlay's times to each
+        destination are computed once per `cliques` object (one map update serves many plans)."""
         src_region = int(self.lane_region[self.index[from_lane]])
-        dst_region = self.regions.region_of_junction[destination]
-        # Overlay nodes: the crossing lanes (k), plus a source (n) and a sink (n + 1).
+        source = self.index[from_lane]
+        dist, pred = dijkstra(self._graph(lane_time_s, src_region), indices=source, return_predecessors=True)
+        best_s, best_leg, best_node = math.inf, None, -1
+        if self.regions.region_of_junction[destination] == src_region:  # it may stay inside
+            inside = self._to_junction(dist, pred, source, destination)
+            if inside is not None and inside[1]:
+                best_s, best_leg = inside
+        to_sink, next_hop, legs = self._to_destination(destination, cliques)
+        for c in self._leaving[src_region]:
+            k = self.crossing_index[c]
+            t = dist[self.index[c]] + to_sink[k]
+            if t < best_s:
+                best_s, best_node = t, k
+        if not np.isfinite(best_s):
+            raise ValueError(f"junction {destination} is unreachable from lane {from_lane}")
+        if best_node < 0:
+            assert best_leg is not None
+            return best_leg
+        lanes = self._walk(pred, source, self.index[self.crossing[best_node]])[1:]
+        k = best_node
+        while k != SINK:
+            lanes += legs[(k, int(next_hop[k]))]
+            k = int(next_hop[k])
+        return lanes
+
+    def _to_destination(
+        self, destination: str, cliques: Mapping[int, Clique]
+    ) -> tuple[FloatArray, NDArray[np.int64], dict[tuple[int, int], list[str]]]:
+        """Over the cliques: from each crossing lane (driven) to a lane ending at `destination`, the
+        time, the next overlay node (a crossing lane's index, or SINK) and the legs' lanes."""
+        key = (id(cliques), destination)
+        if self._sink_cache_of is not cliques:
+            self._sink_cache.clear()
+            self._sink_cache_of = cliques
+        if key in self._sink_cache:
+            return self._sink_cache[key]
         n = len(self.crossing)
-        node = {c: k for k, c in enumerate(self.crossing)}
+        rows, cols, cost, legs = self._clique_edges(cliques)
+        rows, cols, cost, legs = list(rows), list(cols), list(cost), dict(legs)
+        end = cliques.get(self.regions.region_of_junction[destination])
+        if end is not None and destination in end.junctions:
+            j = end.junctions.index(destination)
+            for i, c in enumerate(end.entering):
+                if np.isfinite(end.to_junction_s[i, j]):
+                    a = self.crossing_index[c]
+                    rows.append(a)
+                    cols.append(n)
+                    cost.append(max(float(end.to_junction_s[i, j]), 1e-6))
+                    legs[(a, SINK)] = end.junction_paths[(c, destination)]
+        # Backwards from the sink (node n): each node's time to it and its next hop toward it.
+        reverse = csr_matrix((cost, (cols, rows)), shape=(n + 1, n + 1))
+        to_sink, pred = dijkstra(reverse, indices=n, return_predecessors=True)
+        next_hop = np.where(pred == n, SINK, pred).astype(np.int64)
+        result = (to_sink[:n], next_hop[:n], legs)
+        self._sink_cache[key] = result
+        return result
+
+    def _clique_edges(
+        self, cliques: Mapping[int, Clique]
+    ) -> tuple[list[int], list[int], list[float], dict[tuple[int, int], list[str]]]:
+        """The overlay's edges between crossing lanes from `cliques` (cached with the sink searches)."""
+        if self._edges_of is cliques:
+            return self._edges
         rows: list[int] = []
         cols: list[int] = []
         cost: list[float] = []
         legs: dict[tuple[int, int], list[str]] = {}
-
-        def add(a: int, b: int, t: float, leg: list[str]) -> None:
-            rows.append(a)
-            cols.append(b)
-            cost.append(max(float(t), 1e-6))  # a zero cost would vanish from the sparse matrix
-            legs[(a, b)] = leg
-
-        start = self._graph(lane_time_s, src_region)
-        dist, pred = dijkstra(start, indices=self.index[from_lane], return_predecessors=True)
-        for c in (c for c in self.crossing if self.start_region[self.index[c]] == src_region):
-            t = dist[self.index[c]]
-            if np.isfinite(t):
-                add(n, node[c], t, self._walk(pred, self.index[from_lane], self.index[c])[1:])
         for clique in cliques.values():
             for i, a in enumerate(clique.entering):
                 for j, b in enumerate(clique.leaving):
                     if np.isfinite(clique.time_s[i, j]):
-                        add(node[a], node[b], clique.time_s[i, j], [*clique.paths[(a, b)], b])
-        if src_region == dst_region:  # the route may stay inside, or leave and come back
-            leg = self._to_junction(dist, pred, self.index[from_lane], destination)
-            if leg is not None and leg[1]:
-                add(n, n + 1, *leg)
-        end = cliques.get(dst_region)
-        if end is not None and destination in end.junctions:
-            k = end.junctions.index(destination)
-            for i, c in enumerate(end.entering):
-                if np.isfinite(end.to_junction_s[i, k]):
-                    add(node[c], n + 1, end.to_junction_s[i, k], end.junction_paths[(c, destination)])
-        overlay = csr_matrix((cost, (rows, cols)), shape=(n + 2, n + 2))
-        d, p = dijkstra(overlay, indices=n, return_predecessors=True)
-        if not np.isfinite(d[n + 1]):
-            raise ValueError(f"junction {destination} is unreachable from lane {from_lane}")
-        hops = [n + 1]
-        while hops[-1] != n:
-            hops.append(int(p[hops[-1]]))
-        hops.reverse()
-        lanes: list[str] = []
-        for hop in itertools.pairwise(hops):
-            lanes += legs[hop]
-        return lanes
+                        ka, kb = self.crossing_index[a], self.crossing_index[b]
+                        rows.append(ka)
+                        cols.append(kb)
+                        cost.append(max(float(clique.time_s[i, j]), 1e-6))  # a zero would vanish
+                        legs[(ka, kb)] = [*clique.paths[(a, b)], b]
+        self._edges_of, self._edges = cliques, (rows, cols, cost, legs)
+        return self._edges
 
 
 def agent_regions(

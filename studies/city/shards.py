@@ -98,9 +98,9 @@ class ShardedCoordinator:
             if self.regions.regions > 1:
                 published[r] = core.clique()
             self.busy_s[r] += time.perf_counter() - t0
-        for r, core in live.items():
+        for core in live.values():
             if core.shard is not None:
-                core.shard.cliques = {k: c for k, c in {**self.priors, **published}.items() if k != r}
+                core.shard.cliques = {**self.priors, **published}
         return due
 
     def end_step(self) -> None:
