@@ -12,7 +12,7 @@ SUPERVISOR_CONF := deploy/local/supervisord.conf
 RUN_DIR := .run
 PYTEST_ARGS ?=
 
-.PHONY: help install proto pki up down status logs view-web screenshots test test-unit test-integration test-fault bench soak models eval eval-fusion eval-robustness experiments lint typecheck fmt clean
+.PHONY: help install proto pki up down status logs view-web screenshots test test-unit test-integration test-fault bench soak models eval eval-fusion eval-robustness experiments experiments-city lint typecheck fmt clean
 
 help: ## list targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-18s %s\n", $$1, $$2}'
@@ -151,6 +151,9 @@ eval-robustness: install ## fusion accuracy under 2x noise, 100 ms delay, extrin
 
 experiments: install ## the flow experiment: oracle fitted on real-chain runs, 6 arms x 10/20/40 vehicles x 5 seeds, real chain vs oracle on 3 seeds x 10/20 vehicles (~55 min) -> docs/eval/flow
 	$(BIN)/rmmdet experiments flow --out docs/eval/flow --readme
+
+experiments-city: install ## scheduling at scale: a 10x10 SUMO grid, 3 demand levels x 3 coverages x 5 seeds, the coordinator vs shortest paths / SUMO rerouting (hours) -> docs/eval/city
+	$(BIN)/rmmdet experiments city --out docs/eval/city
 
 lint: install ## ruff
 	$(BIN)/ruff check .

@@ -111,7 +111,7 @@ def run_arm(
     return {
         "arm": arm,
         "seed": run.seed,
-        "coverage": list(run.layout.junctions),
+        "roadside_junctions": list(run.layout.junctions),
         "sim_s": end_s,
         "running_mean": vehicle_s / max(end_s, 1e-9),
         "trips": asdict(summary),

@@ -1,0 +1,151 @@
+"""`rmmdet experiments city`: scheduling at scale on a SUMO grid, the coordinator against SUMO's routing.
+
+For each demand level and seed, the routed demand (sim/sumo/demand.py) is driven by every arm
+(studies/city/run.py); arms that read the roadside agents (`sumo_covered`, `rmmdet`) run once per
+coverage (a share of the crossings, drawn per seed). Compared per (demand, coverage): the coordinator's
+mean travel time (departure delay included) and trips per hour against each baseline arm, as paired
+differences over the seeds with 95 % t-intervals (`studies.stats`). Results: `<out>/results.json` and
+the README's `city` table.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import sumolib
+
+from shared.machine import git_commit, machine_info
+from shared.traffic.config import load_coordinator_settings
+from sim.sumo import demand, network
+from sim.sumo.scene import RoadsideLayout, coverage_layout
+from studies.city.config import CityStudySettings
+from studies.city.run import CityRun, run_arm
+from studies.experiments.config import DEFAULT_ORACLE_MODEL
+from studies.experiments.oracle import OracleErrorModel
+from studies.parallel import run_jobs
+from studies.stats import paired_cell, paired_differences
+
+log = logging.getLogger(__name__)
+
+#: Arms whose routes do not depend on the roadside agents: run once per (demand, seed).
+COVERAGE_FREE = ("shortest", "sumo_oracle")
+#: Figures compared between arms, per seed: (label, key of the trips summary, format of a difference).
+COMPARED = (
+    ("mean travel time s", "travel_time_mean_s", "{:+.1f}"),
+    ("trips per hour", "trips_per_hour", "{:+.0f}"),
+)
+
+
+@dataclass(frozen=True)
+class Job:
+    settings_json: str
+    net: Path
+    routes: Path
+    junctions: tuple[str, ...]
+    level: str
+    coverage: float | None
+    seed: int
+    arm: str
+    out: Path
+
+
+def _run(job: Job) -> dict[str, Any]:
+    s = CityStudySettings.model_validate_json(job.settings_json)
+    run = CityRun(
+        job.net, job.routes, RoadsideLayout(job.junctions, s.range_m), job.seed, s.duration_s,
+        reroute_period_s=s.reroute_period_s, shards=s.shards,
+    )  # fmt: skip
+    model = OracleErrorModel.load(DEFAULT_ORACLE_MODEL)
+    result = run_arm(run, job.arm, load_coordinator_settings(), model, job.out)
+    log.info("%s %s cov %s seed %d: %.1f s mean, %d trips", job.arm, job.level, job.coverage, job.seed,
+             result["trips"]["travel_time_mean_s"], result["trips"]["trips"])  # fmt: skip
+    return {"level": job.level, "coverage": job.coverage, **result}
+
+
+def jobs(s: CityStudySettings, work: Path) -> list[Job]:
+    """Every (demand level, seed, arm[, coverage]) run, the network and demands written under `work`."""
+    net_path = network.grid_network(network.GridSpec(s.grid_side, s.edge_length_m), work / "grid.net.xml")
+    net = sumolib.net.readNet(str(net_path))
+    out = []
+    for level, vehicles in s.demand.items():
+        spec = demand.DemandSpec(vehicles=vehicles, end_s=s.departures_s, min_distance_m=2 * s.edge_length_m)
+        for seed in s.seeds:
+            routes = demand.routed_demand(net_path, spec, seed, work / level / f"s{seed}.rou.xml")
+            for arm in s.arms:
+                for coverage in [None] if arm in COVERAGE_FREE else s.coverage:
+                    layout = coverage_layout(net, coverage if coverage is not None else 0.0, seed, s.range_m)
+                    folder = work / level / f"s{seed}" / (arm if coverage is None else f"{arm}_c{coverage:g}")
+                    out.append(
+                        Job(
+                            s.model_dump_json(),
+                            net_path,
+                            routes,
+                            layout.junctions,
+                            level,
+                            coverage,
+                            seed,
+                            arm,
+                            folder,
+                        )
+                    )
+    return out
+
+
+def comparisons(runs: list[dict[str, Any]], s: CityStudySettings) -> dict[str, Any]:
+    """Per (demand, coverage) and baseline: the coordinator minus the baseline, paired by seed."""
+    by = {(r["level"], r["arm"], r["coverage"], r["seed"]): r["trips"] for r in runs}
+    out: dict[str, Any] = {}
+    for level in s.demand:
+        for coverage in s.coverage:
+            row: dict[str, Any] = {}
+            for base in s.baseline_arms:
+                base_cov = None if base in COVERAGE_FREE else coverage
+                pairs = [
+                    (by[(level, base, base_cov, seed)], by[(level, "rmmdet", coverage, seed)])
+                    for seed in s.seeds
+                    if (level, base, base_cov, seed) in by and (level, "rmmdet", coverage, seed) in by
+                ]
+                row[base] = {
+                    key: paired_differences([b[key] for b, _ in pairs], [a[key] for _, a in pairs])
+                    for _, key, _ in COMPARED
+                }
+            out[f"{level}@{coverage:g}"] = row
+    return out
+
+
+def run_study(s: CityStudySettings, work: Path, out: Path) -> dict[str, Any]:
+    t0 = time.perf_counter()
+    runs = list(run_jobs(_run, jobs(s, work), s.workers))
+    results = {
+        "settings": s.model_dump(),
+        "runs": runs,
+        "comparisons": comparisons(runs, s),
+        "wall_s": round(time.perf_counter() - t0, 1),
+        "commit": git_commit(),
+        "machine": machine_info(),
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps(results, indent=2, default=float) + "\n")
+    return results
+
+
+def markdown_table(results: dict[str, Any]) -> str:
+    """The README's city table: per demand level and coverage, the coordinator against each baseline."""
+    s = results["settings"]
+    head = (
+        f"{s['grid_side']} x {s['grid_side']} SUMO grid ({s['edge_length_m']:g} m), seeds {s['seeds']}, "
+        f"{s['shards']} coordinator shard(s); rmmdet minus baseline per seed, mean ± 95 % CI (bold: the "
+        f"interval excludes 0); commit {results['commit']}, {results['machine'].get('cpu_model', '?')}."
+    )
+    bases = s["baseline_arms"]
+    cols = [f"{label} vs {b}" for b in bases for label, _, _ in COMPARED]
+    lines = [head, "", "| demand @ coverage | " + " | ".join(cols) + " |", "|---|" + "---|" * len(cols)]
+    for key, row in results["comparisons"].items():
+        cells = [paired_cell(row[b][k], fmt) for b in bases for _, k, fmt in COMPARED]
+        lines.append(f"| {key} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
