@@ -188,6 +188,71 @@ class Overlay:
         graph.data[:] = np.maximum(self._connector_s[edge] + lane_time_s[self._dst[edge]], 1e-6)
         return graph
 
+    def clique_problem(self, clique: Clique, free_time_s: FloatArray, slack: float = 0.99) -> str | None:
+        """Why a clique received from another shard cannot be used (a counter name), or None. Its region
+        must exist; its lanes, junctions and matrix shapes must be the region's; every time a number
+        >= 0 (inf: no way); every finite time needs a path of the region's own lanes that the lane graph
+        connects, to the right lane or junction, and no faster than that path at free flow (`slack` of
+        it, for rounding): a forged clique can neither route through lanes that do not join nor
+        promise a region faster than its speed limits to draw traffic into it."""
+        r = clique.region
+        if not 0 <= r < self.regions.regions:
+            return "clique_region"
+        junctions = sorted(j for j, k in self.regions.region_of_junction.items() if k == r)
+        entering = [c for c in self.crossing if self.lane_region[self.index[c]] == r]
+        if clique.entering != entering or clique.leaving != self._leaving[r] or clique.junctions != junctions:
+            return "clique_lanes"
+        if clique.time_s.shape != (len(entering), len(clique.leaving)) or clique.to_junction_s.shape != (
+            len(entering),
+            len(junctions),
+        ):
+            return "clique_shape"
+        for times in (clique.time_s, clique.to_junction_s):
+            if np.isnan(times).any() or (times < 0).any():
+                return "clique_time"
+        for i, a in enumerate(entering):
+            for j, b in enumerate(clique.leaving):
+                if np.isfinite(clique.time_s[i, j]):
+                    problem = self._path_problem(a, clique.paths.get((a, b)), b, None, r)
+                    if problem is None and clique.time_s[i, j] < slack * self.route_time_s(
+                        a, [*clique.paths[(a, b)], b], free_time_s
+                    ):
+                        problem = "clique_too_fast"
+                    if problem:
+                        return problem
+            for k, junction in enumerate(junctions):
+                if np.isfinite(clique.to_junction_s[i, k]):
+                    path = clique.junction_paths.get((a, junction))
+                    problem = self._path_problem(a, path, None, junction, r)
+                    if (
+                        problem is None
+                        and path
+                        and clique.to_junction_s[i, k] < slack * self.route_time_s(a, path, free_time_s)
+                    ):
+                        problem = "clique_too_fast"
+                    if problem:
+                        return problem
+        return None
+
+    def _path_problem(
+        self, start: str, path: list[str] | None, last: str | None, junction: str | None, region: int
+    ) -> str | None:
+        """`start`, `path`, then `last` (a lane) must be connected lanes, the path's own lanes in `region`;
+        with `junction`, the route must end at it."""
+        if path is None:
+            return "clique_path"
+        lanes = [*path, last] if last is not None else list(path)
+        if any(lane not in self.index for lane in lanes):
+            return "clique_path"
+        if any(self.lane_region[self.index[lane]] != region for lane in path):
+            return "clique_path"
+        if not self.net.is_valid_route(start, lanes):
+            return "clique_path"
+        end = lanes[-1] if lanes else start
+        if junction is not None and self.net.lane_end_junction(end) != junction:
+            return "clique_path"
+        return None
+
     def route_time_s(self, from_lane: str, lanes: list[str], lane_time_s: FloatArray) -> float:
         """Time of `lanes` after `from_lane`: each connector and lane, as the overlay costs them."""
         total = 0.0

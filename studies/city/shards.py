@@ -49,13 +49,14 @@ class ShardedCoordinator:
         self.agent_region = agent_regions(lane_agents(scene, self.net), self.net, regions)
         self.max_vehicles = max_vehicles
         self.shards: dict[int, CoordinatorCore | None] = {r: self._start(r) for r in range(regions.regions)}
-        free = np.array(
+        # Free-flow lane times: the prior of a region without a live shard, and the floor of a clique.
+        self.free_s = np.array(
             [
                 self.net.lanes[lane].length_m / scene.lanes[lane].speed_limit_mps
                 for lane in self.overlay.lane_ids
             ]
         )
-        self.priors = {r: self.overlay.clique(r, free) for r in range(regions.regions)}
+        self.priors = {r: self.overlay.clique(r, self.free_s) for r in range(regions.regions)}
         self.counts: Counter[str] = Counter()
         self.busy_s: defaultdict[int, float] = defaultdict(float)  # this step's work per shard, s
         self.step_ms: dict[int, list[float]] = {}  # per shard, its work in each step, ms
@@ -96,7 +97,12 @@ class ShardedCoordinator:
             core.tick(now_s, now_ns)
             due += [plan for plan, _stamp_ns, _first in core.due(now_s)]
             if self.regions.regions > 1:
-                published[r] = core.clique()
+                clique = core.clique()
+                problem = self.overlay.clique_problem(clique, self.free_s)
+                if problem is None:
+                    published[r] = clique
+                else:  # as a receiving shard would: refused, counted, its region planned on the prior
+                    self.counts[f"rejected/{problem}"] += 1
             self.busy_s[r] += time.perf_counter() - t0
         for core in live.values():
             if core.shard is not None:

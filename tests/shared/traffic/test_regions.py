@@ -101,3 +101,39 @@ def test_a_region_s_clique_steers_routes_and_a_prior_stands_in_for_a_lost_one(gr
         overlay.route(start, away, free, {0: cliques[0]})
     prior = overlay.route(start, away, free, {0: cliques[0], 1: overlay.clique(1, free)})
     assert grid.is_valid_route(start, prior) and grid.lane_end_junction(prior[-1]) == away
+
+
+def test_a_forged_clique_is_refused_with_its_reason(grid: RoadNetwork) -> None:
+    import dataclasses
+
+    overlay = Overlay(grid, RegionMap(partition_junctions(grid, 2)))
+    free = np.array(
+        [grid.lanes[lane].length_m / grid.scene.lanes[lane].speed_limit_mps for lane in overlay.lane_ids]
+    )
+    jammed = free * 3.0
+    good = overlay.clique(1, jammed)
+    assert overlay.clique_problem(good, free) is None
+    assert overlay.clique_problem(overlay.clique(0, free), free) is None  # free flow exactly: allowed
+    i, j = np.argwhere(np.isfinite(good.time_s))[0]
+    a, b = good.entering[i], good.leaving[j]
+
+    def forged(**change: object) -> str | None:
+        return overlay.clique_problem(dataclasses.replace(good, **change), free)
+
+    def with_time(value: float) -> np.ndarray:
+        t = good.time_s.copy()
+        t[i, j] = value
+        return t
+
+    assert forged(region=7) == "clique_region"
+    assert forged(entering=good.entering[1:]) == "clique_lanes"
+    assert forged(time_s=good.time_s[:, 1:]) == "clique_shape"
+    assert forged(time_s=with_time(-1.0)) == "clique_time"
+    assert forged(time_s=with_time(float("nan"))) == "clique_time"
+    assert forged(time_s=with_time(0.1)) == "clique_too_fast"  # a black hole drawing traffic in
+    other_region = next(lane for lane in overlay.lane_ids if overlay.lane_region[overlay.index[lane]] == 0)
+    assert forged(paths={**good.paths, (a, b): [other_region]}) == "clique_path"
+    assert forged(paths={**good.paths, (a, b): ["no-such-lane"]}) == "clique_path"
+    missing = {k: v for k, v in good.paths.items() if k != (a, b)}
+    assert forged(paths=missing) == "clique_path"
+    assert forged(time_s=with_time(float("inf")), paths=missing) is None  # no way: no path needed

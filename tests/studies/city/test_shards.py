@@ -8,14 +8,19 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+import numpy as np
 import pytest
 import sumolib
 
 from shared.paths import REPO_ROOT
+from shared.scene.road_network import RoadNetwork
 from shared.traffic.config import load_coordinator_settings
+from shared.traffic.maps import AgentObjects
+from shared.traffic.regions import RegionMap, partition_junctions
 from sim.sumo import demand, network
-from sim.sumo.scene import coverage_layout
+from sim.sumo.scene import coverage_layout, scene_from_sumo
 from studies.city.run import CityRun, run_arm
+from studies.city.shards import ShardedCoordinator
 from studies.experiments.oracle import OracleErrorModel
 
 ORACLE_MODEL = REPO_ROOT / "deploy" / "experiments" / "oracle_model.json"
@@ -61,3 +66,18 @@ def test_a_killed_shard_leaves_the_other_serving_and_a_restarted_one_serves_agai
     assert counts["shards/served_since_restarted/1"] > 0  # region 1 serves again after its restart
     refused = {k for k in counts if k.startswith("plans/") and k not in ("plans/served", "plans/pushed")}
     assert refused == {"plans/no_shard"}  # nothing else was refused
+
+
+def test_a_shard_publishing_a_forged_clique_is_refused_and_its_prior_used(run: CityRun) -> None:
+    scene, _ = scene_from_sumo(run.net, run.layout)
+    regions = RegionMap(partition_junctions(RoadNetwork(scene), 2))
+    sharded = ShardedCoordinator(scene, load_coordinator_settings(), regions, 64)
+    rogue = sharded.shards[1]
+    assert rogue is not None
+    honest = rogue.clique
+    rogue.clique = lambda: dataclasses.replace(honest(), time_s=np.zeros_like(honest().time_s))  # type: ignore[method-assign]
+    sharded.update([AgentObjects.empty(a) for a in scene.agents], 1.0, 10**9)
+    assert sharded.counts["rejected/clique_too_fast"] == 1
+    own = sharded.shards[0]
+    assert own is not None and own.shard is not None
+    assert own.shard.cliques[1] is sharded.priors[1]  # region 1 planned on its prior, not the forgery
