@@ -21,35 +21,15 @@ from rich.console import Console
 from shared.bus.session import SessionUnavailable, open_session
 from shared.bus.zenoh_config import CONFIG_ENV, DEFAULT_CLIENT_CONFIG, zenoh_config
 
-HELP = """`rmmdet`: command-line tool for a running RMMDet system.
+HELP = """Command-line tool of RMMDet: the live system, recordings, studies, sites.
 
-    rmmdet topics [--duration 3]     live key expressions with rate, bandwidth, gaps and decode errors
-    rmmdet health [--service mec]    every service's health report (exit 1 unless all NOMINAL)
-    rmmdet wait-ready                wait until the router answers (used by `make up`)
-    rmmdet record [--out F.mcap] [--key K ...] [--duration S]   record bus traffic to MCAP
-    rmmdet replay F.mcap [--speed 1|N|0] [--key K ...] [--loop] [--live-keys]  publish a recording
-                                     again, on replay/<key> unless --live-keys
-    rmmdet vehicle --id v03 [--lane L] [--ros2] [--json]   one vehicle's plan client: hear, verify,
-                                     print or forward to a ROS 2 car, and acknowledge its plans
-    rmmdet snapshot [--out docs/images] [--at-s 20]   offline: camera PNGs + bird's-eye map of the sim
-    rmmdet export RUN.mcap --out DIR [--format kitti|ros2]   a run's object lists and plans as KITTI
-                                     label files and a ROS 2 bag (mcap)
-    rmmdet import BAG... --out RUN.mcap [--map M.yaml] [--msg DIR] [--rebase]   ROS 1 / ROS 2 bags
-                                     into a recording that rmmdet replay plays to the MECs
-    rmmdet dataset generate --out DIR [--config deploy/datasets/default.yaml] [--workers 2]
-    rmmdet train camera|lidar --data DIR --out MODEL_DIR [--format yolo|kitti]   a detector trained
-                                     on a site's own data: ONNX + model card + int8 + metrics.json
-    rmmdet eval detectors [--data DIR] [--split test] [--camera onnx] [--lidar pointpillars] [--out F.json]
-    rmmdet eval fusion [--agent agent1] [--seed 201] [--duration-s 60] [--workers 2] [--out docs/eval/fusion]
-    rmmdet experiments flow [--config deploy/experiments/flow.yaml] [--out docs/eval/flow]   flow experiment
-    rmmdet eval wire [--seed 201] [--agent agent2]   accuracy through the devices' wire formats
-    rmmdet eval calibration [--agent agent3]         accuracy on a calibration recovered from boards
-    rmmdet calibrate intrinsics|camera-pose|sensor-pose|render-board ...   site calibration -> site file
-
-Connects like any service (deploy/zenoh/client.json5, or the standard Zenoh flags).
+Connects like any service: deploy/zenoh/client.json5, or the Zenoh flags.
+`rmmdet COMMAND --help` gives a command's options.
 """
+#: The groups of `rmmdet --help` (each command names its panel).
+LIVE, RECORDINGS, STUDIES, SITES = "Live system", "Recordings", "Offline studies", "Sites and security"
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, help=HELP)
+app = typer.Typer(add_completion=False, no_args_is_help=True, help=HELP, rich_markup_mode="rich")
 # Wide when piped (logs, tests): rich would otherwise truncate key expressions at 80 columns.
 console = Console(width=None if sys.stdout.isatty() else 200)
 
@@ -71,6 +51,14 @@ class ZenohOptions:
         return zenoh_config(self.config, connect=self.connect, cfg=self.cfg)
 
 
+def _version(show: bool) -> None:
+    if show:
+        from importlib.metadata import version  # pyproject.toml is the one home of the version
+
+        typer.echo(f"rmmdet {version('rmmdet')}")
+        raise typer.Exit()
+
+
 @app.callback()
 def common(
     ctx: typer.Context,
@@ -79,6 +67,9 @@ def common(
     ] = DEFAULT_CLIENT_CONFIG,
     connect: Annotated[list[str] | None, typer.Option("--connect", "-e", help="router endpoint")] = None,
     cfg: Annotated[list[str] | None, typer.Option("--cfg", help="json5 override KEY:VALUE")] = None,
+    version: Annotated[
+        bool, typer.Option("--version", callback=_version, is_eager=True, help="print the version and exit")
+    ] = False,
 ) -> None:
     logging.basicConfig(level=logging.ERROR)  # the tool reports through its own output
     ctx.obj = ZenohOptions(config, connect or [], cfg or [])

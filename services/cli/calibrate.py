@@ -19,13 +19,13 @@ from typing import Annotated
 
 import typer
 
-from services.cli.app import app, console
+from services.cli.app import SITES, app, console
 from shared.calibration import workflow
 from shared.calibration.solve import Board
 from shared.scene.scene import Scene
 
 calibrate_app = typer.Typer(add_completion=False, no_args_is_help=True, help="site calibration")
-app.add_typer(calibrate_app, name="calibrate")
+app.add_typer(calibrate_app, name="calibrate", rich_help_panel=SITES)
 
 
 def _show(skipped: workflow.Skipped) -> None:
@@ -33,7 +33,7 @@ def _show(skipped: workflow.Skipped) -> None:
         console.print(reason)
 
 
-@calibrate_app.command("intrinsics")
+@calibrate_app.command("intrinsics", short_help="camera intrinsics from board images")
 def intrinsics(
     images: Annotated[list[Path], typer.Argument(help="board images")],
     site: Annotated[Path, typer.Option(help="site file to write")],
@@ -54,7 +54,7 @@ def intrinsics(
                   f"rms {result.rms_px:.3f} px over {result.views} views -> {site}")  # fmt: skip
 
 
-@calibrate_app.command("camera-pose")
+@calibrate_app.command("camera-pose", short_help="camera pose from surveyed points (PnP)")
 def camera_pose_cmd(
     site: Annotated[Path, typer.Option(help="site file (its camera intrinsics are used and kept)")],
     camera: Annotated[str, typer.Option(help="camera id")],
@@ -71,7 +71,7 @@ def camera_pose_cmd(
     console.print(f"{camera}: pose from {fit.points} points, reprojection rms {fit.rms:.3f} px -> {site}")
 
 
-@calibrate_app.command("sensor-pose")
+@calibrate_app.command("sensor-pose", short_help="lidar / radar pose from surveyed targets")
 def sensor_pose_cmd(
     site: Annotated[Path, typer.Option(help="site file")],
     sensor: Annotated[str, typer.Option(help="lidar or radar id")],
@@ -85,7 +85,7 @@ def sensor_pose_cmd(
     console.print(f"{sensor}: pose from {fit.points} targets, residual rms {fit.rms * 1000:.1f} mm -> {site}")
 
 
-@calibrate_app.command("render-board")
+@calibrate_app.command("render-board", short_help="the sim's images of a calibration board")
 def render_board(
     camera: Annotated[str, typer.Option(help="camera id of the scene")],
     board: Annotated[str, typer.Option(help="checkerboard:COLSxROWS:SQUARE_M")],

@@ -17,7 +17,9 @@ from rich.table import Table
 from services.cli.app import (
     BYTES_PER_MB,
     DATA_KEYS,
+    LIVE,
     LOOP_S,
+    RECORDINGS,
     REPLAY_LINGER_S,
     ZenohOptions,
     app,
@@ -81,7 +83,7 @@ class TopicCounter:
             return dict(self.stats)
 
 
-@app.command()
+@app.command(short_help="key expressions: rate, bandwidth, gaps, errors", rich_help_panel=LIVE)
 def topics(
     ctx: typer.Context,
     duration: Annotated[float, typer.Option(help="seconds to listen")] = 3.0,
@@ -139,7 +141,7 @@ def topics(
 _LEVEL_STYLE = {"NOMINAL": "green", "DEGRADED": "yellow", "CRITICAL": "red", "UNKNOWN": "magenta"}
 
 
-@app.command()
+@app.command(short_help="every service's health (exit 0: all is well)", rich_help_panel=LIVE)
 def health(
     ctx: typer.Context,
     service: Annotated[str | None, typer.Option(help="only this service")] = None,
@@ -173,7 +175,7 @@ def health(
     raise typer.Exit(0 if verdict.ok else 1)
 
 
-@app.command("wait-ready")
+@app.command("wait-ready", short_help="wait until the router answers", rich_help_panel=LIVE)
 def wait_ready(
     ctx: typer.Context,
     timeout: Annotated[float, typer.Option(help="seconds to wait")] = 30.0,
@@ -203,7 +205,7 @@ def check_key_exprs(keys: list[str]) -> list[str]:
     return keys
 
 
-@app.command()
+@app.command(short_help="record bus traffic to MCAP", rich_help_panel=RECORDINGS)
 def record(
     ctx: typer.Context,
     out: Annotated[
@@ -253,7 +255,7 @@ def record(
         raise typer.Exit(1)
 
 
-@app.command("replay")
+@app.command("replay", short_help="publish a recording again", rich_help_panel=RECORDINGS)
 def replay_cmd(
     ctx: typer.Context,
     file: Annotated[Path, typer.Argument(exists=True, dir_okay=False, help="recording (.mcap)")],
@@ -327,7 +329,7 @@ def replay_cmd(
 # --- vehicle ---------------------------------------------------------------------------------------
 
 
-@app.command()
+@app.command(short_help="one vehicle's plan client (or a ROS 2 car's)", rich_help_panel=LIVE)
 def vehicle(
     ctx: typer.Context,
     vehicle_id: Annotated[str, typer.Option("--id", help="the vehicle's id (e.g. v03)")],

@@ -11,6 +11,8 @@ import typer
 from rich.table import Table
 
 from services.cli.app import (
+    RECORDINGS,
+    STUDIES,
     app,
     console,
     log_progress,
@@ -19,7 +21,7 @@ from shared.paths import DEFAULT_SCENE
 from shared.scene.scene import Scene
 
 
-@app.command()
+@app.command(short_help="camera PNGs and a bird's-eye map of the sim", rich_help_panel=STUDIES)
 def snapshot(
     out: Annotated[Path, typer.Option(help="output folder")] = Path("docs/images"),
     at_s: Annotated[float, typer.Option(help="simulated seconds of traffic before the pictures")] = 20.0,
@@ -36,7 +38,7 @@ def snapshot(
     console.print(f"wrote {len(written)} images to {out}: " + ", ".join(p.name for p in written))
 
 
-@app.command()
+@app.command(short_help="a run's objects and plans as KITTI / ROS 2 bag", rich_help_panel=RECORDINGS)
 def export(
     recording: Annotated[Path, typer.Argument(help="a recording (rmmdet record) of the run")],
     out: Annotated[Path, typer.Option(help="output folder (kitti/, ros2/ inside)")],
@@ -66,7 +68,7 @@ def export(
         console.print(f"[yellow]{recording} is cut off: exported what was complete before the cut[/]")
 
 
-@app.command("import")
+@app.command("import", short_help="ROS 1 / ROS 2 bags into a recording", rich_help_panel=RECORDINGS)
 def import_cmd(
     bags: Annotated[
         list[Path], typer.Argument(help="ROS 1 .bag files or ROS 2 bag folders (sqlite3 or mcap)")
@@ -104,10 +106,10 @@ def import_cmd(
 
 
 dataset_app = typer.Typer(add_completion=False, no_args_is_help=True, help="auto-labelled datasets (offline)")
-app.add_typer(dataset_app, name="dataset")
+app.add_typer(dataset_app, name="dataset", rich_help_panel=STUDIES)
 
 
-@dataset_app.command("generate")
+@dataset_app.command("generate", short_help="auto-labelled camera and lidar datasets")
 def dataset_generate(
     out: Annotated[Path, typer.Option(help="dataset root folder")],
     config: Annotated[
@@ -135,7 +137,7 @@ def dataset_generate(
 train_app = typer.Typer(
     add_completion=False, no_args_is_help=True, help="train a detector on a site's own data (offline)"
 )
-app.add_typer(train_app, name="train")
+app.add_typer(train_app, name="train", rich_help_panel=STUDIES)
 
 DataFormat = Annotated[str, typer.Option("--format", help="dataset format: auto | project | yolo | kitti")]
 VehicleClass = Annotated[
@@ -177,7 +179,7 @@ def run_training(train: Any, data: Path, out: Path, source: Any, cfg: Any, quant
     console.print(f"wrote {out}: give the MEC `{out / card}` as its detector")
 
 
-@train_app.command("camera")
+@train_app.command("camera", short_help="train the camera detector: ONNX, card, int8")
 def train_camera_cmd(
     data: Annotated[Path, typer.Option(help="dataset root (YOLO data.yaml, KITTI training/, or generated)")],
     out: Annotated[Path, typer.Option(help="model directory to write")],
@@ -203,7 +205,7 @@ def train_camera_cmd(
     run_training(train_camera, data, out, source, cfg, quantize, CARD_FILE)
 
 
-@train_app.command("lidar")
+@train_app.command("lidar", short_help="train PointPillars: ONNX, card, int8")
 def train_lidar_cmd(
     data: Annotated[Path, typer.Option(help="dataset root (KITTI training/ with velodyne, or generated)")],
     out: Annotated[Path, typer.Option(help="model directory to write")],
@@ -231,10 +233,10 @@ def train_lidar_cmd(
 
 
 eval_app = typer.Typer(add_completion=False, no_args_is_help=True, help="evaluations (offline)")
-app.add_typer(eval_app, name="eval")
+app.add_typer(eval_app, name="eval", rich_help_panel=STUDIES)
 
 
-@eval_app.command("detectors")
+@eval_app.command("detectors", short_help="AP and latency of each detector")
 def eval_detectors(
     data: Annotated[Path, typer.Option(help="dataset root (rmmdet dataset generate)")] = Path(
         "data/datasets/default"
@@ -345,7 +347,7 @@ def write_detector_readme(path: Path) -> None:
     replace_section(detectors.SECTION, detectors.markdown_table(json.loads(path.read_text()), previous))
 
 
-@eval_app.command("fusion")
+@eval_app.command("fusion", short_help="the MEC pipeline against ground truth")
 def eval_fusion(
     agents: Annotated[
         list[str] | None, typer.Option("--agent", help="agents (repeatable; default all)")
@@ -405,7 +407,7 @@ def eval_fusion(
     console.print(f"results: {out / 'results.json'}")
 
 
-@eval_app.command("calibrate-scores")
+@eval_app.command("calibrate-scores", short_help="fit the calibrated confidence per evidence")
 def eval_calibrate_scores(
     seeds: Annotated[
         list[int] | None,
@@ -467,7 +469,7 @@ def write_fusion_readme(results: dict[str, Any], split: str, folder: Path) -> No
         replace_section("eval-fusion-kalman", text)
 
 
-@eval_app.command("compare")
+@eval_app.command("compare", short_help="two fusion results side by side")
 def eval_compare(
     before: Annotated[
         Path, typer.Argument(exists=True, dir_okay=False, help="fusion results.json before the change")
@@ -502,7 +504,7 @@ def eval_compare(
     typer.echo(compare_tables(files[0], files[1], agents, output or ["tracked"]))
 
 
-@eval_app.command("readme")
+@eval_app.command("readme", short_help="README tables from the results files")
 def eval_readme(
     fusion: Annotated[Path, typer.Option(help="held-out fusion results")] = Path("docs/eval/fusion"),
     tuning: Annotated[Path, typer.Option(help="tuning fusion results")] = Path("docs/eval/fusion_tuning"),
@@ -581,7 +583,7 @@ def held_out_study(
     console.print(f"results: {out / 'results.json'}")
 
 
-@eval_app.command("robustness")
+@eval_app.command("robustness", short_help="accuracy under noise, delay, miscalibration")
 def eval_robustness(
     agents: HeldOutAgents = None,
     seeds: HeldOutSeeds = None,
@@ -621,7 +623,7 @@ def eval_robustness(
     )  # fmt: skip
 
 
-@eval_app.command("wire")
+@eval_app.command("wire", short_help="accuracy through the devices' wire formats")
 def eval_wire(
     agents: HeldOutAgents = None,
     seeds: HeldOutSeeds = None,
@@ -642,7 +644,7 @@ def eval_wire(
     )  # fmt: skip
 
 
-@eval_app.command("calibration")
+@eval_app.command("calibration", short_help="accuracy on a calibration from boards")
 def eval_calibration(
     agents: HeldOutAgents = None,
     seeds: HeldOutSeeds = None,
@@ -664,10 +666,10 @@ def eval_calibration(
 
 
 experiments_app = typer.Typer(add_completion=False, no_args_is_help=True, help="experiments (offline)")
-app.add_typer(experiments_app, name="experiments")
+app.add_typer(experiments_app, name="experiments", rich_help_panel=STUDIES)
 
 
-@experiments_app.command("city")
+@experiments_app.command("city", short_help="scheduling at scale on a SUMO grid")
 def experiments_city(
     config: Annotated[Path, typer.Option(help="study settings YAML")] = Path("deploy/experiments/city.yaml"),
     seeds: Annotated[list[int] | None, typer.Option("--seed", help="seeds (repeatable)")] = None,
@@ -698,7 +700,7 @@ def experiments_city(
     console.print(text)
 
 
-@experiments_app.command("flow")
+@experiments_app.command("flow", short_help="the paper's traffic-flow experiment")
 def experiments_flow(
     config: Annotated[Path, typer.Option(help="experiment settings YAML")] = Path(
         "deploy/experiments/flow.yaml"

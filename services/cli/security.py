@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from services.cli.app import app, console
+from services.cli.app import SITES, app, console
 from shared.config import ConfigError
 from shared.paths import DEFAULT_PKI_DIR, DEFAULT_SCENE
 from shared.scene.scene import Scene
@@ -17,10 +17,10 @@ from shared.security.sites import DEFAULT_LAYOUT, bundle_host, load_layout
 from sim.config import fleet_ids, load_sim_settings
 
 pki_app = typer.Typer(no_args_is_help=True, help="local CA, service certificates, plan-signing key")
-app.add_typer(pki_app, name="pki")
+app.add_typer(pki_app, name="pki", rich_help_panel=SITES)
 
 
-@pki_app.command("init")
+@pki_app.command("init", short_help="create the CA, plan key, certificates")
 def pki_init(
     pki_dir: Annotated[Path, typer.Option("--dir", help="PKI directory")] = DEFAULT_PKI_DIR,
     scene: Annotated[Path, typer.Option(help="scene whose agents get sites")] = DEFAULT_SCENE,
@@ -62,7 +62,7 @@ def parse_names(items: list[str] | None) -> dict[str, tuple[str, ...]]:
     return extra
 
 
-@pki_app.command("bundle")
+@pki_app.command("bundle", short_help="what one host needs of the PKI")
 def pki_bundle(
     host: Annotated[str, typer.Option(help="host name in the layout")],
     out: Annotated[Path, typer.Option(help="directory to write the host's files to (give it as --pki)")],
@@ -80,7 +80,7 @@ def pki_bundle(
     console.print(f"{out}: {len(files)} files for {host} ({', '.join(p.name for p in files)})")
 
 
-@pki_app.command("rotate")
+@pki_app.command("rotate", short_help="rotate the CA or the plan key")
 def pki_rotate(
     pki_dir: Annotated[Path, typer.Option("--dir", help="PKI directory")] = DEFAULT_PKI_DIR,
     ca: Annotated[
