@@ -10,6 +10,8 @@ import subprocess
 from pathlib import Path
 from typing import Any
 
+from shared.paths import REPO_ROOT
+
 # The CPU flags that decide which onnxruntime kernels run (fp32 SIMD width, int8 dot products).
 VECTOR_FLAGS = (
     "sse4_2",
@@ -57,10 +59,7 @@ def machine_info() -> dict[str, Any]:
     return info
 
 
-REPO = Path(__file__).resolve().parents[1]
-
-
-def git_commit(repo: Path = REPO) -> str:
+def git_commit(repo: Path = REPO_ROOT) -> str:
     """Short commit of `repo`, "+dirty" with uncommitted changes; "unknown" outside a git checkout."""
     try:
         head = subprocess.run(

@@ -6,7 +6,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+from shared.paths import REPO_ROOT
+
+README = REPO_ROOT / "README.md"
 
 
 def markers(name: str) -> tuple[str, str]:

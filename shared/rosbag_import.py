@@ -51,6 +51,7 @@ from shared.devices.robosense import MODELS
 from shared.devices.sources import lidar_frame_message
 from shared.perception.decode import point_cloud_message
 from shared.scene.scene import Scene
+from shared.timebase import NS_PER_S
 
 JPEG_MAGIC, PNG_MAGIC = b"\xff\xd8", b"\x89PNG\r\n\x1a\n"
 POINTFIELD_DTYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
@@ -319,7 +320,7 @@ def _first_frame_id(reader: Any, topic: str) -> str:
 def _stamp_ns(msg: Any, bag_time_ns: int) -> int:
     """A message's header stamp (a packet's own `stamp` where it has no header), else its bag time."""
     stamp = msg.header.stamp if hasattr(msg, "header") else getattr(msg, "stamp", None)
-    value = int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec) if stamp is not None else 0
+    value = int(stamp.sec) * NS_PER_S + int(stamp.nanosec) if stamp is not None else 0
     return value or int(bag_time_ns)
 
 

@@ -19,6 +19,7 @@ import zenoh
 from rich.console import Console
 
 from shared.bus.session import SessionUnavailable, open_session
+from shared.bus.streams import data_keys
 from shared.bus.zenoh_config import CONFIG_ENV, DEFAULT_CLIENT_CONFIG, zenoh_config
 
 HELP = """Command-line tool of RMMDet: the live system, recordings, studies, sites.
@@ -33,7 +34,7 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, help=HELP, rich_ma
 # Wide when piped (logs, tests): rich would otherwise truncate key expressions at 80 columns.
 console = Console(width=None if sys.stdout.isatty() else 200)
 
-DATA_KEYS = "rmmdet/@v1/**"
+DATA_KEYS = data_keys()
 #: record/replay: main-loop period and the pause after the last replayed sample (lets the session
 #: deliver what it has queued before it closes), seconds.
 LOOP_S = 0.1

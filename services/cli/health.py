@@ -22,7 +22,7 @@ from shared.scene.scene import Scene
 
 HEALTH_STREAM = get_stream("health")
 HEALTH_KEYS = HEALTH_STREAM.pattern()
-ALIVE_KEYS = "rmmdet/@v1/*/@alive/**"
+ALIVE_KEYS = get_stream("alive").pattern()
 
 
 def level_name(level: int) -> str:

@@ -22,6 +22,7 @@ import zenoh
 
 from shared.bus.health import CRITICAL, DEGRADED, NOMINAL, InputMonitor
 from shared.bus.node import Node
+from shared.bus.streams import data_keys
 from shared.recording.bus import overlapping, subscribe_recorder
 from shared.recording.recorder import (
     BYTES_PER_MB,
@@ -45,7 +46,7 @@ from shared.shutdown import GracefulShutdown
 log = logging.getLogger("services.recorder")
 
 SCOPE = "site"
-DATA_KEYS = "rmmdet/@v1/**"
+DATA_KEYS = data_keys()
 #: Main-loop period, seconds (stop / duration checks, health status refresh).
 LOOP_S = 0.2
 BYTES_PER_MIB = 1024 * 1024

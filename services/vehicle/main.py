@@ -38,6 +38,7 @@ from shared.scene.scene import Scene
 from shared.security.plan_signing import PlanVerifier
 from shared.service import run_service
 from shared.shutdown import GracefulShutdown
+from shared.timebase import NS_PER_S
 from shared.traffic.plans import Ack
 from shared.vehicle import ros2
 from shared.vehicle.config import VehicleSettings
@@ -70,7 +71,7 @@ def plan_fields(plan: RoutePlan) -> dict[str, Any]:
         "plan_id": plan.plan_id,
         "version": int(plan.version),
         "lanes": list(plan.lane_ids),
-        "valid_for_s": round((plan.valid_until.ToNanoseconds() - time.time_ns()) / 1e9, 1),
+        "valid_for_s": round((plan.valid_until.ToNanoseconds() - time.time_ns()) / NS_PER_S, 1),
     }
 
 

@@ -23,6 +23,8 @@ from google.protobuf.descriptor import Descriptor, FieldDescriptor
 from google.protobuf.message import DecodeError, Message
 from rmmdet.v1.common_pb2 import Header
 
+from shared.timebase import NS_PER_S
+
 PROTOBUF_MIME = "application/protobuf"
 
 #: Default payload limit; frames are ~0.1-1 MB, everything else is far smaller.
@@ -232,7 +234,6 @@ def find_oversized(msg: Message, max_string_chars: int, max_list_length: int, pa
 #: Valid google.protobuf.Timestamp values (its own definition: 0001-01-01 .. 9999-12-31; we need no
 #: time before the Unix epoch). Outside them `ToNanoseconds` and friends raise.
 TIMESTAMP_SECONDS_MAX = 253_402_300_799
-NANOS_PER_S = 1_000_000_000
 
 
 @functools.cache
@@ -259,7 +260,7 @@ def find_bad_timestamp(msg: Message, path: str = "") -> str | None:
         for i, child in enumerate(children):
             name = (f"{path}." if path else "") + (f"{field.name}[{i}]" if field.is_repeated else field.name)
             if is_stamp:
-                if not (0 <= child.seconds <= TIMESTAMP_SECONDS_MAX and 0 <= child.nanos < NANOS_PER_S):
+                if not (0 <= child.seconds <= TIMESTAMP_SECONDS_MAX and 0 <= child.nanos < NS_PER_S):
                     return name
             elif found := find_bad_timestamp(child, name):
                 return found

@@ -23,6 +23,7 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from datetime import timedelta
+from importlib.metadata import version
 from types import TracebackType
 from typing import Any
 
@@ -50,7 +51,7 @@ from shared.timebase import SimTime
 
 log = logging.getLogger(__name__)
 
-VERSION = "0.1.0"
+VERSION = version("rmmdet")  # pyproject.toml is its one home
 
 
 def processing_stamp(stage: str, start_ns: int, end_ns: int | None = None) -> ProcessingStamp:

@@ -20,7 +20,9 @@ import yaml
 import zenoh
 from google.protobuf.message import Message
 
-STREAMS_YAML = Path(__file__).resolve().parents[2] / "proto" / "streams.yaml"
+from shared.paths import REPO_ROOT
+
+STREAMS_YAML = REPO_ROOT / "proto" / "streams.yaml"
 
 #: One key chunk of an id (agent, sensor, vehicle, service, instance). No Zenoh-reserved characters.
 #: Stream of each sensor kind's raw data (keys `.../<agent>/sensor/<kind>/<sensor>`).
@@ -280,6 +282,11 @@ def _access(
 def key_prefix(path: Path = STREAMS_YAML) -> str:
     """Every stream's key starts with it (streams.yaml `prefix`, e.g. `rmmdet/@v1`)."""
     return str(yaml.safe_load(path.read_text())["prefix"])
+
+
+def data_keys() -> str:
+    """Every data stream (`<prefix>/**`: verbatim control chunks such as @rpc and @alive stay out)."""
+    return f"{key_prefix()}/**"
 
 
 @functools.cache

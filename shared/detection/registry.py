@@ -18,8 +18,9 @@ from shared.detection.camera.config import CARD_FILE, ONNX_FILE
 from shared.detection.card import is_card
 from shared.detection.interface import CameraDetector, LidarDetector
 from shared.detection.precision import model_file
+from shared.paths import DEPLOY_DIR
 
-MODELS_DIR = Path(__file__).resolve().parents[2] / "deploy" / "models"
+MODELS_DIR = DEPLOY_DIR / "models"
 CAMERA_DETECTORS = ("onnx", "oracle")
 LIDAR_DETECTORS = ("pointpillars", "cluster", "oracle")
 CAMERA_MODEL = Path("camera") / ONNX_FILE

@@ -42,6 +42,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from shared.timebase import NS_PER_S
+
 MSOP_PORT = 6699
 DIFOP_PORT = 7788
 PACKET_BYTES = 1248
@@ -260,7 +262,7 @@ def ymd_time_ns(
     except ValueError as exc:  # no such day or time (leap seconds are not sent: GPS time has none)
         raise PacketError("bad_time", f"{year}-{month}-{day} {hour}:{minute}:{second}") from exc
     seconds = calendar.timegm(when.utctimetuple())
-    return seconds * 1_000_000_000 + ms * 1_000_000 + us * 1_000
+    return seconds * NS_PER_S + ms * 1_000_000 + us * 1_000
 
 
 def _check_packet(data: bytes, ident: bytes) -> None:
@@ -344,7 +346,7 @@ def packet_times_ns(packets: np.ndarray) -> np.ndarray:
     day_ns = np.array([ymd_time_ns(int(y), int(m), int(d), 0, 0, 0, 0, 0) for y, m, d in unique], np.int64)
     return (
         day_ns[index.reshape(-1)]
-        + ((hour * 60 + minute) * 60 + second) * 1_000_000_000
+        + ((hour * 60 + minute) * 60 + second) * NS_PER_S
         + ms * 1_000_000
         + us * 1_000
     )
@@ -655,7 +657,7 @@ class LidarStream:
         if use_device:
             times = packet_times_ns(packets)  # each packet's was checked on arrival
         else:
-            duration_ns = round(self.model.packet_duration_s(info.dual) * 1e9)
+            duration_ns = round(self.model.packet_duration_s(info.dual) * NS_PER_S)
             times = np.asarray(partial.recv_ns, np.int64) - duration_ns
         first_block = int(np.argmax(masks[0]))
         start_ns = int(times[0]) + round(self.model.block_time_us(info.dual)[first_block] * 1e3)

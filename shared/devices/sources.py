@@ -42,6 +42,7 @@ from shared.devices import ars408, robosense, serial_urls
 from shared.devices.mjpeg import TIMESTAMP_HEADER, MjpegStream, StreamError
 from shared.devices.site import Ars408Radar, RobosenseLidar, StreamCamera, VelodyneLidar
 from shared.perception.decode import point_cloud_message
+from shared.timebase import NS_PER_S
 
 log = logging.getLogger(__name__)
 
@@ -153,7 +154,7 @@ def _recv_stamped(sock: socket.socket) -> tuple[bytes, int] | None:
     for level, kind, payload in ancdata:
         if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(payload) >= _TIMESPEC.size:
             sec, nsec = _TIMESPEC.unpack(payload[: _TIMESPEC.size])
-            return data, sec * 1_000_000_000 + nsec
+            return data, sec * NS_PER_S + nsec
     return data, time.time_ns()
 
 
@@ -238,7 +239,7 @@ class VelodyneSource(_Source):
             self.count("rejected/packet/bad_length")
             return
         try:
-            result = self.decoder.decode(recv_ns / 1e9, data)
+            result = self.decoder.decode(recv_ns / NS_PER_S, data)
         except (RuntimeError, ValueError) as exc:
             self.count("rejected/packet/undecodable")
             log.debug("%s: %s", self.sensor_id, exc)
@@ -251,9 +252,9 @@ class VelodyneSource(_Source):
             self.count("scans/empty")
             return
         if self.spec.clock == "device":
-            stamp_ns, wall = self.on_host_hour(round(stamps.device * 1e9), recv_ns), False
+            stamp_ns, wall = self.on_host_hour(round(stamps.device * NS_PER_S), recv_ns), False
         else:
-            stamp_ns, wall = round(stamps.host * 1e9), True
+            stamp_ns, wall = round(stamps.host * NS_PER_S), True
         pts = np.asarray(points, np.float32)
         self._frame_out(
             Output(
@@ -407,7 +408,7 @@ class RadarSource(_Source):
                         Output(
                             self.sensor_id,
                             radar_scan_message(detections, self.sensor_id),
-                            round(detections.stamp_s * 1e9),
+                            round(detections.stamp_s * NS_PER_S),
                             True,
                             detections.meas_counter if self.spec.clock == "cycle" else None,
                         )

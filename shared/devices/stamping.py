@@ -41,7 +41,7 @@ CYCLE_MIN_FIT = 8  # cycles before the fit is trusted (before: the receive time,
 CYCLE_COUNTER_MOD = 1 << 16  # the ARS 408's measurement counters are 16 bits
 # A cycle the fit puts this far from its receive time, three in a row, means the line moved (the unit
 # restarted, the sim restarted): start over. One such frame alone is a late one and gets the line's time.
-CYCLE_RESET_NS = 1_000_000_000
+CYCLE_RESET_NS = NS_PER_S
 CYCLE_RESET_AFTER = 3
 TOLERANCE_NS = 1_000_000  # a device stamp up to this early still belongs to the tick (Robosense: 1 us)
 

@@ -18,6 +18,7 @@ import numpy as np
 from rmmdet.v1.perception_pb2 import ObjectClass, TrackedObjects
 from rosbags.typesys import get_types_from_msg
 
+from shared.timebase import NS_PER_S
 from shared.vehicle import ros2 as vehicle_ros2
 from shared.vehicle.ros2 import ros_header, ros_pose
 
@@ -84,7 +85,7 @@ def markers_cdr(objects: TrackedObjects, store: Any) -> bytes:
     types = store.types
     header = ros_header(store, objects.header.stamp.ToNanoseconds())
     marker_cls = types["visualization_msgs/msg/Marker"]
-    lifetime = types["builtin_interfaces/msg/Duration"](sec=0, nanosec=int(MARKER_LIFETIME_S * 1e9))
+    lifetime = types["builtin_interfaces/msg/Duration"](sec=0, nanosec=int(MARKER_LIFETIME_S * NS_PER_S))
     markers = []
     for obj in objects.objects:
         box = obj.box

@@ -21,6 +21,7 @@ from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 from mcap_protobuf.schema import build_file_descriptor_set
 from rmmdet.v1.common_pb2 import Header
 
+from shared.paths import RUN_DIR
 from shared.recording.record import (
     FORMAT,
     HEADER_TOPIC_SUFFIX,
@@ -42,7 +43,7 @@ COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none"
 DEFAULT_COMPRESSION = "zstd"
 LIBRARY = f"rmmdet-recording ({FORMAT}) {LIBRARY_IDENTIFIER}"
 #: Where recordings go by default (gitignored).
-RECORDINGS_DIR = Path(__file__).resolve().parents[2] / ".run" / "recordings"
+RECORDINGS_DIR = RUN_DIR / "recordings"
 
 
 def default_recording_path(now_s: float | None = None, directory: Path = RECORDINGS_DIR) -> Path:

@@ -91,7 +91,7 @@ def traffic_map(
             AgentCoverage(
                 agent_id=agent,
                 state=STATE_ENUM[state],
-                data_age_s=min(age_s, 1e9),
+                data_age_s=min(age_s, 1e9),  # not ns: a cap in seconds
                 object_count=count,
             )
         )

@@ -27,6 +27,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from shared.paths import DEPLOY_DIR
 from shared.scene.road_network import RoadNetwork
+from shared.timebase import NS_PER_S
 from shared.traffic.plans import Ack
 
 PATH_TYPE = "nav_msgs/msg/Path"
@@ -76,7 +77,7 @@ def plan_poses(plan: RoutePlan, network: RoadNetwork) -> np.ndarray:
 
 def ros_header(store: Any, stamp_ns: int, frame_id: str = FRAME_ID) -> Any:
     """A std_msgs/msg/Header at `stamp_ns` (ROS 1's, which also numbers messages, with seq 0)."""
-    sec, nanosec = divmod(stamp_ns, 1_000_000_000)
+    sec, nanosec = divmod(stamp_ns, NS_PER_S)
     time_cls, header_cls = store.types["builtin_interfaces/msg/Time"], store.types["std_msgs/msg/Header"]
     seq = {"seq": 0} if "seq" in header_cls.__dataclass_fields__ else {}
     return header_cls(**seq, stamp=time_cls(sec=sec, nanosec=nanosec), frame_id=frame_id)
@@ -123,14 +124,14 @@ def parse_plan_ack(cdr: bytes, store: Any) -> CarAnswer:
         status = Ack(msg.status)
     except ValueError:
         raise ValueError(f"PlanAck status {msg.status} is none of {[a.value for a in Ack]}") from None
-    return CarAnswer(msg.path_stamp.sec * 1_000_000_000 + msg.path_stamp.nanosec, status, msg.reason)
+    return CarAnswer(msg.path_stamp.sec * NS_PER_S + msg.path_stamp.nanosec, status, msg.reason)
 
 
 def plan_ack_cdr(path_stamp_ns: int, status: Ack, reason: str, store: Any) -> bytes:
     """A CDR PlanAck, as a ROS 2 car would publish it (tests and tools)."""
     types = store.types
     stamp = types["builtin_interfaces/msg/Time"](
-        sec=path_stamp_ns // 1_000_000_000, nanosec=path_stamp_ns % 1_000_000_000
+        sec=path_stamp_ns // NS_PER_S, nanosec=path_stamp_ns % NS_PER_S
     )
     msg = types[PLAN_ACK_TYPE](path_stamp=stamp, status=status.value, reason=reason)
     return bytes(store.serialize_cdr(msg, PLAN_ACK_TYPE))

@@ -53,9 +53,9 @@ from shared.geometry.transforms import polar_to_cartesian
 from shared.scene.model import SensorSpec
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
+from shared.timebase import NS_PER_S
 
 FRAME = "world"
-NS_PER_S = 1_000_000_000
 DYNAMIC_LIFETIME_S = 0.5  # a track or vehicle not redrawn for this long disappears
 PLAN_LIFETIME_S = 5.0
 PLAN_LIFT_M = 0.02  # plans are drawn this far above the lanes they follow

@@ -56,7 +56,7 @@ class WireGroup:
 
     def __init__(self, site: SiteFile, specs: list[SensorSpec]) -> None:
         self.delays_ns = {
-            s.id: round(d.latency_s * 1e9)
+            s.id: round(d.latency_s * NS_PER_S)
             for s in specs
             if isinstance(d := site.device(s.id), (Ars408Radar, StreamCamera))
         }
@@ -168,7 +168,7 @@ class _Scheduler:
         while True:
             with self._cond:
                 while not self._stop and (not self._queue or self._queue[0][0] > time.time_ns()):
-                    wait_s = (self._queue[0][0] - time.time_ns()) / 1e9 if self._queue else None
+                    wait_s = (self._queue[0][0] - time.time_ns()) / NS_PER_S if self._queue else None
                     self._cond.wait(wait_s)
                 if self._stop:
                     return

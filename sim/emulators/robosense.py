@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from shared.devices.robosense import MODELS, RobosenseModel, firing_of_sample, firings_per_turn
+from shared.timebase import NS_PER_S
 
 PACKET_LEN = 1248
 MSOP_MAGIC = b"\x55\xaa\x05\x0a\x5a\xa5\x50\xa0"
@@ -42,7 +43,7 @@ SEND_GRANULARITY_S = 0.01  # LidarSender wakes at most this often
 
 def ymd_fields(t_ns: int) -> bytes:
     """10 bytes: year-2000, month, day, hour, minute, second, ms (u16 BE), us (u16 BE), UTC."""
-    seconds, rest_ns = divmod(t_ns, 1_000_000_000)
+    seconds, rest_ns = divmod(t_ns, NS_PER_S)
     tm = time.gmtime(seconds)
     ms, us = divmod(rest_ns // 1000, 1000)
     return struct.pack(
@@ -52,7 +53,7 @@ def ymd_fields(t_ns: int) -> bytes:
 
 def utc_ns(year: int, month: int, day: int, hour: int, minute: int, second: int) -> int:
     """ns since the UNIX epoch of a UTC calendar time (tests build known answers with it)."""
-    return calendar.timegm((year, month, day, hour, minute, second, 0, 0, 0)) * 1_000_000_000
+    return calendar.timegm((year, month, day, hour, minute, second, 0, 0, 0)) * NS_PER_S
 
 
 @dataclass
@@ -281,7 +282,7 @@ class LidarSender:
                         # together (the device's rate on average; a wake-up per packet costs the
                         # emulator more than the sending).
                         due_ns = turn.first_ns + turn.next * interval_ns
-                        wait_s = max((due_ns - time.time_ns()) / 1e9, SEND_GRANULARITY_S)
+                        wait_s = max((due_ns - time.time_ns()) / NS_PER_S, SEND_GRANULARITY_S)
             if due is not None:
                 for packet in due:
                     self._send(packet, self.msop_addr)

@@ -11,6 +11,7 @@ from shared.devices import ars408, robosense
 from shared.devices.site import Ars408Radar, RobosenseLidar, SiteFile
 from shared.devices.sources import lidar_frame_message, radar_scan_message
 from shared.scene.scene import Scene
+from shared.timebase import NS_PER_S
 from sim.emulators.ars408 import Ars408Emulator
 from sim.emulators.group import radar_target
 from sim.emulators.robosense import RobosenseEmulator
@@ -19,7 +20,7 @@ from sim.sensors.rig import Capture
 
 # The emulated units' clocks run this far ahead of the lock-step sim's stamps (which may start at the
 # UNIX epoch; a Robosense YMD time starts in 2000). The study keeps each frame's tick stamp anyway.
-UNIT_CLOCK_OFFSET_NS = 946_684_800 * 1_000_000_000
+UNIT_CLOCK_OFFSET_NS = 946_684_800 * NS_PER_S
 
 
 class WireRoundTrip:
@@ -80,7 +81,7 @@ class WireRoundTrip:
             lists = [
                 lst
                 for can_id, data in em_radar.scan_frames([radar_target(t) for t in targets])
-                for lst in assembler.on_frame(can_id, data, c.stamp_ns / 1e9)
+                for lst in assembler.on_frame(can_id, data, c.stamp_ns / NS_PER_S)
             ]
             if len(lists) != 1:
                 self.counts["radar/lost"] = self.counts.get("radar/lost", 0) + 1

@@ -200,7 +200,7 @@ class Trainer:
         log.info(
             "model: %d parameters, %.3f GFLOPs at %dx%d, device %s, %d threads, bf16 %s",
             count_parameters(self.model),
-            2 * count_macs(self.model, cfg.input.height, cfg.input.width) / 1e9,
+            2 * count_macs(self.model, cfg.input.height, cfg.input.width) / 1e9,  # not ns: giga-operations
             cfg.input.width,
             cfg.input.height,
             self.device,
