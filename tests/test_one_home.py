@@ -5,6 +5,7 @@ walks every module of the project's packages; each rule names the one file allow
   the repository root (Path(__file__).parents[..])  shared/paths.py  REPO_ROOT
   the key prefix ("rmmdet/@v1...")        proto/streams.yaml via shared/bus/streams.py
   the package version                      pyproject.toml (importlib.metadata)
+  the car's class id                       shared/detection/interface.py  CAR_CLASS_ID
 Docstrings and comments may mention them; code may not restate them. Another quantity that happens to
 equal 10**9 says so on its line (`# not ns: ...`)."""
 
@@ -20,6 +21,7 @@ from shared.paths import REPO_ROOT
 PACKAGES = ("shared", "sim", "studies", "training", "services")
 VERSION = tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())["project"]["version"]
 NS_HOME, ROOT_HOME, KEY_HOME = "shared/timebase.py", "shared/paths.py", "shared/bus/streams.py"
+CLASS_HOME = "shared/detection/interface.py"
 
 
 def restated(source: str, path: str) -> list[str]:
@@ -51,6 +53,13 @@ def restated(source: str, path: str) -> list[str]:
                 found.append(f"{path}:{node.lineno}: key prefix {value!r} (use shared.bus.streams)")
             if isinstance(value, str) and value == VERSION:
                 found.append(f"{path}:{node.lineno}: version {value!r} (use importlib.metadata)")
+        if isinstance(node, ast.Assign) and path != CLASS_HOME:
+            for target in node.targets:
+                name = target.id if isinstance(target, ast.Name) else ""
+                if "CAR" in name and "CLASS" in name:
+                    found.append(
+                        f"{path}:{node.lineno}: {name} (use shared.detection.interface.CAR_CLASS_ID)"
+                    )
         if (
             isinstance(node, ast.Subscript)
             and isinstance(node.value, ast.Attribute)
@@ -81,6 +90,7 @@ def test_every_fact_has_one_home() -> None:
         'KEYS = "rmmdet/@v1/**"',
         f'VERSION = "{VERSION}"',
         "ROOT = Path(__file__).resolve().parents[2]",
+        "CLASS_CAR = 0.0",
     ],
 )
 def test_a_planted_duplicate_is_found(planted: str) -> None:

@@ -22,6 +22,8 @@ import numpy as np
 CAMERA_COLUMNS = ("x0", "y0", "x1", "y1", "score", "class_id")
 LIDAR_COLUMNS = ("x", "y", "z", "dx", "dy", "dz", "yaw", "score", "class_id")
 CLASS_NAMES = ("car",)
+#: The class id of a car in every detector's output (the index of "car" in CLASS_NAMES).
+CAR_CLASS_ID = CLASS_NAMES.index("car")
 
 
 class DetectorInputError(ValueError):

@@ -33,6 +33,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from shared.detection.interface import (
+    CAR_CLASS_ID,
     DetectorInputError,
     check_images,
     check_points,
@@ -41,7 +42,6 @@ from shared.detection.interface import (
 )
 from shared.scene.scene import vehicle_size_m as scene_vehicle_size_m
 
-CAR_CLASS_ID = 0
 # Default vehicle size (AWS Deepracer, 1:18): length, width, height, metres.
 BOX3D_COLUMNS = 7
 BOX2D_COLUMNS = 4

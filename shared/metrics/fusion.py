@@ -57,6 +57,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import linear_sum_assignment
 
+from shared.detection.interface import CAR_CLASS_ID
 from shared.geometry.boxes import bev_intersection_area_matrix, bev_iou_matrix
 from shared.geometry.grid import CellGrid, grid_shape
 from shared.metrics.detection import evaluate_kitti
@@ -90,7 +91,6 @@ AP_BEV_IOU_THRESHOLDS: tuple[float, ...] = (0.7, 0.5)
 # Score given to every prediction when the fusion output carries none (AP is then one operating point).
 DEFAULT_SCORE = 1.0
 # Class id column fed to evaluate_kitti (class-agnostic: never read).
-CLASS_ID = 0.0
 # Percentiles of the pose and velocity errors reported by `FusionAccumulator.summary`.
 POSE_PERCENTILES = (50.0, 95.0)
 VELOCITY_PERCENTILES = POSE_PERCENTILES
@@ -448,7 +448,7 @@ class FusionAccumulator:
         self._iou.append(np.diagonal(bev_iou_matrix(preds[p], gts[g])).copy())
         self._tp_gt_xy.append(gts[g][:, [X, Y]])
         self._fn_gt_xy.append(gts[match.misses][:, [X, Y]])
-        dets = np.column_stack([preds, score, np.full(preds.shape[0], CLASS_ID)])
+        dets = np.column_stack([preds, score, np.full(preds.shape[0], CAR_CLASS_ID)])
         self._kitti_frames.append((dets, gts, ignore))
         self.num_frames += 1
         self.num_pred += preds.shape[0]

@@ -25,6 +25,7 @@ from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from shared.config import with_overrides
+from shared.detection.interface import CAR_CLASS_ID
 from shared.detection.lidar.pointpillars.coding import (
     REG_COS2,
     REG_DIRECTION,
@@ -44,7 +45,6 @@ from training.pointpillars.net import PointPillarsNet, count_parameters, peak_sc
 log = logging.getLogger("pointpillars.train")
 
 PROB_EPS = 1e-4  # sigmoid clamp of the focal loss
-CLASS_CAR = 0.0
 EVAL_BATCH = 8
 CHECKPOINT_BEST = "model.pt"
 CHECKPOINT_LAST = "last.pt"
@@ -139,7 +139,7 @@ def evaluate(
 ) -> dict[str, Any]:
     """Validation accuracy of the torch model (evaluation.accuracy: KITTI R40 BEV / 3D AP, centre error)."""
     dets = [
-        np.column_stack([d, np.full(len(d), CLASS_CAR, d.dtype)])
+        np.column_stack([d, np.full(len(d), CAR_CLASS_ID, d.dtype)])
         for d in predict(model, frames, config, device)
     ]
     return accuracy(dets, [(f.boxes, f.ignore) for f in frames])

@@ -23,9 +23,8 @@ import numpy as np
 
 from shared.detection.camera.config import PostprocessConfig
 from shared.detection.card import CameraPost
-from shared.detection.interface import empty_camera_detections
+from shared.detection.interface import CAR_CLASS_ID, empty_camera_detections
 
-CAR_CLASS_ID = 0.0
 DET_COLUMNS = 5  # x0, y0, x1, y1, score
 SCORE_COL = 4
 INTERPOLATION = {"linear": cv2.INTER_LINEAR, "area": cv2.INTER_AREA}

@@ -41,7 +41,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from shared.detection.interface import check_points, empty_lidar_detections
+from shared.detection.interface import CAR_CLASS_ID, check_points, empty_lidar_detections
 from shared.detection.lidar.box_fit import BoxFitParams, FittedBox, fit_vehicle_box
 from shared.detection.lidar.ground import SEARCH, SlabSearch, Verdict, above_table, peel_slabs
 from shared.scene.scene import vehicle_size_m as scene_vehicle_size_m
@@ -49,7 +49,6 @@ from shared.scene.scene import vehicle_size_m as scene_vehicle_size_m
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-CAR_CLASS_ID = 0
 # AWS Deepracer (1:18): length, width, height, metres.
 # Guards the line-of-sight direction of a point at the sensor's own position, metres.
 _MIN_RANGE_M = 1e-6

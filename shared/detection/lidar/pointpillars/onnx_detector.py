@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from shared.detection.interface import LIDAR_COLUMNS, check_points, empty_lidar_detections
+from shared.detection.interface import CAR_CLASS_ID, LIDAR_COLUMNS, check_points, empty_lidar_detections
 from shared.detection.lidar.pointpillars.coding import BOX_COLUMNS, decode, rotated_nms
 from shared.detection.lidar.pointpillars.config import PointPillarsConfig
 from shared.detection.lidar.pointpillars.pillars import Pillars, flat_coords, pillarize
@@ -22,7 +22,6 @@ from shared.detection.precision import fp32_file
 
 INPUT_NAMES = ("features", "num_points", "coords")
 OUTPUT_NAMES = ("peak_scores", "regression")
-CLASS_CAR = 0.0
 SCORE_COLUMN = BOX_COLUMNS
 #: Pillar counts run by `warm_up` after the largest, down to one: after the largest alone the arena still
 #: grew at the first mix of sizes.
@@ -104,7 +103,7 @@ class OnnxPointPillars:
         boxes = boxes[rotated_nms(boxes, cfg.post.nms_iou_threshold, cfg.post.max_detections)]
         out = np.empty((len(boxes), len(LIDAR_COLUMNS)), np.float32)
         out[:, : SCORE_COLUMN + 1] = boxes
-        out[:, SCORE_COLUMN + 1] = CLASS_CAR
+        out[:, SCORE_COLUMN + 1] = CAR_CLASS_ID
         return out
 
     def detect(self, points: np.ndarray) -> np.ndarray:
