@@ -22,11 +22,19 @@ $(INSTALLED): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --disable-pip-version-check --upgrade pip
 	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e '.[dev,train]'
-	@# open3d's wheel links libusb-1.0 (a system library pip cannot provide).
-	@ldconfig -p | grep -q 'libusb-1.0.so.0' || { \
+	@# System packages pip cannot provide: libusb-1.0 (open3d's wheel links it); for the tests, Debian's
+	@# chromium (the dashboard test's browser), nftables and iproute2 (the multi-host tests' network
+	@# namespaces and cut links). Installed with apt when root, else named and the install stops.
+	@missing=""; \
+	ldconfig -p | grep -q 'libusb-1.0.so.0' || missing="$$missing libusb-1.0-0"; \
+	command -v chromium >/dev/null || missing="$$missing chromium"; \
+	command -v nft >/dev/null || missing="$$missing nftables"; \
+	command -v ip >/dev/null || missing="$$missing iproute2"; \
+	if [ -n "$$missing" ]; then \
 	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
-	    DEBIAN_FRONTEND=noninteractive apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0; \
-	  else echo "error: open3d needs libusb-1.0 (apt-get install libusb-1.0-0)"; exit 1; fi; }
+	    DEBIAN_FRONTEND=noninteractive apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing; \
+	  else echo "error: system packages missing:$$missing (as root: apt-get install$$missing)"; exit 1; fi; \
+	fi
 	@touch $@
 
 install: $(INSTALLED) $(PROTO_STAMP) ## create .venv and install the project (+ dev tools), generate protobuf code

@@ -33,3 +33,40 @@ def router() -> Iterator[Router]:
         yield r
     finally:
         stop(r.proc)
+
+
+# --- skips: only when asked for -----------------------------------------------------------------------
+#: `make test` runs every test: a skip (a missing system package, a missing tool) fails the run unless
+#: this variable allows skips (e.g. RMMDET_ALLOW_SKIPS=1 make test on a machine without chromium); the
+#: run then ends with the number of skips and their reasons.
+ALLOW_SKIPS_ENV = "RMMDET_ALLOW_SKIPS"
+
+
+def _skips_allowed() -> bool:
+    import os
+
+    return os.environ.get(ALLOW_SKIPS_ENV) == "1"
+
+
+def fail_unallowed_skip(report: pytest.TestReport, allowed: bool) -> None:
+    """A skipped test's report turned into a failure naming the skip's reason, unless skips are allowed
+    (an expected failure, xfail, stays as it is)."""
+    if report.skipped and not hasattr(report, "wasxfail") and not allowed:
+        reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else str(report.longrepr)
+        report.outcome = "failed"
+        report.longrepr = f"skipped, and skips are not allowed ({ALLOW_SKIPS_ENV}=1 allows them): {reason}"
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) -> Iterator[None]:
+    outcome = yield
+    fail_unallowed_skip(outcome.get_result(), _skips_allowed())  # type: ignore[attr-defined]
+
+
+def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
+    skipped = terminalreporter.stats.get("skipped", [])
+    if skipped:
+        terminalreporter.write_line(f"{len(skipped)} test(s) skipped ({ALLOW_SKIPS_ENV}=1):", bold=True)
+        for report in skipped:
+            reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else str(report.longrepr)
+            terminalreporter.write_line(f"  {report.nodeid}: {reason}")
