@@ -51,47 +51,39 @@ class RandomSpec:
     speed_mps: float = 13.89
 
 
-def _common(lanes: int, speed_mps: float) -> list[str]:
-    return [
-        f"--default.lanenumber={lanes}",
-        f"--default.speed={speed_mps}",
-        f"--default-junction-type={JUNCTION_TYPE}",
-        "--no-turnarounds=true",  # as on the table: no U-turn onto the same road's other direction
-    ]
+def _netgenerate(kind: list[str], lanes: int, speed_mps: float, out: Path) -> Path:
+    """Run netgenerate with the `kind` options and the settings every generated network shares."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tools.run(
+        [
+            tools.program("netgenerate"),
+            *kind,
+            f"--default.lanenumber={lanes}",
+            f"--default.speed={speed_mps}",
+            f"--default-junction-type={JUNCTION_TYPE}",
+            "--no-turnarounds=true",  # as on the table: no U-turn onto the same road's other direction
+            f"--output-file={out}",
+        ]
+    )
+    return out
 
 
 def grid_network(spec: GridSpec, out: Path) -> Path:
     """Write the grid network `out` (a .net.xml); its path."""
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tools.run(
-        [
-            tools.program("netgenerate"),
-            "--grid",
-            f"--grid.number={spec.junctions_per_side}",
-            f"--grid.length={spec.edge_length_m}",
-            *_common(spec.lanes, spec.speed_mps),
-            f"--output-file={out}",
-        ]
-    )
-    return out
+    kind = ["--grid", f"--grid.number={spec.junctions_per_side}", f"--grid.length={spec.edge_length_m}"]
+    return _netgenerate(kind, spec.lanes, spec.speed_mps, out)
 
 
 def random_network(spec: RandomSpec, out: Path) -> Path:
     """Write the random network `out` (a .net.xml); its path."""
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tools.run(
-        [
-            tools.program("netgenerate"),
-            "--rand",
-            f"--rand.iterations={spec.iterations}",
-            f"--rand.min-distance={spec.min_distance_m}",
-            f"--rand.max-distance={spec.max_distance_m}",
-            f"--seed={spec.seed}",
-            *_common(spec.lanes, spec.speed_mps),
-            f"--output-file={out}",
-        ]
-    )
-    return out
+    kind = [
+        "--rand",
+        f"--rand.iterations={spec.iterations}",
+        f"--rand.min-distance={spec.min_distance_m}",
+        f"--rand.max-distance={spec.max_distance_m}",
+        f"--seed={spec.seed}",
+    ]
+    return _netgenerate(kind, spec.lanes, spec.speed_mps, out)
 
 
 def _fmt(value: float) -> str:
