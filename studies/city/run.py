@@ -162,12 +162,11 @@ class Coordinated:
     ) -> None:
         scene, ids = scene_from_sumo(run.net, run.layout)
         settings = with_overrides(coordinator, {"planner": {"seed": run.seed}})
-        regions = RegionMap(partition_junctions(RoadNetwork(scene), run.shards, seed=run.seed))
+        network = RoadNetwork(scene)  # built once: partition and perception stand-in read the same graph
+        regions = RegionMap(partition_junctions(network, run.shards, seed=run.seed))
         self.coordinator = ShardedCoordinator(scene, settings, regions, run.max_vehicles)
         agents = sorted(scene.agents)
-        self.oracle = OracleAgents(
-            scene, RoadNetwork(scene), roadside_model(model, agents, run.profile), run.seed
-        )
+        self.oracle = OracleAgents(scene, network, roadside_model(model, agents, run.profile), run.seed)
         self.clients = SumoPlanClients(world, ids, run.request_before_m)
         self.world = world
         self.run = run
