@@ -44,12 +44,16 @@ def routed_demand(net: Path, spec: DemandSpec, seed: int, out: Path) -> Path:
     route per vehicle); its path. Trips duarouter cannot route (disconnected edges) are dropped by
     randomTrips' validation, so every vehicle of the file has a route."""
     out.parent.mkdir(parents=True, exist_ok=True)
-    trips = out.with_name(out.name.replace(".rou.xml", "") + ".trips.xml")
+    stem = out.name.replace(".rou.xml", "")
+    trips = out.with_name(stem + ".trips.xml")
     tools.run(
         [
             tools.tool("randomTrips.py"),
             f"--net-file={net}",
             f"--output-trip-file={trips}",
+            # --validate routes the trips through duarouter into this file (by default routes.rou.xml in
+            # the working directory, which then littered wherever the study ran).
+            f"--route-file={out.with_name(stem + '.validated.rou.xml')}",
             f"--seed={seed}",
             f"--begin={spec.begin_s}",
             f"--end={spec.end_s}",
@@ -59,7 +63,8 @@ def routed_demand(net: Path, spec: DemandSpec, seed: int, out: Path) -> Path:
             "--validate",
             "--junction-taz",  # junction to junction, as the coordinator plans (module docstring)
             "--prefix=v",
-        ]
+        ],
+        cwd=out.parent,
     )
     tools.run(
         [

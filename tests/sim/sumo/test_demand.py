@@ -18,7 +18,12 @@ def _vehicles(path: Path) -> list[tuple[str, float, list[str]]]:
     ]
 
 
-def test_routed_demand_is_reproducible_per_seed_and_connected(tmp_path: Path) -> None:
+def test_routed_demand_is_reproducible_per_seed_and_connected(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    elsewhere = tmp_path / "cwd"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)  # randomTrips once wrote routes.rou.xml into the working directory
     net_path = network.grid_network(network.GridSpec(junctions_per_side=3), tmp_path / "grid.net.xml")
     spec = demand.DemandSpec(vehicles=30, begin_s=10.0, end_s=70.0, min_distance_m=100.0)
     first = _vehicles(demand.routed_demand(net_path, spec, 7, tmp_path / "a" / "s7.rou.xml"))
@@ -30,6 +35,7 @@ def test_routed_demand_is_reproducible_per_seed_and_connected(tmp_path: Path) ->
     for _, depart_s, edges in first:
         assert 10.0 <= depart_s < 70.0
         assert all(net.getEdge(b) in net.getEdge(a).getOutgoing() for a, b in itertools.pairwise(edges))
+    assert not any(elsewhere.iterdir())
 
 
 def test_empty_demand_is_refused() -> None:
