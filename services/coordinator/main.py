@@ -1,6 +1,6 @@
 """Cloud coordinator: merges every agent's objects into traffic maps and plans routes for vehicles.
 
-    python -m services.coordinator [--settings deploy/coordinator/coordinator.yaml]
+    python -m services.coordinator [--settings deploy/coordinator/coordinator.yaml] [--shard K]
 
 A shell around `CoordinatorCore` (shared/traffic/core.py: coverage, maps, planning, re-planning and
 plan delivery; the flow experiment drives the same core). Here: the bus. Inputs: every agent's
@@ -24,6 +24,8 @@ from pathlib import Path
 import zenoh
 from rmmdet.v1.planning_pb2 import RoutePlan, RouteRequest, RouteResponse
 
+from services.coordinator.shard import ShardLink, shard_core, shard_instance
+from shared.bus.health import worst
 from shared.bus.liveliness import agent_of_mec_token
 from shared.bus.node import Node, Received, processing_stamp
 from shared.bus.queues import BoundedQueue, OverflowPolicy
@@ -77,13 +79,19 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     keep_large_buffers_unmapped()
     settings = load_coordinator_settings(args.settings)
     scene = Scene.load(settings.scene)
-    core = CoordinatorCore(scene, settings, settings.service.max_vehicles)
+    if args.shard is None:
+        core = CoordinatorCore(scene, settings, settings.service.max_vehicles)
+    else:  # one region of a sharded coordinator (services/coordinator/shard.py)
+        core = shard_core(scene, settings, args.shard)
+        if args.instance == INSTANCE:
+            args.instance = shard_instance(args.shard)
     signer = PlanSigner.load(settings.plan_signing_key)
     with Node(conf, service=SERVICE, instance=args.instance, scope=SCOPE, stop=shutdown.event) as node:
         # Coverage, map smoothing and plan timing run on the clock of record (sim time when a sim runs).
         clock = SimTime()
         node.follow_sim_time(clock)
-        service = CoordinatorService(node, core, settings, clock, signer)
+        shard = ShardLink(node, core, settings, clock) if core.shard is not None else None
+        service = CoordinatorService(node, core, settings, clock, signer, shard)
         rpc = RpcServer(
             node,
             "route_rpc",
@@ -96,8 +104,10 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         )
         node.queryable(rpc.key, rpc)
         log.info(
-            "coordinator up: scene %s, agents %s, policy %s, maps %.1f Hz, replan every %.1f s, plan key %s",
+            "coordinator up: scene %s, %s, agents %s, policy %s, maps %.1f Hz, replan every %.1f s, "
+            "plan key %s",
             scene.scene_id,
+            "unsharded" if shard is None else f"shard of region {shard.region}",
             core.agents,
             settings.planner.policy,
             settings.map_publish_hz,
@@ -105,6 +115,8 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             signer.key_id,
         )
         service.run(shutdown)
+        if shard is not None:
+            shard.close()
         log.info("counters at exit: %s", node.counters.snapshot())
     return 0
 
@@ -119,22 +131,32 @@ class CoordinatorService:
         settings: CoordinatorSettings,
         clock: SimTime,
         signer: PlanSigner,
+        shard: ShardLink | None = None,
     ) -> None:
         self.node, self.core, self.settings, self.clock = node, core, settings, clock
         self.signer = signer
+        self.shard = shard
         self.counters = node.counters
         # Object lists older than the stale threshold on arrival would not make their agent LIVE; lists
         # too large to hold `limits.max_objects_per_list` objects are refused before they are parsed.
         bus_limits = limits()
-        self.objects = node.subscribe(
-            OBJECTS.pattern(),
-            OBJECTS.message_type,
-            maxsize=settings.service.objects_queue_per_agent * len(core.agents),
-            max_age_s=settings.coverage.stale_after_s,
-            max_payload_bytes=bus_limits.max_objects_per_list * MAX_OBJECT_BYTES,
-            clock_s=clock.now_s,
-            max_future_s=bus_limits.max_clock_skew_s,
+        objects: BoundedQueue[Received] = BoundedQueue(
+            settings.service.objects_queue_per_agent * max(1, len(core.agents)),
+            OverflowPolicy.DROP_OLDEST,
+            node.counters,
         )
+        # Unsharded every agent's key; a shard its own agents' only.
+        for key in [OBJECTS.pattern()] if shard is None else [OBJECTS.key(agent=a) for a in core.agents]:
+            node.subscribe(
+                key,
+                OBJECTS.message_type,
+                queue=objects,
+                max_age_s=settings.coverage.stale_after_s,
+                max_payload_bytes=bus_limits.max_objects_per_list * MAX_OBJECT_BYTES,
+                clock_s=clock.now_s,
+                max_future_s=bus_limits.max_clock_skew_s,
+            )
+        self.objects = objects
         # Acks carry their plan's stamp (or a plan end's tick): the coordinator's clock of record.
         self.acks = node.subscribe_stream(
             "route_ack", clock_s=clock.now_s, max_future_s=bus_limits.max_clock_skew_s
@@ -150,11 +172,25 @@ class CoordinatorService:
         # Object lists and the sim clock come tens of times a second: all of them silent at once is a
         # frozen link (reliability.md R2), held like a cut one.
         node.uplink.expect_traffic(settings.coverage.bus_silent_after_s, settings.coverage.bus_silence_max_s)
-        self.map_pub = node.publisher("traffic_map")
-        node.health.set_status(core.health)  # Zenoh thread: cached values only
+        self.map_pub = (
+            node.publisher("traffic_map")
+            if shard is None
+            else node.publisher("region_map", region=str(shard.region))
+        )
+        node.health.set_status(self.health)  # Zenoh thread: cached values only
+
+    def health(self) -> tuple[int, str]:
+        """The core's health, or the shard's when it is worse (cached values only: a Zenoh thread)."""
+        level, message = self.core.health()
+        other = self.shard.health() if self.shard is not None else None
+        if other is None:
+            return level, message
+        return worst(level, other[0]), f"{message}; {other[1]}"
 
     def plan(self, request: RouteRequest, start_ns: int) -> tuple[RouteResponse, int]:
         """The route RPC's handler (Zenoh thread; the core's lock guards its state)."""
+        if self.shard is not None:
+            self.shard.gate(request)  # another region's lane: declined; a vehicle not held: deferred
         self.record_objects()  # a plan includes every list that reached the process before the request
         ended = self.core.ended_by_request
         try:
@@ -202,8 +238,12 @@ class CoordinatorService:
             tick = self.core.tick(now, time.time_ns())
             if tick.coverage is not None:
                 log.warning("coverage: %s", ", ".join(f"{a} {s.value}" for a, s in tick.coverage.items()))
+            if self.shard is not None:
+                self.shard.poll(now)
             if tick.publish_map:
-                self.publish_map(now)
+                stamp_ns = self.publish_map(now)
+                if self.shard is not None:
+                    self.shard.publish_clique(now, stamp_ns)
             if tick.replanned:
                 log.info("replan: %d plans to push", tick.replanned)
             self.push(now)
@@ -219,7 +259,7 @@ class CoordinatorService:
 
     def ingest(self, wait_s: float) -> None:
         """Wait up to `wait_s` for object lists, then take everything queued: lists, presence, acks."""
-        first = self.objects.recv(timeout=max(0.0, wait_s))
+        first = self.objects.get(timeout=max(0.0, wait_s))
         self.record_objects([first] if first is not None else [])
         now = self.clock.now_s()
         for key, alive in self.presence.changes():
@@ -232,7 +272,11 @@ class CoordinatorService:
                 self.counters.inc("vehicles/forgotten_on_leave", forgotten)
                 log.warning("the vehicles' process left the bus: %d vehicles' plans ended", forgotten)
         for item in self.acks.drain():
-            for counter in self.core.receive_ack(ACKS.id_of(item.key, "vehicle"), item.message, now):
+            vehicle = ACKS.id_of(item.key, "vehicle")
+            if self.shard is not None and not self.core.owns_vehicle(vehicle):
+                self.counters.inc("acks/other_shard")  # every shard hears every vehicle's acks
+                continue
+            for counter in self.core.receive_ack(vehicle, item.message, now):
                 self.counters.inc(counter)
 
     def record_objects(self, items: list[Received] | None = None) -> None:
@@ -245,12 +289,14 @@ class CoordinatorService:
             if not self.core.receive_objects(agent, item.message, stamp_ns, now, epoch):
                 self.counters.inc("rejected/unknown_agent")
 
-    def publish_map(self, now: float) -> None:
+    def publish_map(self, now: float) -> int:
+        """Publish the maps; returns their data stamp (ns)."""
         start_ns = time.time_ns()
         msg, stamp_ns = self.core.map_message(now)
         stage = processing_stamp(f"{STAGE}/map", start_ns, time.time_ns())
         self.map_pub.put(msg, stamp_ns=stamp_ns or start_ns, frame_id="world", stages=[stage])
         self.counters.inc("maps/published")
+        return stamp_ns or start_ns
 
     def push(self, now: float) -> None:
         if self.node.uplink.cut_off():  # a send now goes nowhere: not an attempt, resent once back
@@ -267,6 +313,13 @@ class CoordinatorService:
 def add_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--settings", type=Path, default=DEFAULT_COORDINATOR_CONFIG, help="coordinator settings YAML"
+    )
+    parser.add_argument(
+        "--shard",
+        type=int,
+        default=None,
+        metavar="K",
+        help="serve region K of the settings' shards.regions map (instance region<K>); default: unsharded",
     )
 
 

@@ -170,12 +170,13 @@ def _field_plan(descriptor: Descriptor, wants: str) -> tuple[tuple[FieldDescript
 
 
 def _all_finite(values: Sequence[float]) -> bool:
-    # One C-level pass: the exact sum is finite iff every term is (a sum of finite doubles only
-    # overflows for magnitudes near 1e308, which no field may hold anyway).
+    # One C-level pass: the exact sum is finite iff every term is, unless finite terms near 1e308
+    # overflow it (a forged message's): then each term is looked at (it raised StopIteration in
+    # `find_non_finite` before, found by the fuzzer).
     try:
         return math.isfinite(math.fsum(values))
     except OverflowError:
-        return False
+        return all(math.isfinite(v) for v in values)
 
 
 def find_non_finite(msg: Message, path: str = "") -> str | None:

@@ -3,7 +3,10 @@
 Runs on a Zenoh thread: decode (validated, rejections counted by reason), call the handler, reply with
 the response and a stamped header (source id, sequence number, data stamp, a processing stamp of the
 handler's work), or with an `ErrorResponse` when the request is malformed or the handler refuses it.
-It never raises into Zenoh and never blocks beyond the handler's own work.
+It never raises into Zenoh and never blocks beyond the handler's own work. A handler may also leave the
+request to another server on the same key (`RpcDeclined`: no reply, a sharded coordinator's other
+regions) or answer it later without blocking (`RpcDeferred`: the query is kept open and answered when
+what it waits for arrives, e.g. a vehicle handed over by another shard).
 
     server = RpcServer(node, "route_rpc", RouteRequest, handle, stage="coordinator/plan")
     node.queryable(server.key, server)
@@ -41,7 +44,28 @@ class RpcRejected(Exception):
         self.message = message
 
 
-#: ``handle(request, start_ns) -> (response, data stamp in ns or 0)``; may raise RpcRejected.
+class RpcDeclined(Exception):
+    """Raised by a handler for a request another server on the key answers (`declined/<reason>` is
+    counted, nothing is replied: a caller asking every server takes the one that answers)."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
+class RpcDeferred(Exception):
+    """Raised by a handler that answers later: `start(resume)` is called at once (on the Zenoh thread: it
+    must not block) and must make sure `resume()` is called exactly once, from any thread, when the
+    handler can answer; `resume` runs the handler again for the same request and replies. The caller's
+    query timeout bounds the wait. A handler that defers again on resume is a bug (INTERNAL)."""
+
+    def __init__(self, start: Callable[[Callable[[], None]], None]) -> None:
+        super().__init__("deferred")
+        self.start = start
+
+
+#: ``handle(request, start_ns) -> (response, data stamp in ns or 0)``; may raise RpcRejected,
+#: RpcDeclined or RpcDeferred.
 Handler = Callable[[Req, int], tuple[Message, int]]
 
 
@@ -106,7 +130,6 @@ class RpcServer(Generic[Req]):
             attachment = query.attachment.to_bytes() if query.attachment is not None else None
             decoded = self._decoder.decode_or_raise(query.payload.to_bytes(), str(query.encoding), attachment)
             self._check_key(str(query.key_expr), decoded.message)
-            response, stamp_ns = self._handle(cast(Req, decoded.message), start_ns)
         except Rejected as err:
             counters.inc(f"rejected/{err.reason}")
             self._error(query, ErrorCode.ERROR_CODE_INVALID_REQUEST, str(err))
@@ -114,6 +137,30 @@ class RpcServer(Generic[Req]):
         except RpcRejected as err:
             counters.inc(f"rejected/{err.reason}")
             self._error(query, err.code, err.message)
+            return
+        self._answer(query, cast(Req, decoded.message), start_ns, resumed=False)
+
+    def _answer(self, query: zenoh.Query, request: Req, start_ns: int, resumed: bool) -> None:
+        counters = self.node.counters
+        try:
+            response, stamp_ns = self._handle(request, start_ns)
+        except RpcRejected as err:
+            counters.inc(f"rejected/{err.reason}")
+            self._error(query, err.code, err.message)
+            return
+        except RpcDeclined as err:
+            counters.inc(f"declined/{err.reason}")
+            return
+        except RpcDeferred as err:
+            if not resumed:
+                counters.inc("deferred")
+                try:
+                    err.start(lambda: self._answer(query, request, start_ns, resumed=True))
+                    return
+                except Exception:
+                    log.exception("%s: deferring failed", self.key)
+            counters.inc("rejected/internal")
+            self._error(query, ErrorCode.ERROR_CODE_INTERNAL, "internal error")
             return
         except Exception:  # a bug must still answer: the caller gets INTERNAL, not a timeout
             counters.inc("rejected/internal")
@@ -129,13 +176,18 @@ class RpcServer(Generic[Req]):
         if self._embed_header is not None:
             self._embed_header(response, header)
         encoded = encode(response, header)
-        query.reply(
-            query.key_expr,
-            encoded.payload,
-            encoding=encoded.encoding,
-            attachment=encoded.attachment,
-            **self._qos,
-        )
+        try:
+            query.reply(
+                query.key_expr,
+                encoded.payload,
+                encoding=encoded.encoding,
+                attachment=encoded.attachment,
+                **self._qos,
+            )
+        except Exception as err:  # a deferred answer after the caller's timeout: the query is closed
+            counters.inc("reply_failed")
+            log.debug("%s: reply failed: %s", self.key, err)
+            return
         counters.inc(self._served)
 
     def _check_key(self, key: str, request: Message) -> None:

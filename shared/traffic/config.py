@@ -123,6 +123,22 @@ class ServiceConfig(_Section):
     )
 
 
+class ShardConfig(_Section):
+    """A sharded coordinator (one process per region of `regions`; which one: the service's `--shard`)."""
+
+    regions: Path | None = Field(
+        None, description="region map JSON (shared/traffic/regions.py RegionMap); none: one coordinator"
+    )
+    clique_stale_after_s: float = Field(
+        3.0,
+        gt=0,
+        description="a region whose shard published no valid clique for this long is planned on a prior",
+    )
+    release_timeout_s: float = Field(
+        0.3, gt=0, description="how long a shard waits for the others to hand over a vehicle that asks it"
+    )
+
+
 class CoordinatorSettings(RmmdetSettings):
     model_config = settings_config(env_prefix="RMMDET_COORD_")
 
@@ -132,6 +148,7 @@ class CoordinatorSettings(RmmdetSettings):
     planner: PlannerConfig = PlannerConfig()
     delivery: DeliveryConfig = DeliveryConfig()
     service: ServiceConfig = ServiceConfig()
+    shards: ShardConfig = ShardConfig()
     plan_signing_key: Path = Field(
         plan_key_paths(DEFAULT_PKI_DIR).key,
         description="Ed25519 private key (PEM) that signs every plan (`rmmdet pki init` creates it)",
@@ -150,6 +167,8 @@ def load_coordinator_settings(path: Path | None = DEFAULT_COORDINATOR_CONFIG) ->
     settings = load_settings(CoordinatorSettings, path)
     if not settings.scene.is_absolute():
         settings.scene = REPO_ROOT / settings.scene
+    if settings.shards.regions is not None and not settings.shards.regions.is_absolute():
+        settings.shards.regions = REPO_ROOT / settings.shards.regions
     if not settings.plan_signing_key.is_absolute():
         settings.plan_signing_key = REPO_ROOT / settings.plan_signing_key
     return settings

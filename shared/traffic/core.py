@@ -49,7 +49,7 @@ from shared.traffic.planner import (
     RoutePlanner,
     ShardView,
 )
-from shared.traffic.plans import Ack, IssuedPlan, PlanBook
+from shared.traffic.plans import Ack, ActivePlan, Handover, IssuedPlan, PlanBook
 from shared.traffic.regions import Clique
 
 log = logging.getLogger(__name__)
@@ -78,26 +78,6 @@ class Tick:
     coverage: dict[str, AgentState] | None  # the agents' states when they changed since the last tick
     publish_map: bool  # the maps are due for publication (period, or a coverage change)
     replanned: int | None  # plans issued by a re-plan (sent by `due`); None when none was due
-
-
-@dataclass(frozen=True)
-class Handover:
-    """A vehicle passed between shards: its latest plan, its version counter, the core's record."""
-
-    plan: IssuedPlan
-    version: int
-    active: _Active
-
-
-@dataclass
-class _Active:
-    """What the coordinator keeps about a vehicle's latest plan beyond the PlanBook."""
-
-    destination: str
-    missing: frozenset[str]  # agents not LIVE in the maps the plan was made on
-    message: RoutePlan  # as sent; resends repeat it unchanged (idempotent at the vehicle)
-    stamp_ns: int  # data stamp of the maps it was made on
-    valid_until_ns: int  # wall clock
 
 
 class CoordinatorCore:
@@ -146,7 +126,7 @@ class CoordinatorCore:
         self._stamp_ns: dict[str, int] = {}  # data stamp of each agent's latest objects
         reset_ns = round(limits().order_reset_s * NS_PER_S)
         self._order = {a: OrderGate(reset_ns) for a in self.agents}  # (epoch, stamp) per agent
-        self._active: dict[str, _Active] = {}
+        self._active: dict[str, ActivePlan] = {}
         self.snapshot: TrafficSnapshot | None = None
         self._cond = LaneConditions()
         self._missing: frozenset[str] = frozenset(self.agents)  # as of the latest maps
@@ -341,7 +321,7 @@ class CoordinatorCore:
         valid_until_ns = wall_ns + round(self.settings.planner.plan_ttl_s * NS_PER_S)
         live = [a for a in self.agents if a not in self._missing]
         msg = messages.route_plan(plan, destination, valid_until_ns, live, sorted(self._missing))
-        self._active[plan.vehicle_id] = _Active(
+        self._active[plan.vehicle_id] = ActivePlan(
             destination, self._missing, msg, self._map_stamp_ns, valid_until_ns
         )
         return msg
@@ -437,7 +417,7 @@ class CoordinatorCore:
         # first turn stays and the rest is planned again from there.
         return plan.route.policy not in ONE_JUNCTION_POLICIES and len(plan.route.lanes) >= 2
 
-    def _better_route(self, vid: str, route: Route, active: _Active) -> Route | None:
+    def _better_route(self, vid: str, route: Route, active: ActivePlan) -> Route | None:
         head, start = route.lanes[0], route.lanes[1]
         try:
             new = self.planner.plan(vid, start, active.destination, self._cond, route.policy)

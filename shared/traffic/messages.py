@@ -2,31 +2,56 @@
 
 from __future__ import annotations
 
+import math
+from collections.abc import Iterable
+
 import numpy as np
 from google.protobuf.message import Message
 from google.protobuf.timestamp_pb2 import Timestamp
+from numpy.typing import NDArray
 from rmmdet.v1.common_pb2 import Header
 from rmmdet.v1.perception_pb2 import TrackedObjects
-from rmmdet.v1.planning_pb2 import PlanCoverage, RoutePlan, RoutePolicy, RouteResponse
-from rmmdet.v1.traffic_pb2 import AgentCoverage, AgentState, AreaTraffic, LaneTraffic, TrafficMap
+from rmmdet.v1.planning_pb2 import (
+    AckStatus,
+    PlanCoverage,
+    PlanHandover,
+    RoutePlan,
+    RoutePolicy,
+    RouteResponse,
+)
+from rmmdet.v1.traffic_pb2 import (
+    AgentCoverage,
+    AgentState,
+    AreaTraffic,
+    CliquePath,
+    LaneTraffic,
+    RegionClique,
+    TrafficMap,
+)
 
+from shared.traffic.config import PolicyName
 from shared.traffic.coverage import AgentState as State
 from shared.traffic.maps import AgentObjects, TrafficSnapshot
-from shared.traffic.plans import IssuedPlan
+from shared.traffic.planner import Route
+from shared.traffic.plans import PLAN_ID, Ack, ActivePlan, Handover, IssuedPlan
+from shared.traffic.regions import Clique
 
-POLICY_ENUM = {
+POLICY_ENUM: dict[PolicyName, RoutePolicy.ValueType] = {
     "random": RoutePolicy.ROUTE_POLICY_RANDOM,
     "paper_rule": RoutePolicy.ROUTE_POLICY_PAPER_RULE,
     "shortest": RoutePolicy.ROUTE_POLICY_SHORTEST_DISTANCE,
     "dynamic_ground_truth": RoutePolicy.ROUTE_POLICY_DYNAMIC_GROUND_TRUTH,
     "balanced": RoutePolicy.ROUTE_POLICY_BALANCED,
 }
+POLICY_NAME: dict[int, PolicyName] = {v: k for k, v in POLICY_ENUM.items()}
 STATE_ENUM = {
     State.LIVE: AgentState.AGENT_STATE_LIVE,
     State.STALE: AgentState.AGENT_STATE_STALE,
     State.LOST: AgentState.AGENT_STATE_LOST,
 }
 POSITION_AXES = 3
+#: A clique time on the bus where the region has no way (in memory +inf; the codec refuses non-finite floats).
+NO_WAY = -1.0
 
 
 def agent_objects(agent_id: str, msg: TrackedObjects, min_existence: float = 0.0) -> AgentObjects:
@@ -124,3 +149,128 @@ def embed_plan_header(response: Message, header: Header) -> None:
     """The plan inside a RouteResponse carries the reply's header too (pushed plans carry their own)."""
     assert isinstance(response, RouteResponse)
     response.plan.header.CopyFrom(header)
+
+
+# --- shards (shared/traffic/regions.py, core.py `release` / `adopt`) ---------------------------------
+
+
+def handover_message(handover: Handover, now_s: float) -> PlanHandover:
+    """A released vehicle for the shard that takes it over (header left to the replier)."""
+    plan, active = handover.plan, handover.active
+    return PlanHandover(
+        held=True,
+        plan=active.message,
+        version_counter=handover.version,
+        pushed=plan.pushed,
+        sends=plan.sends,
+        ack=plan.ack.value if plan.ack is not None else AckStatus.ACK_STATUS_UNSPECIFIED,
+        age_s=max(0.0, now_s - plan.issued_s),
+        maps_stamp_ns=active.stamp_ns,
+    )
+
+
+def handover_of(msg: PlanHandover, vehicle_id: str, now_s: float) -> Handover:
+    """`msg` (a held vehicle, already range-checked by the codec) as the core's Handover, issued `age_s`
+    before `now_s` on this shard's clock. ValueError names what does not fit: another vehicle, an id or
+    version a coordinator never issues, a route whose junctions do not match its lanes. Whether its
+    lanes join is the adopting core's check (it has the network)."""
+    plan = msg.plan
+    if not msg.held:
+        raise ValueError("not held")
+    if plan.vehicle_id != vehicle_id:
+        raise ValueError(f"handover for {plan.vehicle_id!r}, asked for {vehicle_id!r}")
+    if not PLAN_ID.fullmatch(plan.plan_id):
+        raise ValueError(f"plan id {plan.plan_id[:40]!r}")
+    if not 0 < plan.version <= msg.version_counter:
+        raise ValueError(f"version {plan.version} outside (0, {msg.version_counter}]")
+    if plan.policy not in POLICY_NAME:
+        raise ValueError(f"policy {plan.policy}")
+    if not plan.lane_ids or len(plan.junction_ids) != len(plan.lane_ids) - 1:
+        raise ValueError(f"{len(plan.lane_ids)} lanes with {len(plan.junction_ids)} junctions")
+    if not (math.isfinite(msg.age_s) and msg.age_s >= 0):
+        raise ValueError(f"age {msg.age_s}")
+    ack = None if msg.ack == AckStatus.ACK_STATUS_UNSPECIFIED else Ack(msg.ack)
+    route = Route(
+        list(plan.lane_ids),
+        list(plan.junction_ids),
+        plan.expected_travel_time_s,
+        plan.length_m,
+        POLICY_NAME[plan.policy],
+    )
+    issued = IssuedPlan(
+        vehicle_id,
+        plan.plan_id,
+        plan.version,
+        route,
+        now_s - msg.age_s,
+        msg.pushed,
+        sends=msg.sends,
+        last_send_s=now_s if msg.sends else 0.0,  # a pending resend waits a full ack timeout here
+        ack=ack,
+    )
+    message = RoutePlan()
+    message.CopyFrom(plan)
+    message.ClearField("header")
+    message.ClearField("signature")
+    message.ClearField("key_id")
+    active = ActivePlan(
+        plan.destination_junction_id,
+        frozenset(plan.coverage.missing_agents),
+        message,
+        msg.maps_stamp_ns,
+        plan.valid_until.ToNanoseconds(),
+    )
+    return Handover(issued, msg.version_counter, active)
+
+
+def clique_message(clique: Clique) -> RegionClique:
+    """A shard's clique for the bus (header left to the publisher): +inf (no way) as NO_WAY."""
+    msg = RegionClique(
+        region=clique.region,
+        entering_lane_ids=clique.entering,
+        leaving_lane_ids=clique.leaving,
+        time_s=_on_wire(clique.time_s),
+        junction_ids=clique.junctions,
+        to_junction_s=_on_wire(clique.to_junction_s),
+    )
+    for (a, b), lanes in clique.paths.items():
+        msg.paths.append(CliquePath(from_lane=a, to_lane=b, lane_ids=lanes))
+    for (a, junction), lanes in clique.junction_paths.items():
+        msg.paths.append(CliquePath(from_lane=a, to_junction=junction, lane_ids=lanes))
+    return msg
+
+
+def clique_of(msg: RegionClique) -> Clique:
+    """`msg` as a Clique; ValueError when its matrices do not match its lane and junction lists or a
+    path is both or neither kind. Whether it fits the region is `Overlay.clique_problem`'s check."""
+    rows = len(msg.entering_lane_ids)
+    if len(msg.time_s) != rows * len(msg.leaving_lane_ids):
+        raise ValueError(f"{len(msg.time_s)} times for {rows} x {len(msg.leaving_lane_ids)} lanes")
+    if len(msg.to_junction_s) != rows * len(msg.junction_ids):
+        raise ValueError(f"{len(msg.to_junction_s)} times for {rows} x {len(msg.junction_ids)} junctions")
+    paths: dict[tuple[str, str], list[str]] = {}
+    junction_paths: dict[tuple[str, str], list[str]] = {}
+    for p in msg.paths:
+        if bool(p.to_lane) == bool(p.to_junction):
+            raise ValueError(f"path from {p.from_lane!r} needs one of to_lane and to_junction")
+        (paths if p.to_lane else junction_paths)[(p.from_lane, p.to_lane or p.to_junction)] = list(p.lane_ids)
+    return Clique(
+        msg.region,
+        list(msg.entering_lane_ids),
+        list(msg.leaving_lane_ids),
+        _off_wire(msg.time_s).reshape(rows, len(msg.leaving_lane_ids)),
+        paths,
+        list(msg.junction_ids),
+        _off_wire(msg.to_junction_s).reshape(rows, len(msg.junction_ids)),
+        junction_paths,
+    )
+
+
+def _on_wire(times_s: NDArray[np.float64]) -> list[float]:
+    return np.where(np.isposinf(times_s), NO_WAY, times_s).ravel().tolist()
+
+
+def _off_wire(times_s: Iterable[float]) -> NDArray[np.float64]:
+    """NO_WAY back to +inf; any other negative time stays, for `Overlay.clique_problem` to refuse."""
+    a = np.array(times_s, float)
+    return np.where(a == NO_WAY, np.inf, a)

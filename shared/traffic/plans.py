@@ -61,6 +61,26 @@ class IssuedPlan:
     ack: Ack | None = None
 
 
+@dataclass
+class ActivePlan:
+    """What the coordinator keeps about a vehicle's latest plan beyond the PlanBook (core.py)."""
+
+    destination: str
+    missing: frozenset[str]  # agents not LIVE in the maps the plan was made on
+    message: RoutePlan  # as sent; resends repeat it unchanged (idempotent at the vehicle)
+    stamp_ns: int  # data stamp of the maps it was made on
+    valid_until_ns: int  # wall clock
+
+
+@dataclass(frozen=True)
+class Handover:
+    """A vehicle passed between shards: its latest plan, its version counter, the core's record."""
+
+    plan: IssuedPlan
+    version: int
+    active: ActivePlan
+
+
 class PlanBook:
     """The latest plan issued to each vehicle, and the acknowledgement state of pushed ones."""
 

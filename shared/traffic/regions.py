@@ -141,6 +141,8 @@ class Overlay:
         self._dst = np.array([self.index[b] for _, b in edges], dtype=np.int64)
         # Driving a junction's connector onto lane b at b's free speed, as the planner costs it.
         free_mps = np.array([network.scene.lanes[lane].speed_limit_mps for lane in self.lane_ids])
+        #: Each lane's time at its speed limit: the floor of a clique, and a silent region's prior.
+        self.free_time_s = np.array([network.lanes[lane].length_m for lane in self.lane_ids]) / free_mps
         connector_m = np.array(
             [network.graph.edges[a, b]["weight"] - network.lanes[b].length_m for a, b in edges]
         )

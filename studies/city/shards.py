@@ -49,13 +49,7 @@ class ShardedCoordinator:
         self.agent_region = agent_regions(lane_agents(scene, self.net), self.net, regions)
         self.max_vehicles = max_vehicles
         self.shards: dict[int, CoordinatorCore | None] = {r: self._start(r) for r in range(regions.regions)}
-        # Free-flow lane times: the prior of a region without a live shard, and the floor of a clique.
-        self.free_s = np.array(
-            [
-                self.net.lanes[lane].length_m / scene.lanes[lane].speed_limit_mps
-                for lane in self.overlay.lane_ids
-            ]
-        )
+        self.free_s = self.overlay.free_time_s  # a lost shard's region's prior, and a clique's floor
         self.priors = {r: self.overlay.clique(r, self.free_s) for r in range(regions.regions)}
         self.counts: Counter[str] = Counter()
         self.busy_s: defaultdict[int, float] = defaultdict(float)  # this step's work per shard, s

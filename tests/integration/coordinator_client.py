@@ -22,11 +22,12 @@ from tests.helpers import spawn
 RPC_TIMEOUT_S = 2.0
 STATE_NAMES = {AgentState.AGENT_STATE_LIVE: "LIVE", AgentState.AGENT_STATE_STALE: "STALE"}
 STATE_NAMES[AgentState.AGENT_STATE_LOST] = "LOST"
-HEALTH_KEY = get_stream("health").key(scope="cloud", service="coordinator", instance="cloud")
 
 
 class RouteClient:
-    """Blocking route requests, one querier per vehicle id (tests only; vehicles use non-blocking gets)."""
+    """Blocking route requests, one querier per vehicle id (tests only; vehicles use non-blocking gets).
+    Like a vehicle it asks every server on the key (a sharded coordinator's shards) and takes a plan
+    over an error; `source` tells which process answered (the reply header's source id)."""
 
     def __init__(self, node: Node, source_id: str = "test/route-client") -> None:
         self.session = node.session
@@ -37,7 +38,12 @@ class RouteClient:
     def querier(self, vehicle_id: str) -> zenoh.Querier:
         if vehicle_id not in self.queriers:
             key = get_stream("route_rpc").key(vehicle=vehicle_id)
-            self.queriers[vehicle_id] = self.session.declare_querier(key, timeout=RPC_TIMEOUT_S)
+            self.queriers[vehicle_id] = self.session.declare_querier(
+                key,
+                target=zenoh.QueryTarget.ALL,
+                consolidation=zenoh.ConsolidationMode.NONE,
+                timeout=RPC_TIMEOUT_S,
+            )
         return self.queriers[vehicle_id]
 
     def wait_ready(self, timeout_s: float, vehicle_id: str = "v01") -> None:
@@ -62,24 +68,28 @@ class RouteClient:
         req.header.seq = self.seq
         req.header.stamp.FromNanoseconds(time.time_ns())
         encoded = encode(req)
+        first_error: ErrorResponse | None = None
         for reply in self.querier(vehicle_id).get(payload=encoded.payload, encoding=encoded.encoding):
             if reply.ok is not None:
                 response = RouteResponse()
                 response.ParseFromString(reply.ok.payload.to_bytes())
                 return response.plan
-            error = ErrorResponse()
-            if reply.err is not None:
-                error.ParseFromString(reply.err.payload.to_bytes())
-            return error
-        return None
+            if first_error is None:
+                first_error = ErrorResponse()
+                if reply.err is not None:
+                    first_error.ParseFromString(reply.err.payload.to_bytes())
+        return first_error
 
     def close(self) -> None:
         for querier in self.queriers.values():
             querier.undeclare()
 
 
-def coordinator_health(session: zenoh.Session, timeout_s: float = 2.0) -> ServiceHealth | None:
-    for reply in session.get(HEALTH_KEY, timeout=timeout_s):
+def coordinator_health(
+    session: zenoh.Session, timeout_s: float = 2.0, instance: str = "cloud"
+) -> ServiceHealth | None:
+    key = get_stream("health").key(scope="cloud", service="coordinator", instance=instance)
+    for reply in session.get(key, timeout=timeout_s):
         if reply.ok is not None:
             report = ServiceHealth()
             report.ParseFromString(reply.ok.payload.to_bytes())

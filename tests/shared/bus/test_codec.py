@@ -21,6 +21,7 @@ from shared.bus.codec import (
     RejectReason,
     encode,
     encoding_for,
+    find_non_finite,
     has_body_header,
     schema_of,
     validate,
@@ -107,6 +108,12 @@ def test_rejections_by_reason() -> None:
         bad = _objects()
         bad.objects[0].box.center_m.x = value
         assert _reject(dec, bad.SerializeToString(), enc) == RejectReason.NON_FINITE
+    # Finite values whose sum overflows: judged term by term (they once escaped as StopIteration).
+    huge = _objects()
+    huge.objects[0].position_covariance_m2[:] = [1.7e308] * 9
+    assert find_non_finite(huge) is None
+    huge.objects[0].position_covariance_m2[4] = math.inf
+    assert find_non_finite(huge) == "objects[0].position_covariance_m2[4]"
 
     ranged = _objects()
     ranged.objects[0].existence_probability = 1.5

@@ -9,7 +9,7 @@ from rmmdet.v1.common_pb2 import ErrorCode, ErrorResponse
 from rmmdet.v1.planning_pb2 import RoutePlan, RouteRequest, RouteResponse
 
 from shared.bus.codec import Counters, encode
-from shared.bus.rpc import RpcServer
+from shared.bus.rpc import RpcDeclined, RpcDeferred, RpcServer
 from shared.bus.streams import get_stream
 from tests.helpers import FakeZBytes
 
@@ -90,3 +90,42 @@ def test_garbage_and_handler_bugs_get_error_replies() -> None:
     rpc(q)  # type: ignore[arg-type]
     assert q.errors[0].code == ErrorCode.ERROR_CODE_INTERNAL
     assert node.counters.get("rejected/internal") == 1
+
+
+def test_a_declined_request_gets_no_reply_and_a_deferred_one_its_answer_later() -> None:
+    node = FakeNode()
+    resumes: list = []
+    calls: list[str] = []
+
+    def handle(req: RouteRequest, start_ns: int) -> tuple[RouteResponse, int]:
+        calls.append(req.destination_junction_id)
+        if req.destination_junction_id == "elsewhere":
+            raise RpcDeclined("other_region")
+        if req.destination_junction_id == "later" and len(calls) == 1:
+            raise RpcDeferred(resumes.append)
+        if req.destination_junction_id == "again":
+            raise RpcDeferred(lambda resume: resume())  # defers on resume too: a bug
+        return RouteResponse(plan=RoutePlan(vehicle_id=req.vehicle_id)), 0
+
+    def ask(destination: str) -> FakeQuery:
+        q = request_on(get_stream("route_rpc").key(vehicle="v1"), "v1")
+        req = RouteRequest()
+        req.ParseFromString(q.payload.to_bytes())  # type: ignore[union-attr]
+        req.destination_junction_id = destination
+        q.payload = FakeZBytes(encode(req).payload)
+        return q
+
+    rpc = RpcServer(node, "route_rpc", RouteRequest, handle, stage="t")  # type: ignore[arg-type]
+    later = ask("later")
+    rpc(later)  # type: ignore[arg-type]
+    assert not later.replies and not later.errors and len(resumes) == 1
+    resumes[0]()  # what it waited for arrived (any thread): the handler runs again and replies
+    assert len(later.replies) == 1 and calls == ["later", "later"]
+    assert node.counters.get("deferred") == 1 and node.counters.get("replies") == 1
+    declined = ask("elsewhere")
+    rpc(declined)  # type: ignore[arg-type]
+    assert not declined.replies and not declined.errors
+    assert node.counters.get("declined/other_region") == 1
+    twice = ask("again")
+    rpc(twice)  # type: ignore[arg-type]
+    assert twice.errors[0].code == ErrorCode.ERROR_CODE_INTERNAL

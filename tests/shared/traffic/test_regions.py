@@ -110,6 +110,7 @@ def test_a_forged_clique_is_refused_with_its_reason(grid: RoadNetwork) -> None:
     free = np.array(
         [grid.lanes[lane].length_m / grid.scene.lanes[lane].speed_limit_mps for lane in overlay.lane_ids]
     )
+    np.testing.assert_allclose(overlay.free_time_s, free)  # the floor every shard checks cliques against
     jammed = free * 3.0
     good = overlay.clique(1, jammed)
     assert overlay.clique_problem(good, free) is None

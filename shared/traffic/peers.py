@@ -1,0 +1,76 @@
+"""A coordinator shard's view of the other regions (issue 37): the latest clique each one's shard
+published, checked before use, and a free-flow prior for a region whose shard is silent or gone.
+
+The other shards' cliques come over the bus (`region_clique`); one that does not decode into its
+region's shape or fails `Overlay.clique_problem` (lanes that do not join, a region faster than its speed
+limits) is refused and counted, never planned with: a forged clique must not draw traffic into a region.
+A region heard from within `stale_after_s` is planned on its clique; otherwise, or once its shard's
+presence is gone, on the prior (every lane at its speed limit) and named in `on_prior` so the shard's
+health says that part of its plans is blind. Times: seconds on the shard's clock of record.
+"""
+
+from __future__ import annotations
+
+from rmmdet.v1.traffic_pb2 import RegionClique
+
+from shared.traffic import messages
+from shared.traffic.regions import Clique, Overlay
+
+
+class RegionPeers:
+    """Region `region`'s view of the others on `overlay`."""
+
+    def __init__(self, overlay: Overlay, region: int, stale_after_s: float) -> None:
+        self.overlay = overlay
+        self.region = region
+        self.stale_after_s = stale_after_s
+        others = [r for r in range(overlay.regions.regions) if r != region]
+        self.priors = {r: overlay.clique(r, overlay.free_time_s) for r in others}
+        self._latest: dict[int, tuple[Clique, float]] = {}
+        self._view: dict[int, Clique] = dict(self.priors)
+        self._fresh: frozenset[int] = frozenset()
+
+    def receive(self, msg: RegionClique, now_s: float) -> str | None:
+        """Take another shard's clique; returns why it was refused (a counter name) or None."""
+        if msg.region == self.region:
+            return "clique_own_region"
+        try:
+            clique = messages.clique_of(msg)
+        except ValueError:
+            return "clique_shape"
+        problem = self.overlay.clique_problem(clique, self.overlay.free_time_s)
+        if problem is None:
+            self._latest[clique.region] = (clique, now_s)
+            self._view = {}  # rebuilt by `cliques`: a new object, so the overlay's caches refresh
+        return problem
+
+    def release_problem(self, lane: str, asking_region: int) -> str | None:
+        """Why this shard must not hand over a vehicle that another shard says now asks from `lane`
+        (a message), or None. The lane must exist and belong to the asking region, not to this one: a
+        shard never gives away a vehicle on its own lanes, whoever asks."""
+        overlay = self.overlay
+        if lane not in overlay.index:
+            return f"unknown lane {lane[:80]!r}"
+        owner = int(overlay.lane_region[overlay.index[lane]])
+        if owner == self.region or owner != asking_region:
+            return f"lane {lane!r} is region {owner}'s, asked by region {asking_region}"
+        return None
+
+    def gone(self, region: int) -> None:
+        """Region `region`'s shard left the bus: its region is planned on the prior from now."""
+        if self._latest.pop(region, None) is not None:
+            self._view = {}
+
+    def cliques(self, now_s: float) -> dict[int, Clique]:
+        """Every other region's clique: the latest fresh one, else the prior. The same object while
+        nothing changed (the overlay caches its searches per cliques object)."""
+        fresh = frozenset(r for r, (_, at_s) in self._latest.items() if now_s - at_s <= self.stale_after_s)
+        if fresh != self._fresh or not self._view:
+            self._fresh = fresh
+            self._view = {r: self._latest[r][0] if r in fresh else prior for r, prior in self.priors.items()}
+        return self._view
+
+    def on_prior(self, now_s: float) -> list[int]:
+        """Regions planned on the prior at `now_s` (sorted)."""
+        self.cliques(now_s)
+        return sorted(set(self.priors) - self._fresh)

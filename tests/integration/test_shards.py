@@ -1,0 +1,151 @@
+"""The coordinator sharded over Zenoh (issue 37): real processes — router, two coordinator shards of the
+table's two-region map (deploy/coordinator/regions/sand_table_2.json), three stand-in MECs.
+
+- a vehicle asks every shard; the shard owning its lane answers, the other stays silent;
+- crossing into the other region, the vehicle gets its plan from the new shard, plan and version kept
+  (the old shard released it: one owner at a time);
+- a shard killed: the other names its region as planned on a prior (DEGRADED) and keeps serving its own
+  vehicles; the killed region's vehicles get no answer (they keep their plans to the TTL);
+- the shard restarted serves again within 2 s of its presence token.
+Time limits scale with RSP_TIME_SCALE (slow machines).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+from rmmdet.v1.common_pb2 import ErrorResponse
+from rmmdet.v1.health_pb2 import HealthLevel
+from rmmdet.v1.planning_pb2 import RoutePlan
+
+from services.coordinator.shard import shard_instance
+from shared.bus.node import Node
+from shared.bus.streams import get_stream
+from shared.paths import DEFAULT_SCENE, REPO_ROOT
+from shared.scene.road_network import RoadNetwork
+from shared.scene.scene import Scene
+from shared.traffic.regions import RegionMap
+from tests.helpers import Router, spawn, stop
+from tests.integration.coordinator_client import RouteClient, coordinator_health, counters
+
+pytestmark = [pytest.mark.integration, pytest.mark.fault, pytest.mark.timeout(180)]
+
+SCALE = float(os.environ.get("RSP_TIME_SCALE", "1"))
+REGIONS = REPO_ROOT / "deploy" / "coordinator" / "regions" / "sand_table_2.json"
+AGENTS = ("agent1", "agent2", "agent3")
+STARTUP_S = 45.0
+SERVES_WITHIN_S = 2.0 * SCALE  # issue 37: a restarted shard serves within 2 s of its presence
+PRIOR_WITHIN_S = 5.0 * SCALE  # liveliness loss, else clique_stale_after_s (3 s)
+START_LANE, DESTINATION = "l15", "j3"  # region 0's lane into j1, to a junction of region 1
+
+
+@dataclass
+class Shards:
+    router: Router
+    procs: dict[str, subprocess.Popen]
+    node: Node
+    routes: RouteClient
+    regions: RegionMap
+    net: RoadNetwork
+
+    def start_shard(self, region: int) -> None:
+        self.procs[f"shard{region}"] = spawn(
+            ["-m", "services.coordinator", "--shard", str(region), *self.router.client_args()],
+            env={"RMMDET_COORD_SHARDS__REGIONS": str(REGIONS)},
+        )
+
+    def region(self, lane: str) -> int:
+        return self.regions.lane_region(self.net, lane)
+
+    def health(self, region: int):
+        report = coordinator_health(self.node.session, instance=shard_instance(region))
+        assert report is not None, f"region {region}'s shard did not answer its health query"
+        return report
+
+    def wait_plan(self, vehicle: str, lane: str, timeout_s: float) -> RoutePlan:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            reply = self.routes.request(vehicle, lane, DESTINATION)
+            if isinstance(reply, RoutePlan):
+                return reply
+            assert time.monotonic() < deadline, f"no plan for {vehicle} on {lane}: {reply}"
+            time.sleep(0.05)
+
+
+@pytest.fixture
+def shards(router: Router) -> Iterator[Shards]:
+    scene = Scene.load(DEFAULT_SCENE)
+    net = RoadNetwork(scene)
+    node = Node(router.client_config(), service="test", instance="shards", scope="site")
+    node.open()
+    cluster = Shards(router, {}, node, RouteClient(node), RegionMap.load(Path(REGIONS), net), net)
+    try:
+        for region in (0, 1):
+            cluster.start_shard(region)
+        for agent in AGENTS:
+            cluster.procs[agent] = spawn(
+                ["-m", "tests.integration.fake_mec", "--instance", agent, *router.client_args()]
+            )
+        yield cluster
+    finally:
+        cluster.routes.close()
+        node.close()
+        for p in cluster.procs.values():
+            stop(p)
+
+
+def test_two_shards_hand_over_survive_a_kill_and_serve_again_after_restart(shards: Shards) -> None:
+    assert shards.region(START_LANE) == 0
+    first = shards.wait_plan("v01", START_LANE, STARTUP_S)
+    assert first.header.source_id.endswith(shard_instance(0)), first.header.source_id
+    # The plan's first lane of region 1: where the vehicle is handed over.
+    crossing = next(lane for lane in first.lane_ids if shards.region(lane) == 1)
+    # Wait until region 1's shard is up too (it answers its own lanes).
+    shards.wait_plan("v02", crossing, STARTUP_S)
+
+    handed = shards.routes.request("v01", crossing, DESTINATION, version=first.version)
+    assert isinstance(handed, RoutePlan), handed
+    assert handed.header.source_id.endswith(shard_instance(1)), handed.header.source_id
+    assert handed.version >= first.version  # versions carry on across the shards
+    c0, c1 = counters(shards.health(0)), counters(shards.health(1))
+    assert c0.get("handovers/released", 0) >= 1 and c1.get("handovers/adopted", 0) >= 1, (c0, c1)
+    assert c0.get("declined/other_region", 0) >= 1  # region 0 stayed silent on region 1's lanes
+    assert c1.get("handovers/extra_holder", 0) == 0
+
+    # Region 1's shard killed: region 0 plans across it on the prior, says so, and serves its own lanes.
+    shards.procs["shard1"].send_signal(signal.SIGKILL)
+    shards.procs["shard1"].wait(5)
+    t_kill = time.monotonic()
+    while "planned on a prior" not in (report := shards.health(0)).message:
+        assert time.monotonic() - t_kill < PRIOR_WITHIN_S, report.message
+        time.sleep(0.1)
+    assert report.level == HealthLevel.HEALTH_LEVEL_DEGRADED
+    own = shards.wait_plan("v03", START_LANE, 2.0 * SCALE)
+    assert own.header.source_id.endswith(shard_instance(0))
+    assert shards.routes.request("v04", crossing, DESTINATION) is None  # nobody owns region 1 now
+
+    # Restarted: serves again within 2 s of its presence token.
+    alive = get_stream("alive").key(scope="cloud", service="coordinator", instance=shard_instance(1))
+    presence = shards.node.presence(alive)
+    shards.start_shard(1)
+    deadline = time.monotonic() + STARTUP_S
+    while alive not in presence.alive():
+        assert time.monotonic() < deadline, "the restarted shard never showed its presence"
+        time.sleep(0.02)
+    t_presence = time.monotonic()
+    plan = shards.wait_plan("v05", crossing, STARTUP_S)
+    served_s = time.monotonic() - t_presence
+    assert plan.header.source_id.endswith(shard_instance(1))
+    assert served_s <= SERVES_WITHIN_S, f"served {served_s:.2f} s after its presence"
+    while "planned on a prior" in (report := shards.health(0)).message:
+        assert time.monotonic() - t_presence < PRIOR_WITHIN_S, report.message
+        time.sleep(0.1)
+    unknown = shards.routes.request("v06", "no_such_lane", DESTINATION)
+    assert isinstance(unknown, ErrorResponse)  # every shard refuses an unknown lane alike
