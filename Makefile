@@ -61,8 +61,22 @@ $(error SENSORS must be sim or wire, not $(SENSORS))
 endif
 export RMMDET_SITE := $(SITE)
 
+# SHARDS=1 (default): one coordinator for the table. SHARDS=2: the coordinator split into two region
+# shards (deploy/coordinator/regions/sand_table_2.json), each its own process (services/coordinator/shard.py).
+SHARDS ?= 1
+ifeq ($(SHARDS),2)
+export RMMDET_COORD_ARGS := --shard 0
+export RMMDET_COORD_SHARDS__REGIONS := deploy/coordinator/regions/sand_table_2.json
+export RMMDET_SHARD1 := true
+else ifeq ($(SHARDS),1)
+export RMMDET_COORD_ARGS :=
+export RMMDET_SHARD1 := false
+else
+$(error SHARDS must be 1 or 2, not $(SHARDS))
+endif
+
 SPEED ?=
-up: install pki ## start router and every service under supervisord (idempotent); SPEED=x: sim seconds per wall second; SENSORS=wire: through emulated devices and the device services
+up: install pki ## start router and every service under supervisord (idempotent); SPEED=x: sim seconds per wall second; SENSORS=wire: through emulated devices and the device services; SHARDS=2: the coordinator as two region shards
 	@mkdir -p $(RUN_DIR)/logs
 	@if $(BIN)/supervisorctl -c $(SUPERVISOR_CONF) pid >/dev/null 2>&1; then \
 	  echo "already up"; \

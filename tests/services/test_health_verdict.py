@@ -72,3 +72,20 @@ def test_a_health_reply_is_believed_only_for_the_key_it_came_on() -> None:
     lying.header.source_id = "agent3/sensor/agent1-lidars"  # right names, another scope
     assert "not believed" in (key_mismatch(key, lying) or "")
     assert "not a health key" in (key_mismatch("rmmdet/@v1/agent1/@alive/sensor/x", lying) or "")
+
+
+def test_a_sharded_coordinator_meets_the_coordinator_expectation() -> None:
+    expected = expected_services(Scene.load(DEFAULT_SCENE))
+    present = [s for s in expected if s != "cloud/coordinator/cloud"]
+    shards = ["cloud/coordinator/region0", "cloud/coordinator/region1"]
+    verdict = judge(
+        [report(s) for s in present + shards], [], [alive_key(s) for s in present + shards], expected
+    )
+    assert verdict.ok, verdict.problems
+    degraded = report(shards[0], DEGRADED, "3/3 agents LIVE; regions [1] planned on a prior")
+    verdict = judge(
+        [report(s) for s in present] + [degraded], [], [alive_key(s) for s in present + shards[:1]], expected
+    )
+    assert verdict.problems == [
+        "cloud/coordinator/region0 DEGRADED: 3/3 agents LIVE; regions [1] planned on a prior"
+    ]
