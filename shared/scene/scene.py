@@ -61,6 +61,8 @@ class Scene:
         self._area_footprints = [shapely.Polygon(a.polygon_m) for a in spec.areas]
         for footprint in self._area_footprints:
             shapely.prepare(footprint)
+        self._area_tree: shapely.STRtree | None = None  # built on first use (area_indices)
+        self._area_z_m = np.zeros((0, 2))
 
     @classmethod
     def load(cls, path: Path) -> Scene:
@@ -231,14 +233,20 @@ class Scene:
 
     def area_indices(self, points_m: FloatArray) -> np.ndarray:
         """`area_of` for (N, 3) points at once: the index into `spec.areas` of each point's first area
-        in file order, -1 for none."""
+        in file order, -1 for none. One spatial-index query for all points: a district's hundred areas
+        tested one by one took ~2 ms per map update."""
         pts = np.asarray(points_m, float).reshape(-1, 3)
-        out = np.full(len(pts), -1, dtype=np.int64)
-        for k in reversed(range(len(self.spec.areas))):  # earlier areas overwrite later ones
-            area = self.spec.areas[k]
-            inside = shapely.intersects_xy(self._area_footprints[k], pts[:, 0], pts[:, 1])
-            inside &= (pts[:, 2] >= area.z_min_m) & (pts[:, 2] <= area.z_max_m)
-            out[inside] = k
+        out = np.full(len(pts), len(self.spec.areas), dtype=np.int64)
+        if len(pts) and self.spec.areas:
+            if self._area_tree is None:
+                self._area_tree = shapely.STRtree(self._area_footprints)
+                self._area_z_m = np.array([(a.z_min_m, a.z_max_m) for a in self.spec.areas], float)
+            point, area = self._area_tree.query(shapely.points(pts[:, :2]), predicate="intersects")
+            z = pts[point, 2]
+            band = self._area_z_m[area]
+            inside = (z >= band[:, 0]) & (z <= band[:, 1])
+            np.minimum.at(out, point[inside], area[inside])  # the first area in file order wins
+        out[out == len(self.spec.areas)] = -1
         return out
 
 

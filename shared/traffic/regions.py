@@ -23,8 +23,9 @@ from __future__ import annotations
 import itertools
 import json
 import math
+from collections import OrderedDict
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import networkx as nx
@@ -38,6 +39,9 @@ from shared.scene.road_network import RoadNetwork
 FloatArray = NDArray[np.float64]
 #: The overlay's sink: "arrived at the destination junction" (next hop of a crossing lane's last leg).
 SINK = -1
+#: Cliques objects whose overlay searches are kept (least recently used dropped): a live shard has one
+#: at a time, the lock-step study one per shard per step.
+CLIQUE_CACHE = 32
 
 
 def partition_junctions(network: RoadNetwork, regions: int, seed: int = 0) -> dict[str, int]:
@@ -153,18 +157,9 @@ class Overlay:
         self._leaving: dict[int, list[str]] = {r: [] for r in range(regions.regions)}
         for c in self.crossing:
             self._leaving[int(self.start_region[self.index[c]])].append(c)
-        # Searches that depend only on the published cliques, kept while the same cliques object is used.
-        self._sink_cache_of: object = None
-        self._sink_cache: dict[
-            tuple[int, str], tuple[FloatArray, NDArray[np.int64], dict[tuple[int, int], list[str]]]
-        ] = {}
-        self._edges_of: object = None
-        self._edges: tuple[list[int], list[int], list[float], dict[tuple[int, int], list[str]]] = (
-            [],
-            [],
-            [],
-            {},
-        )
+        # Searches that depend only on the published cliques, per cliques object (one map update serves
+        # many plans); the latest CLIQUE_CACHE objects are kept (shards sharing an overlay each have one).
+        self._by_cliques: OrderedDict[int, _CliqueSearches] = OrderedDict()
         self.end_junction = [network.lane_end_junction(lane) for lane in self.lane_ids]
         self._ends: dict[str, list[int]] = {}
         for k, junction in enumerate(self.end_junction):
@@ -322,7 +317,7 @@ class Overlay:
             inside = self._to_junction(dist, pred, source, destination)
             if inside is not None and inside[1]:
                 best_s, best_leg = inside
-        to_sink, next_hop, legs = self._to_destination(destination, cliques)
+        to_sink, next_hop, last_legs = self._to_destination(destination, cliques)
         for c in self._leaving[src_region]:
             k = self.crossing_index[c]
             t = dist[self.index[c]] + to_sink[k]
@@ -334,65 +329,91 @@ class Overlay:
             assert best_leg is not None
             return best_leg
         lanes = self._walk(pred, source, self.index[self.crossing[best_node]])[1:]
-        k = best_node
+        k, crossing_legs = best_node, self._searches(cliques).legs
         while k != SINK:
-            lanes += legs[(k, int(next_hop[k]))]
-            k = int(next_hop[k])
+            nxt = int(next_hop[k])
+            lanes += (last_legs if nxt == SINK else crossing_legs)[(k, nxt)]
+            k = nxt
         return lanes
 
     def _to_destination(
         self, destination: str, cliques: Mapping[int, Clique]
     ) -> tuple[FloatArray, NDArray[np.int64], dict[tuple[int, int], list[str]]]:
         """Over the cliques: from each crossing lane (driven) to a lane ending at `destination`, the
-        time, the next overlay node (a crossing lane's index, or SINK) and the legs' lanes."""
-        key = (id(cliques), destination)
-        if self._sink_cache_of is not cliques:
-            self._sink_cache.clear()
-            self._sink_cache_of = cliques
-        if key in self._sink_cache:
-            return self._sink_cache[key]
+        time, the next overlay node (a crossing lane's index, or SINK) and the last legs' lanes (the
+        others are the searches' `legs`)."""
+        searches = self._searches(cliques)
+        if destination in searches.to_sink:
+            return searches.to_sink[destination]
         n = len(self.crossing)
-        rows, cols, cost, legs = self._clique_edges(cliques)
-        rows, cols, cost, legs = list(rows), list(cols), list(cost), dict(legs)
+        rows, cols, cost = [searches.rows], [searches.cols], [searches.cost]
+        legs: dict[tuple[int, int], list[str]] = {}  # the last legs, into the sink
         end = cliques.get(self.regions.region_of_junction[destination])
         if end is not None and destination in end.junctions:
             j = end.junctions.index(destination)
-            for i, c in enumerate(end.entering):
-                if np.isfinite(end.to_junction_s[i, j]):
-                    a = self.crossing_index[c]
-                    rows.append(a)
-                    cols.append(n)
-                    cost.append(max(float(end.to_junction_s[i, j]), 1e-6))
-                    legs[(a, SINK)] = end.junction_paths[(c, destination)]
+            finite = [i for i in range(len(end.entering)) if np.isfinite(end.to_junction_s[i, j])]
+            rows.append(np.array([self.crossing_index[end.entering[i]] for i in finite], dtype=np.int64))
+            cols.append(np.full(len(finite), n, dtype=np.int64))
+            cost.append(np.maximum(end.to_junction_s[finite, j], 1e-6))
+            for i in finite:
+                legs[(self.crossing_index[end.entering[i]], SINK)] = end.junction_paths[
+                    (end.entering[i], destination)
+                ]
         # Backwards from the sink (node n): each node's time to it and its next hop toward it.
-        reverse = csr_matrix((cost, (cols, rows)), shape=(n + 1, n + 1))
+        reverse = csr_matrix(
+            (np.concatenate(cost), (np.concatenate(cols), np.concatenate(rows))), shape=(n + 1, n + 1)
+        )
         to_sink, pred = dijkstra(reverse, indices=n, return_predecessors=True)
         next_hop = np.where(pred == n, SINK, pred).astype(np.int64)
         result = (to_sink[:n], next_hop[:n], legs)
-        self._sink_cache[key] = result
+        searches.to_sink[destination] = result
         return result
 
-    def _clique_edges(
-        self, cliques: Mapping[int, Clique]
-    ) -> tuple[list[int], list[int], list[float], dict[tuple[int, int], list[str]]]:
-        """The overlay's edges between crossing lanes from `cliques` (cached with the sink searches)."""
-        if self._edges_of is cliques:
-            return self._edges
+    def _searches(self, cliques: Mapping[int, Clique]) -> _CliqueSearches:
+        """The overlay's edges between crossing lanes from `cliques`, and the sink searches made on them
+        (cached per cliques object)."""
+        found = self._by_cliques.get(id(cliques))
+        if found is not None and found.cliques is cliques:
+            self._by_cliques.move_to_end(id(cliques))
+            return found
         rows: list[int] = []
         cols: list[int] = []
         cost: list[float] = []
         legs: dict[tuple[int, int], list[str]] = {}
         for clique in cliques.values():
-            for i, a in enumerate(clique.entering):
-                for j, b in enumerate(clique.leaving):
-                    if np.isfinite(clique.time_s[i, j]):
-                        ka, kb = self.crossing_index[a], self.crossing_index[b]
-                        rows.append(ka)
-                        cols.append(kb)
-                        cost.append(max(float(clique.time_s[i, j]), 1e-6))  # a zero would vanish
-                        legs[(ka, kb)] = [*clique.paths[(a, b)], b]
-        self._edges_of, self._edges = cliques, (rows, cols, cost, legs)
-        return self._edges
+            for i, j in zip(*np.nonzero(np.isfinite(clique.time_s)), strict=True):
+                a, b = clique.entering[i], clique.leaving[j]
+                ka, kb = self.crossing_index[a], self.crossing_index[b]
+                rows.append(ka)
+                cols.append(kb)
+                cost.append(max(float(clique.time_s[i, j]), 1e-6))  # a zero would vanish
+                legs[(ka, kb)] = [*clique.paths[(a, b)], b]
+        searches = _CliqueSearches(
+            cliques,
+            np.array(rows, dtype=np.int64),
+            np.array(cols, dtype=np.int64),
+            np.array(cost, dtype=float),
+            legs,
+        )
+        self._by_cliques[id(cliques)] = searches
+        while len(self._by_cliques) > CLIQUE_CACHE:
+            self._by_cliques.popitem(last=False)
+        return searches
+
+
+@dataclass
+class _CliqueSearches:
+    """What `Overlay` derives from one cliques object: the crossing-lane edges (node indices, seconds,
+    the legs' lanes) and each destination's sink search. Holds `cliques` so its id stays unique."""
+
+    cliques: Mapping[int, Clique]
+    rows: NDArray[np.int64]
+    cols: NDArray[np.int64]
+    cost: FloatArray
+    legs: dict[tuple[int, int], list[str]]
+    to_sink: dict[str, tuple[FloatArray, NDArray[np.int64], dict[tuple[int, int], list[str]]]] = field(
+        default_factory=dict
+    )
 
 
 def agent_regions(

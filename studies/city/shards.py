@@ -98,9 +98,10 @@ class ShardedCoordinator:
                 else:  # as a receiving shard would: refused, counted, its region planned on the prior
                     self.counts[f"rejected/{problem}"] += 1
             self.busy_s[r] += time.perf_counter() - t0
+        combined = {**self.priors, **published}  # one object for all: the overlay's searches are shared
         for core in live.values():
             if core.shard is not None:
-                core.shard.cliques = {**self.priors, **published}
+                core.shard.cliques = combined
         return due
 
     def end_step(self) -> None:

@@ -113,6 +113,15 @@ def test_areas_and_lanes(test_scene: Scene) -> None:
     assert test_scene.area_of(3.0, 1.0, 0.0) == "outer_ring"  # under the deck
     assert test_scene.area_of(0.0, 0.0) == "intersection"
     assert test_scene.area_of(50.0, 0.0) is None
+    # Many points at once (one spatial-index query) agree with one at a time, overlaps and levels included.
+    rng = np.random.default_rng(0)
+    pts = np.column_stack([rng.uniform(-6, 6, 2000), rng.uniform(-6, 6, 2000), rng.choice([0.0, 0.3], 2000)])
+    pts[:3] = [(3.0, 1.0, 0.3), (3.0, 1.0, 0.0), (50.0, 0.0, 0.0)]
+    names = [a.id for a in test_scene.spec.areas]
+    got = [names[k] if k >= 0 else None for k in test_scene.area_indices(pts)]
+    assert got == [test_scene.area_of(*p) for p in pts] and got[:3] == ["viaduct", "outer_ring", None]
+    assert len({g for g in got if g}) >= 3
+    assert test_scene.area_indices(np.zeros((0, 3))).shape == (0,)
     assert test_scene.lane_length_m("l1") == pytest.approx(3.0)
     assert [lane.id for lane in test_scene.lanes_from("j2")] == ["l2"]
     assert test_scene.junction_by_number(3).id == "j3"
