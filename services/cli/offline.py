@@ -673,6 +673,9 @@ app.add_typer(experiments_app, name="experiments", rich_help_panel=STUDIES)
 def experiments_city(
     config: Annotated[Path, typer.Option(help="study settings YAML")] = Path("deploy/experiments/city.yaml"),
     seeds: Annotated[list[int] | None, typer.Option("--seed", help="seeds (repeatable)")] = None,
+    levels: Annotated[
+        list[str] | None, typer.Option("--level", help="demand levels of the config to run (repeatable)")
+    ] = None,
     shards: Annotated[int | None, typer.Option(help="coordinator shards of the rmmdet arm")] = None,
     workers: Annotated[int | None, typer.Option(help="runs in parallel (processes)")] = None,
     work: Annotated[Path, typer.Option(help="folder for networks, demand and tripinfo files")] = Path(
@@ -691,6 +694,13 @@ def experiments_city(
     log_progress()
     update = {k: v for k, v in (("seeds", seeds), ("shards", shards), ("workers", workers)) if v}
     settings = with_overrides(load_city_settings(config), update)
+    if levels:
+        unknown = sorted(set(levels) - set(settings.demand))
+        if unknown:
+            raise typer.BadParameter(
+                f"unknown demand levels {unknown}: the config has {sorted(settings.demand)}"
+            )
+        settings = settings.model_copy(update={"demand": {k: settings.demand[k] for k in levels}})
     results = run_study(settings, work, out)
     text = markdown_table(results)
     if readme:

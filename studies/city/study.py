@@ -148,4 +148,16 @@ def markdown_table(results: dict[str, Any]) -> str:
     for key, row in results["comparisons"].items():
         cells = [paired_cell(row[b][k], fmt) for b in bases for _, k, fmt in COMPARED]
         lines.append(f"| {key} | " + " | ".join(cells) + " |")
+    arms = s["arms"]
+    lines += ["", "Mean travel time, s (departure delay included), mean over the seeds:", "",
+              "| demand @ coverage | " + " | ".join(arms) + " |", "|---|" + "---|" * len(arms)]  # fmt: skip
+    for level in s["demand"]:
+        for coverage in s["coverage"]:
+            cells = []
+            for arm in arms:
+                cov = None if arm in COVERAGE_FREE else coverage
+                times = [r["trips"]["travel_time_mean_s"] for r in results["runs"]
+                         if (r["level"], r["arm"], r["coverage"]) == (level, arm, cov)]  # fmt: skip
+                cells.append(f"{sum(times) / len(times):.1f}" if times else "-")
+            lines.append(f"| {level}@{coverage:g} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
