@@ -52,6 +52,7 @@ log = logging.getLogger("services.coordinator.shard")
 CLIQUES, RELEASE, ALIVE = get_stream("region_clique"), get_stream("release_rpc"), get_stream("alive")
 _INSTANCE = re.compile(r"region(\d+)")
 INVALID = ErrorCode.ERROR_CODE_INVALID_REQUEST
+MAX_PENDING = 4096  # vehicles between their release round and the answer that ends it
 
 
 def shard_instance(region: int) -> str:
@@ -136,12 +137,12 @@ class ShardLink:
         if not self.view.owns(lane):
             raise RpcDeclined("other_region")
         vid = request.vehicle_id
-        if self.core.owns_vehicle(vid):
-            return
         with self._lock:
-            if vid in self._asked:
+            if vid in self._asked:  # its release round is over (adopted, or nobody held it)
                 self._asked.discard(vid)
                 return
+        if self.core.owns_vehicle(vid):
+            return
         raise RpcDeferred(lambda resume: self._todo.put((request, resume)))
 
     def _ask_loop(self) -> None:
@@ -227,6 +228,8 @@ class ShardLink:
 
     def _asked_done(self, vid: str, resume: Callable[[], None]) -> None:
         with self._lock:
+            if len(self._asked) >= MAX_PENDING:  # vehicles that never asked again (timed out): dropped
+                self._asked.clear()
             self._asked.add(vid)
         resume()
 
