@@ -43,6 +43,8 @@ def perms(*names: str) -> dict[tuple[str, str], set[str]]:
                 "rmmdet/@v1/cloud/plans/*",
                 "rmmdet/@v1/cloud/plans_served/*",
                 "rmmdet/@v1/cloud/maps/traffic",
+                "rmmdet/@v1/cloud/regions/*/traffic",  # a shard's (services/coordinator/shard.py)
+                "rmmdet/@v1/cloud/regions/*/clique",
             },
         ),
         ("recorder", set()),
@@ -61,6 +63,23 @@ def test_only_the_coordinator_publishes_plans_and_serves_the_route_rpc(test_scen
         may_put_plan = any(zenoh.KeyExpr(k).intersects(plan) for k in p.get(PUT_IN, set()))
         may_serve = rpc in p.get(("declare_queryable", "ingress"), set())
         assert may_put_plan == may_serve == (name == "coordinator"), name
+
+
+def test_only_coordinators_exchange_cliques_and_hand_vehicles_over(test_scene: Scene) -> None:
+    release = get_stream("release_rpc").pattern()
+    clique = zenoh.KeyExpr(get_stream("region_clique").key(region="1"))
+    for name in [*deployment_identities(test_scene), "vehicle-v1", "recorder", "operator"]:
+        p = perms(name)
+        coordinator = name == "coordinator"
+        assert (release in p.get(("declare_queryable", "ingress"), set())) == coordinator, name
+        assert (
+            any(
+                zenoh.KeyExpr(k).intersects(zenoh.KeyExpr(release))
+                for k in p.get(("query", "ingress"), set())
+            )
+            == coordinator
+        ), name
+        assert any(zenoh.KeyExpr(k).intersects(clique) for k in p.get(PUT_IN, set())) == coordinator, name
 
 
 def test_a_vehicle_queries_the_route_rpc_and_reads_only_its_plans() -> None:
