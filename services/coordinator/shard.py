@@ -73,7 +73,7 @@ def shard_core(scene: Scene, settings: CoordinatorSettings, region: int) -> Coor
     if not 0 <= region < regions.regions:
         raise ConfigError(f"--shard {region}: {settings.shards.regions} has regions 0..{regions.regions - 1}")
     agents = [a for a, r in agent_regions(lane_agents(scene, net), net, regions).items() if r == region]
-    view = ShardView(Overlay(net, regions), region)
+    view = ShardView(Overlay(net, regions, settings.planner.turn_penalty_s), region)
     return CoordinatorCore(scene, settings, settings.service.max_vehicles, shard=view, shard_agents=agents)
 
 

@@ -135,9 +135,12 @@ class RoadNetwork:
             self.graph.add_node(lane_id, length_m=path.length_m)
         for cid, conn in self.connectors.items():
             assert conn.from_lane is not None and conn.to_lane is not None
-            # Edge weight: the connector plus the lane it leads onto.
+            # Edge weight: the connector plus the lane it leads onto; turn: the heading change through
+            # the connector, rad in [0, pi] (a planner may cost turns: vehicles slow down for them).
             weight = conn.length_m + self.lanes[conn.to_lane].length_m
-            self.graph.add_edge(conn.from_lane, conn.to_lane, weight=weight, connector=cid)
+            a, b = self.lanes[conn.from_lane], self.lanes[conn.to_lane]
+            turn_rad = abs((float(b.heading[0]) - float(a.heading[-1]) + math.pi) % (2 * math.pi) - math.pi)
+            self.graph.add_edge(conn.from_lane, conn.to_lane, weight=weight, connector=cid, turn_rad=turn_rad)
         self._to_junction = {lane.id: lane.to_junction for lane in scene.spec.lanes}
         self._from_junction = {lane.id: lane.from_junction for lane in scene.spec.lanes}
         self._route_cache: dict[tuple[str, str], list[str]] = {}

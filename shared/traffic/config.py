@@ -93,6 +93,12 @@ class PlannerConfig(_Section):
     min_speed_mps: float = Field(
         0.05, gt=0, description="perceived speeds are floored here (a stopped queue is slow, not closed)"
     )
+    turn_penalty_s: float = Field(
+        0.0,
+        ge=0,
+        description="extra time per right angle of heading change at a junction (vehicles slow down to "
+        "turn); 0 on the table, whose vehicles keep their speed through connectors",
+    )
     plan_ttl_s: float = Field(120.0, gt=0, description="validity of a plan; vehicles fall back after")
     seed: int = Field(0, ge=0, description="random policy's generator seed")
 

@@ -31,7 +31,7 @@ from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.traffic.config import PlannerConfig, PolicyName
 from shared.traffic.maps import TrafficSnapshot
-from shared.traffic.regions import Clique, Overlay
+from shared.traffic.regions import Clique, Overlay, connector_times_s
 
 ONE_JUNCTION_POLICIES = ("random", "paper_rule")
 FloatArray = NDArray[np.float64]
@@ -113,15 +113,14 @@ class RoutePlanner:
         edges = list(network.graph.edges)
         src = np.array([self._index[a] for a, _ in edges], dtype=np.int64)
         dst = np.array([self._index[b] for _, b in edges], dtype=np.int64)
-        connector_m = np.array(
-            [network.graph.edges[a, b]["weight"] - network.lanes[b].length_m for a, b in edges]
-        )
+        connector_s = connector_times_s(network, edges, cfg.turn_penalty_s)
+        self._connector_s = dict(zip(edges, connector_s.tolist(), strict=True))
         n = len(self.lane_ids)
         # Build the CSR once; `_order` maps its data slots to our edges so costs can be written in place.
         self._graph = csr_matrix((np.arange(1, len(edges) + 1, dtype=float), (src, dst)), shape=(n, n))
         self._order = self._graph.data.astype(np.int64) - 1
         self._edge_dst = dst[self._order]
-        self._edge_connector_s = (connector_m / self._free_mps[dst])[self._order]
+        self._edge_connector_s = connector_s[self._order]
         self._load = np.zeros(n)  # vehicles planned onto each lane (the sum of all `_planned`)
         self._cond: LaneConditions | None = None  # the conditions `_speed` / `_count` were built from
         self._speed = self._free_mps.copy()
@@ -206,8 +205,7 @@ class RoutePlanner:
     def _route_time_s(self, lanes: list[str], times: FloatArray) -> float:
         total = 0.0
         for a, b in itertools.pairwise(lanes):
-            connector_m = self.net.graph.edges[a, b]["weight"] - self.net.lanes[b].length_m
-            total += connector_m / self.free_speed_mps[b] + float(times[self._index[b]])
+            total += self._connector_s[(a, b)] + float(times[self._index[b]])
         return total
 
     # --- planning --------------------------------------------------------------------------------

@@ -44,6 +44,23 @@ SINK = -1
 CLIQUE_CACHE = 32
 
 
+def connector_times_s(
+    network: RoadNetwork, edges: list[tuple[str, str]], turn_penalty_s: float = 0.0
+) -> FloatArray:
+    """Per lane-graph edge (a, b): the time to drive the junction's connector from a onto b at b's speed
+    limit, plus `turn_penalty_s` per right angle of heading change (a vehicle slows down to turn: without
+    it, routes through a grid zig-zag between equally long paths; one home for the planner and the
+    overlay alike)."""
+    out = np.empty(len(edges))
+    for k, (a, b) in enumerate(edges):
+        edge = network.graph.edges[a, b]
+        connector_m = edge["weight"] - network.lanes[b].length_m
+        out[k] = connector_m / network.scene.lanes[b].speed_limit_mps + turn_penalty_s * edge["turn_rad"] / (
+            math.pi / 2
+        )
+    return out
+
+
 def partition_junctions(network: RoadNetwork, regions: int, seed: int = 0) -> dict[str, int]:
     """Junction -> region 0..regions-1: recursive Kernighan-Lin bisection of the largest region."""
     junctions = sorted({network.lane_start_junction(lane) for lane in network.lanes} | {
@@ -130,7 +147,8 @@ class Clique:
 class Overlay:
     """The lane graph split by a `RegionMap`; per-region searches and the overlay route across them."""
 
-    def __init__(self, network: RoadNetwork, regions: RegionMap) -> None:
+    def __init__(self, network: RoadNetwork, regions: RegionMap, turn_penalty_s: float = 0.0) -> None:
+        """`turn_penalty_s`: the planner's (`PlannerConfig.turn_penalty_s`); every shard must use the same."""
         self.net = network
         self.regions = regions
         self.lane_ids = sorted(network.lanes)
@@ -143,14 +161,11 @@ class Overlay:
         edges = list(network.graph.edges)
         self._src = np.array([self.index[a] for a, _ in edges], dtype=np.int64)
         self._dst = np.array([self.index[b] for _, b in edges], dtype=np.int64)
-        # Driving a junction's connector onto lane b at b's free speed, as the planner costs it.
         free_mps = np.array([network.scene.lanes[lane].speed_limit_mps for lane in self.lane_ids])
         #: Each lane's time at its speed limit: the floor of a clique, and a silent region's prior.
         self.free_time_s = np.array([network.lanes[lane].length_m for lane in self.lane_ids]) / free_mps
-        connector_m = np.array(
-            [network.graph.edges[a, b]["weight"] - network.lanes[b].length_m for a, b in edges]
-        )
-        self._connector_s = connector_m / free_mps[self._dst]
+        # Driving a junction's connector onto lane b, as the planner costs it.
+        self._connector_s = connector_times_s(network, edges, turn_penalty_s)
         self._edge = {(a, b): k for k, (a, b) in enumerate(edges)}
         self._graphs: dict[int | None, tuple[csr_matrix, NDArray[np.int64]]] = {}
         self.crossing_index = {c: k for k, c in enumerate(self.crossing)}

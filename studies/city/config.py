@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 from pydantic import Field
 
@@ -33,6 +34,11 @@ class CityStudySettings(RmmdetSettings):
     )
     reroute_period_s: float = Field(60.0, gt=0, description="SUMO arms reroute every vehicle this often")
     shards: int = Field(1, ge=1, description="coordinator shards of the rmmdet arm")
+    coordinator: dict[str, Any] = Field(
+        {},
+        description="overrides of the coordinator settings for the district (nested like coordinator.yaml), "
+        "chosen on tuning seeds",
+    )
     workers: int = Field(2, ge=1, description="runs in parallel (processes: libsumo is one per process)")
 
 

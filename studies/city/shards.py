@@ -45,7 +45,7 @@ class ShardedCoordinator:
         self.settings = settings
         self.net = RoadNetwork(scene)
         self.regions = regions
-        self.overlay = Overlay(self.net, regions)
+        self.overlay = Overlay(self.net, regions, settings.planner.turn_penalty_s)
         self.agent_region = agent_regions(lane_agents(scene, self.net), self.net, regions)
         self.max_vehicles = max_vehicles
         self.shards: dict[int, CoordinatorCore | None] = {r: self._start(r) for r in range(regions.regions)}

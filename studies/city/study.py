@@ -19,6 +19,7 @@ from typing import Any
 
 import sumolib
 
+from shared.config import with_overrides
 from shared.machine import git_commit, machine_info
 from shared.traffic.config import load_coordinator_settings
 from sim.sumo import demand, network
@@ -61,7 +62,8 @@ def _run(job: Job) -> dict[str, Any]:
         reroute_period_s=s.reroute_period_s, shards=s.shards,
     )  # fmt: skip
     model = OracleErrorModel.load(DEFAULT_ORACLE_MODEL)
-    result = run_arm(run, job.arm, load_coordinator_settings(), model, job.out)
+    coordinator = with_overrides(load_coordinator_settings(), s.coordinator)
+    result = run_arm(run, job.arm, coordinator, model, job.out)
     log.info("%s %s cov %s seed %d: %.1f s mean, %d trips", job.arm, job.level, job.coverage, job.seed,
              result["trips"]["travel_time_mean_s"], result["trips"]["trips"])  # fmt: skip
     return {"level": job.level, "coverage": job.coverage, **result}
@@ -140,7 +142,8 @@ def markdown_table(results: dict[str, Any]) -> str:
     head = (
         f"{s['grid_side']} x {s['grid_side']} SUMO grid ({s['edge_length_m']:g} m), seeds {s['seeds']}, "
         f"{s['shards']} coordinator shard(s); rmmdet minus baseline per seed, mean ± 95 % CI (bold: the "
-        f"interval excludes 0); commit {results['commit']}, {results['machine'].get('cpu_model', '?')}."
+        f"interval excludes 0); coordinator overrides {s.get('coordinator') or 'none'}; commit "
+        f"{results['commit']}, {results['machine'].get('cpu_model', '?')}."
     )
     bases = s["baseline_arms"]
     cols = [f"{label} vs {b}" for b in bases for label, _, _ in COMPARED]
