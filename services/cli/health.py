@@ -15,10 +15,9 @@ from dataclasses import dataclass, field
 import zenoh
 from rmmdet.v1.health_pb2 import HealthLevel, ServiceHealth
 
-from services.coordinator.shard import shard_instance
 from shared.bus.codec import Counters, MessageDecoder
 from shared.bus.liveliness import alive_tokens, source_of_token
-from shared.bus.streams import get_stream, sensor_group_source
+from shared.bus.streams import get_stream, sensor_group_source, shard_instance
 from shared.scene.scene import Scene
 
 HEALTH_STREAM = get_stream("health")

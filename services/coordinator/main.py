@@ -24,13 +24,13 @@ from pathlib import Path
 import zenoh
 from rmmdet.v1.planning_pb2 import RoutePlan, RouteRequest, RouteResponse
 
-from services.coordinator.shard import ShardLink, shard_core, shard_instance
+from services.coordinator.shard import ShardLink, shard_core
 from shared.bus.health import worst
 from shared.bus.liveliness import agent_of_mec_token
 from shared.bus.node import Node, Received, processing_stamp
 from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.bus.rpc import RpcRejected, RpcServer
-from shared.bus.streams import get_stream, limits
+from shared.bus.streams import get_stream, limits, shard_instance
 from shared.bus.uplink import REJOIN_GRACE_S
 from shared.scene.scene import Scene
 from shared.security.plan_signing import PlanSigner

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import logging
 import queue
-import re
 import threading
 import time
 from collections.abc import Callable
@@ -34,7 +33,7 @@ from shared.bus.codec import MessageDecoder, encode
 from shared.bus.health import DEGRADED
 from shared.bus.node import Node
 from shared.bus.rpc import RpcDeclined, RpcDeferred, RpcRejected, RpcServer
-from shared.bus.streams import get_stream, limits
+from shared.bus.streams import get_stream, limits, region_of_instance
 from shared.config import ConfigError
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
@@ -50,14 +49,8 @@ from shared.traffic.regions import Clique, Overlay, RegionMap, agent_regions
 log = logging.getLogger("services.coordinator.shard")
 
 CLIQUES, RELEASE, ALIVE = get_stream("region_clique"), get_stream("release_rpc"), get_stream("alive")
-_INSTANCE = re.compile(r"region(\d+)")
 INVALID = ErrorCode.ERROR_CODE_INVALID_REQUEST
 MAX_PENDING = 4096  # vehicles between their release round and the answer that ends it
-
-
-def shard_instance(region: int) -> str:
-    """The coordinator instance name of region `region`'s shard."""
-    return f"region{region}"
 
 
 def shard_core(scene: Scene, settings: CoordinatorSettings, region: int) -> CoordinatorCore:
@@ -75,11 +68,6 @@ def shard_core(scene: Scene, settings: CoordinatorSettings, region: int) -> Coor
     agents = [a for a, r in agent_regions(lane_agents(scene, net), net, regions).items() if r == region]
     view = ShardView(Overlay(net, regions, settings.planner.turn_penalty_s), region)
     return CoordinatorCore(scene, settings, settings.service.max_vehicles, shard=view, shard_agents=agents)
-
-
-def region_of_instance(instance: str) -> int | None:
-    m = _INSTANCE.fullmatch(instance)
-    return int(m.group(1)) if m else None
 
 
 class ShardLink:

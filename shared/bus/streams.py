@@ -35,6 +35,20 @@ def sensor_group(agent: str, kind: str) -> str:
     return f"{agent}-{kind}s"
 
 
+_SHARD_INSTANCE = re.compile(r"region(\d+)")
+
+
+def shard_instance(region: int | str) -> str:
+    """Instance id of the coordinator shard serving `region` (services/coordinator/shard.py)."""
+    return f"region{region}"
+
+
+def region_of_instance(instance: str) -> int | None:
+    """The region of a coordinator shard's instance id; None for any other instance."""
+    m = _SHARD_INSTANCE.fullmatch(instance)
+    return int(m.group(1)) if m else None
+
+
 def sensor_group_source(agent: str, kind: str) -> str:
     """Source id (`scope/service/instance`, as in its presence token) of that sensor service."""
     return f"{agent}/sensor/{sensor_group(agent, kind)}"

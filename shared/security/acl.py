@@ -73,14 +73,22 @@ def role_matches(token: str, grant: Grant) -> bool:
 
 #: Verbs on a node's own health and presence keys: their `service` chunk is the holder's own.
 OWN_KEY_VERBS = ("serve", "token")
+#: Bindings that confine only what the holder sends (publish, serve, token): a coordinator shard
+#: publishes only its own region's maps and clique but reads every region's clique.
+SENT_ONLY = ("region",)
+SENDING_VERBS = ("publish", "serve", "token")
 
 
 def key_for(stream: Stream, grant: Grant, verb: str) -> str:
     """The stream's key expression confined to the grant's bindings (`*` where it has none): an agent
     binding also fills `scope`; a node serves health and holds presence under its own service name and
     instance (`identities.own_instance`)."""
-    b = grant.bindings
     own = verb in OWN_KEY_VERBS
+    b = (
+        grant.bindings
+        if verb in SENDING_VERBS
+        else {k: v for k, v in grant.bindings.items() if k not in SENT_ONLY}
+    )
     fill = {
         "scope": b.get("scope", b.get("agent", "*")),
         "service": SERVICE_OF_ROLE.get(grant.role, "*") if own else "*",

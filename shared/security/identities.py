@@ -21,7 +21,7 @@ import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-from shared.bus.streams import sensor_group
+from shared.bus.streams import sensor_group, shard_instance
 from shared.config import ConfigError
 from shared.scene.scene import Scene
 
@@ -41,6 +41,8 @@ LOCAL_ROUTER = "router"
 _SENSOR_RE = re.compile(r"^sensor-(?P<agent>[a-z0-9_]+)-(?P<kind>camera|lidar|radar)s$")
 _AGENT_RE = re.compile(r"^(?P<role>mec|router)-(?P<agent>[a-z0-9_]+)$")
 _VEHICLE_RE = re.compile(r"^vehicle-(?P<vehicle>[A-Za-z0-9_]+)$")
+#: A coordinator shard (services/coordinator/shard.py): publishes only its own region's maps and clique.
+_SHARD_RE = re.compile(r"^coordinator-region(?P<region>[0-9]+)$")
 
 
 @dataclass(frozen=True)
@@ -76,6 +78,8 @@ def parse_identity(name: str) -> Identity:
         return Identity(name, (Grant("router", {"site": m["agent"]}),))
     if m := _VEHICLE_RE.match(name):
         return Identity(name, (Grant("vehicles", {"vehicle": m["vehicle"]}),))
+    if m := _SHARD_RE.match(name):
+        return Identity(name, (Grant("coordinator", {"region": m["region"]}),))
     raise ConfigError(f"identity {name!r}: not a known role (see shared/security/identities.py)")
 
 
@@ -96,6 +100,8 @@ def own_instance(grant: Grant) -> str:
         return sensor_group(b["agent"], b["kind"])
     if grant.role == "mec" and "agent" in b:
         return b["agent"]
+    if grant.role == "coordinator" and "region" in b:
+        return shard_instance(b["region"])
     return "*"
 
 

@@ -214,14 +214,21 @@ def default_command(identity: str) -> list[str]:
         return ["-m", "services.mec", "--instance", b["agent"]]
     if grant.role == "router":
         return ["-m", "services.router"]
+    if grant.role == "coordinator" and "region" in b:  # a shard: the layout's env names the region map
+        return ["-m", "services.coordinator", "--shard", b["region"]]
     if identity in ("sim", "coordinator", "recorder"):
         return ["-m", f"services.{identity}"]
     raise ConfigError(f"identity {identity}: no service to run (give `command` in the layout)")
 
 
+def signs_plans(identity: str) -> bool:
+    """The coordinator and each of its shards sign plans with the deployment's plan key."""
+    return parse_identity(identity).grants[0].role == "coordinator"
+
+
 def service_environment(identity: str, pki_dir: Path) -> dict[str, str]:
     """Settings a service needs from the PKI besides its TLS identity (plan keys)."""
-    if identity == "coordinator":
+    if signs_plans(identity):
         return {"RMMDET_COORD_PLAN_SIGNING_KEY": str(plan_key_paths(pki_dir).key)}
     if identity == "sim":
         return {"RMMDET_SIM_PLAN_VERIFY_KEYS": json.dumps([str(p) for p in trusted_plan_keys(pki_dir)])}
@@ -302,7 +309,7 @@ def host_files(layout: Layout, host: str, pki_dir: Path) -> list[Path]:
     for identity in identities:
         paths = identity_paths(pki_dir, identity)
         files += [paths.cert, paths.key]
-    if "coordinator" in identities:
+    if any(signs_plans(i) for i in identities):
         files.append(plan_key_paths(pki_dir).key)
     if "sim" in identities:
         files += trusted_plan_keys(pki_dir)

@@ -108,11 +108,17 @@ class MapLog:
     rows: list[tuple[float, dict[str, str]]] = field(default_factory=list)
     lock: threading.Lock = field(default_factory=threading.Lock)
 
-    def consume(self, sub: Subscription, done: threading.Event) -> None:
+    def consume(self, sub: Subscription, done: threading.Event, merge: bool = False) -> None:
+        """`merge`: maps of several publishers (a sharded coordinator's regions, each with its own
+        agents): each row is every publisher's latest coverage together."""
+        latest: dict[str, dict[str, str]] = {}
         while not done.is_set():
             item = sub.recv(timeout=0.1)
             if item is not None:
                 states = {c.agent_id: STATE_NAMES.get(c.state, "?") for c in item.message.coverage}
+                if merge:
+                    latest[item.key] = states
+                    states = {a: s for per_key in latest.values() for a, s in per_key.items()}
                 with self.lock:
                     self.rows.append((time.monotonic(), states))
 

@@ -141,6 +141,25 @@ def five_host_layout(hosts: netns.NetHosts, vehicles: int = 10) -> dict:
     }
 
 
+#: The sharded deployment: shard 1 of the coordinator on a host of its own (a client of the cloud router).
+SHARD_OCTETS = {**OCTETS, "shard1": 14}
+TABLE_REGIONS = REPO_ROOT / "deploy" / "coordinator" / "regions" / "sand_table_2.json"
+
+
+def sharded_layout(hosts: netns.NetHosts, vehicles: int = 10) -> dict:
+    """`five_host_layout` with the coordinator split into the table's two region shards (`make up
+    SHARDS=2`'s map): region 0 on the cloud host, region 1 on host `shard1`, each under its own identity
+    (`coordinator-region<k>`: it may publish only its own region's maps and clique)."""
+    layout = five_host_layout(hosts, vehicles)
+    env = {"RMMDET_COORD_REPLAN_INTERVAL_S": "0.5", "RMMDET_COORD_SHARDS__REGIONS": str(TABLE_REGIONS)}
+    layout["hosts"]["cloud"]["services"] = [{"identity": "coordinator-region0", "env": env}]
+    layout["hosts"]["shard1"] = {
+        "address": hosts.address("shard1"),
+        "services": [{"identity": "coordinator-region1", "env": env}],
+    }
+    return layout
+
+
 @dataclass
 class Watch:
     """What an observer sees: maps, acks (plan id -> status), pushed plans, and each object list's
@@ -154,14 +173,15 @@ class Watch:
     done: threading.Event = field(default_factory=threading.Event)
     threads: list[threading.Thread] = field(default_factory=list)
 
-    def start(self, node: Node) -> None:
+    def start(self, node: Node, sharded: bool = False) -> None:
+        """`sharded`: the maps are the shards' region maps, each naming its own agents (merged)."""
         subs = {
             name: node.subscribe_stream(name, maxsize=10_000)
             for name in ("route_ack", "route_plan", "objects")
         }
-        maps = node.subscribe_stream("traffic_map", maxsize=1000)
+        maps = node.subscribe_stream("region_map" if sharded else "traffic_map", maxsize=1000)
         self.threads = [
-            threading.Thread(target=self.maps.consume, args=(maps, self.done), daemon=True),
+            threading.Thread(target=self.maps.consume, args=(maps, self.done, sharded), daemon=True),
             threading.Thread(target=self._consume, args=(subs,), daemon=True),
         ]
         for t in self.threads:
@@ -222,18 +242,20 @@ def dump_logs(out: Path, lines: int = 15) -> str:
 
 
 @contextlib.contextmanager
-def five_hosts(tmp: Path, startup_s: float, vehicles: int = 10) -> Iterator[Sites]:
+def five_hosts(tmp: Path, startup_s: float, vehicles: int = 10, sharded: bool = False) -> Iterator[Sites]:
     """The five hosts up, each by `deploy/sites/launch.py`, watched from the bridge as `operator`;
     yields once every agent is LIVE in the coordinator's maps (AssertionError with the logs if not
-    within `startup_s`). Everything is stopped and the namespaces removed on exit."""
-    hosts = netns.NetHosts.create(OCTETS)
+    within `startup_s`). Everything is stopped and the namespaces removed on exit. `sharded`: six hosts,
+    the coordinator as two shards (`sharded_layout`)."""
+    octets = SHARD_OCTETS if sharded else OCTETS
+    hosts = netns.NetHosts.create(octets)
     launchers: dict[str, subprocess.Popen] = {}
     node = None
     watch = Watch()
     out = tmp / "out"
     try:
-        dep = make_deployment(tmp, five_host_layout(hosts, vehicles))
-        for host in OCTETS:
+        dep = make_deployment(tmp, (sharded_layout if sharded else five_host_layout)(hosts, vehicles))
+        for host in octets:
             (out / host).mkdir(parents=True)
             args = [
                 sys.executable,
@@ -254,7 +276,7 @@ def five_hosts(tmp: Path, startup_s: float, vehicles: int = 10) -> Iterator[Site
         conf.insert_json5("connect/endpoints", json.dumps([dep.layout.endpoint(hosts.address("cloud"))]))
         node = Node(conf, service="test", instance="five-hosts", scope="site")
         node.open()
-        watch.start(node)
+        watch.start(node, sharded)
         try:
             watch.maps.wait(lambda s: all(s.get(a) == "LIVE" for a in AGENTS), startup_s, since=0.0)
         except AssertionError as err:

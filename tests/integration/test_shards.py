@@ -25,9 +25,8 @@ from rmmdet.v1.common_pb2 import ErrorResponse
 from rmmdet.v1.health_pb2 import HealthLevel
 from rmmdet.v1.planning_pb2 import RoutePlan
 
-from services.coordinator.shard import shard_instance
 from shared.bus.node import Node
-from shared.bus.streams import get_stream
+from shared.bus.streams import get_stream, shard_instance
 from shared.paths import DEFAULT_SCENE, REPO_ROOT
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene

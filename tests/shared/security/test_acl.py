@@ -158,3 +158,20 @@ def test_interest_in_the_whole_data_space_only_where_a_reader_needs_it() -> None
     assert "rmmdet/@v1/**" not in p[("query", "egress")]  # its health queryable
     assert p[("query", "egress")] == {"rmmdet/@v1/*/@health/**"}
     assert "rmmdet/@v1/**" not in perms("vehicle-v7")[("declare_queryable", "egress")]
+
+
+def test_a_shard_publishes_only_its_own_region_and_holds_only_its_own_presence() -> None:
+    p = perms("coordinator-region1")
+    puts = p.get(PUT_IN, set())
+    assert "rmmdet/@v1/cloud/regions/1/clique" in puts and "rmmdet/@v1/cloud/regions/1/traffic" in puts
+    other = zenoh.KeyExpr(get_stream("region_clique").key(region="0"))
+    assert not any(zenoh.KeyExpr(k).intersects(other) for k in puts)  # no forging region 0's clique
+    assert get_stream("release_rpc").pattern() in p[("declare_queryable", "ingress")]
+    assert "rmmdet/@v1/*/@health/coordinator/region1" in p[("declare_queryable", "ingress")]
+    assert not any("region0" in k for k in p[("declare_queryable", "ingress")])  # not region 0's health
+
+
+def test_a_shard_reads_every_region_s_clique() -> None:
+    p = perms("coordinator-region1")
+    other = zenoh.KeyExpr(get_stream("region_clique").key(region="0"))
+    assert any(zenoh.KeyExpr(k).intersects(other) for k in p[("declare_subscriber", "ingress")])
