@@ -72,6 +72,7 @@ from shared.scene.scene import Scene
 from shared.service import run_service
 from shared.shutdown import GracefulShutdown
 from shared.timebase import SimTime
+from shared.traffic.messages import LatestRegionMaps
 from shared.viewer.core import ViewerCore
 from shared.viewer.dashboard import DashboardState
 from shared.viewer.scene import image_annotations, radar_targets
@@ -81,6 +82,7 @@ log = logging.getLogger("services.viewer")
 SERVICE = "viewer"
 PLAN_QUEUE = 256  # pushed plans (or acks) between two draws (one per vehicle at most, normally)
 OBJECT_QUEUE = 8  # object lists of one agent between two draws (all counted for its rate, the newest drawn)
+REGION_MAP_QUEUE = 16  # region maps of a sharded coordinator between two draws (the newest per region kept)
 HEALTH_EVERY_S = 2.0
 # Nobody watching (no /health subscriber, no dashboard WebSocket or recent /api/state poll): health is
 # probed and the dashboard's snapshot made this seldom (the first poll after a quiet spell may get a
@@ -395,6 +397,9 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             acks = node.subscribe_stream("route_ack", maxsize=PLAN_QUEUE, **stamped)
             ground_truth = node.subscribe_stream("ground_truth", maxsize=1, **stamped)
             traffic = node.subscribe_stream("traffic_map", maxsize=1, **stamped)
+            # A sharded coordinator's region maps (make up SHARDS=2), drawn merged.
+            region_maps = node.subscribe_stream("region_map", maxsize=REGION_MAP_QUEUE, **stamped)
+            regions = LatestRegionMaps()
             plans = node.subscribe_stream(
                 "route_plan",
                 queue=BoundedQueue(PLAN_QUEUE, OverflowPolicy.DROP_OLDEST, node.counters, "dropped/plans"),
@@ -435,6 +440,12 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 for item in traffic.drain()[-1:]:
                     core.on_traffic_map(item.message, item.header.stamp.ToNanoseconds())
                     board.on_traffic_map(item.message)
+                arrived = region_maps.drain()
+                for item in arrived:
+                    regions.put(item.key, item.message, item.header.stamp.ToNanoseconds(), t0)
+                if arrived and (merged := regions.merged(t0)) is not None:
+                    core.on_traffic_map(*merged)
+                    board.on_traffic_map(merged[0])
                 while not health_feed.verdicts.empty():
                     verdict = health_feed.verdicts.get()
                     board.on_health(verdict.ok, verdict.summary(), verdict.problems)

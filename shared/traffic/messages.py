@@ -26,6 +26,7 @@ from rmmdet.v1.traffic_pb2 import (
     CliquePath,
     LaneTraffic,
     RegionClique,
+    TrafficGrid,
     TrafficMap,
 )
 
@@ -274,3 +275,71 @@ def _off_wire(times_s: Iterable[float]) -> NDArray[np.float64]:
     """NO_WAY back to +inf; any other negative time stays, for `Overlay.clique_problem` to refuse."""
     a = np.array(times_s, float)
     return np.where(a == NO_WAY, np.inf, a)
+
+
+def merge_region_maps(maps: list[TrafficMap]) -> TrafficMap:
+    """One map for viewers out of a sharded coordinator's region maps (each counts only what its own
+    agents see, over the whole network): every agent's coverage; per lane the entry of a map that
+    observes it (the most vehicles where several do); per grid cell and area the largest count, with the
+    speed of the map holding the most samples there. Maps with another grid than the first are left
+    out of the grid. Header and smoothing from the first map."""
+    if not maps:
+        return TrafficMap()
+    out = TrafficMap()
+    out.CopyFrom(maps[0])
+    del out.coverage[:]
+    for m in maps:
+        out.coverage.extend(m.coverage)
+    best: dict[str, LaneTraffic] = {}
+    for m in maps:
+        for lane in m.lanes:
+            held = best.get(lane.lane_id)
+            if held is None or (lane.observed, lane.vehicle_count) > (held.observed, held.vehicle_count):
+                best[lane.lane_id] = lane
+    del out.lanes[:]
+    out.lanes.extend(best[lane.lane_id] for lane in maps[0].lanes if lane.lane_id in best)
+    areas: dict[str, AreaTraffic] = {}
+    for m in maps:
+        for area in m.areas:
+            held_area = areas.get(area.area_id)
+            if held_area is None or area.vehicle_count > held_area.vehicle_count:
+                areas[area.area_id] = area
+    del out.areas[:]
+    out.areas.extend(areas[a.area_id] for a in maps[0].areas if a.area_id in areas)
+    grids = [m.grid for m in maps if _same_grid(m.grid, maps[0].grid)]
+    if len(grids) > 1 and grids[0].vehicle_count:
+        counts = np.array([g.vehicle_count for g in grids], float)
+        samples = np.array([g.speed_samples for g in grids], float)
+        speeds = np.array([g.mean_speed_mps for g in grids], float)
+        pick = samples.argmax(axis=0)
+        cells = np.arange(counts.shape[1])
+        out.grid.vehicle_count[:] = counts.max(axis=0).tolist()
+        out.grid.speed_samples[:] = samples.max(axis=0).astype(int).tolist()
+        out.grid.mean_speed_mps[:] = speeds[pick, cells].tolist()
+    return out
+
+
+def _same_grid(a: TrafficGrid, b: TrafficGrid) -> bool:
+    return (a.origin_m.x_m, a.origin_m.y_m, a.cell_size_m, a.row_count, a.column_count) == (
+        b.origin_m.x_m, b.origin_m.y_m, b.cell_size_m, b.row_count, b.column_count)  # fmt: skip
+
+
+class LatestRegionMaps:
+    """The latest map of each region shard (by key) for viewers, merged (`merge_region_maps`); a region
+    not heard for `max_age_s` (its shard gone) drops out of the merge. Seconds on the caller's clock."""
+
+    def __init__(self, max_age_s: float = 5.0) -> None:
+        self.max_age_s = max_age_s
+        self._latest: dict[str, tuple[float, TrafficMap, int]] = {}
+
+    def put(self, key: str, msg: TrafficMap, stamp_ns: int, now_s: float) -> None:
+        self._latest[key] = (now_s, msg, stamp_ns)
+
+    def merged(self, now_s: float) -> tuple[TrafficMap, int] | None:
+        """The merged map and its newest stamp (ns), or None when no region is fresh."""
+        for key in [k for k, (at_s, _, _) in self._latest.items() if now_s - at_s > self.max_age_s]:
+            del self._latest[key]
+        if not self._latest:
+            return None
+        fresh = [self._latest[k] for k in sorted(self._latest)]
+        return merge_region_maps([m for _, m, _ in fresh]), max(s for _, _, s in fresh)

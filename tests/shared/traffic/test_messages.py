@@ -160,3 +160,55 @@ def test_route_plan_fields(policy: str) -> None:
     assert (msg.valid_until.seconds, msg.valid_until.nanos) == (1500, 123)
     assert list(msg.coverage.live_agents) == ["agent1"]
     assert list(msg.coverage.missing_agents) == ["agent2", "agent3"]
+
+
+def test_region_maps_merge_into_one_map_for_viewers() -> None:
+    from rmmdet.v1.traffic_pb2 import AgentCoverage, AreaTraffic, LaneTraffic, TrafficMap
+
+    from shared.traffic.messages import merge_region_maps
+
+    def region_map(
+        observed: dict[str, int], agent: str, cells: list[float], samples: list[int]
+    ) -> TrafficMap:
+        m = TrafficMap(smoothing_time_constant_s=5.0)
+        for lane in ("l0", "l1", "l2"):
+            m.lanes.append(
+                LaneTraffic(lane_id=lane, vehicle_count=observed.get(lane, 0), observed=lane in observed)
+            )
+        m.areas.append(AreaTraffic(area_id="ring", vehicle_count=sum(observed.values())))
+        m.coverage.append(AgentCoverage(agent_id=agent, state=1))
+        g = m.grid
+        g.cell_size_m, g.row_count, g.column_count = 0.25, 1, 3
+        g.vehicle_count.extend(cells)
+        g.speed_samples.extend(samples)
+        g.mean_speed_mps.extend([0.1 * s for s in samples])
+        return m
+
+    a = region_map({"l0": 2}, "agent2", [1.0, 0.0, 0.5], [3, 0, 1])
+    b = region_map({"l1": 1, "l0": 3}, "agent1", [0.0, 2.0, 0.5], [0, 4, 2])
+    merged = merge_region_maps([a, b])
+    assert [c.agent_id for c in merged.coverage] == ["agent2", "agent1"]
+    lanes = {lane.lane_id: (lane.observed, lane.vehicle_count) for lane in merged.lanes}
+    assert lanes == {"l0": (True, 3), "l1": (True, 1), "l2": (False, 0)}
+    assert list(merged.grid.vehicle_count) == [1.0, 2.0, 0.5]
+    assert list(merged.grid.speed_samples) == [3, 4, 2]
+    assert list(merged.grid.mean_speed_mps) == pytest.approx([0.3, 0.4, 0.2])  # the map with more samples
+    assert merged.areas[0].vehicle_count == 4
+    assert merge_region_maps([a]) == a and merge_region_maps([]) == TrafficMap()
+
+
+def test_latest_region_maps_drop_a_silent_region() -> None:
+    from rmmdet.v1.traffic_pb2 import AgentCoverage, TrafficMap
+
+    from shared.traffic.messages import LatestRegionMaps
+
+    maps = LatestRegionMaps(max_age_s=5.0)
+    assert maps.merged(0.0) is None
+    for region, agent in ((0, "agent2"), (1, "agent1")):
+        m = TrafficMap(coverage=[AgentCoverage(agent_id=agent, state=1)])
+        maps.put(f"rmmdet/@v1/cloud/regions/{region}/traffic", m, 100 + region, now_s=float(region))
+    merged = maps.merged(2.0)
+    assert merged is not None and [c.agent_id for c in merged[0].coverage] == ["agent2", "agent1"]
+    assert merged[1] == 101
+    later = maps.merged(5.5)  # region 0 silent for 5.5 s: its shard is gone
+    assert later is not None and [c.agent_id for c in later[0].coverage] == ["agent1"]
