@@ -12,7 +12,7 @@ SUPERVISOR_CONF := deploy/local/supervisord.conf
 RUN_DIR := .run
 PYTEST_ARGS ?=
 
-.PHONY: help install proto pki up down status logs view-web screenshots test test-unit test-integration test-fault bench soak models eval eval-fusion eval-robustness experiments experiments-city lint typecheck fmt clean
+.PHONY: help install proto pki up down status logs view-web screenshots docs test test-unit test-integration test-fault bench soak models eval eval-fusion eval-robustness experiments experiments-city lint typecheck fmt clean
 
 help: ## list targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-18s %s\n", $$1, $$2}'
@@ -93,6 +93,9 @@ pki: install ## local CA, service certificates and plan-signing key in .run/pki 
 down: ## stop every service and supervisord; leaves no process behind
 	@if [ -x $(BIN)/python ]; then $(BIN)/python deploy/local/down.py --conf $(SUPERVISOR_CONF); else echo "not installed: nothing to stop"; fi
 
+docs: install ## the documentation site (MkDocs + Material, strict: a broken link fails) -> site/
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --site-dir site
+
 status: ## supervisor view of the services
 	@$(BIN)/supervisorctl -c $(SUPERVISOR_CONF) status || true
 
@@ -112,6 +115,7 @@ test: install pki ## lint, type-check, then unit + integration + fault tests (ex
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet --site-dir $(RUN_DIR)/site
 	$(BIN)/python -m pytest -m "not slow" $(PYTEST_ARGS)
 
 test-unit: install

@@ -343,7 +343,7 @@ def producer_of(key: str) -> str:
 
 
 def markdown_table() -> str:
-    """The key-space table embedded in proto/README.md."""
+    """The key-space table embedded in docs/bus.md."""
     rows = [
         "| Key expression | Message | Stream class | QoS (priority, congestion, express) | Kind | Notes |",
         "|---|---|---|---|---|---|",

@@ -9,7 +9,7 @@ times in UNIX nanoseconds. In the MCAP file (readable by Foxglove / Lichtblick a
   Zenoh encoding. Message data = the payload bytes, unchanged.
 - **Header channel** `<key>/@header`, one per key that carried an attachment: schema
   `rmmdet.v1.Header`, channel metadata `rmmdet.header_for` = the data key. Its message is the attachment
-  bytes (the `rmmdet.v1.Header` of Foxglove-schema streams, proto/README.md), written with the same
+  bytes (the `rmmdet.v1.Header` of Foxglove-schema streams, docs/bus.md), written with the same
   `log_time`, `publish_time` and `sequence` as its data message, which is how a reader pairs them.
 - **Times**: `log_time` = receive wall clock; `publish_time` = the header `stamp` (sensor / sim time),
   or `log_time` for a sample without a header. `sequence` counts per key from 1 (mod 2**32).

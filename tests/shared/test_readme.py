@@ -23,3 +23,46 @@ def test_a_missing_or_misordered_section_is_refused(tmp_path: Path, text: str) -
     with pytest.raises(SystemExit):
         replace_section("t", "x", readme)
     assert readme.read_text() == text
+
+
+def test_a_section_is_found_in_the_one_file_that_holds_it(tmp_path: Path) -> None:
+    from shared.readme import section_file
+
+    (tmp_path / "docs" / "eval").mkdir(parents=True)
+    (tmp_path / "README.md").write_text("front door\n")
+    page = tmp_path / "docs" / "eval" / "page.md"
+    page.write_text("<!-- t:begin -->\n<!-- t:end -->\n")
+    assert section_file("t", tmp_path) == page
+    with pytest.raises(SystemExit, match="no file"):
+        section_file("other", tmp_path)
+    (tmp_path / "README.md").write_text("<!-- t:begin -->\n<!-- t:end -->\n")
+    with pytest.raises(SystemExit, match="exactly one"):
+        section_file("t", tmp_path)
+
+
+def test_every_generated_section_of_the_repository_has_one_home() -> None:
+    import re
+
+    from shared.paths import REPO_ROOT
+    from shared.readme import section_file
+
+    names = set()
+    for p in [REPO_ROOT / "README.md", *(REPO_ROOT / "docs").rglob("*.md")]:
+        names |= set(re.findall(r"<!-- ([a-z0-9-]+):begin -->", p.read_text()))
+    assert {"city", "city-bench", "eval-detectors", "system-bench"} <= names
+    for name in names:
+        section_file(name)
+
+
+def test_the_readme_is_a_front_door_whose_links_resolve() -> None:
+    import re
+
+    from shared.paths import REPO_ROOT
+
+    text = (REPO_ROOT / "README.md").read_text()
+    assert len(text.splitlines()) <= 200  # issue 38: the details live in docs/
+    links = re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", text)
+    local = [link for link in links if not link.startswith(("http://", "https://"))]
+    assert local and all((REPO_ROOT / link).exists() for link in local), [
+        link for link in local if not (REPO_ROOT / link).exists()
+    ]

@@ -1,4 +1,4 @@
-"""The key space: builders, validation, message types, and proto/README.md kept in sync."""
+"""The key space: builders, validation, message types, and docs/bus.md kept in sync."""
 
 from __future__ import annotations
 
@@ -60,7 +60,7 @@ def test_stream_for_key() -> None:
 
 
 def test_proto_readme_table_is_current() -> None:
-    readme = (REPO_ROOT / "proto" / "README.md").read_text()
+    readme = (REPO_ROOT / "docs" / "bus.md").read_text()
     assert markdown_table() in readme, "regenerate: python -m shared.bus.streams --markdown"
 
 
