@@ -1,8 +1,9 @@
 """`make down`: stop supervisord and every service it runs, and prove nothing is left behind.
 
-Asks supervisord to shut down (it stops each program's whole process group with SIGINT, then
-SIGKILL after stopwaitsecs), waits for it to exit, then looks for any process still running from
-this checkout's virtualenv and kills it, so a crashed supervisord cannot leave orphans.
+Asks supervisord to stop every program at once (each program's whole process group gets SIGINT,
+then SIGKILL after stopwaitsecs), then to shut down, waits for it to exit, then looks for any process
+still running from this checkout's virtualenv and kills it, so a crashed supervisord cannot leave
+orphans.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import contextlib
 import subprocess
 import sys
 import time
+import xmlrpc.client
 from pathlib import Path
 
 import psutil
@@ -19,6 +21,7 @@ import psutil
 REPO_ROOT = Path(__file__).resolve().parents[2]
 RUN_DIR = REPO_ROOT / ".run"
 VENV_PYTHON_PREFIX = str(REPO_ROOT / ".venv" / "bin")
+ROUTER = "router"  # supervisord.conf's program name of the Zenoh router
 
 
 def supervisord_pid() -> int | None:
@@ -45,6 +48,35 @@ def leftovers() -> list[psutil.Process]:
     return found
 
 
+def stop_all_at_once(socket: Path, timeout_s: float) -> bool:
+    """Ask supervisord to stop every program without waiting for each (its own shutdown and `stop all`
+    stop one after another: ~1 s each, 15 s in all), the router last (the others close their sessions
+    through it); each gets its stopsignal once and is not restarted. Then supervisord shuts down.
+    False if supervisord could not be asked (the caller falls back to `supervisorctl shutdown`)."""
+    from supervisor.xmlrpc import SupervisorTransport
+
+    proxy = xmlrpc.client.ServerProxy(
+        "http://127.0.0.1", transport=SupervisorTransport(None, None, f"unix://{socket}")
+    )
+    deadline = time.monotonic() + timeout_s
+    try:
+        names = [p["name"] for p in proxy.supervisor.getAllProcessInfo()]
+        for batch in ([n for n in names if n != ROUTER], [n for n in names if n == ROUTER]):
+            for name in batch:
+                with contextlib.suppress(xmlrpc.client.Fault):  # not running: nothing to stop
+                    proxy.supervisor.stopProcess(name, False)
+            while time.monotonic() < deadline:
+                states = {p["statename"] for p in proxy.supervisor.getAllProcessInfo() if p["name"] in batch}
+                if not states & {"RUNNING", "STOPPING", "STARTING", "BACKOFF"}:
+                    break
+                time.sleep(0.05)
+        proxy.supervisor.shutdown()
+        return True
+    except (OSError, xmlrpc.client.Error) as err:
+        print(f"stopping all at once failed ({err}); supervisord shuts down one by one")
+        return False
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--conf", default=str(REPO_ROOT / "deploy/local/supervisord.conf"))
@@ -55,11 +87,12 @@ def main() -> int:
     if pid is None:
         print("supervisord not running")
     else:
-        ctl = Path(sys.executable).parent / "supervisorctl"
-        subprocess.run([str(ctl), "-c", args.conf, "shutdown"], check=False)
+        if not stop_all_at_once(RUN_DIR / "supervisor.sock", args.timeout_s):
+            ctl = Path(sys.executable).parent / "supervisorctl"
+            subprocess.run([str(ctl), "-c", args.conf, "shutdown"], check=False)
         deadline = time.monotonic() + args.timeout_s
         while psutil.pid_exists(pid) and time.monotonic() < deadline:
-            time.sleep(0.1)
+            time.sleep(0.02)
         if psutil.pid_exists(pid):
             print(f"supervisord {pid} still alive after {args.timeout_s} s: killing it")
             psutil.Process(pid).kill()
