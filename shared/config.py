@@ -89,6 +89,13 @@ def with_overrides(model: M, overrides: Mapping[str, Any]) -> M:
         raise ConfigError(f"{type(model).__name__}: {err}") from None
 
 
+def validation_summary(err: ValidationError) -> str:
+    """A pydantic error as one line: each wrong field's dotted path and what is wrong with it."""
+    return "; ".join(
+        f"{'.'.join(str(p) for p in e['loc']) or '(top level)'}: {e['msg']}" for e in err.errors()
+    )
+
+
 def load_settings(cls: type[S], yaml_path: Path | None = None, **overrides: Any) -> S:
     """Settings of type `cls` from `yaml_path` (optional) with keyword overrides deep-merged in
     (`deep_merge`), then env vars."""
@@ -97,4 +104,4 @@ def load_settings(cls: type[S], yaml_path: Path | None = None, **overrides: Any)
         return cls(**data)
     except ValidationError as err:
         where = f"{yaml_path}" if yaml_path else cls.__name__
-        raise ConfigError(f"{where}: {err}") from None
+        raise ConfigError(f"{where}: {validation_summary(err)}") from None

@@ -8,12 +8,14 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import zenoh
 
 from shared.bus.zenoh_config import DEFAULT_CLIENT_CONFIG, add_zenoh_args, config_from_args
+from shared.config import ConfigError
 from shared.logging_setup import setup_logging
 from shared.memtrace import start_from_env
 from shared.shutdown import GracefulShutdown
@@ -21,6 +23,7 @@ from shared.shutdown import GracefulShutdown
 ServiceMain = Callable[[zenoh.Config, argparse.Namespace, GracefulShutdown], int | None]
 
 log = logging.getLogger(__name__)
+CONFIG_ERROR_EXIT = 2  # a configuration a service cannot start with (argparse's status for a bad flag)
 
 
 def run_service(
@@ -40,9 +43,18 @@ def run_service(
     add_zenoh_args(parser, default_zenoh_config)
     args = parser.parse_args(argv)
     setup_logging(service, args.instance)
-    conf = config_from_args(args)
-    with GracefulShutdown() as shutdown:
-        start_from_env(shutdown.event, service, args.instance)
-        rc = main(conf, args, shutdown)
+    try:
+        try:
+            conf = config_from_args(args)
+        except (zenoh.ZError, ValueError) as err:  # a malformed --config file or --cfg
+            raise ConfigError(f"zenoh configuration: {err}") from None
+        with GracefulShutdown() as shutdown:
+            start_from_env(shutdown.event, service, args.instance)
+            rc = main(conf, args, shutdown)
+    except ConfigError as err:
+        # A bad settings file, key file or Zenoh configuration: one line naming it and the field, exit 2
+        # (as argparse does for a bad flag), never a traceback.
+        print(f"{parser.prog}: configuration error: {' '.join(str(err).split())}", file=sys.stderr)
+        return CONFIG_ERROR_EXIT
     log.info("exit %s", rc or 0)
     return rc or 0
