@@ -17,18 +17,24 @@ from rmmdet.v1.health_pb2 import HealthLevel, ServiceHealth
 
 from shared.bus.codec import Counters, MessageDecoder
 from shared.bus.liveliness import alive_tokens, source_of_token
-from shared.bus.streams import get_stream, sensor_group_source, shard_instance
+from shared.bus.streams import get_stream, region_of_instance, sensor_group_source
 from shared.scene.scene import Scene
 
 HEALTH_STREAM = get_stream("health")
 HEALTH_KEYS = HEALTH_STREAM.pattern()
 ALIVE_KEYS = get_stream("alive").pattern()
 COORDINATOR = "cloud/coordinator/cloud"
-SHARD_PREFIX = f"cloud/coordinator/{shard_instance(0).rstrip('0')}"
 
 
 def level_name(level: int) -> str:
     return HealthLevel.Name(level).removeprefix("HEALTH_LEVEL_")
+
+
+def _is_shard(source: str) -> bool:
+    """`source` (scope/service/instance) is a coordinator region shard."""
+    scope, _, rest = source.partition("/")
+    service, _, instance = rest.partition("/")
+    return (scope, service) == ("cloud", "coordinator") and region_of_instance(instance) is not None
 
 
 def expected_services(scene: Scene) -> list[str]:
@@ -129,7 +135,7 @@ def judge(
             verdict.problems.append(f"{source} alive but no health reply")
     present = answered | alive_ids
     for source in expected:
-        if source in present or (source == COORDINATOR and any(p.startswith(SHARD_PREFIX) for p in present)):
+        if source in present or (source == COORDINATOR and any(_is_shard(p) for p in present)):
             continue
         if service is None or source.split("/")[1] == service:
             verdict.problems.append(f"{source} not running")

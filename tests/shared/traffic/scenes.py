@@ -12,6 +12,10 @@ from shared.config import read_yaml
 from shared.paths import DEFAULT_SCENE
 from shared.scene.model import SceneSpec
 from shared.scene.scene import Scene
+from shared.traffic.config import CoordinatorSettings
+from shared.traffic.core import CoordinatorCore
+from shared.traffic.planner import ShardView
+from shared.traffic.regions import Overlay
 
 SPEED_MPS = 0.5
 
@@ -113,3 +117,22 @@ def map_scene() -> Scene:
         ],
     }
     return Scene(SceneSpec.model_validate(spec))
+
+
+def shard_cores(overlay: Overlay, max_vehicles: int = 16) -> list[CoordinatorCore]:
+    """One production core per region of `overlay` (no agents), each planning across the others with
+    the cliques they publish on empty maps."""
+    cores = [
+        CoordinatorCore(
+            overlay.net.scene,
+            CoordinatorSettings(),
+            max_vehicles,
+            shard=ShardView(overlay, r),
+            shard_agents=[],
+        )
+        for r in range(overlay.regions.regions)
+    ]
+    for r, core in enumerate(cores):
+        assert core.shard is not None
+        core.shard.cliques = {o: other.clique() for o, other in enumerate(cores) if o != r}
+    return cores

@@ -379,19 +379,12 @@ def test_a_repeated_request_is_planned_anew_once_the_coverage_changed(
 
 
 def test_shards_serve_only_their_lanes_and_hand_a_vehicle_over_with_its_plan(scene: Scene) -> None:
-    from shared.traffic.planner import ShardView
     from shared.traffic.regions import Overlay, RegionMap, partition_junctions
+    from tests.shared.traffic.scenes import shard_cores
 
     net = RoadNetwork(scene)
     regions = RegionMap(partition_junctions(net, 2))
-    overlay = Overlay(net, regions)
-    cores = [
-        CoordinatorCore(scene, CoordinatorSettings(), 16, shard=ShardView(overlay, r), shard_agents=[])
-        for r in range(2)
-    ]
-    for r, core in enumerate(cores):
-        assert core.shard is not None
-        core.shard.cliques = {o: other.clique() for o, other in enumerate(cores) if o != r}
+    cores = shard_cores(Overlay(net, regions))
     lane = next(lane for lane in sorted(net.lanes) if regions.lane_region(net, lane) == 0)
     far = next(j for j, r in sorted(regions.region_of_junction.items()) if r == 1)
     with pytest.raises(RequestRejected) as refused:

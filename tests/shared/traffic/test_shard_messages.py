@@ -16,12 +16,10 @@ from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.timebase import NS_PER_S
 from shared.traffic import messages
-from shared.traffic.config import CoordinatorSettings
-from shared.traffic.core import CoordinatorCore
 from shared.traffic.peers import RegionPeers
-from shared.traffic.planner import ShardView
 from shared.traffic.plans import Ack
 from shared.traffic.regions import Overlay, RegionMap, partition_junctions
+from tests.shared.traffic.scenes import shard_cores
 
 WALL0_NS = 1_800_000_000 * NS_PER_S
 
@@ -68,20 +66,8 @@ def test_a_malformed_clique_message_is_refused(overlay: Overlay) -> None:
     assert overlay.clique_problem(messages.clique_of(negative), overlay.free_time_s) == "clique_time"
 
 
-def _shards(overlay: Overlay) -> list[CoordinatorCore]:
-    scene = overlay.net.scene
-    cores = [
-        CoordinatorCore(scene, CoordinatorSettings(), 16, shard=ShardView(overlay, r), shard_agents=[])
-        for r in range(2)
-    ]
-    for r, core in enumerate(cores):
-        assert core.shard is not None
-        core.shard.cliques = {o: other.clique() for o, other in enumerate(cores) if o != r}
-    return cores
-
-
 def test_a_handed_over_vehicle_keeps_plan_version_and_ack_across_the_wire(overlay: Overlay) -> None:
-    cores = _shards(overlay)
+    cores = shard_cores(overlay)
     net = overlay.net
     lane = next(lane for lane in overlay.lane_ids if cores[0].shard and cores[0].shard.owns(lane))
     far = next(j for j, r in sorted(overlay.regions.region_of_junction.items()) if r == 1)
@@ -119,7 +105,7 @@ def test_a_handed_over_vehicle_keeps_plan_version_and_ack_across_the_wire(overla
 
 
 def test_a_handover_that_does_not_fit_is_refused_with_its_reason(overlay: Overlay) -> None:
-    cores = _shards(overlay)
+    cores = shard_cores(overlay)
     lane = next(lane for lane in overlay.lane_ids if cores[0].shard and cores[0].shard.owns(lane))
     far = next(j for j, r in sorted(overlay.regions.region_of_junction.items()) if r == 1)
     cores[0].serve(
