@@ -70,3 +70,15 @@ def claim_problem(given: Given | None, claim: Claim, wall_ns: int) -> str | None
     if claim.lane == lanes[-1] or claim.lane_start_junction == given.destination:
         return None
     return "claim_lane"
+
+
+def followed_rest(given: Given | None, claim: Claim, wall_ns: int) -> list[str] | None:
+    """The lanes of the plan the vehicle follows from the lane it claims on (that lane first) when the
+    claim is on the plan, before its last lane, toward its destination; else None (no plan in force, a
+    plan left or finished, another destination)."""
+    if given is None or given.plan.ack not in FOLLOWING or not given.in_force(wall_ns):
+        return None
+    lanes = given.plan.route.lanes
+    if claim.destination != given.destination or claim.lane not in lanes[:-1]:
+        return None
+    return lanes[lanes.index(claim.lane) :]

@@ -20,6 +20,8 @@ from shared.security.pki import plan_key_paths
 DEFAULT_COORDINATOR_CONFIG = REPO_ROOT / "deploy" / "coordinator" / "coordinator.yaml"
 
 PolicyName = Literal["random", "paper_rule", "shortest", "dynamic_ground_truth", "balanced"]
+SpeedSource = Literal["perceived", "free"]
+RequestReplan = Literal["always", "on_gain"]
 POLICIES: tuple[PolicyName, ...] = ("random", "paper_rule", "shortest", "dynamic_ground_truth", "balanced")
 
 
@@ -93,6 +95,12 @@ class PlannerConfig(_Section):
     min_speed_mps: float = Field(
         0.05, gt=0, description="perceived speeds are floored here (a stopped queue is slow, not closed)"
     )
+    speed_source: SpeedSource = Field(
+        "perceived",
+        description="balanced's lane time: length at the perceived mean speed, or at the free speed where "
+        "slow lanes are mostly queues at red lights (sensors near junctions see the queue, not the lane) "
+        "and the per-car junction service already charges them",
+    )
     turn_penalty_s: float = Field(
         0.0,
         ge=0,
@@ -165,6 +173,12 @@ class CoordinatorSettings(RmmdetSettings):
     )
     replan_gain: float = Field(
         0.2, ge=0, description="push a new plan when it is expected to save this share of the trip time"
+    )
+    request_replan: RequestReplan = Field(
+        "always",
+        description="a request from a vehicle following its plan is planned afresh (always), or keeps the "
+        "rest of that plan unless a new route saves `replan_gain` of its time (on_gain: the push rule, so "
+        "noisy maps do not send a car zig-zagging between equally good roads)",
     )
     report_interval_s: float = Field(10.0, gt=0, description="log interval of rates and counters")
 

@@ -37,7 +37,7 @@ from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.timebase import NS_PER_S
 from shared.traffic import messages
-from shared.traffic.claims import Claim, Given, claim_problem, repeats
+from shared.traffic.claims import Claim, Given, claim_problem, followed_rest, repeats
 from shared.traffic.config import CoordinatorSettings
 from shared.traffic.coverage import AgentState, CoverageTracker
 from shared.traffic.maps import AgentObjects, TrafficMapBuilder, TrafficSnapshot, merge_agents
@@ -140,6 +140,7 @@ class CoordinatorCore:
         self.repeats = 0  # requests answered with the plan their unacknowledged reply carried
         self.claims_refused = 0  # requests refused by `claims.claim_problem`
         self.ended_by_request = 0  # plans ended by a request's `ended_plan_id` before their ack came
+        self.plans_kept = 0  # requests answered with the rest of the followed plan (`request_replan`)
 
     # --- inputs ----------------------------------------------------------------------------------
 
@@ -293,6 +294,16 @@ class CoordinatorCore:
                 route = self.planner.plan(vid, req.current_lane_id, req.destination_junction_id, self._cond)
             except NoRouteError as err:
                 raise RequestRejected("no_route", ErrorCode.ERROR_CODE_NOT_FOUND, str(err)) from None
+            rest = followed_rest(given, claim, wall_ns)
+            if (
+                self.settings.request_replan == "on_gain"
+                and rest is not None
+                and active is not None
+                and active.missing == self._missing
+                and not self._saves(vid, rest, route)
+            ):
+                route = self.planner.route(vid, rest, self._cond, route.policy)
+                self.plans_kept += 1
             plan = self.book.issue(vid, route, now_s, pushed=False, wall_ns=wall_ns)
             msg = self._record(plan, req.destination_junction_id, wall_ns)
             return msg, self._map_stamp_ns
@@ -423,11 +434,15 @@ class CoordinatorCore:
             new = self.planner.plan(vid, start, active.destination, self._cond, route.policy)
         except NoRouteError:
             return None
-        old_s = self.planner.route_time_s(route.lanes[1:], self._cond, route.policy, vid)
-        saves = old_s - new.expected_travel_time_s > self.settings.replan_gain * old_s
-        if not saves and active.missing == self._missing:
+        if not self._saves(vid, route.lanes[1:], new) and active.missing == self._missing:
             return None
         return self.planner.route(vid, [head, *new.lanes], self._cond, route.policy)
+
+    def _saves(self, vid: str, old_lanes: list[str], new: Route) -> bool:
+        """`new` (from the same lane as `old_lanes`) is expected to save more than `replan_gain` of the
+        time of `old_lanes` on the current maps."""
+        old_s = self.planner.route_time_s(old_lanes, self._cond, new.policy, vid)
+        return old_s - new.expected_travel_time_s > self.settings.replan_gain * old_s
 
     @property
     def plans_given_up(self) -> int:

@@ -188,12 +188,13 @@ class RoutePlanner:
         self._cond = cond
 
     def _lane_times(self, cond: LaneConditions, policy: PolicyName, load: FloatArray) -> FloatArray:
-        """(L,) lane times: length at the measured (else free) speed; balanced adds a junction service
-        per car on the lane and per vehicle planned onto it (weighted)."""
+        """(L,) lane times: length at the measured (else free) speed (balanced: per `speed_source`);
+        balanced adds a junction service per car on the lane and per vehicle planned onto it (weighted)."""
         if policy == "shortest":
             return self._length_m / self._free_mps
         self._observe(cond)
-        t = self._length_m / self._speed
+        speed = self._free_mps if policy == "balanced" and self.cfg.speed_source == "free" else self._speed
+        t = self._length_m / speed
         if policy == "balanced":
             t = t + self.cfg.junction_service_s * (self._count + self.cfg.load_weight * load)
         return t

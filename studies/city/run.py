@@ -106,6 +106,7 @@ def run_arm(
             counts.update({f"clients/{k}": n for k, n in driver.clients.counts.items()})
             counts.update({f"shards/{k}": n for k, n in driver.coordinator.counts.items()})
             counts["shards/max_owners"] = driver.max_owners
+            counts["shards/plans_kept"] = sum(c.plans_kept for c in driver.coordinator.live().values())
     wall_s, cpu_s = time.perf_counter() - t0, time.process_time() - cpu0
     summary = trips.summarise(tripinfo, 0.0, end_s)
     return {

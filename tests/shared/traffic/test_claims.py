@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from shared.traffic.claims import Claim, Given, claim_problem, repeats
+from shared.traffic.claims import Claim, Given, claim_problem, followed_rest, repeats
 from shared.traffic.planner import Route
 from shared.traffic.plans import Ack, IssuedPlan
 
@@ -53,3 +53,23 @@ def test_only_an_unacknowledged_reply_to_the_same_request_repeats() -> None:
     assert not repeats(given(None, pushed=True), same, NOW)  # a push is no answer to a request
     assert not repeats(given(None), same, LATER)  # lapsed
     assert not repeats(None, same, NOW)
+
+
+@pytest.mark.parametrize(
+    ("claim", "ack", "now", "rest"),
+    [
+        (Claim("a", "j9", "j0"), Ack.ACCEPTED, NOW, ["a", "b", "c"]),
+        (Claim("b", "j9", "j1"), Ack.DUPLICATE, NOW, ["b", "c"]),
+        (Claim("c", "j9", "j2"), Ack.ACCEPTED, NOW, None),  # the last lane: nothing left to keep
+        (Claim("b", "j4", "j1"), Ack.ACCEPTED, NOW, None),  # another destination
+        (Claim("x", "j9", "j5"), Ack.ACCEPTED, NOW, None),  # off the plan
+        (Claim("b", "j9", "j1"), None, NOW, None),  # not acknowledged: not followed
+        (Claim("b", "j9", "j1"), Ack.REJECTED_INVALID, NOW, None),
+        (Claim("b", "j9", "j1"), Ack.ACCEPTED, LATER, None),  # lapsed
+    ],
+)
+def test_the_rest_of_a_followed_plan_from_the_claimed_lane(
+    claim: Claim, ack: Ack | None, now: int, rest: list[str] | None
+) -> None:
+    assert followed_rest(given(ack), claim, now) == rest
+    assert followed_rest(None, claim, now) is None

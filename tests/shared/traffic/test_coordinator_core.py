@@ -18,8 +18,10 @@ from shared.traffic.config import CoordinatorSettings
 from shared.traffic.core import CoordinatorCore, RequestRejected, Tick
 from shared.traffic.coverage import AgentState
 from shared.traffic.messages import agent_objects
+from shared.traffic.planner import Route
 from shared.traffic.plans import Ack, version_of
 from tests.integration.fake_mec import AgentCars
+from tests.shared.traffic.scenes import planner_scene
 
 WALL0_NS = 1_700_000_000 * NS_PER_S
 CARS = 3
@@ -404,3 +406,32 @@ def test_shards_serve_only_their_lanes_and_hand_a_vehicle_over_with_its_plan(sce
     crossing = next(lane for lane in plan.lane_ids if regions.lane_region(net, lane) == 1)
     later, _ = cores[1].serve(request("v01", crossing, far, plan.version), 2.0, WALL0_NS + NS_PER_S)
     assert later.version > plan.version  # versions carry on across shards
+
+
+@pytest.mark.parametrize(
+    ("request_replan", "others_on_ab", "lanes"),
+    [
+        ("on_gain", 3, ["in", "ab"]),  # ab 4 s + 3 x 2 s = 10 s; ac + cb 8 s saves 20 %: not more, kept
+        ("on_gain", 5, ["in", "ac", "cb"]),  # ab 14 s: the detour saves 43 %
+        ("always", 3, ["in", "ac", "cb"]),  # planned afresh: the faster route whatever it saves
+    ],
+)
+def test_a_request_on_the_followed_plan_keeps_it_unless_a_new_route_saves_the_replan_gain(
+    request_replan: str, others_on_ab: int, lanes: list[str]
+) -> None:
+    """planner_scene from lane `in` to jb: ab 4 s, or ac + cb 8 s; each vehicle planned onto ab adds
+    2 s (junction service 1 s x load weight 2). A vehicle following [in, ab] asks again from `in` after
+    others were planned onto ab: with `request_replan: on_gain` it keeps its plan unless the new route
+    saves more than `replan_gain` (0.2) of the kept one's time, like a pushed re-plan."""
+    settings = CoordinatorSettings.model_validate({"request_replan": request_replan})
+    core = CoordinatorCore(planner_scene(), settings, 16)
+    core.update_map(0.0)
+    plan, _ = core.serve(request(lane="in", dest="jb"), 0.0, WALL0_NS)
+    assert list(plan.lane_ids) == ["in", "ab"]
+    core.on_ack("v01", plan.plan_id, plan.version, Ack.ACCEPTED, 0.0)
+    for k in range(others_on_ab):
+        core.planner.commit(f"o{k}", Route(["in", "ab"], ["ja"], 0.0, 3.0, "balanced"))
+    again, _ = core.serve(request(lane="in", dest="jb"), 1.0, WALL0_NS + NS_PER_S)
+    assert list(again.lane_ids) == lanes
+    assert again.version > plan.version  # a plan issued now either way (its TTL from now)
+    assert core.plans_kept == (1 if lanes == ["in", "ab"] else 0)

@@ -118,6 +118,18 @@ def test_balanced_lane_time_includes_queue_and_load(network: RoadNetwork) -> Non
     assert planner.lane_time_s("ab", cond, "dynamic_ground_truth", Counter({"ab": 3})) == pytest.approx(8.0)
 
 
+def test_balanced_on_free_speed_charges_the_queue_not_its_speed(network: RoadNetwork) -> None:
+    """`speed_source: free`: a lane whose seen cars stand at a red light costs its free time plus the
+    junction service per car, however slow they are; the other policies still read the speed."""
+    planner = make_planner(network, junction_service_s=2.0, speed_source="free")
+    cond = LaneConditions(count={"ab": 1.0}, speed_mps={"ab": 0.05})
+    assert planner.lane_time_s("ab", cond, "balanced") == pytest.approx(4.0 + 2.0)  # 2 m / 0.5 m/s + 2 s
+    assert planner.plan("v1", "in", "jb", cond, "balanced").lanes == SHORT
+    assert planner.lane_time_s("ab", cond, "dynamic_ground_truth") == pytest.approx(2.0 / 0.05)
+    perceived = make_planner(network, junction_service_s=2.0)
+    assert perceived.plan("v1", "in", "jb", cond, "balanced").lanes == LONG  # 40 s + 2 s on ab
+
+
 def test_balanced_spreads_successive_vehicles(network: RoadNetwork) -> None:
     planner = make_planner(network)  # junction service 1 s, load weight 2
     cond = LaneConditions(count={"ab": 1.0})  # one car on the short lane already
