@@ -12,6 +12,7 @@ import logging
 import os
 import sys
 import time
+from collections.abc import Callable
 
 import zenoh
 
@@ -47,3 +48,23 @@ def setup_logging(service: str, instance: str = "", level: str | None = None) ->
     root.handlers[:] = [handler]
     root.setLevel(level_name)
     zenoh.init_log_from_env_or("error")
+
+
+class ReportTimer:
+    """The "log rates and counters every N seconds" timer of the service loops: `due()` is True at most
+    once per `interval_s` of `clock` (monotonic seconds unless given, e.g. the sim clock of record), the
+    first time one interval after construction; a late call does not catch up."""
+
+    def __init__(self, interval_s: float, clock: Callable[[], float] = time.monotonic) -> None:
+        if not interval_s > 0:
+            raise ValueError(f"interval_s must be > 0, got {interval_s}")
+        self.interval_s = interval_s
+        self._clock = clock
+        self._last_s = clock()
+
+    def due(self) -> bool:
+        now_s = self._clock()
+        if now_s - self._last_s < self.interval_s:
+            return False
+        self._last_s = now_s
+        return True

@@ -3,7 +3,7 @@ walks every module of the project's packages; each rule names the one file allow
 
   nanoseconds per second (10**9)          shared/timebase.py  NS_PER_S
   the repository root (Path(__file__).parents[..])  shared/paths.py  REPO_ROOT
-  the key prefix ("rmmdet/@v1...")        proto/streams.yaml via shared/bus/streams.py
+  the key prefix ("rmmdet/v1...")        proto/streams.yaml via shared/bus/streams.py
   the package version                      pyproject.toml (importlib.metadata)
   the car's class id                       shared/detection/interface.py  CAR_CLASS_ID
 Docstrings and comments may mention them; code may not restate them. Another quantity that happens to
@@ -16,12 +16,14 @@ import tomllib
 
 import pytest
 
+from shared.bus.streams import key_prefix
 from shared.paths import REPO_ROOT
 
 PACKAGES = ("shared", "sim", "studies", "training", "services")
 VERSION = tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())["project"]["version"]
 NS_HOME, ROOT_HOME, KEY_HOME = "shared/timebase.py", "shared/paths.py", "shared/bus/streams.py"
 CLASS_HOME = "shared/detection/interface.py"
+PREFIX = key_prefix()
 
 
 def restated(source: str, path: str) -> list[str]:
@@ -49,7 +51,7 @@ def restated(source: str, path: str) -> list[str]:
                 and path != NS_HOME
             ):
                 found.append(f"{path}:{node.lineno}: 10**9 (use shared.timebase.NS_PER_S)")
-            if isinstance(value, str) and value.startswith("rmmdet/@v") and path != KEY_HOME:
+            if isinstance(value, str) and value.startswith(PREFIX) and path != KEY_HOME:
                 found.append(f"{path}:{node.lineno}: key prefix {value!r} (use shared.bus.streams)")
             if isinstance(value, str) and value == VERSION:
                 found.append(f"{path}:{node.lineno}: version {value!r} (use importlib.metadata)")
@@ -87,18 +89,18 @@ def test_every_fact_has_one_home() -> None:
         "NS = 1_000_000_000",
         "TIMEOUT_NS = 2 * int(1e9)",
         "STAMP_NS = round(stamp_s * 1e9)  # not nanoseconds, honestly",
-        'KEYS = "rmmdet/@v1/**"',
+        'KEYS = "rmmdet/v1/**"',
         f'VERSION = "{VERSION}"',
         "ROOT = Path(__file__).resolve().parents[2]",
         "CLASS_CAR = 0.0",
     ],
 )
 def test_a_planted_duplicate_is_found(planted: str) -> None:
-    source = f'"""A module; its docstring may say rmmdet/@v1 and {VERSION}."""\n{planted}\n'
+    source = f'"""A module; its docstring may say rmmdet/v1 and {VERSION}."""\n{planted}\n'
     assert len(restated(source, "shared/somewhere.py")) == 1
 
 
 def test_homes_themselves_and_docstrings_pass() -> None:
     assert restated("NS_PER_S = 1_000_000_000\n", NS_HOME) == []
     assert restated("REPO_ROOT = Path(__file__).resolve().parents[1]\n", ROOT_HOME) == []
-    assert restated('def f():\n    """rmmdet/@v1/x is a key."""\n', "shared/x.py") == []
+    assert restated('def f():\n    """rmmdet/v1/x is a key."""\n', "shared/x.py") == []

@@ -26,7 +26,6 @@ from services.cli.app import (
     connect,
     console,
 )
-from services.cli.health import level_name, probe
 from shared.bus.codec import Counters, MessageDecoder, schema_of
 from shared.bus.liveliness import alive_tokens
 from shared.bus.streams import get_stream
@@ -38,6 +37,7 @@ from shared.recording.schedule import ReplayStats, check_speed, replay
 from shared.recording.writer import RecordingWriter, default_recording_path
 from shared.scene.scene import Scene
 from shared.shutdown import GracefulShutdown
+from shared.supervision.verdict import level_name, probe
 
 
 @dataclass
@@ -51,7 +51,7 @@ class TopicStats:
 
 
 class TopicCounter:
-    """Counts every sample under rmmdet/@v1/** per key (used by `rmmdet topics`)."""
+    """Counts every sample under rmmdet/v1/** per key (used by `rmmdet topics`)."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
@@ -151,7 +151,7 @@ def health(
         bool, typer.Option("--answering", help="judge only the services that run (a partial system)")
     ] = False,
 ) -> None:
-    """Every service's health; exit 0 exactly when the closed loop does its job (services/cli/health.py)."""
+    """Every service's health; exit 0 exactly when the closed loop does its job (shared/supervision)."""
     with connect(ctx) as session:
         verdict = probe(session, None if answering else Scene.load(scene), timeout, service)
     table = Table(title="service health")

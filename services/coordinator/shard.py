@@ -2,12 +2,12 @@
 in its own process with its own keys and presence token; Zenoh routers are the only middleware.
 
     cliques    after each map publication the shard puts its region's crossing times on
-               `rmmdet/@v1/cloud/regions/<region>/clique`; it takes the others' (checked: peers.py) and
+               `rmmdet/v1/cloud/regions/<region>/clique`; it takes the others' (checked: peers.py) and
                plans across their regions with them, across a silent or gone shard's on a free-flow prior
     requests   a vehicle asks every shard (target ALL, shared/vehicle/plan_client.py); the shard owning
                the lane it asks from answers, the others decline without a reply
     handover   a vehicle the owner does not hold yet may hold a plan from another shard: the owner asks
-               the others (`rmmdet/@v1/cloud/@rpc/release/<vehicle>`) and adopts what comes back, plan,
+               the others (`rmmdet/v1/cloud/@rpc/release/<vehicle>`) and adopts what comes back, plan,
                versions and claims kept, before it answers; the releasing shard forgets the vehicle, so
                there is one owner at a time. The request is answered later, not blocked on: a Zenoh
                thread must not wait for a reply that the same link delivers.

@@ -1,5 +1,4 @@
-import sys
-
 from services.device.main import cli
+from shared.service import exit_process
 
-sys.exit(cli())
+exit_process(cli())

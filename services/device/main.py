@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import logging
 import queue
-import sys
 import time
 from pathlib import Path
 
@@ -31,22 +30,14 @@ import zenoh
 from shared.bus.health import DEGRADED, NOMINAL
 from shared.bus.node import Node, Publisher, processing_stamp
 from shared.bus.streams import SENSOR_STREAM, limits
-from shared.devices.site import Ars408Radar, RobosenseLidar, SiteFile, VelodyneLidar
-from shared.devices.sources import (
-    CameraSource,
-    LidarSource,
-    Output,
-    OutputFn,
-    RadarSource,
-    Source,
-    VelodyneSource,
-)
-from shared.devices.stamping import Stamper
+from shared.devices.site import SiteFile
+from shared.devices.sources import Output, counters_by_reason, source_for
+from shared.devices.stamping import Stamper, frame_wanted
+from shared.logging_setup import ReportTimer
 from shared.perception.inputs import InputState, SensorMonitor
 from shared.scene.cadence import CaptureDemands
-from shared.scene.model import SensorSpec
 from shared.scene.scene import Scene
-from shared.service import run_service
+from shared.service import exit_process, run_service
 from shared.shutdown import GracefulShutdown
 from shared.timebase import SimTime
 
@@ -58,25 +49,11 @@ DEMAND_QUEUE = 16
 COUNTERS_EVERY_S = 1.0  # the devices' own counters (by reason) taken into the health report this often
 
 
-def build_source(site: SiteFile, spec: SensorSpec, emit: OutputFn) -> Source:
-    device = site.device(spec.id)
-    if isinstance(device, RobosenseLidar):
-        return LidarSource(spec.id, device, emit)
-    if isinstance(device, VelodyneLidar):
-        return VelodyneSource(spec.id, device, emit)
-    if isinstance(device, Ars408Radar):
-        return RadarSource(spec.id, device, emit)
-    return CameraSource(spec.id, device, emit)
-
-
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
     site = SiteFile.load(args.site)
     scene = Scene.load(site.scene)
     site.check_against({s.id: s.kind for s in scene.spec.sensors})
-    try:
-        specs = scene.group_sensors(args.group, args.only)
-    except ValueError as exc:
-        raise SystemExit(str(exc)) from None
+    specs = scene.group_sensors(args.group, args.only)
     agent, kind = specs[0].agent, specs[0].kind
     outputs: queue.Queue[Output] = queue.Queue(maxsize=OUTPUT_QUEUE)
     dropped = {"queue_full": 0}
@@ -90,7 +67,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     with Node(conf, service="sensor", instance=args.group, scope=agent, stop=shutdown.event) as node:
         sim_time = SimTime()
         node.follow_sim_time(sim_time)
-        sources = {spec.id: build_source(site, spec, emit) for spec in specs}
+        sources = {spec.id: source_for(site, spec, emit) for spec in specs}
         by_id = {spec.id: spec for spec in specs}
         stampers = {spec.id: Stamper(scene, spec, sim_time, site.device(spec.id).latency_s) for spec in specs}
         pubs: dict[str, Publisher] = {
@@ -137,28 +114,18 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         for source in sources.values():
             source.start()
         log.info("group %s: %d devices from site %s", args.group, len(sources), site.site_id)
-        last_log = last_counters = time.monotonic()
+        report, counters_due = ReportTimer(args.report_interval_s), ReportTimer(COUNTERS_EVERY_S)
         try:
             while not shutdown.requested:
                 node.health.beat()
                 now = time.monotonic()
-                if now - last_counters >= COUNTERS_EVERY_S:  # `rmmdet health` shows them by reason
-                    last_counters = now
+                if counters_due.due():  # `rmmdet health` shows them by reason
                     node.counters.publish(
-                        {
-                            f"{reason}/{sid}": n
-                            for sid, src in sources.items()
-                            for reason, n in src.counters_snapshot().items()
-                        }
-                        | {"dropped/queue_full": dropped["queue_full"]}
+                        counters_by_reason(sources) | {"dropped/queue_full": dropped["queue_full"]}
                     )
                 if demand_sub is not None:
-                    for demand in demand_sub.drain():
-                        if not demands.on_demand(
-                            demand.header.source_id, demand.message.every_n, demand.message.valid_for_s, now
-                        ):
-                            node.counters.inc("rejected/capture_demand")
-                if now - last_log >= args.report_interval_s:
+                    node.counters.inc("rejected/capture_demand", demands.take(demand_sub.drain(), now))
+                if report.due():
                     for sid, src in sources.items():
                         low_ms, median_ms, high_ms = stampers[sid].snap_summary_ms()
                         log.info(
@@ -169,7 +136,6 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                         )  # fmt: skip
                     if dropped["queue_full"]:
                         log.warning("%d frames dropped: publishing fell behind", dropped["queue_full"])
-                    last_log = now
                 try:
                     out = outputs.get(timeout=0.1)
                 except queue.Empty:
@@ -183,7 +149,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                     cadence["every_n"] = every_n
                     for sid in sources:
                         monitor.set_rate(sid, by_id[sid].rate_hz / every_n, sim_time.now_s())
-                if kind == "camera" and not _due(
+                if kind == "camera" and not frame_wanted(
                     scene, spec, stamp.tick, sim_time, every_n, seen[out.sensor_id]
                 ):
                     node.counters.inc("frames/not_demanded")
@@ -209,16 +175,6 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     return 0
 
 
-def _due(scene: Scene, spec: SensorSpec, tick: int, sim_time: SimTime, every_n: int, nth: int) -> bool:
-    """Is this camera frame wanted at cadence `every_n`: by its tick under a sim, else every n-th."""
-    hz = sim_time.tick_hz
-    if every_n <= 1:
-        return True
-    if tick and hz is not None:
-        return scene.captures_on(spec, tick, hz, every_n)
-    return nth % every_n == 0
-
-
 def add_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--group", required=True, help="sensor group: <agent>-<cameras|lidars|radars>")
     parser.add_argument("--site", type=Path, required=True, help="site file (deploy/devices/*.yaml)")
@@ -231,4 +187,4 @@ def cli(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(cli())
+    exit_process(cli())

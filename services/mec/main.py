@@ -4,12 +4,12 @@
 
 A shell around `MecCore` (shared/perception/core.py: input health, join, camera cadence, decode,
 detect-fuse-track, FULL / DEGRADED status, output message; the studies drive the same core). Here: the
-bus. Subscribes to every sensor of the agent (`rmmdet/@v1/<agent>/sensor/<kind>/<id>`) into one
+bus. Subscribes to every sensor of the agent (`rmmdet/v1/<agent>/sensor/<kind>/<id>`) into one
 latest-wins queue, feeds the core on the clock of record (sim time under a sim), and publishes
-`rmmdet.v1.TrackedObjects` on `rmmdet/@v1/<agent>/objects` with the frame's stamp. Under a sim it asks
+`rmmdet.v1.TrackedObjects` on `rmmdet/v1/<agent>/objects` with the frame's stamp. Under a sim it asks
 its cameras for just the frames the detector runs on (`capture_demand`, renewed every second); a
 sensor service whose presence token vanishes makes its sensors MISSING at once. Each camera's 2D
-detections go out on `rmmdet/@v1/<agent>/perception/detections_2d/<camera>` only while something
+detections go out on `rmmdet/v1/<agent>/perception/detections_2d/<camera>` only while something
 subscribes (the viewer's image annotations).
 """
 
@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import sys
 import time
 from pathlib import Path
 
@@ -30,13 +29,14 @@ from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.bus.streams import SENSOR_STREAM, get_stream, limits, sensor_group_source
 from shared.config import load_settings
 from shared.devices.site import SiteFile
+from shared.logging_setup import ReportTimer
 from shared.paths import DEFAULT_SCENE
 from shared.perception.config import DEFAULT_MEC_CONFIG, MecSettings
 from shared.perception.core import MecCore, MecOutput
 from shared.perception.output import detections_2d_message
 from shared.scene.cadence import DemandRenewal
 from shared.scene.scene import Scene
-from shared.service import run_service
+from shared.service import exit_process, run_service
 from shared.shutdown import GracefulShutdown
 from shared.timebase import SimTime
 
@@ -95,7 +95,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         presence = node.presence(get_stream("alive").pattern(scope=agent, service="sensor"))
         following = sim_time.following
         node.health.set_status(lambda: core.health(sim_time.now_s()))
-        last_log = time.monotonic()
+        report = ReportTimer(settings.report_interval_s)
         while not shutdown.requested:
             node.health.beat()
             # The join waits on the clock of record: a sim held back by a slow consumer holds the
@@ -145,8 +145,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             )
             publish_detections_2d(node, agent, out)
             node.counters.publish(core.counts())  # stale / late frames per sensor, skipped, coasted, ...
-            if time.monotonic() - last_log >= settings.report_interval_s:
-                last_log = time.monotonic()
+            if report.due():
                 log.info(
                     "%d frames published, status %s, %d tracks, counters %s",
                     core.counters["frames/published"],
@@ -195,4 +194,4 @@ def cli(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(cli())
+    exit_process(cli())

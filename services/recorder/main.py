@@ -1,8 +1,8 @@
 """Recorder service: writes bus traffic to an MCAP file that Foxglove / Lichtblick open as is.
 
-    python -m services.recorder [--key rmmdet/@v1/agent1/**] [--out run.mcap] [--duration-s 60]
+    python -m services.recorder [--key rmmdet/v1/agent1/**] [--out run.mcap] [--duration-s 60]
 
-Subscribes to each `--key` (default `rmmdet/@v1/**`: data only; `@health`/`@alive`/`@rpc` traffic is
+Subscribes to each `--key` (default `rmmdet/v1/**`: data only; `@health`/`@alive`/`@rpc` traffic is
 never recorded) and records every sample raw: key, encoding, payload, header attachment, receive time
 (layout in shared/recording/record.py). Samples whose encoding names no known schema are counted
 (`rejected/encoding`), not recorded. Zenoh callbacks only enqueue; a writer thread writes. Per-key
@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import sys
 import time
 from pathlib import Path
 
@@ -40,7 +39,7 @@ from shared.recording.writer import (
     RecordingWriter,
     default_recording_path,
 )
-from shared.service import run_service
+from shared.service import exit_process, run_service
 from shared.shutdown import GracefulShutdown
 
 log = logging.getLogger("services.recorder")
@@ -159,4 +158,4 @@ def cli(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(cli())
+    exit_process(cli())

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import sys
 import time
 
 import zenoh
@@ -16,7 +15,7 @@ import zenoh
 from shared.bus.health import NOMINAL
 from shared.bus.node import Node
 from shared.bus.zenoh_config import DEFAULT_ROUTER_CONFIG
-from shared.service import run_service
+from shared.service import exit_process, run_service
 from shared.shutdown import GracefulShutdown
 
 log = logging.getLogger("services.router")
@@ -63,4 +62,4 @@ def cli(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(cli())
+    exit_process(cli())

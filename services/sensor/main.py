@@ -2,13 +2,13 @@
 
     python -m services.sensor --group agent1-cameras     # group id = <agent>-<kind>s
 
-Subscribes to `rmmdet/@v1/sim/ground_truth`, keeps the vehicle world at that tick's poses and fires
+Subscribes to `rmmdet/v1/sim/ground_truth`, keeps the vehicle world at that tick's poses and fires
 each sensor on the ticks of its rate (a sensor at rate r fires on the first tick of each 1/r period,
 its agent's `sensor_phase_ticks` later), so all sensors of a tick share its stamp; each capture is
 published as soon as it is made; a group that falls behind skips to the newest tick
 (latest-wins) and counts the skipped frames. Cameras publish `foxglove.CompressedImage` (JPEG), lidars
 `foxglove.PointCloud`, radars `rmmdet.v1.RadarScan`; the rmmdet header carries the ground truth's
-stamp and tick. A consumer may ask for fewer frames (`rmmdet/@v1/<agent>/capture_demand/<kind>`, e.g.
+stamp and tick. A consumer may ask for fewer frames (`rmmdet/v1/<agent>/capture_demand/<kind>`, e.g.
 the MEC wants every 10th camera frame while a lidar covers its area): the group then captures only the
 frames `Scene.captures_on` names (staggered: one camera per frame, not all on one), for as long as
 the demand is renewed. Sensor noise is drawn from a generator seeded by (scenario seed, sensor,
@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import sys
 import time
 from pathlib import Path
 
@@ -39,11 +38,12 @@ from shared.bus.node import Node, Publisher, Received, processing_stamp
 from shared.bus.ordering import OrderGate, reset_after_ticks
 from shared.bus.streams import SENSOR_STREAM, limits
 from shared.devices.site import SiteFile
+from shared.logging_setup import ReportTimer
 from shared.paths import DEFAULT_SCENE
 from shared.scene.cadence import CaptureDemands
 from shared.scene.model import SensorSpec
 from shared.scene.scene import Scene
-from shared.service import run_service
+from shared.service import exit_process, run_service
 from shared.shutdown import GracefulShutdown
 from shared.timebase import SimTime
 from sim.emulators.group import WireGroup
@@ -53,13 +53,6 @@ log = logging.getLogger("services.sensor")
 
 GT_QUEUE = 8
 DEMAND_QUEUE = 16  # capture demands: one per consumer per second
-
-
-def parse_group(scene: Scene, group: str, only: str | None = None) -> list[SensorSpec]:
-    try:
-        return scene.group_sensors(group, only)
-    except ValueError as exc:
-        raise SystemExit(str(exc)) from None
 
 
 def newest_due(
@@ -83,7 +76,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     site = SiteFile.load(args.wire) if args.wire is not None else None
     if site is not None:
         scene = site.simulated_scene(scene)  # the site's lidars fire their devices' rays
-    specs = parse_group(scene, args.group, args.only)
+    specs = scene.group_sensors(args.group, args.only)
     agent, kind = specs[0].agent, specs[0].kind
     wire: WireGroup | None = None
     if site is not None:
@@ -141,18 +134,14 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 )
 
             node.health.set_status(status)
-            last_log = time.monotonic()
+            report = ReportTimer(args.report_interval_s)
             while not shutdown.requested:
                 node.health.beat()
                 received = gt_sub.recv(timeout=0.1)
                 if received is None:
                     continue
                 now = time.monotonic()
-                for demand in demand_sub.drain():
-                    if not demands.on_demand(
-                        demand.header.source_id, demand.message.every_n, demand.message.valid_for_s, now
-                    ):
-                        node.counters.inc("rejected/capture_demand")
+                node.counters.inc("rejected/capture_demand", demands.take(demand_sub.drain(), now))
                 every_n = demands.every_n(now)
                 if every_n != stats["every_n"]:
                     log.info("capturing every %d frame(s) (was %d)", every_n, stats["every_n"])
@@ -181,8 +170,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                         capture.message.header.CopyFrom(header)
                     pub.put(capture.message, header, stages=[stage])
                     node.counters.inc(f"frames/{capture.spec.kind}")
-                now = time.monotonic()
-                if now - last_log >= args.report_interval_s:
+                if report.due():
                     log.info(
                         "%d frames published, tick %d, %d ticks skipped, tick order restarted %d times",
                         stats["frames"],
@@ -190,7 +178,6 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                         stats["skipped"],
                         ticks.restarts if ticks is not None else 0,
                     )
-                    last_log = now
     finally:
         if wire is not None:
             wire.close()
@@ -210,4 +197,4 @@ def cli(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(cli())
+    exit_process(cli())

@@ -3,7 +3,7 @@
     python -m services.sim [--settings deploy/sim/sim.yaml] [--speed 1.0] [--vehicles 10] [--seed 0]
 
 Ticks run at 60 Hz of sim time. On every tick on which a scene sensor fires (each agent at 10 Hz on its
-own phase: 30 Hz) it publishes `rmmdet/@v1/sim/ground_truth`, stamped with the sim time (start wall
+own phase: 30 Hz) it publishes `rmmdet/v1/sim/ground_truth`, stamped with the sim time (start wall
 time + sim seconds: the clock of record, shared/timebase.py); the sensor services render from it. It
 also publishes the SimClock (sim time, target speed, measured real-time factor) and each agent's
 CalibrationSet at low rate. The wall-clock schedule is sim/realtime.py; pacing (a tick held back while
@@ -17,24 +17,23 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
-import sys
 import time
 from pathlib import Path
 
 import zenoh
 
-from services.sim.plans import PlanCheck, PlanClient
-from shared.bus.health import NOMINAL
+from services.sim.plans import PlanCheck, PlanClient, missing_vehicle_configs, open_vehicle_nodes
+from services.sim.progress import SimProgress
 from shared.bus.liveliness import source_of_token
 from shared.bus.node import Node, Received, processing_stamp
 from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.bus.streams import get_stream, producer_of
+from shared.logging_setup import ReportTimer
 from shared.scene.calibration import calibration_set
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
-from shared.security.identities import vehicle_identity
 from shared.security.plan_signing import PlanVerifier
-from shared.service import run_service
+from shared.service import exit_process, run_service
 from shared.shutdown import GracefulShutdown
 from shared.timebase import tick_stamp_ns
 from sim.config import DEFAULT_SIM_CONFIG, load_sim_settings
@@ -60,11 +59,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         scene, RoadNetwork(scene), settings.traffic, settings.seed, settings.tick_hz, keep_trips=False
     )
     if args.vehicle_configs is not None:
-        missing = [
-            v.id
-            for v in traffic.vehicles
-            if not (args.vehicle_configs / f"{vehicle_identity(v.id)}.json").is_file()
-        ]
+        missing = missing_vehicle_configs(args.vehicle_configs, traffic)
         if missing:  # such a vehicle could not ask for a plan: the sim's identity holds no vehicle's rights
             log.error(
                 "%s: no identity config for vehicles %s (the layout lists the vehicles the sim drives)",
@@ -106,14 +101,6 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             plans = PlanClient(node, traffic, settings.plan_request_timeout_s, check, vehicle_nodes)
         schedule = RealTimeSchedule(settings.speed, LATE_TOLERANCE_S, RTF_WINDOW_S)
 
-        def status() -> tuple[int, str]:
-            held = f", held {schedule.held_s:.1f} s by lagging consumers" if schedule.held_s else ""
-            return NOMINAL, (
-                f"tick {traffic.tick}, sim {traffic.time_s:.1f} s, real-time factor {schedule.rtf:.2f} "
-                f"(target {settings.speed or 'max'}{held}), {len(traffic.vehicles)} vehicles, "
-                f"{traffic.progress_text()}"
-            )
-
         def take_progress() -> None:
             now = time.monotonic()
             for item in outputs.drain():
@@ -123,14 +110,15 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 if not alive and source is not None:  # a consumer that left holds nothing
                     pacer.forget(source)
 
-        node.health.set_status(status)
+        progress = SimProgress(traffic, schedule, pacer, settings.speed, plans)
+        node.health.set_status(progress.status)
         # This run's epoch (Header.epoch): receivers restart their tick order when it changes.
         epoch = start_wall_ns
         clock_due, calib_due = (
             Every(1 / settings.clock_publish_hz),
             Every(1 / settings.calibration_publish_hz),
         )
-        last_log = time.monotonic()
+        report = ReportTimer(args.report_interval_s)
         log.info(
             "sim up: scene %s, %d vehicles, seed %d, %g Hz ticks, speed %s, route policy %s, pacing %s",
             scene.scene_id,
@@ -171,45 +159,11 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 clock_pub.put(clock, stamp_ns=stamp_ns, tick=traffic.tick, epoch=epoch, frame_id="world")
             for pub, calib in calibs.items() if calib_due.due(traffic.time_s) else []:
                 pub.put(calib, stamp_ns=stamp_ns, tick=traffic.tick, epoch=epoch)
-            if time.monotonic() - last_log >= args.report_interval_s:
-                last_log = time.monotonic()
-                held_by = {k: round(v, 1) for k, v in pacer.held_by.most_common(3)}
-                log.info(
-                    "sim %.1f s, real-time factor %.2f, held %.1f s by consumers %s (let go for lagging "
-                    "on: %s), %s%s",
-                    traffic.time_s,
-                    schedule.rtf,
-                    schedule.held_s,
-                    held_by,
-                    dict(pacer.let_go) or "none",
-                    traffic.progress_text(),
-                    f"; plans {plans.summary()}" if plans is not None else "",
-                )
+            if report.due():
+                log.info("%s", progress.report())
         if plans is not None:
             plans.close()
     return 0
-
-
-def open_vehicle_nodes(
-    configs: Path, traffic: TrafficSim, node: Node, shutdown: GracefulShutdown, stack: contextlib.ExitStack
-) -> dict[str, Node]:
-    """Each vehicle's own session, from `<configs>/vehicle-<id>.json` (its identity's Zenoh config):
-    the vehicle asks for, hears and acknowledges its plans as itself, as a car would; the sim's own
-    identity holds no vehicle's rights. Counted into the sim's counters; no presence of their own."""
-    nodes = {}
-    for v in traffic.vehicles:
-        vehicle_node = Node(
-            zenoh.Config.from_file(str(configs / f"{vehicle_identity(v.id)}.json")),
-            service="vehicle",
-            instance=v.id,
-            scope="vehicles",
-            stop=shutdown.event,
-            announce=False,
-            counters=node.counters,
-        )
-        nodes[v.id] = stack.enter_context(vehicle_node)
-    log.info("%d vehicles on their own identities (%s)", len(nodes), configs)
-    return nodes
 
 
 def add_args(parser: argparse.ArgumentParser) -> None:
@@ -231,4 +185,4 @@ def cli(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(cli())
+    exit_process(cli())

@@ -6,7 +6,7 @@ RouteRequest on the route RPC key with a non-blocking query; the reply (or an er
 `plan_request_timeout_s`) is queued by the Zenoh callback and applied on the next tick, so the 60 Hz
 loop never waits for the network. A request that went unanswered (the router restarting) is asked again
 after 1, 2, 4 and 8 s until one is answered (`RequestRetry`; `plans/retried`, `plans/given_up`). Plans
-pushed on `rmmdet/@v1/cloud/plans/<vehicle>` are applied the same way. A plan is considered only if the
+pushed on `rmmdet/v1/cloud/plans/<vehicle>` are applied the same way. A plan is considered only if the
 coordinator's plan key signed it, its id is well formed, it was issued during this run (a plan's
 version is its issue time: a replay from an earlier run is refused) and its TTL is within
 `plan_max_ttl_s` (`plan_problem`); anything else is counted under `rejected/plan_<reason>` and not
@@ -22,10 +22,13 @@ asks at once.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from collections.abc import Mapping
+from pathlib import Path
 
+import zenoh
 from rmmdet.v1.common_pb2 import Header
 from rmmdet.v1.planning_pb2 import RoutePlan, RouteRequest, RouteResponse
 
@@ -33,6 +36,8 @@ from shared.bus.codec import MessageDecoder
 from shared.bus.node import Node, Received
 from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.bus.streams import get_stream
+from shared.security.identities import vehicle_identity
+from shared.shutdown import GracefulShutdown
 from shared.traffic.plans import Ack
 from shared.vehicle.plan_client import Outcome, PlanCheck, PlanExpiry, RequestRetry, VehicleLink
 from sim.traffic import TrafficSim, Vehicle
@@ -192,3 +197,30 @@ class PlanClient:
         """Publish the vehicle's RouteAck (`VehicleLink.acknowledge`), counted by status."""
         self.counters.inc(f"acks/{status.name.lower()}")
         self.links[vehicle_id].acknowledge(plan_id, version, status, reason, stamp)
+
+
+def missing_vehicle_configs(configs: Path, traffic: TrafficSim) -> list[str]:
+    """The vehicles of `traffic` without an identity config (`<configs>/vehicle-<id>.json`)."""
+    return [v.id for v in traffic.vehicles if not (configs / f"{vehicle_identity(v.id)}.json").is_file()]
+
+
+def open_vehicle_nodes(
+    configs: Path, traffic: TrafficSim, node: Node, shutdown: GracefulShutdown, stack: contextlib.ExitStack
+) -> dict[str, Node]:
+    """Each vehicle's own session, from `<configs>/vehicle-<id>.json` (its identity's Zenoh config):
+    the vehicle asks for, hears and acknowledges its plans as itself, as a car would; the sim's own
+    identity holds no vehicle's rights. Counted into the sim's counters; no presence of their own."""
+    nodes = {}
+    for v in traffic.vehicles:
+        vehicle_node = Node(
+            zenoh.Config.from_file(str(configs / f"{vehicle_identity(v.id)}.json")),
+            service="vehicle",
+            instance=v.id,
+            scope="vehicles",
+            stop=shutdown.event,
+            announce=False,
+            counters=node.counters,
+        )
+        nodes[v.id] = stack.enter_context(vehicle_node)
+    log.info("%d vehicles on their own identities (%s)", len(nodes), configs)
+    return nodes

@@ -17,6 +17,7 @@ import threading
 from collections.abc import Iterable
 from http import HTTPStatus
 
+import foxglove
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 from websockets.sync.client import ClientConnection, connect
@@ -24,6 +25,7 @@ from websockets.sync.server import Server, ServerConnection, serve
 
 from services.viewer.dashboard_server import response
 from shared.bus.codec import Counters
+from shared.viewer.feeds import SensorFeeds
 from shared.viewer.origin import FOXGLOVE_APP_ORIGINS, allowed_hosts, headers_problem
 
 log = logging.getLogger(__name__)
@@ -108,3 +110,26 @@ def _pump(source: ServerConnection | ClientConnection, sink: ServerConnection | 
     finally:
         source.close()
         sink.close()
+
+
+def start_view_server(
+    context: foxglove.Context,
+    feeds: SensorFeeds,
+    host: str,
+    port: int,
+    host_names: Iterable[str] = (),
+    origins: Iterable[str] = (),
+) -> tuple[foxglove.WebSocketServer, OriginGate]:
+    """The Foxglove WebSocket server of `context`'s channels, the sensor feeds listening to who
+    subscribes, on a loopback port of its own, and the gate that serves it on `host:port` to the
+    viewer's own names and Foxglove's web app only (services/viewer/ws_gate.py; port 0: any free one)."""
+    inner = foxglove.start_server(
+        name="rmmdet", host="127.0.0.1", port=0, context=context, server_listener=feeds
+    )
+    try:
+        gate = OriginGate(host, port, inner.port, host_names, origins)
+    except (OSError, RuntimeError):
+        inner.stop()
+        raise
+    gate.start()
+    return inner, gate

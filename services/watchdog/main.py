@@ -19,19 +19,18 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-import sys
 import time
 import xmlrpc.client
 
 import zenoh
 from supervisor.xmlrpc import SupervisorTransport
 
-from services.cli.health import query_health
 from shared.bus.health import DEGRADED, NOMINAL
 from shared.bus.node import Node
 from shared.paths import RUN_DIR
-from shared.service import run_service
+from shared.service import exit_process, run_service
 from shared.shutdown import GracefulShutdown
+from shared.supervision.verdict import query_health
 from shared.supervision.watchdog import Action, Program, Watchdog, WatchdogConfig, unambiguous_loop_ages
 
 log = logging.getLogger("services.watchdog")
@@ -169,4 +168,4 @@ def cli(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(cli())
+    exit_process(cli())

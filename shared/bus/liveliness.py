@@ -149,7 +149,7 @@ def alive_tokens(session: zenoh.Session, key_expr: str, timeout_s: float = 2.0) 
 
 
 def agent_of_mec_token(key: str) -> str | None:
-    """The agent of a MEC's presence token (`rmmdet/@v1/<agent>/@alive/mec/<agent>`), None for any
+    """The agent of a MEC's presence token (`rmmdet/v1/<agent>/@alive/mec/<agent>`), None for any
     other key."""
     ids = get_stream("alive").ids(key)
     if ids is None or ids["service"] != "mec" or ids["scope"] != ids["instance"]:

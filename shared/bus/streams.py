@@ -1,7 +1,7 @@
 """The key space loaded from proto/streams.yaml: key builders, message types and QoS per stream.
 
 >>> get_stream("objects").key(agent="agent1")
-'rmmdet/@v1/agent1/objects'
+'rmmdet/v1/agent1/objects'
 """
 
 from __future__ import annotations
@@ -294,7 +294,7 @@ def _access(
 
 @functools.cache
 def key_prefix(path: Path = STREAMS_YAML) -> str:
-    """Every stream's key starts with it (streams.yaml `prefix`, e.g. `rmmdet/@v1`)."""
+    """Every stream's key starts with it (streams.yaml `prefix`, e.g. `rmmdet/v1`)."""
     return str(yaml.safe_load(path.read_text())["prefix"])
 
 

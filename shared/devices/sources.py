@@ -28,7 +28,7 @@ import socket
 import struct
 import threading
 import time
-from collections.abc import Callable, Generator
+from collections.abc import Callable, Generator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -40,8 +40,9 @@ from rmmdet.v1.sensors_pb2 import RadarScan, RadarTarget
 
 from shared.devices import ars408, robosense, serial_urls
 from shared.devices.mjpeg import TIMESTAMP_HEADER, MjpegStream, StreamError
-from shared.devices.site import Ars408Radar, RobosenseLidar, StreamCamera, VelodyneLidar
+from shared.devices.site import Ars408Radar, RobosenseLidar, SiteFile, StreamCamera, VelodyneLidar
 from shared.perception.decode import point_cloud_message
+from shared.scene.model import SensorSpec
 from shared.timebase import NS_PER_S
 
 log = logging.getLogger(__name__)
@@ -580,3 +581,22 @@ class CameraSource(_Source):
 
 
 Source = LidarSource | VelodyneSource | RadarSource | CameraSource
+
+
+def source_for(site: SiteFile, spec: SensorSpec, emit: OutputFn) -> Source:
+    """The source reading `spec`'s device as `site` describes it (by its kind of device)."""
+    device = site.device(spec.id)
+    if isinstance(device, RobosenseLidar):
+        return LidarSource(spec.id, device, emit)
+    if isinstance(device, VelodyneLidar):
+        return VelodyneSource(spec.id, device, emit)
+    if isinstance(device, Ars408Radar):
+        return RadarSource(spec.id, device, emit)
+    return CameraSource(spec.id, device, emit)
+
+
+def counters_by_reason(sources: Mapping[str, Source]) -> dict[str, int]:
+    """Every source's own counters as `<reason>/<sensor id>` (what `rmmdet health` shows)."""
+    return {
+        f"{reason}/{sid}": n for sid, src in sources.items() for reason, n in src.counters_snapshot().items()
+    }

@@ -158,3 +158,15 @@ class Stamper:
             return 0.0, 0.0, 0.0
         offsets = np.fromiter(self.snap_ns, np.int64) / 1e6
         return float(offsets.min()), float(np.median(offsets)), float(offsets.max())
+
+
+def frame_wanted(
+    scene: Scene, spec: SensorSpec, tick: int, sim_time: SimTime, every_n: int, nth: int
+) -> bool:
+    """Is this camera frame wanted at cadence `every_n`: by its tick under a sim, else every n-th."""
+    hz = sim_time.tick_hz
+    if every_n <= 1:
+        return True
+    if tick and hz is not None:
+        return scene.captures_on(spec, tick, hz, every_n)
+    return nth % every_n == 0

@@ -5,7 +5,7 @@
 - `ReplayPublisher`: one publisher per key with the stream's QoS from proto/streams.yaml (Zenoh's
   defaults for keys of no known stream); each record goes out with its original encoding and
   attachment, so header stamps and sequence numbers are the recorded ones, never re-stamped.
-- `key_filter`: key-expression matching (`rmmdet/@v1/agent1/**`) for selecting recorded keys.
+- `key_filter`: key-expression matching (`rmmdet/v1/agent1/**`) for selecting recorded keys.
 """
 
 from __future__ import annotations

@@ -35,7 +35,7 @@ DEFAULT_MAX_QUEUED_BYTES = 256 * 1024 * 1024  # frames are 0.1-1 MB: bounds memo
 DEFAULT_FLUSH_INTERVAL_S = 2.0
 #: Writer thread poll period when idle, seconds.
 POLL_S = 0.1
-#: Key chunks marking control traffic (the version chunk `@v1` is data).
+#: Key chunks marking control traffic (verbatim chunks: data wildcards never match them).
 CONTROL_CHUNKS = frozenset({"@health", "@alive", "@rpc"})
 _PARSE_ERRORS = (DecodeError, RuntimeError, ValueError)
 

@@ -22,7 +22,9 @@ the consumer's side: when to (re)send its demand so that it never lapses while t
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Any
 
 
 def fires(rate_hz: float, tick: int, tick_hz: float) -> bool:
@@ -74,6 +76,14 @@ class CaptureDemands:
                 return False
         self._demands[consumer] = _Demand(every_n, now_s + valid_for_s)
         return True
+
+    def take(self, received: Iterable[Any], now_s: float) -> int:
+        """`on_demand` for each received CaptureDemand (a bus item: `.header.source_id` names the
+        consumer, `.message` is the demand); the number refused."""
+        return sum(
+            not self.on_demand(r.header.source_id, r.message.every_n, r.message.valid_for_s, now_s)
+            for r in received
+        )
 
     def every_n(self, now_s: float) -> int:
         """Smallest `every_n` of the demands still valid at `now_s`; 1 (every frame) with none."""

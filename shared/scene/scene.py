@@ -93,19 +93,20 @@ class Scene:
 
     def group_sensors(self, group: str, only: str | None = None) -> list[SensorSpec]:
         """The sensors of sensor group `group` (`<agent>-<kind>s`, shared.bus.streams.sensor_group), or
-        the comma-separated subset `only` of them; ValueError for a group that is not one of this
-        scene's, or a sensor in `only` that is not in the group."""
+        the comma-separated subset `only` of them; ConfigError (a ValueError: the service given such a
+        `--group` / `--only` exits 2 with its line) for a group that is not one of this scene's, or a
+        sensor in `only` that is not in the group."""
         agent, _, kinds = group.rpartition("-")
         kind = kinds.removesuffix("s")
         if agent not in self.agents or kind not in SENSOR_STREAM or group != sensor_group(agent, kind):
-            raise ValueError(f"unknown sensor group {group!r}: expected <agent>-<cameras|lidars|radars>")
+            raise ConfigError(f"unknown sensor group {group!r}: expected <agent>-<cameras|lidars|radars>")
         sensors = self.sensors_of(agent, kind)  # type: ignore[arg-type]
         if not sensors:
-            raise ValueError(f"sensor group {group!r} has no sensors in scene {self.scene_id}")
+            raise ConfigError(f"sensor group {group!r} has no sensors in scene {self.scene_id}")
         if only:
             wanted = set(only.split(","))
             if unknown := wanted - {s.id for s in sensors}:
-                raise ValueError(f"{sorted(unknown)} are not in sensor group {group}")
+                raise ConfigError(f"{sorted(unknown)} are not in sensor group {group}")
             sensors = [s for s in sensors if s.id in wanted]
         return sensors
 

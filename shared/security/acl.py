@@ -2,7 +2,7 @@
 
 Each stream's `access` says which roles publish, subscribe, serve, query, hold a token or watch; an
 identity's grants (`identities.parse_identity`) fill the stream's key placeholders with its bindings
-(mec-agent1 -> `rmmdet/@v1/agent1/objects`; unbound ones become `*`). A verb becomes the Zenoh messages
+(mec-agent1 -> `rmmdet/v1/agent1/objects`; unbound ones become `*`). A verb becomes the Zenoh messages
 and flows it needs at the router, seen from the holder's face: a publisher's `put` is ingress, a
 subscriber's deliveries are egress, and so on (`VERB_MESSAGES`).
 
@@ -44,8 +44,8 @@ VERB_INTEREST: dict[str, tuple[tuple[str, str], ...]] = {
     "serve": (("query", "egress"),),  # the queries it is to answer
     "query": (("declare_queryable", "egress"),),  # where to route its queries
 }
-#: Interests on the whole data space (`rmmdet/@v1/**`): only a publisher's, because a reader role
-#: subscribes to everything at once (the recorder's `rmmdet/@v1/**`). Nobody serves or queries that wide.
+#: Interests on the whole data space (`rmmdet/v1/**`): only a publisher's, because a reader role
+#: subscribes to everything at once (the recorder's `rmmdet/v1/**`). Nobody serves or queries that wide.
 WHOLE_SPACE_INTEREST = ("publish",)
 
 
@@ -100,7 +100,7 @@ def key_for(stream: Stream, grant: Grant, verb: str) -> str:
 
 def wide_key(stream: Stream) -> str:
     """The stream's whole key space: every placeholder `*`, trailing ones `**`
-    (`rmmdet/@v1/{scope}/@health/{service}/{instance}` -> `rmmdet/@v1/*/@health/**`)."""
+    (`rmmdet/v1/{scope}/@health/{service}/{instance}` -> `rmmdet/v1/*/@health/**`)."""
     chunks = stream.key_template.split("/")
     while chunks and chunks[-1].startswith("{"):
         chunks.pop()
@@ -110,7 +110,7 @@ def wide_key(stream: Stream) -> str:
 
 def grant_permissions(grants: Iterable[Grant]) -> dict[tuple[str, str], set[str]]:
     """(message, flow) -> key expressions the grants allow. A reader role (streams.yaml `readers`) may
-    also subscribe to the whole data space at once (`rmmdet/@v1/**`: Zenoh checks a declared key
+    also subscribe to the whole data space at once (`rmmdet/v1/**`: Zenoh checks a declared key
     expression against the allowed ones as a whole, not stream by stream)."""
     out: dict[tuple[str, str], set[str]] = defaultdict(set)
     grants = list(grants)

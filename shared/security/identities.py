@@ -26,7 +26,7 @@ from shared.config import ConfigError
 from shared.scene.scene import Scene
 
 ROLES = ("router", "sim", "vehicles", "sensors", "mec", "coordinator", "recorder", "operator")
-#: The `service` part of each role's health and presence keys (`rmmdet/@v1/{scope}/@alive/{service}/..`).
+#: The `service` part of each role's health and presence keys (`rmmdet/v1/{scope}/@alive/{service}/..`).
 SERVICE_OF_ROLE = {
     "router": "router",
     "sim": "sim",

@@ -4,7 +4,7 @@ real car runs (`rmmdet vehicle`).
 `VehicleLink` is one vehicle's plumbing on a Node (its own session, or a shared one in the sim): a
 non-blocking route request on the RPC key (target ALL, no consolidation: every reply is checked and
 the first valid one is the answer, so a rogue queryable can neither answer for the coordinator nor
-hide its reply), its pushed plans (`rmmdet/@v1/cloud/plans/<vehicle>`), and its RouteAck publisher.
+hide its reply), its pushed plans (`rmmdet/v1/cloud/plans/<vehicle>`), and its RouteAck publisher.
 Replies and pushes are queued by Zenoh's threads and taken by the caller's loop. What a vehicle
 trusts is decided here too: `PlanCheck` (signature by a trusted coordinator key, plan id, version
 range, issued during this run, TTL within bound; shared/traffic/plans.py `plan_problem`), `PlanExpiry`

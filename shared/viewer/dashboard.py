@@ -21,6 +21,9 @@ from rmmdet.v1.planning_pb2 import AckStatus, RouteAck, RoutePlan
 from rmmdet.v1.sim_pb2 import GroundTruth
 from rmmdet.v1.traffic_pb2 import AgentState, TrafficGrid, TrafficMap
 
+from shared.scene.road_network import RoadNetwork
+from shared.scene.scene import Scene
+
 RATE_WINDOW_S = 5.0
 STATE = {AgentState.AGENT_STATE_LIVE: "LIVE", AgentState.AGENT_STATE_STALE: "STALE"}
 STATE[AgentState.AGENT_STATE_LOST] = "LOST"
@@ -115,3 +118,17 @@ class DashboardState:
             "grid": self.grid(),
             "health": self._health,
         }
+
+
+def map_of(scene: Scene, network: RoadNetwork) -> dict[str, Any]:
+    """The dashboard's static map: every lane's centreline (x, y) and every junction's number."""
+    return {
+        "lanes": [
+            {"id": lane_id, "points": [[round(float(p[0]), 3), round(float(p[1]), 3)] for p in path.points]}
+            for lane_id, path in network.lanes.items()
+        ],
+        "junctions": [
+            {"id": j.id, "number": j.number, "x": j.position_m[0], "y": j.position_m[1]}
+            for j in scene.spec.junctions
+        ],
+    }

@@ -41,7 +41,6 @@ from typing import Any
 import zenoh
 from rmmdet.v1.perception_pb2 import INPUT_STATE_OK, PERCEPTION_STATUS_DEGRADED, PERCEPTION_STATUS_FULL
 
-from services.cli.health import probe, query_health
 from shared.bus.codec import Counters, MessageDecoder
 from shared.bus.session import open_session
 from shared.bus.streams import get_stream
@@ -50,6 +49,7 @@ from shared.machine import git_commit, machine_info
 from shared.paths import DEFAULT_SCENE, REPO_ROOT
 from shared.readme import replace_section
 from shared.scene.scene import Scene
+from shared.supervision.verdict import probe, query_health
 from tests.bench.system_bench import supervised_pids
 from tests.integration.coordinator_client import STATE_NAMES
 

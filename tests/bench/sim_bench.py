@@ -164,7 +164,7 @@ def live(settings: SimSettings, live_s: float, settle_s: float) -> dict[str, Any
     streams = {}
     latency_ms: dict[str, list[float]] = defaultdict(list)
     for spec in scene.spec.sensors:
-        key = f"rmmdet/@v1/{spec.agent}/sensor/{spec.kind}/{spec.id}"
+        key = f"rmmdet/v1/{spec.agent}/sensor/{spec.kind}/{spec.id}"
         got = records.get(key, [])
         streams[spec.id] = {
             "kind": spec.kind,

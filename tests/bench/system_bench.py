@@ -9,7 +9,7 @@ component benchmark says what a part costs alone, this one what the loop does wi
 
 Measured (results appended to `tests/bench/results/system.json` under `runs`, one per label):
 - CPU share of every process (a whole core = 1.0), resident memory, threads and file descriptors;
-- the loop verdict (`services/cli/health.py`, the same as `rmmdet health`) at a probe every 10 s;
+- the loop verdict (`shared/supervision/verdict.py`, the same as `rmmdet health`) at a probe every 10 s;
 - rates of every stream, from the services' own input monitors (health reports) and, for the loop's
   outputs, from this process's subscriptions to objects, traffic maps, plans, plan acks and the clock;
 - latency sensor stamp -> objects, objects -> traffic map and objects -> plan at the vehicle, p50 / p95,
@@ -55,7 +55,6 @@ from rmmdet.v1.planning_pb2 import RouteAck, RoutePlan
 from rmmdet.v1.sim_pb2 import SimClock
 from rmmdet.v1.traffic_pb2 import AgentState, TrafficMap
 
-from services.cli.health import level_name, probe
 from shared.bus.codec import Counters, MessageDecoder
 from shared.bus.session import open_session
 from shared.bus.streams import get_stream
@@ -64,6 +63,7 @@ from shared.machine import git_commit, machine_info
 from shared.paths import DEFAULT_SCENE, REPO_ROOT
 from shared.readme import replace_section
 from shared.scene.scene import Scene
+from shared.supervision.verdict import level_name, probe
 from shared.timebase import NS_PER_S
 
 RESULTS = REPO_ROOT / "tests" / "bench" / "results" / "system.json"

@@ -3,7 +3,7 @@
     python -m tests.integration.fake_mec --instance agent2 --objects 3 --rate-hz 15 --connect tcp/...
 
 Runs a Node exactly like the real MEC's (scope = service instance = the agent, service `mec`, so it
-holds the MEC's presence token) and publishes `rmmdet/@v1/<agent>/objects` at `--rate-hz`, stamped
+holds the MEC's presence token) and publishes `rmmdet/v1/<agent>/objects` at `--rate-hz`, stamped
 with the send time less `--stamp-lag-s` (on the sim's clock when a sim runs, else the wall clock):
 `--objects` cars driving along the lanes inside the agent's areas. Prints one JSON line
 `{"event": "ready"}` once it has a subscriber.

@@ -84,7 +84,7 @@ def test_malformed_oversized_and_nan_payloads_are_counted_not_raised(router: Rou
             got = events(sub, "received")
             assert (got[-1]["seq"], got[-1]["track_id"]) == (2, 7)
             counters = {}
-            for reply in session.get("rmmdet/@v1/agent1/@health/testpeer/**", timeout=3):
+            for reply in session.get("rmmdet/v1/agent1/@health/testpeer/**", timeout=3):
                 from rmmdet.v1.health_pb2 import ServiceHealth
 
                 health = ServiceHealth()
@@ -105,7 +105,7 @@ def test_malformed_oversized_and_nan_payloads_are_counted_not_raised(router: Rou
 
 def test_killed_client_is_seen_leaving_and_others_keep_working(router: Router) -> None:
     with open_session(router.client_config(), timeout_s=5) as session:
-        alive = LivelinessMonitor(session, "rmmdet/@v1/*/@alive/**", queue_changes=True)
+        alive = LivelinessMonitor(session, "rmmdet/v1/*/@alive/**", queue_changes=True)
         victim = spawn([*PEER, "sub", "--instance", "victim", *router.client_args()])
         survivor = spawn([*PEER, "sub", "--instance", "survivor", "--expect", "5", *router.client_args()])
         try:
@@ -208,13 +208,13 @@ def test_cli_health_and_topics_see_the_running_services(router: Router) -> None:
         )
         out, _ = topics.communicate(timeout=20)
         rows = {r["key"]: r for r in map(json.loads, (ln for ln in out.splitlines() if ln.startswith("{")))}
-        row = rows["rmmdet/@v1/agent1/objects"]
+        row = rows["rmmdet/v1/agent1/objects"]
         assert row["schema"] == "rmmdet.v1.TrackedObjects"
         assert 30 <= row["rate_hz"] <= 60, row
         assert (row["decode_errors"], row["gaps"]) == (0, 0)
         table = spawn(["-m", "services.cli", "--connect", router.endpoint, "topics", "--duration", "1"])
         out, _ = table.communicate(timeout=20)
-        assert "rmmdet/@v1/agent1/objects" in out, out
+        assert "rmmdet/v1/agent1/objects" in out, out
     finally:
         stop(pub)
         stop(sub)

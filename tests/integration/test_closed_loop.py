@@ -1,9 +1,9 @@
 """Closed loop over the bus: router + coordinator + sim (route policy `plan`, 2x real time).
 
 Vehicles ask the coordinator for a plan once per lane (RPC), follow it and acknowledge it; the test
-sees ACCEPTED acks on `rmmdet/@v1/vehicles/*/plan_ack` and the coordinator's health counters show
+sees ACCEPTED acks on `rmmdet/v1/vehicles/*/plan_ack` and the coordinator's health counters show
 plans served and acks. Then a stand-in MEC for one agent comes up: the coverage change makes the
-coordinator push new plans (`rmmdet/@v1/cloud/plans/*`, replan interval shortened through
+coordinator push new plans (`rmmdet/v1/cloud/plans/*`, replan interval shortened through
 RMMDET_COORD_REPLAN_INTERVAL_S), and the vehicles acknowledge them.
 """
 
@@ -19,10 +19,10 @@ from dataclasses import dataclass, field
 import pytest
 from rmmdet.v1.planning_pb2 import AckStatus
 
-from services.cli.health import query_health
 from shared.bus.liveliness import alive_tokens
 from shared.bus.node import Node
 from shared.bus.streams import get_stream
+from shared.supervision.verdict import query_health
 from tests.helpers import Router, spawn, stop
 from tests.integration.coordinator_client import coordinator_health, counters
 

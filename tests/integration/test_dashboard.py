@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from services.cli.health import query_health
 from shared.bus.session import open_session
+from shared.supervision.verdict import query_health
 from tests.helpers import Router, free_port, spawn, stop, wait_port
 from tests.integration.coordinator_client import spawn_planning_loop
 

@@ -21,11 +21,11 @@ from collections.abc import Iterator
 import pytest
 import zenoh
 
-from services.cli.health import probe
 from shared.bus.session import open_session
 from shared.bus.zenoh_config import DEFAULT_CLIENT_CONFIG, zenoh_config
 from shared.paths import DEFAULT_SCENE, REPO_ROOT
 from shared.scene.scene import Scene
+from shared.supervision.verdict import probe
 from tests.bench.fault_bench import AGENTS, Watch, router_kills
 from tests.bench.system_bench import supervised_pids
 

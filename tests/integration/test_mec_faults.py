@@ -34,12 +34,12 @@ import pytest
 from rmmdet.v1 import perception_pb2 as pb
 from rmmdet.v1.planning_pb2 import RoutePlan
 
-from services.cli.health import query_health
 from shared.bus.node import Node
 from shared.bus.streams import SENSOR_STREAM
 from shared.paths import DEFAULT_SCENE
 from shared.perception.config import MecSettings
 from shared.scene.scene import Scene
+from shared.supervision.verdict import query_health
 from shared.timebase import SimTime
 from sim.config import load_sim_settings
 from sim.pacing import PERIOD_WINDOW, silence_after_s

@@ -27,8 +27,8 @@ pytestmark = [pytest.mark.integration, pytest.mark.timeout(90)]
 REPORT_INTERVAL_S = 0.25
 RECORDER = ["-m", "services.recorder", "--instance", "test", "--report-interval-s", str(REPORT_INTERVAL_S)]
 CLI = ["-m", "services.cli"]
-RECORDER_HEALTH = "rmmdet/@v1/site/@health/recorder/test"
-DATA_KEYS = "rmmdet/@v1/**"
+RECORDER_HEALTH = "rmmdet/v1/site/@health/recorder/test"
+DATA_KEYS = "rmmdet/v1/**"
 N_PER_TYPE = 5
 #: Pause between published samples, seconds (distinct receive times, a visible replay pace).
 PUBLISH_PERIOD_S = 0.02

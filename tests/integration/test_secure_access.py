@@ -126,30 +126,30 @@ def test_only_a_router_certificate_can_serve_a_client(deployment: Deployment) ->
 
 # (identity, key, delivered?) — each put is made by `identity` and watched by the operator.
 PUTS = [
-    ("mec-agent1", "rmmdet/@v1/agent1/objects", True),
-    ("mec-agent1", "rmmdet/@v1/agent2/objects", False),  # agent1's MEC cannot speak for agent2
-    ("mec-agent1", "rmmdet/@v1/agent1/sensor/camera/cam_11", False),  # nor for its own sensors
-    ("mec-agent1", "rmmdet/@v1/cloud/plans/v1", False),
-    ("sensor-agent1-cameras", "rmmdet/@v1/agent1/sensor/camera/cam_11", True),
-    ("sensor-agent1-cameras", "rmmdet/@v1/agent1/sensor/lidar/lidar_1", False),  # another kind
-    ("sensor-agent1-cameras", "rmmdet/@v1/agent2/sensor/camera/cam_21", False),  # another agent
-    ("sensor-agent1-cameras", "rmmdet/@v1/sim/ground_truth", False),
-    ("vehicle-v1", "rmmdet/@v1/vehicles/v1/plan_ack", True),
-    ("vehicle-v1", "rmmdet/@v1/vehicles/v2/plan_ack", False),  # a vehicle acks only its own plans
-    ("vehicle-v1", "rmmdet/@v1/cloud/plans/v1", False),  # forged plan
-    ("coordinator", "rmmdet/@v1/cloud/plans/v1", True),  # only the coordinator publishes plans
-    ("coordinator", "rmmdet/@v1/vehicles/v1/plan_ack", False),  # forged ack
-    ("recorder", "rmmdet/@v1/agent1/objects", False),  # the recorder reads only
-    ("sim", "rmmdet/@v1/sim/ground_truth", True),
-    ("sim", "rmmdet/@v1/vehicles/v1/plan_ack", False),  # the world holds no vehicle's rights (issue 34 4.)
-    ("mallory", "rmmdet/@v1/agent1/objects", False),  # a certificate of the CA, but no role
+    ("mec-agent1", "rmmdet/v1/agent1/objects", True),
+    ("mec-agent1", "rmmdet/v1/agent2/objects", False),  # agent1's MEC cannot speak for agent2
+    ("mec-agent1", "rmmdet/v1/agent1/sensor/camera/cam_11", False),  # nor for its own sensors
+    ("mec-agent1", "rmmdet/v1/cloud/plans/v1", False),
+    ("sensor-agent1-cameras", "rmmdet/v1/agent1/sensor/camera/cam_11", True),
+    ("sensor-agent1-cameras", "rmmdet/v1/agent1/sensor/lidar/lidar_1", False),  # another kind
+    ("sensor-agent1-cameras", "rmmdet/v1/agent2/sensor/camera/cam_21", False),  # another agent
+    ("sensor-agent1-cameras", "rmmdet/v1/sim/ground_truth", False),
+    ("vehicle-v1", "rmmdet/v1/vehicles/v1/plan_ack", True),
+    ("vehicle-v1", "rmmdet/v1/vehicles/v2/plan_ack", False),  # a vehicle acks only its own plans
+    ("vehicle-v1", "rmmdet/v1/cloud/plans/v1", False),  # forged plan
+    ("coordinator", "rmmdet/v1/cloud/plans/v1", True),  # only the coordinator publishes plans
+    ("coordinator", "rmmdet/v1/vehicles/v1/plan_ack", False),  # forged ack
+    ("recorder", "rmmdet/v1/agent1/objects", False),  # the recorder reads only
+    ("sim", "rmmdet/v1/sim/ground_truth", True),
+    ("sim", "rmmdet/v1/vehicles/v1/plan_ack", False),  # the world holds no vehicle's rights (issue 34 4.)
+    ("mallory", "rmmdet/v1/agent1/objects", False),  # a certificate of the CA, but no role
 ]
 
 
 def test_each_identity_puts_only_on_its_own_keys(deployment: Deployment) -> None:
     inbox = Inbox()
     with deployment.session("operator") as watcher:
-        sub = watcher.declare_subscriber("rmmdet/@v1/**", inbox)
+        sub = watcher.declare_subscriber("rmmdet/v1/**", inbox)
         sessions = {ident: deployment.session(ident) for ident in {p[0] for p in PUTS}}
         try:
             time.sleep(SETTLE_S)  # subscriptions propagated

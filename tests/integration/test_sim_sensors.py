@@ -95,14 +95,14 @@ def test_sensor_streams_run_at_their_rates_and_survive_a_killed_group(running) -
     router, arrivals, procs = running
     scene = Scene.load(DEFAULT_SCENE)
     lidar_keys = {
-        f"rmmdet/@v1/agent1/sensor/lidar/{s.id}": s.rate_hz for s in scene.sensors_of("agent1", "lidar")
+        f"rmmdet/v1/agent1/sensor/lidar/{s.id}": s.rate_hz for s in scene.sensors_of("agent1", "lidar")
     }
     radar_keys = {
-        f"rmmdet/@v1/agent2/sensor/radar/{s.id}": s.rate_hz for s in scene.sensors_of("agent2", "radar")
+        f"rmmdet/v1/agent2/sensor/radar/{s.id}": s.rate_hz for s in scene.sensors_of("agent2", "radar")
     }
-    gt_key = "rmmdet/@v1/sim/ground_truth"
-    arrivals.wait_for("rmmdet/@v1/agent1/sensor/lidar", STARTUP_S)
-    arrivals.wait_for("rmmdet/@v1/agent2/sensor/radar", STARTUP_S)
+    gt_key = "rmmdet/v1/sim/ground_truth"
+    arrivals.wait_for("rmmdet/v1/agent1/sensor/lidar", STARTUP_S)
+    arrivals.wait_for("rmmdet/v1/agent2/sensor/radar", STARTUP_S)
     time.sleep(1.0)  # past start-up transients
 
     t0 = time.monotonic()
@@ -133,5 +133,5 @@ def test_sensor_streams_run_at_their_rates_and_survive_a_killed_group(running) -
 
     # Restart it: lidar frames come back.
     procs[LIDARS] = spawn(["-m", "services.sensor", "--group", LIDARS, *router.client_args()])
-    arrivals.wait_for("rmmdet/@v1/agent1/sensor/lidar", STARTUP_S)
+    arrivals.wait_for("rmmdet/v1/agent1/sensor/lidar", STARTUP_S)
     stop(procs[LIDARS])

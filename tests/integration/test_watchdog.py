@@ -22,10 +22,10 @@ from pathlib import Path
 import pytest
 from rmmdet.v1.health_pb2 import HealthLevel
 
-from services.cli.health import query_health
 from services.watchdog.main import supervisor_proxy
 from shared.bus.session import open_session
 from shared.bus.zenoh_config import DEFAULT_CLIENT_CONFIG, zenoh_config
+from shared.supervision.verdict import query_health
 from tests.helpers import REPO_ROOT, free_port, stop
 
 pytestmark = [pytest.mark.integration, pytest.mark.fault, pytest.mark.timeout(120)]

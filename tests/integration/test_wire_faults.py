@@ -22,10 +22,10 @@ import pytest
 import yaml
 from rmmdet.v1 import perception_pb2 as pb
 
-from services.cli.health import query_health
 from shared.bus.health import DEGRADED, NOMINAL
 from shared.bus.node import Node
 from shared.paths import DEFAULT_SCENE
+from shared.supervision.verdict import query_health
 from tests.helpers import Router, free_port, spawn, stop
 
 pytestmark = [pytest.mark.integration, pytest.mark.fault, pytest.mark.timeout(240)]

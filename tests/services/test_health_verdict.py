@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from rmmdet.v1.health_pb2 import HealthLevel, ServiceHealth
 
-from services.cli.health import expected_services, judge
 from shared.paths import DEFAULT_SCENE
 from shared.scene.scene import Scene
+from shared.supervision.verdict import expected_services, judge
 
 NOMINAL = HealthLevel.HEALTH_LEVEL_NOMINAL
 DEGRADED = HealthLevel.HEALTH_LEVEL_DEGRADED
@@ -21,7 +21,7 @@ def report(source: str, level: int = NOMINAL, message: str = "") -> ServiceHealt
 
 def alive_key(source: str) -> str:
     scope, service, instance = source.split("/")
-    return f"rmmdet/@v1/{scope}/@alive/{service}/{instance}"
+    return f"rmmdet/v1/{scope}/@alive/{service}/{instance}"
 
 
 def test_expected_services_come_from_the_scene() -> None:
@@ -63,15 +63,15 @@ def test_nothing_answering_is_not_ok_even_without_expectations() -> None:
 def test_a_health_reply_is_believed_only_for_the_key_it_came_on() -> None:
     """Issue 34, item 5: `rmmdet health` believed the body's name over the key: a camera group could
     answer as the lidar group."""
-    from services.cli.health import key_mismatch
+    from shared.supervision.verdict import key_mismatch
 
-    key = "rmmdet/@v1/agent1/@health/sensor/agent1-lidars"
+    key = "rmmdet/v1/agent1/@health/sensor/agent1-lidars"
     assert key_mismatch(key, report("agent1/sensor/agent1-lidars")) is None
     assert "not believed" in (key_mismatch(key, report("agent1/sensor/agent1-cameras")) or "")
     lying = report("agent1/sensor/agent1-lidars")
     lying.header.source_id = "agent3/sensor/agent1-lidars"  # right names, another scope
     assert "not believed" in (key_mismatch(key, lying) or "")
-    assert "not a health key" in (key_mismatch("rmmdet/@v1/agent1/@alive/sensor/x", lying) or "")
+    assert "not a health key" in (key_mismatch("rmmdet/v1/agent1/@alive/sensor/x", lying) or "")
 
 
 def test_a_sharded_coordinator_meets_the_coordinator_expectation() -> None:

@@ -6,8 +6,9 @@ import pytest
 from rmmdet.v1.common_pb2 import Header
 from rmmdet.v1.sim_pb2 import GroundTruth
 
-from services.sensor.main import newest_due, parse_group
+from services.sensor.main import newest_due
 from shared.bus.node import Received
+from shared.config import ConfigError
 from shared.paths import DEFAULT_SCENE
 from shared.scene.scene import Scene
 
@@ -20,7 +21,11 @@ def scene() -> Scene:
 def received(tick: int) -> Received:
     gt = GroundTruth(tick_hz=60.0)
     gt.header.tick = tick
-    return Received("rmmdet/@v1/sim/ground_truth", gt, Header(tick=tick), 0, 0)
+    return Received("rmmdet/v1/sim/ground_truth", gt, Header(tick=tick), 0, 0)
+
+
+def parse_group(scene: Scene, group: str, only: str | None = None) -> list:
+    return scene.group_sensors(group, only)
 
 
 def test_groups_name_an_agent_and_a_sensor_kind(scene: Scene) -> None:
@@ -28,10 +33,10 @@ def test_groups_name_an_agent_and_a_sensor_kind(scene: Scene) -> None:
     assert [s.id for s in parse_group(scene, "agent2-radars")] == ["radar_2", "radar_3"]
     assert len(parse_group(scene, "agent3-cameras")) == 4
     for bad in ("agent9-cameras", "agent1-sonars", "agent1", "agent3-radars"):
-        with pytest.raises(SystemExit):
+        with pytest.raises(ConfigError):
             parse_group(scene, bad)
     assert [s.id for s in parse_group(scene, "agent2-radars", only="radar_3")] == ["radar_3"]
-    with pytest.raises(SystemExit, match="cam_2"):
+    with pytest.raises(ConfigError, match="cam_2"):
         parse_group(scene, "agent2-radars", only="radar_2,cam_2")  # not in the group
 
 

@@ -14,8 +14,9 @@ from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
 from services.viewer.dashboard_server import DashboardServer
-from services.viewer.main import SensorFeeds, start_view_server
+from services.viewer.ws_gate import start_view_server
 from shared.scene.scene import Scene
+from shared.viewer.feeds import SensorFeeds
 from tests.integration.foxglove_client import SUBPROTOCOL
 
 

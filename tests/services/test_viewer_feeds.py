@@ -15,13 +15,14 @@ from rmmdet.v1.common_pb2 import Header
 from rmmdet.v1.health_pb2 import HEALTH_LEVEL_NOMINAL, ServiceHealth
 from rmmdet.v1.sensors_pb2 import RadarScan
 
-from services.cli.health import Verdict
-from services.viewer.main import HEALTH_SCHEMA, HealthFeed, SensorFeeds, health_json
 from shared.bus.codec import Counters, encode, encoding_for
 from shared.paths import DEFAULT_SCENE, REPO_ROOT
 from shared.perception.output import detections_2d_message
 from shared.scene.scene import Scene
+from shared.supervision.verdict import Verdict
 from shared.viewer.core import FRAMES, GRID, GROUND_TRUTH, PLANS, TABLE, tracks_topic
+from shared.viewer.feeds import SensorFeeds
+from shared.viewer.health_feed import HEALTH_SCHEMA, HealthFeed, health_json
 
 
 @dataclass
@@ -71,7 +72,7 @@ def test_a_sensor_is_subscribed_only_while_watched(test_scene: Scene) -> None:
     feeds.on_subscribe(1, View(topic))  # before the bus is there: made on attach
     session = FakeSession()
     feeds.attach(session, Counters())  # type: ignore[arg-type]
-    assert [s.key for s in session.subs] == [f"rmmdet/@v1/{spec.agent}/sensor/camera/{spec.id}"]
+    assert [s.key for s in session.subs] == [f"rmmdet/v1/{spec.agent}/sensor/camera/{spec.id}"]
     feeds.on_subscribe(2, View(topic))  # a second client: no second subscription
     assert len(session.subs) == 1 and feeds.subscribed == [topic]
     feeds.on_unsubscribe(1, View(topic))
@@ -105,7 +106,7 @@ def test_detections_are_drawn_as_annotations_while_watched(test_scene: Scene) ->
     feeds.attach(session, counters)  # type: ignore[arg-type]
     feeds.on_subscribe(1, View(topic))
     (sub,) = session.subs
-    assert sub.key == f"rmmdet/@v1/{spec.agent}/perception/detections_2d/{spec.id}"
+    assert sub.key == f"rmmdet/v1/{spec.agent}/perception/detections_2d/{spec.id}"
     msg = detections_2d_message(spec.id, np.array([[10, 20, 50, 40, 0.75, 0]], np.float32), 448, 336)
     header = Header(source_id="agent/mec", seq=1)
     header.stamp.FromNanoseconds(1_000_000_000)
@@ -126,7 +127,7 @@ def test_radar_scans_are_drawn_as_targets_while_watched(test_scene: Scene) -> No
     feeds.attach(session, counters)  # type: ignore[arg-type]
     feeds.on_subscribe(1, View(f"/agents/{spec.agent}/radar/{spec.id}/targets"))
     (sub,) = session.subs
-    assert sub.key == f"rmmdet/@v1/{spec.agent}/sensor/radar/{spec.id}"  # the scans themselves
+    assert sub.key == f"rmmdet/v1/{spec.agent}/sensor/radar/{spec.id}"  # the scans themselves
     scan = RadarScan(sensor_id=spec.id)
     scan.targets.add(range_m=1.0, azimuth_rad=0.1, range_rate_mps=-0.3)
     scan.header.stamp.FromNanoseconds(1_000_000_000)

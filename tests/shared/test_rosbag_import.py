@@ -195,7 +195,7 @@ def test_each_bag_format_imports_to_the_same_recording(
     for record in read_records(out):
         decoded = decode_record(record)
         by_key.setdefault(record.key, []).append(decoded)
-    cam11 = by_key["rmmdet/@v1/agent1/sensor/camera/cam_11"]
+    cam11 = by_key["rmmdet/v1/agent1/sensor/camera/cam_11"]
     assert [d.header.stamp.ToNanoseconds() for d in cam11] == [T0_NS + k * 100_000_000 for k in range(3)]
     assert (
         cam11[0].header.source_id == "agent1/sensor/agent1-cameras" and cam11[0].header.frame_id == "cam_11"
@@ -203,14 +203,14 @@ def test_each_bag_format_imports_to_the_same_recording(
     _, jpeg = cv2.imencode(".jpg", frame(1))
     assert cam11[1].message.data == jpeg.tobytes()  # a JPEG goes through as it is
     raw = cv2.imdecode(
-        np.frombuffer(by_key["rmmdet/@v1/agent1/sensor/camera/cam_12"][2].message.data, np.uint8), 1
+        np.frombuffer(by_key["rmmdet/v1/agent1/sensor/camera/cam_12"][2].message.data, np.uint8), 1
     )
     assert np.array_equal(raw, frame(2))  # a raw image goes in as PNG: lossless
     for lidar in ("lidar_11", "lidar_12"):
-        points = point_cloud_to_array(by_key[f"rmmdet/@v1/agent1/sensor/lidar/{lidar}"][1].message)
+        points = point_cloud_to_array(by_key[f"rmmdet/v1/agent1/sensor/lidar/{lidar}"][1].message)
         assert np.allclose(points[:, :3], POINTS[:2] + np.array([0, 0, 1])), lidar  # the NaN point dropped
         assert np.allclose(points[:, 3], INTENSITY[:2] / 255)
-    radar = by_key["rmmdet/@v1/agent2/sensor/radar/radar_2"][2].message
+    radar = by_key["rmmdet/v1/agent2/sensor/radar/radar_2"][2].message
     assert radar.sensor_id == "radar_2" and radar.targets[0].range_m == pytest.approx(4.5)
     assert radar.header.stamp.ToNanoseconds() == T0_NS + 200_000_000
     assert not (tmp_path / "run.mcap.partial").exists()

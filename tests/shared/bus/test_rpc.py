@@ -59,10 +59,10 @@ def server(node: FakeNode) -> RpcServer:
 def test_one_queryable_serves_every_vehicle_and_replies_on_the_asked_key() -> None:
     node = FakeNode()
     rpc = server(node)
-    assert rpc.key == "rmmdet/@v1/cloud/@rpc/route/*"
+    assert rpc.key == "rmmdet/v1/cloud/@rpc/route/*"
     q = request_on(get_stream("route_rpc").key(vehicle="v7"), "v7")
     rpc(q)  # type: ignore[arg-type]
-    assert [k for k, _ in q.replies] == ["rmmdet/@v1/cloud/@rpc/route/v7"] and not q.errors
+    assert [k for k, _ in q.replies] == ["rmmdet/v1/cloud/@rpc/route/v7"] and not q.errors
     assert node.counters.get("replies") == 1
 
 

@@ -11,12 +11,12 @@ from tests.helpers import REPO_ROOT
 
 
 def test_keys_are_built_and_validated() -> None:
-    assert get_stream("objects").key(agent="agent1") == "rmmdet/@v1/agent1/objects"
+    assert get_stream("objects").key(agent="agent1") == "rmmdet/v1/agent1/objects"
     assert (
         get_stream("camera_image").key(agent="agent1", sensor="cam_11")
-        == "rmmdet/@v1/agent1/sensor/camera/cam_11"
+        == "rmmdet/v1/agent1/sensor/camera/cam_11"
     )
-    assert get_stream("camera_image").pattern(agent="agent2") == "rmmdet/@v1/agent2/sensor/camera/*"
+    assert get_stream("camera_image").pattern(agent="agent2") == "rmmdet/v1/agent2/sensor/camera/*"
     for bad in ("Agent1", "a/b", "a*", "", "@x", "a b", "a$"):
         with pytest.raises(ValueError, match="invalid"):
             get_stream("objects").key(agent=bad)
@@ -31,12 +31,12 @@ def test_every_key_is_a_valid_canonical_key_expression() -> None:
         ids = {f: "x1" for f in stream.fields}
         key = stream.key(**ids)
         assert str(zenoh.KeyExpr(key)) == key
-        assert key.startswith("rmmdet/@v1/")
+        assert key.startswith("rmmdet/v1/")
 
 
 def test_data_wildcard_excludes_control_keys() -> None:
-    """`rmmdet/@v1/**` must not reach @health/@alive/@rpc: verbatim chunks stop wildcards."""
-    data = zenoh.KeyExpr("rmmdet/@v1/**")
+    """`rmmdet/v1/**` must not reach @health/@alive/@rpc: verbatim chunks stop wildcards."""
+    data = zenoh.KeyExpr("rmmdet/v1/**")
     for name in ("health", "alive", "route_rpc"):
         s = get_stream(name)
         assert not data.intersects(zenoh.KeyExpr(s.key(**{f: "x1" for f in s.fields})))
@@ -54,9 +54,9 @@ def test_every_stream_type_resolves() -> None:
 
 
 def test_stream_for_key() -> None:
-    assert stream_for_key("rmmdet/@v1/agent3/sensor/lidar/lidar_41").name == "point_cloud"
-    assert stream_for_key("rmmdet/@v1/cloud/plans/veh_01").name == "route_plan"
-    assert stream_for_key("rmmdet/@v1/unknown/thing") is None
+    assert stream_for_key("rmmdet/v1/agent3/sensor/lidar/lidar_41").name == "point_cloud"
+    assert stream_for_key("rmmdet/v1/cloud/plans/veh_01").name == "route_plan"
+    assert stream_for_key("rmmdet/v1/unknown/thing") is None
 
 
 def test_proto_readme_table_is_current() -> None:
@@ -68,23 +68,23 @@ def test_ids_inverts_key() -> None:
     alive = get_stream("alive")
     ids = {"scope": "agent2", "service": "mec", "instance": "agent2"}
     assert alive.ids(alive.key(**ids)) == ids
-    assert get_stream("objects").ids("rmmdet/@v1/agent1/objects") == {"agent": "agent1"}
-    assert get_stream("objects").ids("rmmdet/@v1/agent1/objects/extra") is None  # other length
+    assert get_stream("objects").ids("rmmdet/v1/agent1/objects") == {"agent": "agent1"}
+    assert get_stream("objects").ids("rmmdet/v1/agent1/objects/extra") is None  # other length
     assert get_stream("objects").ids("rmmdet/@v2/agent1/objects") is None  # other literal chunk
-    assert get_stream("route_ack").ids("rmmdet/@v1/agent1/objects") is None
+    assert get_stream("route_ack").ids("rmmdet/v1/agent1/objects") is None
 
 
 def test_id_of_and_mec_tokens() -> None:
-    assert get_stream("objects").id_of("rmmdet/@v1/agent2/objects", "agent") == "agent2"
-    assert get_stream("route_ack").id_of("rmmdet/@v1/vehicles/v07/plan_ack", "vehicle") == "v07"
-    assert get_stream("objects").id_of("rmmdet/@v1/vehicles/v07/plan_ack", "agent") == ""
-    assert agent_of_mec_token("rmmdet/@v1/agent3/@alive/mec/agent3") == "agent3"
-    assert agent_of_mec_token("rmmdet/@v1/agent3/@alive/mec/agent1") is None
-    assert agent_of_mec_token("rmmdet/@v1/site/@alive/router/main") is None
+    assert get_stream("objects").id_of("rmmdet/v1/agent2/objects", "agent") == "agent2"
+    assert get_stream("route_ack").id_of("rmmdet/v1/vehicles/v07/plan_ack", "vehicle") == "v07"
+    assert get_stream("objects").id_of("rmmdet/v1/vehicles/v07/plan_ack", "agent") == ""
+    assert agent_of_mec_token("rmmdet/v1/agent3/@alive/mec/agent3") == "agent3"
+    assert agent_of_mec_token("rmmdet/v1/agent3/@alive/mec/agent1") is None
+    assert agent_of_mec_token("rmmdet/v1/site/@alive/router/main") is None
 
 
 def test_producer_of_names_the_publishing_node() -> None:
     camera_key = get_stream("camera_image").key(agent="agent2", sensor="cam_21")
     assert producer_of(camera_key) == "agent2/sensor/agent2-cameras"
-    assert producer_of("rmmdet/@v1/agent3/objects") == "agent3/mec/agent3"
-    assert producer_of("rmmdet/@v1/cloud/maps/traffic") == "rmmdet/@v1/cloud/maps/traffic"
+    assert producer_of("rmmdet/v1/agent3/objects") == "agent3/mec/agent3"
+    assert producer_of("rmmdet/v1/cloud/maps/traffic") == "rmmdet/v1/cloud/maps/traffic"

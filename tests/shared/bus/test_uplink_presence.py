@@ -10,8 +10,8 @@ import pytest
 from shared.bus.liveliness import LivelinessMonitor
 from shared.bus.uplink import Uplink
 
-MEC = "rmmdet/@v1/agent1/@alive/mec/agent1"
-OTHER = "rmmdet/@v1/agent2/@alive/mec/agent2"
+MEC = "rmmdet/v1/agent1/@alive/mec/agent1"
+OTHER = "rmmdet/v1/agent2/@alive/mec/agent2"
 
 
 @dataclass
@@ -92,7 +92,7 @@ def held_monitor() -> tuple[LivelinessMonitor, Uplink, Clock]:
     clock.now_s += 10.0
     mon = LivelinessMonitor(
         FakeSession(),
-        "rmmdet/@v1/*/@alive/mec/*",
+        "rmmdet/v1/*/@alive/mec/*",
         queue_changes=True,
         uplink=up,
         clock=clock,  # type: ignore[arg-type]

@@ -216,7 +216,7 @@ def test_bad_input_stops_the_export_and_leaves_nothing(run, network, tmp_path: P
         writer.write(
             key, "application/protobuf;rmmdet.v1.TrackedObjects", b"\xff\xff\xff", None, T0_NS, T0_NS
         )
-    with pytest.raises(ExportError, match="record 0 on rmmdet/@v1/agent1/objects"):
+    with pytest.raises(ExportError, match="record 0 on rmmdet/v1/agent1/objects"):
         export_recording(garbage, out, network)
     with pytest.raises(ExportError, match="unknown format"):
         export_recording(recording, out, network, ("csv",))

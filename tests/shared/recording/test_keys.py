@@ -12,22 +12,20 @@ from tests.shared.recording.samples import CAMERA_KEY, GROUND_TRUTH_KEY, RADAR_K
 
 def test_key_filter_uses_zenoh_key_expression_semantics() -> None:
     assert key_filter([]) is None
-    agent1 = key_filter(["rmmdet/@v1/agent1/**"])
+    agent1 = key_filter(["rmmdet/v1/agent1/**"])
     assert agent1 is not None
     assert agent1(CAMERA_KEY) and agent1(RADAR_KEY) and not agent1(GROUND_TRUTH_KEY)
-    cameras = key_filter(["rmmdet/@v1/*/sensor/camera/*", GROUND_TRUTH_KEY])
+    cameras = key_filter(["rmmdet/v1/*/sensor/camera/*", GROUND_TRUTH_KEY])
     assert cameras is not None
     assert cameras(CAMERA_KEY) and cameras(GROUND_TRUTH_KEY) and not cameras(RADAR_KEY)
-    data = key_filter(["rmmdet/@v1/**"])
+    data = key_filter(["rmmdet/v1/**"])
     assert data is not None
-    assert not data("rmmdet/@v1/agent1/@health/mec/agent1")  # verbatim chunks stay out of wildcards
+    assert not data("rmmdet/v1/agent1/@health/mec/agent1")  # verbatim chunks stay out of wildcards
 
 
 def test_overlapping_patterns_are_reported() -> None:
-    assert overlapping(["rmmdet/@v1/**", "rmmdet/@v1/agent1/**"]) == [
-        ("rmmdet/@v1/**", "rmmdet/@v1/agent1/**")
-    ]
-    assert overlapping(["rmmdet/@v1/agent1/**", "rmmdet/@v1/agent2/**"]) == []
+    assert overlapping(["rmmdet/v1/**", "rmmdet/v1/agent1/**"]) == [("rmmdet/v1/**", "rmmdet/v1/agent1/**")]
+    assert overlapping(["rmmdet/v1/agent1/**", "rmmdet/v1/agent2/**"]) == []
 
 
 def test_default_recording_path_is_timestamped() -> None:

@@ -67,7 +67,7 @@ def test_bad_input_is_counted_not_recorded_not_raised() -> None:
     cam = camera(1)
     assert not recorder.offer(RADAR_KEY, "application/protobuf;rmmdet.v1.NoSuchMessage", good.payload, None)
     assert not recorder.offer(RADAR_KEY, "text/plain", good.payload, None)
-    assert not recorder.offer("rmmdet/@v1/agent1/@health/mec/agent1", good.encoding, good.payload, None)
+    assert not recorder.offer("rmmdet/v1/agent1/@health/mec/agent1", good.encoding, good.payload, None)
     # queued, then refused by the writer: garbage header attachment, garbage body
     assert recorder.offer(CAMERA_KEY, cam.encoding, cam.payload, b"\xff\xff\xff garbage")
     assert recorder.offer(RADAR_KEY, good.encoding, b"\x0a\xff\xff\xff\xff\xff garbage", None)
@@ -107,8 +107,8 @@ def test_header_stamp_and_control_keys() -> None:
     assert header_stamp_ns(cam.encoding, cam.payload, cam.attachment) == cam.stamp_ns
     assert header_stamp_ns(gt.encoding, gt.payload, None) == gt.stamp_ns
     assert header_stamp_ns(cam.encoding, cam.payload, None) is None  # foxglove type, no header
-    assert is_control_key("rmmdet/@v1/site/@alive/router/main")
-    assert is_control_key("rmmdet/@v1/cloud/@rpc/route/v1")
+    assert is_control_key("rmmdet/v1/site/@alive/router/main")
+    assert is_control_key("rmmdet/v1/cloud/@rpc/route/v1")
     assert not is_control_key(CAMERA_KEY)
 
 

@@ -26,25 +26,25 @@ def perms(*names: str) -> dict[tuple[str, str], set[str]]:
         (
             "mec-agent1",
             {
-                "rmmdet/@v1/agent1/objects",
-                "rmmdet/@v1/agent1/capture_demand/*",
-                "rmmdet/@v1/agent1/perception/detections_2d/*",
-                "rmmdet/@v1/agent1/perception/detections_3d/*",
+                "rmmdet/v1/agent1/objects",
+                "rmmdet/v1/agent1/capture_demand/*",
+                "rmmdet/v1/agent1/perception/detections_2d/*",
+                "rmmdet/v1/agent1/perception/detections_3d/*",
             },
         ),
-        ("sensor-agent1-cameras", {"rmmdet/@v1/agent1/sensor/camera/*"}),
-        ("sensor-agent2-radars", {"rmmdet/@v1/agent2/sensor/radar/*"}),
+        ("sensor-agent1-cameras", {"rmmdet/v1/agent1/sensor/camera/*"}),
+        ("sensor-agent2-radars", {"rmmdet/v1/agent2/sensor/radar/*"}),
         # must-deliver streams: no puts under their advanced publisher's `@adv` key space (it runs
         # without heartbeats; its token and cache queryable there are granted as such, not as puts)
-        ("vehicle-v7", {"rmmdet/@v1/vehicles/v7/plan_ack"}),
+        ("vehicle-v7", {"rmmdet/v1/vehicles/v7/plan_ack"}),
         (
             "coordinator",
             {
-                "rmmdet/@v1/cloud/plans/*",
-                "rmmdet/@v1/cloud/plans_served/*",
-                "rmmdet/@v1/cloud/maps/traffic",
-                "rmmdet/@v1/cloud/regions/*/traffic",  # a shard's (services/coordinator/shard.py)
-                "rmmdet/@v1/cloud/regions/*/clique",
+                "rmmdet/v1/cloud/plans/*",
+                "rmmdet/v1/cloud/plans_served/*",
+                "rmmdet/v1/cloud/maps/traffic",
+                "rmmdet/v1/cloud/regions/*/traffic",  # a shard's (services/coordinator/shard.py)
+                "rmmdet/v1/cloud/regions/*/clique",
             },
         ),
         ("recorder", set()),
@@ -84,7 +84,7 @@ def test_only_coordinators_exchange_cliques_and_hand_vehicles_over(test_scene: S
 
 def test_a_vehicle_queries_the_route_rpc_and_reads_only_its_plans() -> None:
     p = perms("vehicle-v7")
-    own_plans = "rmmdet/@v1/cloud/plans/v7"
+    own_plans = "rmmdet/v1/cloud/plans/v7"
     # ... and the plan publisher's cache for its own plans (recovery), nobody else's
     assert p[("query", "ingress")] == {get_stream("route_rpc").key(vehicle="v7"), f"{own_plans}/@adv/**"}
     assert p[("declare_subscriber", "ingress")] == {own_plans, f"{own_plans}/@adv/**"}
@@ -93,22 +93,22 @@ def test_a_vehicle_queries_the_route_rpc_and_reads_only_its_plans() -> None:
 
 def test_readers_subscribe_to_the_whole_data_space_and_query_health() -> None:
     p = perms("operator")
-    assert "rmmdet/@v1/**" in p[("declare_subscriber", "ingress")]
+    assert "rmmdet/v1/**" in p[("declare_subscriber", "ingress")]
     # health, and the caches of the must-deliver streams (a reader's advanced subscriber recovers too)
     adv = {f"{s.pattern()}/@adv/**" for s in streams().values() if s.advanced}
-    assert adv and p[("query", "ingress")] == {"rmmdet/@v1/*/@health/*/*", *adv}
-    assert "rmmdet/@v1/**" in perms("recorder")[("declare_subscriber", "ingress")]
+    assert adv and p[("query", "ingress")] == {"rmmdet/v1/*/@health/*/*", *adv}
+    assert "rmmdet/v1/**" in perms("recorder")[("declare_subscriber", "ingress")]
 
 
 def test_a_site_router_holds_the_union_of_its_site() -> None:
     site = perms("router-agent1", "sensor-agent1-lidars", "mec-agent1")
-    assert site[PUT_IN] == perms("mec-agent1")[PUT_IN] | {"rmmdet/@v1/agent1/sensor/lidar/*"}
+    assert site[PUT_IN] == perms("mec-agent1")[PUT_IN] | {"rmmdet/v1/agent1/sensor/lidar/*"}
 
 
 def test_wide_keys() -> None:
-    assert wide_key(get_stream("objects")) == "rmmdet/@v1/*/objects"
-    assert wide_key(get_stream("health")) == "rmmdet/@v1/*/@health/**"
-    assert wide_key(get_stream("route_rpc")) == "rmmdet/@v1/cloud/@rpc/route/**"
+    assert wide_key(get_stream("objects")) == "rmmdet/v1/*/objects"
+    assert wide_key(get_stream("health")) == "rmmdet/v1/*/@health/**"
+    assert wide_key(get_stream("route_rpc")) == "rmmdet/v1/cloud/@rpc/route/**"
 
 
 def test_access_control_section_is_default_deny_with_one_policy_per_subject() -> None:
@@ -134,9 +134,9 @@ def test_every_stream_names_known_roles_only() -> None:
 @pytest.mark.parametrize(
     ("identity", "token"),
     [
-        ("sensor-agent1-cameras", "rmmdet/@v1/agent1/@alive/sensor/agent1-cameras"),
-        ("mec-agent2", "rmmdet/@v1/agent2/@alive/mec/agent2"),
-        ("coordinator", "rmmdet/@v1/*/@alive/coordinator/*"),
+        ("sensor-agent1-cameras", "rmmdet/v1/agent1/@alive/sensor/agent1-cameras"),
+        ("mec-agent2", "rmmdet/v1/agent2/@alive/mec/agent2"),
+        ("coordinator", "rmmdet/v1/*/@alive/coordinator/*"),
     ],
 )
 def test_a_node_holds_presence_and_serves_health_only_under_its_own_instance(
@@ -151,23 +151,23 @@ def test_a_node_holds_presence_and_serves_health_only_under_its_own_instance(
 
 
 def test_interest_in_the_whole_data_space_only_where_a_reader_needs_it() -> None:
-    """Issue 34 item 11: a publisher is told of the recorder's `rmmdet/@v1/**` subscription; a queryable
+    """Issue 34 item 11: a publisher is told of the recorder's `rmmdet/v1/**` subscription; a queryable
     and a querier learn of queries and queryables on their own stream's key space only."""
     p = perms("mec-agent1")
-    assert "rmmdet/@v1/**" in p[("declare_subscriber", "egress")]
-    assert "rmmdet/@v1/**" not in p[("query", "egress")]  # its health queryable
-    assert p[("query", "egress")] == {"rmmdet/@v1/*/@health/**"}
-    assert "rmmdet/@v1/**" not in perms("vehicle-v7")[("declare_queryable", "egress")]
+    assert "rmmdet/v1/**" in p[("declare_subscriber", "egress")]
+    assert "rmmdet/v1/**" not in p[("query", "egress")]  # its health queryable
+    assert p[("query", "egress")] == {"rmmdet/v1/*/@health/**"}
+    assert "rmmdet/v1/**" not in perms("vehicle-v7")[("declare_queryable", "egress")]
 
 
 def test_a_shard_publishes_only_its_own_region_and_holds_only_its_own_presence() -> None:
     p = perms("coordinator-region1")
     puts = p.get(PUT_IN, set())
-    assert "rmmdet/@v1/cloud/regions/1/clique" in puts and "rmmdet/@v1/cloud/regions/1/traffic" in puts
+    assert "rmmdet/v1/cloud/regions/1/clique" in puts and "rmmdet/v1/cloud/regions/1/traffic" in puts
     other = zenoh.KeyExpr(get_stream("region_clique").key(region="0"))
     assert not any(zenoh.KeyExpr(k).intersects(other) for k in puts)  # no forging region 0's clique
     assert get_stream("release_rpc").pattern() in p[("declare_queryable", "ingress")]
-    assert "rmmdet/@v1/*/@health/coordinator/region1" in p[("declare_queryable", "ingress")]
+    assert "rmmdet/v1/*/@health/coordinator/region1" in p[("declare_queryable", "ingress")]
     assert not any("region0" in k for k in p[("declare_queryable", "ingress")])  # not region 0's health
 
 

@@ -206,7 +206,7 @@ def test_latest_region_maps_drop_a_silent_region() -> None:
     assert maps.merged(0.0) is None
     for region, agent in ((0, "agent2"), (1, "agent1")):
         m = TrafficMap(coverage=[AgentCoverage(agent_id=agent, state=1)])
-        maps.put(f"rmmdet/@v1/cloud/regions/{region}/traffic", m, 100 + region, now_s=float(region))
+        maps.put(f"rmmdet/v1/cloud/regions/{region}/traffic", m, 100 + region, now_s=float(region))
     merged = maps.merged(2.0)
     assert merged is not None and [c.agent_id for c in merged[0].coverage] == ["agent2", "agent1"]
     assert merged[1] == 101

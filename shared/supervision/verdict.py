@@ -63,7 +63,8 @@ def query_health(session: zenoh.Session, timeout_s: float = 2.0) -> tuple[list[S
     )
     for reply in replies:
         if reply.ok is None:
-            errors.append(f"error reply: {reply.err.payload.to_bytes()[:200]!r}")
+            said = reply.err.payload.to_bytes()[:200] if reply.err is not None else b""
+            errors.append(f"error reply: {said!r}")
             continue
         decoded = decoder.decode(reply.ok.payload.to_bytes(), str(reply.ok.encoding))
         if decoded is None:
