@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import pytest
 
 from shared.paths import DEFAULT_SCENE
@@ -112,6 +114,20 @@ def test_malformed_demands_are_refused() -> None:
     assert not demands.on_demand("x", 5, valid_for_s=0.0, now_s=0.0)
     assert not demands.on_demand("x", 5, valid_for_s=float("nan"), now_s=0.0)
     assert demands.every_n(now_s=0.0) == 1
+
+
+def test_take_records_received_demands_and_counts_the_refused() -> None:
+    def received(consumer: str, every_n: int, valid_for_s: float) -> SimpleNamespace:
+        return SimpleNamespace(
+            header=SimpleNamespace(source_id=consumer),
+            message=SimpleNamespace(every_n=every_n, valid_for_s=valid_for_s),
+        )
+
+    demands = CaptureDemands()
+    items = [received("mec-a", 5, 3.0), received("mec-b", 0, 3.0), received("mec-c", 2, -1.0)]
+    assert demands.take(items, 0.0) == 2  # every_n 0 and a negative validity refused
+    assert demands.every_n(1.0) == 5
+    assert demands.take([], 1.0) == 0
 
 
 def test_demands_are_bounded_in_cadence_validity_and_number() -> None:
