@@ -1,4 +1,4 @@
-"""Where a service's memory goes over time: an opt-in diagnostic for soak runs (reliability.md M1).
+"""Where a service's memory goes over time: an opt-in diagnostic for soak runs (docs/reliability.md M1).
 
 Set ``RMMDET_MEMTRACE_S=<period>`` in a service's environment (``RMMDET_MEMTRACE_WHO=mec/agent2``
 to pick services, e.g. under `make up`) and every period it logs one line with

@@ -4,7 +4,7 @@ and exclusive junctions; trips between random origin/destination junctions; rout
 Each vehicle is a kinematic bicycle (wheelbase from the scene) steered by pure pursuit toward a point
 ahead on its path (lane, then junction connector, then next lane) and sped by the Intelligent Driver
 Model against the nearest vehicle or stop line ahead along that path. Junctions are exclusive zones
-(the reference's node queue, rmmdet_reference.md §D.4): a vehicle asks to enter `junction_request_m`
+(the paper's node queue, docs/references.md (D.4)): a vehicle asks to enter `junction_request_m`
 before its lane ends, is admitted first-come-first-served once the junction is empty and its exit
 lane has room for it, and stops at the stop line until then. Arrivals at each junction are counted
 (the paper's flow points). Deterministic: one seeded generator, vehicles updated in id order.

@@ -87,7 +87,7 @@ class CoordinatorService:
         # The vehicles' process (the sim): when it leaves, their plans end (CoordinatorCore.vehicles_left).
         self.vehicles_presence = node.presence(get_stream("alive").pattern(scope="sim", service="sim"))
         # Object lists and the sim clock come tens of times a second: all of them silent at once is a
-        # frozen link (reliability.md R2), held like a cut one.
+        # frozen link (docs/reliability.md R2), held like a cut one.
         node.uplink.expect_traffic(settings.coverage.bus_silent_after_s, settings.coverage.bus_silence_max_s)
         self.map_pub = (
             node.publisher("traffic_map")

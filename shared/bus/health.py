@@ -1,6 +1,6 @@
 """Receiving-side input monitoring and the service health report.
 
-Liveliness says a process is connected, not that it works (reliability.md §0.4), so degradation is
+Liveliness says a process is connected, not that it works (docs/reliability.md (c).4), so degradation is
 driven by data: each input has an expected rate; it is DEGRADED when its rate over the window falls
 below `warn_rate_fraction` of that, and CRITICAL (missing) when nothing arrived for
 `missing_after_periods` periods (the ROS diagnostic_updater / Autoware topic_state_monitor model).

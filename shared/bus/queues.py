@@ -1,6 +1,6 @@
 """Bounded, counted hand-off queues between Zenoh callbacks and worker threads.
 
-Zenoh callbacks must only enqueue (blocking there stalls the whole session, reliability.md (c).5-6),
+Zenoh callbacks must only enqueue (blocking there stalls the whole session, docs/reliability.md (c).5-6),
 so every subscription feeds one of these. Nothing is lost silently: every drop is counted.
 
 - `DROP_OLDEST`: latest-wins streams (frames, object lists): a full queue discards its oldest item.

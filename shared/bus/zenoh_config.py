@@ -4,7 +4,7 @@ The flag surface is the one every zenoh-python example uses (`-m/--mode`, `-e/--
 `-l/--listen`, `-c/--config`, `--no-multicast-scouting`, repeatable `--cfg KEY:VALUE`), so anyone who
 knows Zenoh can point a service at another router. Two settings are enforced whatever the file says:
 multicast scouting is off (multicast is blocked here and would let rogue peers bypass the router) and
-shared-memory transport is off (silent drops under CPU starvation, reliability.md (c).14).
+shared-memory transport is off (silent drops under CPU starvation, docs/reliability.md (c).14).
 """
 
 from __future__ import annotations

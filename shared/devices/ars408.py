@@ -1,7 +1,7 @@
 """Continental ARS 408-21 over CAN: configuration, state and detection lists (objects or clusters).
 
 The signal layouts live in one place, the DBC beside this file (written for this project from the
-documented layouts, `../shared/reference/hardware.md` §2), loaded with cantools. Configuration
+documented layouts, `docs/references.md` "ARS 408"), loaded with cantools. Configuration
 (0x200) is encoded and the radar's state (0x201) decoded with cantools message by message; list
 frames are collected as they come and decoded together when the list is complete, with numpy from the
 same DBC's signal definitions (`BatchDecoder`: a full 100-object list is 301 frames; cantools takes

@@ -1,7 +1,7 @@
 """Robosense RS-LiDAR-16 / RS-LiDAR-32 wire protocol: MSOP point packets and DIFOP device packets.
 
 Both models send 1248-byte UDP packets, every multi-byte field big-endian (facts and sources in
-`../shared/reference/hardware.md` §1: RoboSense rs_driver's packed structs and the RS-LiDAR-16 manual):
+`docs/references.md` "RS-LiDAR": RoboSense rs_driver's packed structs and the RS-LiDAR-16 manual):
 
 - MSOP (port 6699): a 42-byte header (8-byte id, the lidar clock's time at offset 20 as year-2000,
   month, day, hour, minute, second, ms u16, us u16), 12 blocks of 100 bytes (flag `FF EE`, azimuth u16

@@ -1,6 +1,6 @@
 """Input health of one agent's sensors and the FULL / DEGRADED status of its output.
 
-Health model (reliability.md b.1, after Autoware / ROS diagnostics): each input has an expected rate
+Health model (docs/reliability.md (b.1), after Autoware / ROS diagnostics): each input has an expected rate
 f. It is MISSING when nothing arrived for `missing_after_periods / f` (3 periods: 300 ms at 10 Hz), so
 a dead or frozen sensor is noticed well before a Zenoh liveliness lease (10 s) would say so. A frame
 whose sensor stamp is older than `max_age_s` on arrival is STALE: dropped and counted, never fused;

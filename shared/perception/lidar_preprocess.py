@@ -2,7 +2,7 @@
 
 Merge (`merge_clouds`): every scan is mapped into one frame by its full SE(3) extrinsic (rotation
 included) and all points of every scan are kept. The reference combiner applied translation-only
-offsets, and only to the first ``len(cloud 2)`` points of each cloud (rmmdet_reference.md §C.3).
+offsets, and only to the first ``len(cloud 2)`` points of each cloud (docs/references.md, the paper (C.3)).
 `agent_frame_transforms` gives the extrinsics into an agent frame (world axes, origin at
 `shared.datasets.layout.agent_origin_m`, table at ``z = 0``), so the merged cloud is the one the
 lidar datasets were generated from.

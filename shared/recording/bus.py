@@ -85,7 +85,7 @@ def subscribe_recorder(
 
 
 #: Where `rmmdet replay` publishes by default: under this prefix a recording cannot drive a live
-#: system (a replayed plan would otherwise reach the vehicles, reliability.md (c)).
+#: system (a replayed plan would otherwise reach the vehicles, docs/reliability.md (c)).
 REPLAY_PREFIX = "replay"
 
 

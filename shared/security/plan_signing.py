@@ -2,7 +2,7 @@
 
 Zenoh's access control keeps other identities from publishing on the plan keys, but it gives the
 receiver no authenticated sender, and a second queryable on the route RPC key can answer a vehicle's
-request (reliability.md (c).12). So every plan carries a signature by the coordinator's plan key, over
+request (docs/reliability.md (c).12). So every plan carries a signature by the coordinator's plan key, over
 the plan serialised deterministically with `header` and `signature` cleared (the header is rewritten by
 the transport layer; everything a vehicle acts on is signed: vehicle, plan id, version, lanes, TTL).
 `key_id` names the key, so keys can be rotated by trusting two at once.

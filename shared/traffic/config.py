@@ -66,12 +66,14 @@ class CoverageConfig(_Section):
     stale_after_s: float = Field(
         0.5, gt=0, description="agent data older than this (or presence gone): STALE"
     )
-    lost_after_s: float = Field(3.0, gt=0, description="agent data older than this: LOST (reliability.md R4)")
+    lost_after_s: float = Field(
+        3.0, gt=0, description="agent data older than this: LOST (docs/reliability.md R4)"
+    )
     bus_silent_after_s: float = Field(
         0.3,
         gt=0,
         description="nothing at all heard from the bus for this long (object lists, sim clock, acks: tens"
-        " a second): the link is suspected, not every agent; coverage is held (reliability.md R2)",
+        " a second): the link is suspected, not every agent; coverage is held (docs/reliability.md R2)",
     )
     bus_silence_max_s: float = Field(
         12.0,

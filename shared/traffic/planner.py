@@ -3,7 +3,7 @@
 Policies (`PlannerConfig.policy`):
   random               a uniformly random next lane (the paper's "before")
   paper_rule           next lane minimising (cars on lane + 1) x (crowding rank of its area + 1), first on
-                       ties (rmmdet_reference.md §D.3); one junction at a time, no destination
+                       ties (docs/references.md, the paper (D.3)); one junction at a time, no destination
   shortest             shortest distance to the destination (static)
   dynamic_ground_truth shortest time on measured lane speeds (SUMO-style rerouting; fed with ground truth)
   balanced             shortest expected time on the perceived maps: lane time at the perceived speed, a

@@ -10,7 +10,7 @@ region's shard owns it. Lanes whose two junctions are in different regions are *
 vehicle driving one is being handed over.
 
 Routes across regions (`Overlay`, Customizable Route Planning on the lane graph: Delling et al. 2011,
-`../shared/reference/city-scale.md` §7): each region publishes, for every crossing lane that enters it
+`docs/references.md` \"SUMO\" (7)): each region publishes, for every crossing lane that enters it
 and every one that leaves it, the fastest time between them inside the region (its *clique*) and the
 lanes of that path. A route from a lane to a junction in another region is the fastest path over the
 crossing lanes and the cliques, with the source region's own lanes at the start and the destination

@@ -1,7 +1,7 @@
 """Emulated Continental ARS 408-21: simulated radar targets as the radar's CAN frames, and its answer
 to a configuration.
 
-Written bit by bit from the documented layouts (`../shared/reference/hardware.md` §2: start bit |
+Written bit by bit from the documented layouts (`docs/references.md` "ARS 408": start bit |
 length, factor, offset, Motorola order), apart from the adapter's decoder (cantools over the DBC in
 shared/devices, and a numpy batch decoder): a round trip checks each against the other, the
 known-answer tests check both against hand-made frames.

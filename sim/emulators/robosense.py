@@ -1,6 +1,6 @@
 """Emulated Robosense RS-LiDAR-16 / RS-LiDAR-32: a simulated scan as the unit's MSOP and DIFOP packets.
 
-Written from the protocol facts (`../shared/reference/hardware.md` §1), byte by byte, apart from the
+Written from the protocol facts (`docs/references.md` "RS-LiDAR"), byte by byte, apart from the
 decoder in shared/devices/robosense.py (which reads packets through numpy structured dtypes): a round
 trip through both is a check of each against the other, and the known-answer tests check both against
 hand-made packets.

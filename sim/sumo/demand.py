@@ -9,7 +9,7 @@ given last edge, longer than the junction-to-junction route an arm could then ta
 The routed file holds `<vehicle>`s with explicit `<route edges>`: loaded as they are, SUMO drives the
 shortest paths of the empty network with no rerouting (the "no rerouting" baseline); trips without
 routes would be routed at insertion on the network's live edge weights instead
-(`../shared/reference/city-scale.md` §3).
+(`docs/references.md` \"SUMO\" (3)).
 """
 
 from __future__ import annotations

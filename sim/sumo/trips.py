@@ -1,5 +1,5 @@
 """What a SUMO run's vehicles did, from its tripinfo file: travel time with the departure delay
-included (so insertion back-pressure cannot hide a gain, `../shared/reference/city-scale.md` §6) and
+included (so insertion back-pressure cannot hide a gain, `docs/references.md` \"SUMO\" (6)) and
 trips per hour. Vehicles still running at the end are written by `--tripinfo-output.write-unfinished`
 with `arrival="-1"`: counted as unfinished, not as trips."""
 

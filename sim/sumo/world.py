@@ -7,7 +7,7 @@ SUMO refuses. The baselines of the city-scale study are options of the same worl
 SUMO's rerouting device (every vehicle rerouted on all edges' live speeds: the oracle), and
 `adapt_travel_times` + `reroute` give SUMO's router only the speeds of the edges a caller chooses.
 
-libsumo holds one simulation per process (`../shared/reference/city-scale.md` §1): a second open world
+libsumo holds one simulation per process (`docs/references.md` \"SUMO\" (1)): a second open world
 is a clear error, and parallel seeds run in separate processes.
 Units: metres, seconds, radians counter-clockwise from +x.
 """

@@ -589,7 +589,7 @@ def rss_series(samples: list[dict[str, float]], points: int = 60) -> list[list[f
 
 
 def drift(samples: list[dict[str, float]]) -> dict[str, float | int]:
-    """What a leak looks like over the window (the soak criteria, reliability.md M1): the least-squares
+    """What a leak looks like over the window (the soak criteria, docs/reliability.md M1): the least-squares
     slope of RSS in MB per hour, and the spread (max - min) of threads and file descriptors."""
     if len(samples) < 2:
         return {"rss_slope_mb_per_h": 0.0, "threads_spread": 0, "fds_spread": 0}

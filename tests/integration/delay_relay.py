@@ -1,5 +1,5 @@
 """A TCP relay that delays every byte by a fixed latency plus jitter, each direction, in order: the
-delay fault of reliability.md N3 on a host without `tc netem`. Zenoh links (plain TCP or TLS) pass
+delay fault of docs/reliability.md N3 on a host without `tc netem`. Zenoh links (plain TCP or TLS) pass
 through it unchanged; only their timing is.
 
     with DelayRelay(listen_port, "127.0.0.1", router_port, delay_s=0.1, jitter_s=0.02) as relay:

@@ -145,7 +145,7 @@ def test_vehicles_follow_and_acknowledge_plans(loop) -> None:
 
 
 def test_a_restarted_coordinator_serves_every_vehicle_at_once(loop) -> None:
-    """Kill the coordinator for 10 s (reliability.md R3): the vehicles keep following their plans (valid
+    """Kill the coordinator for 10 s (docs/reliability.md R3): the vehicles keep following their plans (valid
     for their TTL, 120 s: none expires meanwhile); restart it: every vehicle has a plan of the new one
     within 2 s of its presence token (vehicles ask at once when a coordinator appears, from their own
     state). What a vehicle does when a plan's TTL runs out with no coordinator:

@@ -1,4 +1,4 @@
-"""Fault injection on the coordinator's inputs (reliability.md R4): real processes — router,
+"""Fault injection on the coordinator's inputs (docs/reliability.md R4): real processes — router,
 coordinator, three stand-in MECs (tests/integration/fake_mec.py) publishing object lists at 15 Hz.
 
 One MEC is killed with SIGKILL:

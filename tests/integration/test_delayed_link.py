@@ -1,4 +1,4 @@
-"""A delayed link (reliability.md N3, 100 ms ± 20 ms each way; no `tc netem` here, so a TCP relay:
+"""A delayed link (docs/reliability.md N3, 100 ms ± 20 ms each way; no `tc netem` here, so a TCP relay:
 tests/integration/delay_relay.py): one agent's MEC and the vehicles (the sim) reach the router only
 through it, the coordinator directly.
 

@@ -1,4 +1,4 @@
-"""Fault injection on a running MEC (reliability.md F1 / F2): real processes — router, sim at 1x,
+"""Fault injection on a running MEC (docs/reliability.md F1 / F2): real processes — router, sim at 1x,
 sensor services, the MEC with its ONNX detectors — and a subscriber on the agent's objects.
 
 For each modality in turn (camera, lidar on the roundabout agent; radar on the viaduct agent), the
@@ -61,7 +61,7 @@ FULL_WITHIN_S = 1.0 * SCALE
 CAMERA_FULL_WITHIN_S = FULL_WITHIN_S + MecSettings().detectors.camera_every_n_with_lidar / RATE_HZ * SCALE
 STARTUP_S = 60.0
 WINDOW_S = 3.0
-COORDINATOR_STALE_WITHIN_S = 1.0 * SCALE  # reliability.md R4
+COORDINATOR_STALE_WITHIN_S = 1.0 * SCALE  # docs/reliability.md R4
 COORDINATOR_LIVE_WITHIN_S = 1.0 * SCALE
 FREEZE_S = 15.0  # SIGSTOP for this long (F3)
 RESTART_WITHIN_S = 2.0 * SCALE  # a restarted sim's first tick -> sensors and MEC produce again
@@ -252,7 +252,7 @@ def mec_dropped(chain: Chain, victim: str) -> int:
 
 def check_freeze_and_thaw(chain: Chain, victim: str) -> dict[str, float]:
     """SIGSTOP the victim's sensor group for FREEZE_S (alive to Zenoh, sending nothing), then SIGCONT
-    (reliability.md F3). Returns the measured figures."""
+    (docs/reliability.md F3). Returns the measured figures."""
     out = chain.out
     out.wait(status_ok, STARTUP_S, since=time.monotonic())
     time.sleep(1.0 + WINDOW_S)  # steady FULL output first
@@ -414,7 +414,7 @@ def check_detections_2d_only_while_watched(chain: Chain, camera: str) -> None:
 
 
 def test_coordinator_sees_a_killed_mec_stale_and_back(chain_factory, router: Router) -> None:
-    """The real MEC (radar branch of the viaduct agent) under the real coordinator (reliability.md R4):
+    """The real MEC (radar branch of the viaduct agent) under the real coordinator (docs/reliability.md R4):
     SIGKILL the MEC -> its agent is STALE in the coordinator's maps within 1 s and plans list it as
     missing; restart it -> LIVE again within 1 s of its first object list."""
     radar_only = {"radar_2": ("agent2-radars", "radar")}

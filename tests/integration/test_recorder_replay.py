@@ -222,7 +222,7 @@ FLUSH_INTERVAL_S = 0.5
 def test_a_sigkilled_recorder_leaves_a_readable_file_losing_at_most_one_flush_interval(
     router: Router, tmp_path: Path
 ) -> None:
-    """reliability.md (recorder): SIGKILL mid-stream; the file reads back (linearly, no summary) and
+    """docs/reliability.md (recorder): SIGKILL mid-stream; the file reads back (linearly, no summary) and
     holds every sample received more than one flush interval before the kill, in order."""
     out = tmp_path / "killed.mcap"
     samples = traffic(60)  # 180 samples over ~3.6 s

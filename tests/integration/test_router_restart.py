@@ -1,4 +1,4 @@
-"""Router restart and freeze (reliability.md R1, R2): SIGKILL the Zenoh router under a running loop
+"""Router restart and freeze (docs/reliability.md R1, R2): SIGKILL the Zenoh router under a running loop
 and start it again 2 s later on the same endpoint; or SIGSTOP it for 5 s (alive to TCP, forwarding
 nothing: the clients' transports stay open, so none knows it is cut off) and SIGCONT it.
 

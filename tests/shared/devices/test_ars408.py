@@ -1,5 +1,5 @@
 """ARS 408-21 CAN decoding: known answers on frames made by hand from the documented layouts
-(`../shared/reference/hardware.md` §2), the public decoders' disagreements (each resolved beside its
+(`docs/references.md` "ARS 408"), the public decoders' disagreements (each resolved beside its
 test), list assembly, and a round trip simulator -> emulator -> assembler within the radar's
 resolution."""
 

@@ -1,5 +1,5 @@
 """Robosense MSOP / DIFOP decoding: known answers on packets made by hand from the documented layout
-(`../shared/reference/hardware.md` §1), the public decoders' disagreements (each resolved beside its
+(`docs/references.md` "RS-LiDAR"), the public decoders' disagreements (each resolved beside its
 test), frame splitting, and a round trip simulator -> emulator -> decoder."""
 
 from __future__ import annotations
@@ -197,7 +197,7 @@ def test_blind_zone_step_uses_the_nominal_azimuth_step() -> None:
 
 
 def test_rs16_dual_return_layout() -> None:
-    """Disagreement: hardware.md's summary says dual-return blocks come in pairs with the same azimuth;
+    """Disagreement: a summary of the driver says dual-return blocks come in pairs with the same azimuth;
     for the RS-LiDAR-16 both rs_driver generations (Rs16DualReturnBlockIterator, and the older
     decoder's ECHO_DUAL branch) lay out one firing per block with channels 0-15 the first return and
     16-31 the second, blocks one firing (20 units at 600 rpm) apart. The pairs are the RS-LiDAR-32's

@@ -134,7 +134,7 @@ def test_expected_sensors_may_depend_on_the_tick() -> None:
     assert frame.missing == ("cam",)
 
 
-# --- learnt waits and coasted frame ticks (a frozen sensor, reliability.md F3) -------------------------
+# --- learnt waits and coasted frame ticks (a frozen sensor, docs/reliability.md F3) -------------------------
 TICK_HZ = 60.0
 FRAME_HZ = 10.0  # sensors fire every 6th tick
 
