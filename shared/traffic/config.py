@@ -97,6 +97,14 @@ class PlannerConfig(_Section):
     min_speed_mps: float = Field(
         0.05, gt=0, description="perceived speeds are floored here (a stopped queue is slow, not closed)"
     )
+    detour_min_saving: float = Field(
+        0.0,
+        ge=0,
+        lt=1,
+        description="balanced: keep the free-flow shortest route unless the fastest route on the maps is "
+        "expected to save more than this share of its time (0: always the fastest). Rerouting on "
+        "short-lived queues costs turns and spreads jams; only a clear saving is worth a detour",
+    )
     speed_source: SpeedSource = Field(
         "perceived",
         description="balanced's lane time: length at the perceived mean speed, or at the free speed where "

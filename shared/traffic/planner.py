@@ -121,6 +121,8 @@ class RoutePlanner:
         self._order = self._graph.data.astype(np.int64) - 1
         self._edge_dst = dst[self._order]
         self._edge_connector_s = connector_s[self._order]
+        self._free_time_s = self._length_m / self._free_mps
+        self._free_cliques: dict[int, Clique] | None = None  # every region at free flow (a shard's)
         self._load = np.zeros(n)  # vehicles planned onto each lane (the sum of all `_planned`)
         self._cond: LaneConditions | None = None  # the conditions `_speed` / `_count` were built from
         self._speed = self._free_mps.copy()
@@ -191,7 +193,7 @@ class RoutePlanner:
         """(L,) lane times: length at the measured (else free) speed (balanced: per `speed_source`);
         balanced adds a junction service per car on the lane and per vehicle planned onto it (weighted)."""
         if policy == "shortest":
-            return self._length_m / self._free_mps
+            return self._free_time_s
         self._observe(cond)
         speed = self._free_mps if policy == "balanced" and self.cfg.speed_source == "free" else self._speed
         t = self._length_m / speed
@@ -234,11 +236,44 @@ class RoutePlanner:
             lanes = [current_lane, options[int(self.rng.integers(len(options)))]]
         elif policy == "paper_rule":
             lanes = [current_lane, min(options, key=lambda lane: self._paper_score(lane, cond))]
-        elif self.shard is not None:
-            lanes = self._fastest_sharded(self.shard, current_lane, destination, times)
         else:
-            lanes = self._fastest(current_lane, destination, times)
+            lanes = self._fastest_of(current_lane, destination, times)
+            if policy == "balanced" and self.cfg.detour_min_saving > 0:
+                lanes = self._unless_it_saves(lanes, current_lane, destination, times)
         return self._route(lanes, times, policy)
+
+    def _fastest_of(
+        self, current_lane: str, destination: str, times: FloatArray, free_flow: bool = False
+    ) -> list[str]:
+        """The fastest route on `times`: on the whole graph, or a shard's overlay (`free_flow`: every
+        region's clique at free flow, not as published)."""
+        if self.shard is None:
+            return self._fastest(current_lane, destination, times)
+        shard = self.shard
+        if free_flow:
+            shard = ShardView(shard.overlay, shard.region, self._free_flow_cliques())
+        return self._fastest_sharded(shard, current_lane, destination, times)
+
+    def _unless_it_saves(
+        self, fastest: list[str], current_lane: str, destination: str, times: FloatArray
+    ) -> list[str]:
+        """`fastest`, or the free-flow shortest route when `fastest` does not save more than
+        `detour_min_saving` of that route's time on `times`."""
+        shortest = self._fastest_of(current_lane, destination, self._free_time_s, free_flow=True)
+        if shortest == fastest:
+            return fastest
+        shortest_s = self._route_time_s(shortest, times)
+        saves_s = shortest_s - self._route_time_s(fastest, times)
+        return fastest if saves_s > self.cfg.detour_min_saving * shortest_s else shortest
+
+    def _free_flow_cliques(self) -> dict[int, Clique]:
+        if self._free_cliques is None:
+            assert self.shard is not None
+            overlay = self.shard.overlay
+            self._free_cliques = {
+                r: overlay.clique(r, self._free_time_s) for r in range(overlay.regions.regions)
+            }
+        return self._free_cliques
 
     def clique(self, cond: LaneConditions, policy: PolicyName | None = None) -> Clique:
         """This shard's clique on `cond` (what it publishes to the other shards)."""

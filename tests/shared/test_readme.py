@@ -2,18 +2,47 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
 
-from shared.readme import replace_section
+from shared.machine import git_commit
+from shared.paths import REPO_ROOT
+from shared.readme import PROVENANCE, invocation, replace_section
 
 
-def test_the_section_between_the_markers_is_replaced(tmp_path: Path) -> None:
+def test_the_section_between_the_markers_is_replaced_and_signed(tmp_path: Path) -> None:
     readme = tmp_path / "README.md"
     readme.write_text("intro\n<!-- t:begin -->\nold\nrows\n<!-- t:end -->\noutro\n")
-    replace_section("t", "| new |\n", readme)
-    assert readme.read_text() == "intro\n<!-- t:begin -->\n| new |\n<!-- t:end -->\noutro\n"
+    replace_section("t", "| new |\n", readme, command="python -m tests.bench.x --readme")
+    line = f"_Written by `python -m tests.bench.x --readme` at commit {git_commit()}._"
+    assert readme.read_text() == f"intro\n<!-- t:begin -->\n| new |\n\n{line}\n<!-- t:end -->\noutro\n"
+    assert PROVENANCE.search(readme.read_text())
+
+
+def test_the_command_is_named_as_a_user_types_it() -> None:
+    script = str(REPO_ROOT / "tests" / "bench" / "city_bench.py")
+    assert invocation([script, "--readme"]) == "python -m tests.bench.city_bench --readme"
+    assert (
+        invocation([str(REPO_ROOT / "services" / "cli" / "__main__.py"), "eval"])
+        == "python -m services.cli eval"
+    )
+    assert invocation(["/x/.venv/bin/rmmdet", "experiments", "city", "--readme"]) == (
+        "rmmdet experiments city --readme"
+    )
+
+
+def test_every_generated_section_names_its_command_and_commit() -> None:
+    """What the scripts wrote into the README and docs/ ends with the command and the commit."""
+    unsigned = []
+    for page in [REPO_ROOT / "README.md", *sorted((REPO_ROOT / "docs").rglob("*.md"))]:
+        for name, body in re.findall(
+            r"<!-- ([\w-]+):begin -->\n(.*?)<!-- \1:end -->", page.read_text(), re.S
+        ):
+            if not PROVENANCE.search(body):
+                unsigned.append(f"{page.relative_to(REPO_ROOT)}: {name}")
+    assert not unsigned, unsigned
 
 
 @pytest.mark.parametrize("text", ["no markers\n", "<!-- t:end -->\n<!-- t:begin -->\n", "<!-- t:begin -->\n"])

@@ -130,6 +130,26 @@ def test_balanced_on_free_speed_charges_the_queue_not_its_speed(network: RoadNet
     assert perceived.plan("v1", "in", "jb", cond, "balanced").lanes == LONG  # 40 s + 2 s on ab
 
 
+@pytest.mark.parametrize(
+    ("cars_on_ab", "min_saving", "lanes"),
+    [
+        (5, 0.0, LONG),  # ab 4 + 5 = 9 s, the detour 8 s: the fastest, whatever it saves
+        (5, 0.2, SHORT),  # saves 1 s of 9 (11 %): not worth a detour
+        (5, 0.1, LONG),
+        (7, 0.2, LONG),  # ab 11 s: the detour saves 27 %
+    ],
+)
+def test_balanced_detours_only_for_a_clear_saving(
+    network: RoadNetwork, cars_on_ab: int, min_saving: float, lanes: list[str]
+) -> None:
+    """`detour_min_saving`: the free-flow shortest route is kept unless the fastest route on the maps
+    saves more than that share of its time (queue delay 1 s per car)."""
+    planner = make_planner(network, detour_min_saving=min_saving)
+    route = planner.plan("v1", "in", "jb", LaneConditions(count={"ab": float(cars_on_ab)}), "balanced")
+    assert route.lanes == lanes
+    assert route.expected_travel_time_s == pytest.approx(8.0 if lanes == LONG else 4.0 + cars_on_ab)
+
+
 def test_balanced_spreads_successive_vehicles(network: RoadNetwork) -> None:
     planner = make_planner(network)  # junction service 1 s, load weight 2
     cond = LaneConditions(count={"ab": 1.0})  # one car on the short lane already

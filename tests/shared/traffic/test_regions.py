@@ -12,6 +12,8 @@ from scipy.sparse.csgraph import dijkstra
 from shared.paths import DEFAULT_SCENE
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
+from shared.traffic.config import PlannerConfig
+from shared.traffic.planner import LaneConditions, RoutePlanner, ShardView
 from shared.traffic.regions import Overlay, RegionMap, partition_junctions
 from sim.sumo import network as sumo_network
 from sim.sumo.scene import RoadsideLayout, scene_from_sumo
@@ -146,9 +148,6 @@ def test_turns_are_measured_and_a_turn_penalty_takes_the_route_with_fewest_turns
     import itertools
     import math
 
-    from shared.traffic.config import PlannerConfig
-    from shared.traffic.planner import LaneConditions, RoutePlanner
-
     turns = {(a, b): d["turn_rad"] for a, b, d in grid.graph.edges(data=True)}
     # A grid's junctions: straight on (0), right and left (a right angle each); no U-turns.
     assert all(t < 0.05 or abs(t - math.pi / 2) < 0.05 for t in turns.values())
@@ -183,3 +182,26 @@ def test_turns_are_measured_and_a_turn_penalty_takes_the_route_with_fewest_turns
         return sum(grid.lanes[lane].length_m for lane in lanes)
 
     assert length_m(route.lanes) == pytest.approx(length_m(plain.lanes), rel=0.02)
+
+
+def test_a_shard_detours_only_for_a_clear_saving(grid: RoadNetwork) -> None:
+    """`planner.detour_min_saving` on a shard: the free-flow shortest route (searched on free-flow
+    cliques) is kept unless the fastest route on the published cliques saves more than that share."""
+    overlay = Overlay(grid, RegionMap(partition_junctions(grid, 2)))
+    start = overlay.lane_ids[0]
+    destination = max(sorted(set(overlay.end_junction)), key=lambda j: len(grid.shortest_route(start, j)))
+    shortest = RoutePlanner(grid.scene, grid, PlannerConfig(policy="shortest"))
+    free = shortest.plan("v", start, destination, LaneConditions())
+    jam = LaneConditions(count=dict.fromkeys(free.lanes[1:], 50.0))  # 50 s of queue on each of its lanes
+
+    def shard_plan(min_saving: float) -> list[str]:
+        cfg = PlannerConfig(detour_min_saving=min_saving)
+        planners = [RoutePlanner(grid.scene, grid, cfg, ShardView(overlay, r)) for r in range(2)]
+        cliques = {r: p.clique(jam) for r, p in enumerate(planners)}
+        own = planners[int(overlay.lane_region[overlay.index[start]])]
+        assert own.shard is not None
+        own.shard.cliques = cliques
+        return own.plan("v", start, destination, jam, "balanced").lanes
+
+    assert shard_plan(0.0) != free.lanes  # the jam is worth a detour
+    assert shard_plan(0.95) == free.lanes  # ... but not one saving 95 % of the jammed route's time
