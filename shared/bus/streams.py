@@ -359,12 +359,53 @@ def markdown_table() -> str:
     return "\n".join(rows) + "\n"
 
 
+#: How the diagram names each role of `access` (a sensor kind is drawn with its group).
+ROLE_LABELS = {
+    "sensors": "sensor groups",
+    "mec": "MEC (one per agent)",
+    "coordinator": "coordinator (or its region shards)",
+    "sim": "sim",
+    "vehicles": "vehicles",
+    "readers": "viewer, recorder, operators",
+}
+
+
+def diagram() -> str:
+    """The processes and the data between them as a Mermaid flowchart, from `access` in streams.yaml:
+    an arrow from the role that publishes a stream to each role that subscribes to it (streams no role
+    subscribes to go to the readers: viewer, recorder, operators), a dotted one from the role that
+    queries an RPC to the one that serves it. Presence and health, which every service has, are left
+    out."""
+    edges: dict[tuple[str, str, bool], list[str]] = {}
+    wide = set(readers())  # roles that read everything: drawn once, as the readers
+    for s in streams().values():
+        if s.kind == "pubsub":
+            sources, rpc = s.access.get("publish", ()), False
+            targets = tuple(r for r in s.access.get("subscribe", ()) if r not in wide) or ("readers",)
+        elif s.kind == "queryable" and s.name != "health":
+            sources, targets, rpc = s.access.get("query", ()), s.access.get("serve", ()), True
+        else:
+            continue
+        for a in sorted({r.split("/")[0] for r in sources}):
+            for b in sorted({r.split("/")[0] for r in targets}):
+                edges.setdefault((a, b, rpc), []).append(s.name)
+    lines = ["```mermaid", "flowchart LR"]
+    lines += [f'  {role}["{label}"]' for role, label in ROLE_LABELS.items()]
+    for (a, b, rpc), names in sorted(edges.items()):
+        arrow = "-.->" if rpc else "-->"
+        lines.append(f"  {a} {arrow}|{', '.join(names)}| {b}")
+    return "\n".join([*lines, "```"]) + "\n"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--markdown", action="store_true", help="print the key-space table")
+    parser.add_argument("--diagram", action="store_true", help="print the processes-and-streams diagram")
     args = parser.parse_args()
     if args.markdown:
         print(markdown_table(), end="")
+    elif args.diagram:
+        print(diagram(), end="")
     else:
         for s in streams().values():
             print(f"{s.name:16s} {s.key_template}")

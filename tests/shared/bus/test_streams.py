@@ -6,7 +6,15 @@ import pytest
 import zenoh
 
 from shared.bus.liveliness import agent_of_mec_token
-from shared.bus.streams import get_stream, markdown_table, message_type, producer_of, stream_for_key, streams
+from shared.bus.streams import (
+    diagram,
+    get_stream,
+    markdown_table,
+    message_type,
+    producer_of,
+    stream_for_key,
+    streams,
+)
 from tests.helpers import REPO_ROOT
 
 
@@ -62,6 +70,18 @@ def test_stream_for_key() -> None:
 def test_proto_readme_table_is_current() -> None:
     readme = (REPO_ROOT / "docs" / "bus.md").read_text()
     assert markdown_table() in readme, "regenerate: python -m shared.bus.streams --markdown"
+
+
+def test_architecture_diagram_is_current() -> None:
+    page = (REPO_ROOT / "docs" / "architecture.md").read_text()
+    assert diagram() in page, "regenerate: python -m shared.bus.streams --diagram"
+
+
+def test_the_diagram_draws_each_data_stream_from_its_publishers() -> None:
+    text = diagram()
+    assert "  mec -->|objects| coordinator" in text
+    assert "  vehicles -.->|route_rpc| coordinator" in text  # a query, dotted, toward who serves it
+    assert "health" not in text and "alive" not in text  # every service has them: not drawn
 
 
 def test_ids_inverts_key() -> None:
