@@ -26,6 +26,25 @@ ServiceMain = Callable[[zenoh.Config, argparse.Namespace, GracefulShutdown], int
 
 log = logging.getLogger(__name__)
 CONFIG_ERROR_EXIT = 2  # a configuration a service cannot start with (argparse's status for a bad flag)
+DEFAULT_REPORT_INTERVAL_S = 10.0  # log interval of rates and counters where no settings file says
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not 0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return value
+
+
+def report_interval_s(args: argparse.Namespace, configured: float | None = None) -> float:
+    """The service's log interval: `--report-interval-s` if given, else its settings file's value
+    (`configured`), else DEFAULT_REPORT_INTERVAL_S."""
+    given: float | None = getattr(args, "report_interval_s", None)
+    return given if given is not None else configured if configured is not None else DEFAULT_REPORT_INTERVAL_S
 
 
 def run_service(
@@ -40,6 +59,13 @@ def run_service(
 ) -> int:
     parser = argparse.ArgumentParser(prog=f"python -m services.{service}", description=description)
     parser.add_argument("--instance", default=default_instance, help="instance id (e.g. agent1)")
+    parser.add_argument(
+        "--report-interval-s",
+        type=positive_float,
+        default=None,
+        help="seconds between the log lines of rates and counters (default: the settings file's "
+        f"report_interval_s where the service has one, else {DEFAULT_REPORT_INTERVAL_S:g})",
+    )
     if add_args is not None:
         add_args(parser)
     add_zenoh_args(parser, default_zenoh_config)

@@ -29,7 +29,7 @@ from shared.bus.rpc import RpcServer
 from shared.bus.streams import shard_instance
 from shared.scene.scene import Scene
 from shared.security.plan_signing import PlanSigner
-from shared.service import exit_process, run_service
+from shared.service import exit_process, report_interval_s, run_service
 from shared.shutdown import GracefulShutdown
 from shared.timebase import SimTime
 from shared.traffic import messages
@@ -61,6 +61,9 @@ def keep_large_buffers_unmapped() -> None:
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
     keep_large_buffers_unmapped()
     settings = load_coordinator_settings(args.settings)
+    settings.report_interval_s = report_interval_s(args, settings.report_interval_s)
+    if args.scene is not None:
+        settings.scene = args.scene
     scene = Scene.load(settings.scene)
     if args.shard is None:
         core = CoordinatorCore(scene, settings, settings.service.max_vehicles)
@@ -108,6 +111,7 @@ def add_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--settings", type=Path, default=DEFAULT_COORDINATOR_CONFIG, help="coordinator settings YAML"
     )
+    parser.add_argument("--scene", type=Path, default=None, help="scene YAML (default: the settings' scene)")
     parser.add_argument(
         "--shard",
         type=int,

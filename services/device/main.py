@@ -37,7 +37,7 @@ from shared.logging_setup import ReportTimer
 from shared.perception.inputs import InputState, SensorMonitor
 from shared.scene.cadence import CaptureDemands
 from shared.scene.scene import Scene
-from shared.service import exit_process, run_service
+from shared.service import exit_process, report_interval_s, run_service
 from shared.shutdown import GracefulShutdown
 from shared.timebase import SimTime
 
@@ -114,7 +114,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         for source in sources.values():
             source.start()
         log.info("group %s: %d devices from site %s", args.group, len(sources), site.site_id)
-        report, counters_due = ReportTimer(args.report_interval_s), ReportTimer(COUNTERS_EVERY_S)
+        report, counters_due = ReportTimer(report_interval_s(args)), ReportTimer(COUNTERS_EVERY_S)
         try:
             while not shutdown.requested:
                 node.health.beat()
@@ -179,7 +179,6 @@ def add_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--group", required=True, help="sensor group: <agent>-<cameras|lidars|radars>")
     parser.add_argument("--site", type=Path, required=True, help="site file (deploy/devices/*.yaml)")
     parser.add_argument("--only", help="comma-separated subset of the group's sensors (tests)")
-    parser.add_argument("--report-interval-s", type=float, default=10.0, help="log interval")
 
 
 def cli(argv: list[str] | None = None) -> int:

@@ -36,7 +36,7 @@ from shared.perception.core import MecCore, MecOutput
 from shared.perception.output import detections_2d_message
 from shared.scene.cadence import DemandRenewal
 from shared.scene.scene import Scene
-from shared.service import exit_process, run_service
+from shared.service import exit_process, report_interval_s, run_service
 from shared.shutdown import GracefulShutdown
 from shared.timebase import SimTime
 
@@ -95,7 +95,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         presence = node.presence(get_stream("alive").pattern(scope=agent, service="sensor"))
         following = sim_time.following
         node.health.set_status(lambda: core.health(sim_time.now_s()))
-        report = ReportTimer(settings.report_interval_s)
+        report = ReportTimer(report_interval_s(args, settings.report_interval_s))
         while not shutdown.requested:
             node.health.beat()
             # The join waits on the clock of record: a sim held back by a slow consumer holds the

@@ -39,7 +39,7 @@ from shared.recording.writer import (
     RecordingWriter,
     default_recording_path,
 )
-from shared.service import exit_process, run_service
+from shared.service import exit_process, report_interval_s, run_service
 from shared.shutdown import GracefulShutdown
 
 log = logging.getLogger("services.recorder")
@@ -95,7 +95,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                     log.error("stopping: %s", recorder.error)
                     rc = 1
                     break
-                if now_s - last_report_s >= args.report_interval_s:
+                if now_s - last_report_s >= report_interval_s(args):
                     stats = recorder.per_key()
                     dropped = node.counters.get("dropped/queue_full")
                     log.info(
@@ -138,7 +138,6 @@ def add_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--duration-s", type=float, default=0.0, help="stop after this long (0 = until signalled)"
     )
-    parser.add_argument("--report-interval-s", type=float, default=10.0, help="rate log interval")
     parser.add_argument("--queue-size", type=int, default=DEFAULT_QUEUE_SIZE, help="samples queued at most")
     parser.add_argument(
         "--max-queued-mib",

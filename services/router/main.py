@@ -15,7 +15,7 @@ import zenoh
 from shared.bus.health import NOMINAL
 from shared.bus.node import Node
 from shared.bus.zenoh_config import DEFAULT_ROUTER_CONFIG
-from shared.service import exit_process, run_service
+from shared.service import exit_process, report_interval_s, run_service
 from shared.shutdown import GracefulShutdown
 
 log = logging.getLogger("services.router")
@@ -40,14 +40,10 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             node.health.beat()
             transports = len(node.session.info.transports())
             now_s = time.monotonic()
-            if transports != last_count and now_s - last_report_s >= args.report_interval_s:
+            if transports != last_count and now_s - last_report_s >= report_interval_s(args):
                 log.info("%d open transports", transports)
                 last_count, last_report_s = transports, now_s
     return 0
-
-
-def add_args(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--report-interval-s", type=float, default=10.0, help="transport-count log interval")
 
 
 def cli(argv: list[str] | None = None) -> int:
@@ -55,7 +51,6 @@ def cli(argv: list[str] | None = None) -> int:
         "router",
         main,
         description=__doc__ or "",
-        add_args=add_args,
         default_zenoh_config=DEFAULT_ROUTER_CONFIG,
         argv=argv,
     )

@@ -43,7 +43,7 @@ from shared.paths import DEFAULT_SCENE
 from shared.scene.cadence import CaptureDemands
 from shared.scene.model import SensorSpec
 from shared.scene.scene import Scene
-from shared.service import exit_process, run_service
+from shared.service import exit_process, report_interval_s, run_service
 from shared.shutdown import GracefulShutdown
 from shared.timebase import SimTime
 from sim.emulators.group import WireGroup
@@ -134,7 +134,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 )
 
             node.health.set_status(status)
-            report = ReportTimer(args.report_interval_s)
+            report = ReportTimer(report_interval_s(args))
             while not shutdown.requested:
                 node.health.beat()
                 received = gt_sub.recv(timeout=0.1)
@@ -189,7 +189,6 @@ def add_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="scene YAML")
     parser.add_argument("--only", help="comma-separated subset of the group's sensors (tests)")
     parser.add_argument("--wire", type=Path, help="site file: emulate the group's devices on the wire")
-    parser.add_argument("--report-interval-s", type=float, default=10.0, help="log interval")
 
 
 def cli(argv: list[str] | None = None) -> int:

@@ -33,7 +33,7 @@ from shared.scene.calibration import calibration_set
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.security.plan_signing import PlanVerifier
-from shared.service import exit_process, run_service
+from shared.service import exit_process, report_interval_s, run_service
 from shared.shutdown import GracefulShutdown
 from shared.timebase import tick_stamp_ns
 from sim.config import DEFAULT_SIM_CONFIG, load_sim_settings
@@ -52,7 +52,7 @@ PACING_QUEUE = 256  # consumer outputs between two looks (18 sensors + 3 MECs at
 
 
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
-    given = {k: v for k in ("speed", "seed") if (v := getattr(args, k)) is not None}
+    given = {k: v for k in ("speed", "seed", "scene") if (v := getattr(args, k)) is not None}
     settings = load_sim_settings(args.settings, args.vehicles, **given)
     scene = Scene.load(settings.scene)
     traffic = TrafficSim(
@@ -118,7 +118,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             Every(1 / settings.clock_publish_hz),
             Every(1 / settings.calibration_publish_hz),
         )
-        report = ReportTimer(args.report_interval_s)
+        report = ReportTimer(report_interval_s(args))
         log.info(
             "sim up: scene %s, %d vehicles, seed %d, %g Hz ticks, speed %s, route policy %s, pacing %s",
             scene.scene_id,
@@ -168,10 +168,10 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
 
 def add_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--settings", type=Path, default=DEFAULT_SIM_CONFIG, help="sim settings YAML")
+    parser.add_argument("--scene", type=Path, default=None, help="scene YAML (default: the settings' scene)")
     parser.add_argument("--speed", type=float, default=None, help="sim seconds per wall second (0 = max)")
     parser.add_argument("--seed", type=int, default=None, help="scenario seed")
     parser.add_argument("--vehicles", type=int, default=None, help="number of vehicles")
-    parser.add_argument("--report-interval-s", type=float, default=10.0, help="log interval")
     parser.add_argument(
         "--vehicle-configs",
         type=Path,

@@ -52,7 +52,7 @@ from shared.bus.node import Node
 from shared.paths import DEFAULT_SCENE
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
-from shared.service import exit_process, run_service
+from shared.service import exit_process, positive_float, run_service
 from shared.shutdown import GracefulShutdown
 from shared.viewer.core import ViewerCore
 from shared.viewer.dashboard import DashboardState, map_of
@@ -156,14 +156,9 @@ def add_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--dashboard-port", type=int, default=8080, help="browser dashboard's HTTP/WebSocket port (0: none)"
     )
-    parser.add_argument("--publish-hz", type=positive, default=10.0, help="most draws per second per channel")
-
-
-def positive(text: str) -> float:
-    value = float(text)
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
-    return value
+    parser.add_argument(
+        "--publish-hz", type=positive_float, default=10.0, help="most draws per second per channel"
+    )
 
 
 def cli(argv: list[str] | None = None) -> int:
