@@ -18,7 +18,8 @@ from pathlib import Path
 
 import psutil
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
+from shared.paths import REPO_ROOT
+
 RUN_DIR = REPO_ROOT / ".run"
 VENV_PYTHON_PREFIX = str(REPO_ROOT / ".venv" / "bin")
 ROUTER = "router"  # supervisord.conf's program name of the Zenoh router
