@@ -5,10 +5,12 @@ of each of `--vehicles` over the first half of `--duration`; for each (vehicles,
 runs once (seed 1). Reported per run: each shard's work per simulated step (its map updates and plans,
 what its own process would do) p50 / p95 ms, the coordinator's CPU seconds per simulated second (all
 shards) and per running vehicle, the whole process's (SUMO and the perception stand-in included), and
-the trips. From the largest shard count's two fleet sizes: the cost per vehicle's change, and the
-cores the coordinator would need for 50,000 vehicles at that slope (linear in the running vehicles).
+the trips. The coordinator is the district's (deploy/experiments/city.yaml `coordinator`), as the
+scheduling study runs it. At the largest shard count: the cost per running vehicle from the smallest to
+the largest fleet, the cost of one more running vehicle between successive fleets (flat when the cost
+grows linearly), and the cores the coordinator would need for 50,000 vehicles on the fitted line.
 
-    python -m tests.bench.city_bench [--side 10] [--vehicles 1000 5000] [--shards 1 4 16] [--readme]
+    python -m tests.bench.city_bench [--side 10] [--vehicles 1000 3000 5000] [--shards 1 4 16] [--readme]
 
 Writes tests/bench/results/city.json.
 """
@@ -16,6 +18,7 @@ Writes tests/bench/results/city.json.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import logging
 import time
@@ -25,11 +28,13 @@ from typing import Any
 import numpy as np
 import sumolib
 
+from shared.config import with_overrides
 from shared.machine import git_commit, machine_info
 from shared.paths import REPO_ROOT
 from shared.traffic.config import load_coordinator_settings
 from sim.sumo import demand, network
 from sim.sumo.scene import coverage_layout
+from studies.city.config import load_city_settings
 from studies.city.run import CityRun, run_arm
 from studies.experiments.oracle import OracleErrorModel
 
@@ -46,6 +51,8 @@ def bench(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     )
     layout = coverage_layout(sumolib.net.readNet(str(net)), 1.0, SEED, args.range_m)
     model = OracleErrorModel.load(ORACLE_MODEL)
+    # The district's coordinator, as the scheduling study runs it (deploy/experiments/city.yaml).
+    coordinator = with_overrides(load_coordinator_settings(), load_city_settings().coordinator)
     runs = []
     for vehicles in args.vehicles:
         spec = demand.DemandSpec(vehicles=vehicles, end_s=args.duration / 2, min_distance_m=2 * args.edge_m)
@@ -53,9 +60,7 @@ def bench(args: argparse.Namespace, work: Path) -> dict[str, Any]:
         for shards in args.shards:
             t0 = time.perf_counter()
             run = CityRun(net, routes, layout, SEED, args.duration, shards=shards, max_vehicles=vehicles)
-            result = run_arm(
-                run, "rmmdet", load_coordinator_settings(), model, work / f"v{vehicles}_s{shards}"
-            )
+            result = run_arm(run, "rmmdet", coordinator, model, work / f"v{vehicles}_s{shards}")
             shard_ms = result["shard_ms"]
             busy_s = sum(s["busy_s"] for s in shard_ms.values())
             running = result["running_mean"]
@@ -89,11 +94,20 @@ def projection(runs: list[dict[str, Any]], shards: int) -> dict[str, Any]:
     y = np.array([r["coordinator_cpu_s_per_sim_s"] for r in rows])
     slope, intercept = np.polyfit(x, y, 1)
     per_vehicle = [r["coordinator_cpu_s_per_sim_s_per_vehicle"] for r in rows]
+    # What one more running vehicle costs between successive fleets (the fixed per-shard work cancels):
+    # linear scaling keeps it flat.
+    marginal = [
+        (b["coordinator_cpu_s_per_sim_s"] - a["coordinator_cpu_s_per_sim_s"])
+        / (b["running_mean"] - a["running_mean"])
+        for a, b in itertools.pairwise(rows)
+    ]
     # Running vehicles scale with the fleet (same network, same demand window).
     running = PROJECTED_VEHICLES * rows[-1]["running_mean"] / rows[-1]["vehicles"]
     return {
         "shards": shards,
         "per_vehicle_change": per_vehicle[-1] / per_vehicle[0] - 1.0,
+        "marginal_cpu_s_per_sim_s_per_vehicle": marginal,
+        "marginal_change": marginal[-1] / marginal[0] - 1.0 if len(marginal) > 1 else None,
         "slope_cpu_s_per_sim_s_per_vehicle": float(slope),
         "intercept_cpu_s_per_sim_s": float(intercept),
         "vehicles": PROJECTED_VEHICLES,
@@ -123,8 +137,14 @@ def readme_table(record: dict[str, Any]) -> str:
         lines += [
             "",
             f"At {p['shards']} shards the coordinator's cost per running vehicle changed by "
-            f"{p['per_vehicle_change'] * 100:+.0f} % between the fleets; on the fitted line, "
-            f"{p['vehicles']:,} vehicles ({p['running_vehicles']:.0f} running) need {p['cores']:.1f} cores.",
+            f"{p['per_vehicle_change'] * 100:+.0f} % between the smallest and the largest fleet (the "
+            "per-shard work that does not grow with the fleet weighs most on the smallest); the cost of "
+            "one more running vehicle between successive fleets was "
+            + " / ".join(f"{m * 1e3:.3f}" for m in p["marginal_cpu_s_per_sim_s_per_vehicle"])
+            + " ms per sim s"
+            + (f" ({p['marginal_change'] * 100:+.0f} %)" if p.get("marginal_change") is not None else "")
+            + f". On the fitted line, {p['vehicles']:,} vehicles ({p['running_vehicles']:.0f} running) need "
+            f"{p['cores']:.1f} cores.",
         ]
     return "\n".join(lines)
 
@@ -136,7 +156,7 @@ def main() -> None:
     parser.add_argument("--side", type=int, default=10, help="junctions per side of the grid")
     parser.add_argument("--edge-m", type=float, default=200.0, help="junction spacing, m")
     parser.add_argument("--range-m", type=float, default=60.0, help="roadside agents' range, m")
-    parser.add_argument("--vehicles", type=int, nargs="+", default=[1000, 5000])
+    parser.add_argument("--vehicles", type=int, nargs="+", default=[1000, 3000, 5000])
     parser.add_argument("--shards", type=int, nargs="+", default=[1, 4, 16])
     parser.add_argument("--duration", type=float, default=600.0, help="simulated seconds per run")
     parser.add_argument("--work", type=Path, default=Path("/tmp/rmmdet_city_bench"))
