@@ -6,7 +6,9 @@ table's two-region map (deploy/coordinator/regions/sand_table_2.json), three sta
   (the old shard released it: one owner at a time);
 - a shard killed: the other names its region as planned on a prior (DEGRADED) and keeps serving its own
   vehicles; the killed region's vehicles get no answer (they keep their plans to the TTL);
-- the shard restarted serves again within 2 s of its presence token.
+- the shard restarted serves again within 2 s of its presence token;
+- forged release queries (a lane of the holder's own region, or of a region other than the asker's) are
+  refused and counted, and the vehicle stays with its shard.
 Time limits scale with RSP_TIME_SCALE (slow machines).
 """
 
@@ -21,10 +23,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+import zenoh
 from rmmdet.v1.common_pb2 import ErrorResponse
 from rmmdet.v1.health_pb2 import HealthLevel
-from rmmdet.v1.planning_pb2 import RoutePlan
+from rmmdet.v1.planning_pb2 import ReleaseRequest, RoutePlan
 
+from shared.bus.codec import encode
 from shared.bus.node import Node
 from shared.bus.streams import get_stream, shard_instance
 from shared.paths import DEFAULT_SCENE, REPO_ROOT
@@ -68,6 +72,23 @@ class Shards:
         assert report is not None, f"region {region}'s shard did not answer its health query"
         return report
 
+    def forged_release(self, vehicle: str, lane: str, region: int) -> list[bool]:
+        """A release query for `vehicle` as if region `region`'s shard asked from `lane`: each reply's
+        ok (True) or error (False)."""
+        req = ReleaseRequest(vehicle_id=vehicle, lane_id=lane, region=region)
+        req.header.source_id, req.header.seq = "test/forger", 1
+        req.header.stamp.FromNanoseconds(time.time_ns())
+        encoded = encode(req)
+        replies = self.node.session.get(
+            get_stream("release_rpc").key(vehicle=vehicle),
+            payload=encoded.payload,
+            encoding=encoded.encoding,
+            target=zenoh.QueryTarget.ALL,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            timeout=2.0,
+        )
+        return [reply.ok is not None for reply in replies]
+
     def wait_plan(self, vehicle: str, lane: str, timeout_s: float) -> RoutePlan:
         deadline = time.monotonic() + timeout_s
         while True:
@@ -108,6 +129,15 @@ def test_two_shards_hand_over_survive_a_kill_and_serve_again_after_restart(shard
     crossing = next(lane for lane in first.lane_ids if shards.region(lane) == 1)
     # Wait until region 1's shard is up too (it answers its own lanes).
     shards.wait_plan("v02", crossing, STARTUP_S)
+
+    # Forged releases: region 0's shard never gives v01 away for a lane of its own region, nor for a
+    # lane that is not the asking region's; each refusal is counted, and v01 stays with region 0.
+    assert shards.forged_release("v01", START_LANE, 1) == [False, False]  # both shards refuse
+    assert False in shards.forged_release("v01", crossing, 0)  # region 1's lane, "asked" by region 0
+    assert counters(shards.health(0)).get("rejected/release_lane", 0) >= 2
+    assert counters(shards.health(0)).get("handovers/released", 0) == 0
+    kept = shards.routes.request("v01", START_LANE, DESTINATION, version=first.version)
+    assert isinstance(kept, RoutePlan) and kept.header.source_id.endswith(shard_instance(0))
 
     handed = shards.routes.request("v01", crossing, DESTINATION, version=first.version)
     assert isinstance(handed, RoutePlan), handed
