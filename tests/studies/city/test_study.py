@@ -3,8 +3,11 @@ coordinator compared with each baseline paired by seed."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
+from shared.paths import REPO_ROOT
 from studies.city.config import CityStudySettings
 from studies.city.study import markdown_table, run_study
 
@@ -27,3 +30,15 @@ def test_toy_study_compares_the_coordinator_with_every_baseline(tmp_path: Path) 
             assert base["travel_time_mean_s"]["n"] == 2 and base["trips_per_hour"]["n"] == 2
     table = markdown_table(results)
     assert "| light @ 1 |" not in table and "| light@1 |" in table and "vs sumo_oracle" in table
+
+
+def test_tuning_refuses_the_held_out_seeds_and_unknown_levels() -> None:
+    """`studies.city.tune` runs tuning seeds only: a study seed is held out."""
+    for argv, said in (
+        (["--seed", "1", "--level", "free_flow"], "held-out"),
+        (["--seed", "101", "--level", "x"], "unknown level"),
+    ):
+        out = subprocess.run(
+            [sys.executable, "-m", "studies.city.tune", *argv], cwd=REPO_ROOT, capture_output=True, text=True
+        )
+        assert out.returncode == 2 and said in out.stderr, out.stderr
