@@ -6,6 +6,7 @@ walks every module of the project's packages; each rule names the one file allow
   the key prefix ("rmmdet/v1...")        proto/streams.yaml via shared/bus/streams.py
   the package version                      pyproject.toml (importlib.metadata)
   the car's class id                       shared/detection/interface.py  CAR_CLASS_ID
+  each service's name (`service=...`)      shared/bus/names.py
 Docstrings and comments may mention them; code may not restate them. Another quantity that happens to
 equal 10**9 says so on its line (`# not ns: ...`)."""
 
@@ -23,6 +24,7 @@ PACKAGES = ("shared", "sim", "studies", "training", "services")
 VERSION = tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())["project"]["version"]
 NS_HOME, ROOT_HOME, KEY_HOME = "shared/timebase.py", "shared/paths.py", "shared/bus/streams.py"
 CLASS_HOME = "shared/detection/interface.py"
+NAMES_HOME = "shared/bus/names.py"
 PREFIX = key_prefix()
 
 
@@ -63,6 +65,16 @@ def restated(source: str, path: str) -> list[str]:
                         f"{path}:{node.lineno}: {name} (use shared.detection.interface.CAR_CLASS_ID)"
                     )
         if (
+            isinstance(node, ast.keyword)
+            and node.arg == "service"
+            and path != NAMES_HOME
+            and isinstance(node.value, ast.Constant)
+            and isinstance(node.value.value, str)
+        ):
+            found.append(
+                f"{path}:{node.value.lineno}: service name {node.value.value!r} (use shared.bus.names)"
+            )
+        if (
             isinstance(node, ast.Subscript)
             and isinstance(node.value, ast.Attribute)
             and node.value.attr == "parents"
@@ -93,6 +105,7 @@ def test_every_fact_has_one_home() -> None:
         f'VERSION = "{VERSION}"',
         "ROOT = Path(__file__).resolve().parents[2]",
         "CLASS_CAR = 0.0",
+        'node = Node(conf, service="mec", instance="agent1")',
     ],
 )
 def test_a_planted_duplicate_is_found(planted: str) -> None:

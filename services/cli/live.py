@@ -26,6 +26,7 @@ from services.cli.app import (
     connect,
     console,
 )
+from shared.bus import names
 from shared.bus.codec import Counters, MessageDecoder, schema_of
 from shared.bus.liveliness import alive_tokens
 from shared.bus.streams import get_stream
@@ -181,7 +182,7 @@ def wait_ready(
     timeout: Annotated[float, typer.Option(help="seconds to wait")] = 30.0,
 ) -> None:
     """Wait until the router's presence token is visible (exit 1 on timeout)."""
-    router_key = get_stream("alive").pattern(scope="site", service="router")
+    router_key = get_stream("alive").pattern(scope="site", service=names.ROUTER)
     deadline = time.monotonic() + timeout
     with connect(ctx, timeout_s=timeout) as session:
         while time.monotonic() < deadline:

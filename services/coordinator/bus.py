@@ -9,6 +9,7 @@ import time
 from rmmdet.v1.planning_pb2 import RoutePlan, RouteRequest, RouteResponse
 
 from services.coordinator.shard import ShardLink
+from shared.bus import names
 from shared.bus.health import worst
 from shared.bus.liveliness import agent_of_mec_token
 from shared.bus.node import Node, Received, processing_stamp
@@ -83,9 +84,9 @@ class CoordinatorService:
         self.served: BoundedQueue[tuple[RoutePlan, int]] = BoundedQueue(
             SERVED_COPIES_QUEUE, OverflowPolicy.DROP_OLDEST, node.counters, "dropped/plan_copies"
         )
-        self.presence = node.presence(get_stream("alive").pattern(service="mec"))
+        self.presence = node.presence(get_stream("alive").pattern(service=names.MEC))
         # The vehicles' process (the sim): when it leaves, their plans end (CoordinatorCore.vehicles_left).
-        self.vehicles_presence = node.presence(get_stream("alive").pattern(scope="sim", service="sim"))
+        self.vehicles_presence = node.presence(get_stream("alive").pattern(scope="sim", service=names.SIM))
         # Object lists and the sim clock come tens of times a second: all of them silent at once is a
         # frozen link (docs/reliability.md R2), held like a cut one.
         node.uplink.expect_traffic(settings.coverage.bus_silent_after_s, settings.coverage.bus_silence_max_s)

@@ -24,6 +24,7 @@ from rmmdet.v1.planning_pb2 import RouteRequest
 
 from services.coordinator.bus import STAGE, CoordinatorService
 from services.coordinator.shard import ShardLink, shard_core
+from shared.bus import names
 from shared.bus.node import Node
 from shared.bus.rpc import RpcServer
 from shared.bus.streams import shard_instance
@@ -38,7 +39,7 @@ from shared.traffic.core import CoordinatorCore
 
 log = logging.getLogger("services.coordinator")
 
-SERVICE, INSTANCE, SCOPE = "coordinator", "cloud", "cloud"  # INSTANCE: the --instance default
+SERVICE, INSTANCE, SCOPE = names.COORDINATOR, "cloud", "cloud"  # INSTANCE: the --instance default
 #: glibc's M_MMAP_THRESHOLD (malloc.h), and the value it is fixed at (see `keep_large_buffers_unmapped`).
 M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES = -3, 1 << 20
 

@@ -29,6 +29,7 @@ from rmmdet.v1.common_pb2 import ErrorCode, ErrorResponse
 from rmmdet.v1.planning_pb2 import PlanHandover, ReleaseRequest, RouteRequest
 from rmmdet.v1.traffic_pb2 import RegionClique
 
+from shared.bus import names
 from shared.bus.codec import MessageDecoder, encode
 from shared.bus.health import DEGRADED
 from shared.bus.node import Node
@@ -91,7 +92,7 @@ class ShardLink:
         self.cliques_in = node.subscribe_stream(
             "region_clique", clock_s=clock.now_s, max_future_s=limits().max_clock_skew_s
         )
-        self.shards_presence = node.presence(ALIVE.pattern(scope="cloud", service="coordinator"))
+        self.shards_presence = node.presence(ALIVE.pattern(scope="cloud", service=names.COORDINATOR))
         self.release_server = RpcServer(
             node,
             "release_rpc",

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import zenoh
 
+from shared.bus import names
 from shared.bus.health import DEGRADED, NOMINAL
 from shared.bus.node import Node, Publisher, processing_stamp
 from shared.bus.streams import SENSOR_STREAM, limits
@@ -64,7 +65,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         except queue.Full:  # the publisher fell behind: the newest frames matter, count the loss
             dropped["queue_full"] += 1
 
-    with Node(conf, service="sensor", instance=args.group, scope=agent, stop=shutdown.event) as node:
+    with Node(conf, service=names.SENSOR, instance=args.group, scope=agent, stop=shutdown.event) as node:
         sim_time = SimTime()
         node.follow_sim_time(sim_time)
         sources = {spec.id: source_for(site, spec, emit) for spec in specs}

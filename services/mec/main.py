@@ -23,6 +23,7 @@ from pathlib import Path
 import zenoh
 from rmmdet.v1.sensors_pb2 import CaptureDemand
 
+from shared.bus import names
 from shared.bus.liveliness import source_of_token
 from shared.bus.node import Node, Received, processing_stamp
 from shared.bus.queues import BoundedQueue, OverflowPolicy
@@ -63,7 +64,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     log.info(
         "agent %s: sensors %s, pipeline ready in %.2f s", agent, sorted(core.kinds), time.perf_counter() - t0
     )
-    with Node(conf, service="mec", instance=agent, scope=agent, stop=shutdown.event) as node:
+    with Node(conf, service=names.MEC, instance=agent, scope=agent, stop=shutdown.event) as node:
         objects_pub = node.publisher("objects", agent=agent, source_id=f"{agent}/mec")
         queue = BoundedQueue[Received](
             QUEUE_PER_SENSOR * len(core.kinds), OverflowPolicy.DROP_OLDEST, node.counters
@@ -92,7 +93,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         groups: dict[str, list[str]] = {}
         for sensor_id, kind in core.kinds.items():
             groups.setdefault(sensor_group_source(agent, kind), []).append(sensor_id)
-        presence = node.presence(get_stream("alive").pattern(scope=agent, service="sensor"))
+        presence = node.presence(get_stream("alive").pattern(scope=agent, service=names.SENSOR))
         following = sim_time.following
         node.health.set_status(lambda: core.health(sim_time.now_s()))
         report = ReportTimer(report_interval_s(args, settings.report_interval_s))

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import zenoh
 
+from shared.bus import names
 from shared.bus.health import CRITICAL, DEGRADED, NOMINAL, InputMonitor
 from shared.bus.node import Node
 from shared.bus.streams import data_keys
@@ -56,7 +57,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     for a, b in overlapping(keys):
         log.warning("key expressions %s and %s overlap: samples matching both are recorded twice", a, b)
     out: Path = args.out or default_recording_path()
-    with Node(conf, service="recorder", instance=args.instance, scope=SCOPE, stop=shutdown.event) as node:
+    with Node(conf, service=names.RECORDER, instance=args.instance, scope=SCOPE, stop=shutdown.event) as node:
         out.parent.mkdir(parents=True, exist_ok=True)
         writer = RecordingWriter(
             out,

@@ -12,6 +12,7 @@ import time
 
 import zenoh
 
+from shared.bus import names
 from shared.bus.health import NOMINAL
 from shared.bus.node import Node
 from shared.bus.zenoh_config import DEFAULT_ROUTER_CONFIG
@@ -25,7 +26,7 @@ TRANSPORT_POLL_S = 0.5
 
 
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
-    with Node(conf, service="router", instance=args.instance, scope=SCOPE, stop=shutdown.event) as node:
+    with Node(conf, service=names.ROUTER, instance=args.instance, scope=SCOPE, stop=shutdown.event) as node:
         listen = conf.get_json("listen/endpoints")
         transports = 0  # refreshed by the main loop: health callbacks must not call Zenoh APIs
 

@@ -33,6 +33,7 @@ from pathlib import Path
 import zenoh
 from rmmdet.v1.sim_pb2 import GroundTruth
 
+from shared.bus import names
 from shared.bus.health import NOMINAL
 from shared.bus.node import Node, Publisher, Received, processing_stamp
 from shared.bus.ordering import OrderGate, reset_after_ticks
@@ -86,7 +87,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             raise SystemExit(f"--wire {args.wire}: {exc}") from None
     try:
         t0 = time.perf_counter()
-        service = "sensor" if wire is None else "emulator"
+        service = names.SENSOR if wire is None else names.EMULATOR
         with (
             SensorRig(scene, specs) as rig,
             Node(conf, service=service, instance=args.group, scope=agent, stop=shutdown.event) as node,

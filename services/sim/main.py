@@ -24,6 +24,7 @@ import zenoh
 
 from services.sim.plans import PlanCheck, PlanClient, missing_vehicle_configs, open_vehicle_nodes
 from services.sim.progress import SimProgress
+from shared.bus import names
 from shared.bus.liveliness import source_of_token
 from shared.bus.node import Node, Received, processing_stamp
 from shared.bus.queues import BoundedQueue, OverflowPolicy
@@ -71,7 +72,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     pacer = Pacer(settings.pacing.max_lag_s, settings.pacing.consumer_timeout_s)
     pacing = settings.speed > 0 and settings.pacing.enabled
     with (
-        Node(conf, service="sim", instance=args.instance, scope=SCOPE, stop=shutdown.event) as node,
+        Node(conf, service=names.SIM, instance=args.instance, scope=SCOPE, stop=shutdown.event) as node,
         contextlib.ExitStack() as stack,
     ):
         gt_pub, clock_pub = node.publisher("ground_truth"), node.publisher("sim_clock")

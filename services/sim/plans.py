@@ -32,6 +32,7 @@ import zenoh
 from rmmdet.v1.common_pb2 import Header
 from rmmdet.v1.planning_pb2 import RoutePlan, RouteRequest, RouteResponse
 
+from shared.bus import names
 from shared.bus.codec import MessageDecoder
 from shared.bus.node import Node, Received
 from shared.bus.queues import BoundedQueue, OverflowPolicy
@@ -96,7 +97,7 @@ class PlanClient:
         # (current lane, destination, followed version): nobody waits for its next lane to be re-planned.
         # Leaves are not held: the rejoin after a router restart re-serves what failed meanwhile.
         self.coordinators = node.presence(
-            get_stream("alive").pattern(scope="cloud", service="coordinator"), hold_leaves=False
+            get_stream("alive").pattern(scope="cloud", service=names.COORDINATOR), hold_leaves=False
         )
         self._ask_all_at: float | None = None
         self.retry = RequestRetry()
@@ -214,7 +215,7 @@ def open_vehicle_nodes(
     for v in traffic.vehicles:
         vehicle_node = Node(
             zenoh.Config.from_file(str(configs / f"{vehicle_identity(v.id)}.json")),
-            service="vehicle",
+            service=names.VEHICLE,
             instance=v.id,
             scope="vehicles",
             stop=shutdown.event,

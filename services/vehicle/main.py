@@ -26,6 +26,7 @@ from rmmdet.v1.common_pb2 import Header
 from rmmdet.v1.planning_pb2 import RoutePlan, RouteRequest, RouteResponse
 
 from services.vehicle.car import Report, Ros2Car, plan_fields
+from shared.bus import names
 from shared.bus.codec import MessageDecoder
 from shared.bus.node import Node, Received
 from shared.bus.queues import BoundedQueue, OverflowPolicy
@@ -57,7 +58,12 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         return 2
     report = Report(sys.stdout, args.json)
     with Node(
-        conf, service="vehicle", instance=vehicle_id, scope="vehicles", stop=shutdown.event, announce=False
+        conf,
+        service=names.VEHICLE,
+        instance=vehicle_id,
+        scope="vehicles",
+        stop=shutdown.event,
+        announce=False,
     ) as node:
         counters = node.counters
         check = PlanCheck(

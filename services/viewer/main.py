@@ -48,6 +48,7 @@ import zenoh
 
 from services.viewer.dashboard_server import DashboardServer
 from services.viewer.ws_gate import start_view_server
+from shared.bus import names
 from shared.bus.node import Node
 from shared.paths import DEFAULT_SCENE
 from shared.scene.road_network import RoadNetwork
@@ -62,7 +63,7 @@ from shared.viewer.inputs import ViewerInputs
 
 log = logging.getLogger("services.viewer")
 
-SERVICE = "viewer"
+SERVICE = names.VIEWER
 
 
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:

@@ -25,6 +25,7 @@ import xmlrpc.client
 import zenoh
 from supervisor.xmlrpc import SupervisorTransport
 
+from shared.bus import names
 from shared.bus.health import DEGRADED, NOMINAL
 from shared.bus.node import Node
 from shared.paths import RUN_DIR
@@ -36,7 +37,7 @@ from shared.supervision.watchdog import Action, Program, Watchdog, WatchdogConfi
 log = logging.getLogger("services.watchdog")
 
 SCOPE = "site"
-SERVICE = "watchdog"
+SERVICE = names.WATCHDOG
 DEFAULT_SUPERVISOR_URL = f"unix://{RUN_DIR / 'supervisor.sock'}"
 DEFAULT_CRITICAL = sorted(WatchdogConfig().critical)
 CONFLICT_LOG_EVERY_S = 10.0

@@ -14,6 +14,7 @@ from collections.abc import Callable
 
 import zenoh
 
+from shared.bus import names
 from shared.bus.codec import Counters
 from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.bus.streams import get_stream
@@ -152,7 +153,7 @@ def agent_of_mec_token(key: str) -> str | None:
     """The agent of a MEC's presence token (`rmmdet/v1/<agent>/@alive/mec/<agent>`), None for any
     other key."""
     ids = get_stream("alive").ids(key)
-    if ids is None or ids["service"] != "mec" or ids["scope"] != ids["instance"]:
+    if ids is None or ids["service"] != names.MEC or ids["scope"] != ids["instance"]:
         return None
     return ids["instance"]
 

@@ -20,6 +20,7 @@ import yaml
 import zenoh
 from google.protobuf.message import Message
 
+from shared.bus import names
 from shared.paths import REPO_ROOT
 
 STREAMS_YAML = REPO_ROOT / "proto" / "streams.yaml"
@@ -51,7 +52,7 @@ def region_of_instance(instance: str) -> int | None:
 
 def sensor_group_source(agent: str, kind: str) -> str:
     """Source id (`scope/service/instance`, as in its presence token) of that sensor service."""
-    return f"{agent}/sensor/{sensor_group(agent, kind)}"
+    return f"{agent}/{names.SENSOR}/{sensor_group(agent, kind)}"
 
 
 StreamClass = Literal["latest-wins", "must-deliver", "health"]
@@ -338,7 +339,7 @@ def producer_of(key: str) -> str:
             return sensor_group_source(ids["agent"], kind)
     ids = get_stream("objects").ids(key)
     if ids is not None:
-        return f"{ids['agent']}/mec/{ids['agent']}"
+        return f"{ids['agent']}/{names.MEC}/{ids['agent']}"
     return key
 
 
@@ -391,9 +392,9 @@ def diagram() -> str:
                 edges.setdefault((a, b, rpc), []).append(s.name)
     lines = ["```mermaid", "flowchart LR"]
     lines += [f'  {role}["{label}"]' for role, label in ROLE_LABELS.items()]
-    for (a, b, rpc), names in sorted(edges.items()):
+    for (a, b, rpc), stream_names in sorted(edges.items()):
         arrow = "-.->" if rpc else "-->"
-        lines.append(f"  {a} {arrow}|{', '.join(names)}| {b}")
+        lines.append(f"  {a} {arrow}|{', '.join(stream_names)}| {b}")
     return "\n".join([*lines, "```"]) + "\n"
 
 

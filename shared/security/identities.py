@@ -21,6 +21,7 @@ import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
+from shared.bus import names
 from shared.bus.streams import sensor_group, shard_instance
 from shared.config import ConfigError
 from shared.scene.scene import Scene
@@ -28,12 +29,12 @@ from shared.scene.scene import Scene
 ROLES = ("router", "sim", "vehicles", "sensors", "mec", "coordinator", "recorder", "operator")
 #: The `service` part of each role's health and presence keys (`rmmdet/v1/{scope}/@alive/{service}/..`).
 SERVICE_OF_ROLE = {
-    "router": "router",
-    "sim": "sim",
-    "sensors": "sensor",
-    "mec": "mec",
-    "coordinator": "coordinator",
-    "recorder": "recorder",
+    "router": names.ROUTER,
+    "sim": names.SIM,
+    "sensors": names.SENSOR,
+    "mec": names.MEC,
+    "coordinator": names.COORDINATOR,
+    "recorder": names.RECORDER,
 }
 SENSOR_KINDS = ("camera", "lidar", "radar")
 CLOUD_ROUTER = "router-cloud"

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import zenoh
 from rmmdet.v1.health_pb2 import HealthLevel, ServiceHealth
 
+from shared.bus import names
 from shared.bus.codec import Counters, MessageDecoder
 from shared.bus.liveliness import alive_tokens, source_of_token
 from shared.bus.streams import get_stream, region_of_instance, sensor_group_source
@@ -23,7 +24,7 @@ from shared.scene.scene import Scene
 HEALTH_STREAM = get_stream("health")
 HEALTH_KEYS = HEALTH_STREAM.pattern()
 ALIVE_KEYS = get_stream("alive").pattern()
-COORDINATOR = "cloud/coordinator/cloud"
+COORDINATOR = f"cloud/{names.COORDINATOR}/cloud"
 
 
 def level_name(level: int) -> str:
@@ -34,16 +35,16 @@ def _is_shard(source: str) -> bool:
     """`source` (scope/service/instance) is a coordinator region shard."""
     scope, _, rest = source.partition("/")
     service, _, instance = rest.partition("/")
-    return (scope, service) == ("cloud", "coordinator") and region_of_instance(instance) is not None
+    return (scope, service) == ("cloud", names.COORDINATOR) and region_of_instance(instance) is not None
 
 
 def expected_services(scene: Scene) -> list[str]:
     """`scope/service/instance` of every service the closed loop needs, from the scene. The coordinator
     may run sharded instead (instances region<k>, services/coordinator/shard.py): any shard present meets
     the expectation, since each shard is DEGRADED while another region's shard is silent."""
-    out = ["site/router/main", "sim/sim/main", COORDINATOR]
+    out = [f"site/{names.ROUTER}/main", f"sim/{names.SIM}/main", COORDINATOR]
     for agent in scene.agents:
-        out.append(f"{agent}/mec/{agent}")
+        out.append(f"{agent}/{names.MEC}/{agent}")
         kinds = sorted({s.kind for s in scene.sensors_of(agent)})
         out += [sensor_group_source(agent, kind) for kind in kinds]
     return out
