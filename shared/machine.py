@@ -59,13 +59,17 @@ def machine_info() -> dict[str, Any]:
     return info
 
 
-def git_commit(repo: Path = REPO_ROOT) -> str:
-    """Short commit of `repo`, "+dirty" with uncommitted changes; "unknown" outside a git checkout."""
+def git_commit(repo: Path = REPO_ROOT, ignore: tuple[str, ...] = ()) -> str:
+    """Short commit of `repo`, "+dirty" with uncommitted changes (outside the paths `ignore`); "unknown"
+    outside a git checkout."""
     try:
         head = subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=repo
         )
-        dirty = subprocess.run(["git", "status", "--porcelain"], capture_output=True, text=True, cwd=repo)
+        excluded = [f":!{path}" for path in ignore]
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--", ".", *excluded], capture_output=True, text=True, cwd=repo
+        )
     except OSError:
         return "unknown"
     if head.returncode != 0:

@@ -41,6 +41,10 @@ def invocation(argv: Sequence[str] | None = None) -> str:
     return " ".join([name, *argv[1:]])
 
 
+#: What the generators themselves write (results and pages): a change there does not make a run "+dirty".
+GENERATED = ("README.md", "docs", "tests/bench/results")
+
+
 def provenance(command: str, commit: str) -> str:
     return f"_Written by `{command}` at commit {commit}._"
 
@@ -65,10 +69,12 @@ def section_file(name: str, root: Path = REPO_ROOT) -> Path:
     return found[0]
 
 
-def replace_section(name: str, body: str, path: Path | None = None, command: str | None = None) -> None:
+def replace_section(
+    name: str, body: str, path: Path | None = None, command: str | None = None, commit: str | None = None
+) -> None:
     """Put `body` between the `name` markers of `path` (default: the file that holds them; both must be
-    there, begin before end), followed by its provenance: `command` (default: this process's) at the
-    current commit."""
+    there, begin before end), followed by its provenance: `command` (default: this process's) at `commit`
+    (default: the checkout's, uncommitted results and pages not counting as changes)."""
     path = path or section_file(name)
     begin, end = markers(name)
     text = path.read_text()
@@ -76,5 +82,5 @@ def replace_section(name: str, body: str, path: Path | None = None, command: str
         raise SystemExit(f"{path} has no {begin} ... {end} section")
     head, rest = text.split(begin, 1)
     _, tail = rest.split(end, 1)
-    line = provenance(command or invocation(), git_commit())
+    line = provenance(command or invocation(), commit or git_commit(ignore=GENERATED))
     path.write_text(f"{head}{begin}\n{body.strip()}\n\n{line}\n{end}{tail}")

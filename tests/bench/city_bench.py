@@ -178,7 +178,7 @@ def main() -> None:
     if args.readme:
         from shared.readme import replace_section
 
-        replace_section("city-bench", text)
+        replace_section("city-bench", text, commit=record["commit"])
 
 
 if __name__ == "__main__":

@@ -3,20 +3,21 @@
 from __future__ import annotations
 
 import re
+import subprocess
 from pathlib import Path
 
 import pytest
 
 from shared.machine import git_commit
 from shared.paths import REPO_ROOT
-from shared.readme import PROVENANCE, invocation, replace_section
+from shared.readme import GENERATED, PROVENANCE, invocation, replace_section
 
 
 def test_the_section_between_the_markers_is_replaced_and_signed(tmp_path: Path) -> None:
     readme = tmp_path / "README.md"
     readme.write_text("intro\n<!-- t:begin -->\nold\nrows\n<!-- t:end -->\noutro\n")
     replace_section("t", "| new |\n", readme, command="python -m tests.bench.x --readme")
-    line = f"_Written by `python -m tests.bench.x --readme` at commit {git_commit()}._"
+    line = f"_Written by `python -m tests.bench.x --readme` at commit {git_commit(ignore=GENERATED)}._"
     assert readme.read_text() == f"intro\n<!-- t:begin -->\n| new |\n\n{line}\n<!-- t:end -->\noutro\n"
     assert PROVENANCE.search(readme.read_text())
 
@@ -95,3 +96,20 @@ def test_the_readme_is_a_front_door_whose_links_resolve() -> None:
     assert local and all((REPO_ROOT / link).exists() for link in local), [
         link for link in local if not (REPO_ROOT / link).exists()
     ]
+
+
+def test_a_run_is_dirty_for_code_changes_only_when_results_are_ignored(tmp_path: Path) -> None:
+    def git(*argv: str) -> None:
+        subprocess.run(["git", *argv], cwd=tmp_path, check=True, capture_output=True)
+
+    git("init", "-q")
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "docs" / "page.md").write_text("old\n")
+    (tmp_path / "code.py").write_text("x = 1\n")
+    git("add", ".")
+    git("-c", "user.email=t@t", "-c", "user.name=t", "commit", "-qm", "first")
+    (tmp_path / "docs" / "page.md").write_text("a result written\n")
+    assert git_commit(tmp_path).endswith("+dirty")
+    assert not git_commit(tmp_path, ignore=("docs",)).endswith("+dirty")
+    (tmp_path / "code.py").write_text("x = 2\n")
+    assert git_commit(tmp_path, ignore=("docs",)).endswith("+dirty")
