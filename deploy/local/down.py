@@ -23,6 +23,7 @@ from shared.paths import REPO_ROOT
 RUN_DIR = REPO_ROOT / ".run"
 VENV_PYTHON_PREFIX = str(REPO_ROOT / ".venv" / "bin")
 ROUTER = "router"  # supervisord.conf's program name of the Zenoh router
+CLI_MODULE = "services.cli"  # the rmmdet tool: the user's, not make up's
 
 
 def supervisord_pid() -> int | None:
@@ -34,17 +35,24 @@ def supervisord_pid() -> int | None:
     return pid if psutil.pid_exists(pid) else None
 
 
+def is_leftover(cmdline: list[str]) -> bool:
+    """A process `make up` starts, run from this checkout's .venv: supervisord or a service
+    (`python -m services.<name>`). The `rmmdet` tool (`services.cli`, e.g. a study or a recording the
+    user started) is not one: `make down` leaves it running."""
+    if not any(part.startswith(VENV_PYTHON_PREFIX) for part in cmdline[:2]):
+        return False
+    if any("supervisord" in part for part in cmdline[:3]):
+        return True
+    modules = [cmdline[i + 1] for i, part in enumerate(cmdline[:-1]) if part == "-m"]
+    return any(m.startswith("services.") and not m.startswith(CLI_MODULE) for m in modules)
+
+
 def leftovers() -> list[psutil.Process]:
-    """Processes started from this checkout's .venv (services, supervisord), except ourselves."""
+    """Processes `make up` started from this checkout's .venv (`is_leftover`), except ourselves."""
     me = psutil.Process()
     found = []
     for proc in psutil.process_iter(["pid", "cmdline"]):
-        cmd = proc.info["cmdline"] or []
-        if proc.pid in (me.pid, me.ppid()):
-            continue
-        if any(part.startswith(VENV_PYTHON_PREFIX) for part in cmd[:2]) and (
-            "services." in " ".join(cmd) or "supervisord" in " ".join(cmd)
-        ):
+        if proc.pid not in (me.pid, me.ppid()) and is_leftover(proc.info["cmdline"] or []):
             found.append(proc)
     return found
 
