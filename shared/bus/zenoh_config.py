@@ -29,6 +29,18 @@ ROUTER_CONFIG_ENV = "RMMDET_ZENOH_ROUTER_CONFIG"
 
 log = logging.getLogger(__name__)
 
+#: The key and certificate files a Zenoh config can name (TLS, mutual TLS).
+TLS_FILE_KEYS = tuple(
+    f"transport/link/tls/{field}"
+    for field in (
+        "root_ca_certificate",
+        "listen_private_key",
+        "listen_certificate",
+        "connect_private_key",
+        "connect_certificate",
+    )
+)
+
 ENFORCED = {
     "scouting/multicast/enabled": "false",
     "transport/shared_memory/enabled": "false",
@@ -91,5 +103,21 @@ def zenoh_config(
     return conf
 
 
+def missing_files(conf: zenoh.Config) -> list[str]:
+    """`<config key>: <path>` for each key or certificate file `conf` names that cannot be read (Zenoh
+    would retry its connection for ever rather than say so)."""
+    out = []
+    for key in TLS_FILE_KEYS:
+        path = json.loads(conf.get_json(key))
+        if isinstance(path, str) and path and not os.access(path, os.R_OK):
+            out.append(f"{key}: no readable file {path}")
+    return out
+
+
 def config_from_args(args: argparse.Namespace) -> zenoh.Config:
-    return zenoh_config(args.config, mode=args.mode, connect=args.connect, listen=args.listen, cfg=args.cfg)
+    """The session config of a service's flags; ValueError for a malformed file or flag, or a key or
+    certificate file that cannot be read."""
+    conf = zenoh_config(args.config, mode=args.mode, connect=args.connect, listen=args.listen, cfg=args.cfg)
+    if missing := missing_files(conf):
+        raise ValueError("; ".join(missing))
+    return conf

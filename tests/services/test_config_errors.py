@@ -23,6 +23,7 @@ SERVICES = {
     "viewer": [],
     "watchdog": [],
     "device": ["--group", "agent1-cameras", "--site", "deploy/devices/sand_table_wire.yaml"],
+    "vehicle": ["--instance", "v01"],
 }
 TIMEOUT_S = 60
 
@@ -62,6 +63,20 @@ def test_a_bad_settings_file_exits_2_naming_file_and_field(service: str, tmp_pat
     bad.write_text("report_interval_s: -1\n" if service != "mec" else "tracking: 5\n")
     line = refused(["-m", f"services.{service}", *SERVICES[service], "--settings", str(bad)])
     assert str(bad) in line and ("report_interval_s" in line or "tracking" in line), line
+
+
+@pytest.mark.parametrize("service", sorted(SERVICES))
+def test_a_missing_key_file_exits_2_naming_the_setting_and_the_file(service: str, tmp_path: Path) -> None:
+    """A TLS key or certificate the Zenoh config names but that is not there (Zenoh would retry for ever)."""
+    key = tmp_path / "no-such-key.pem"
+    args = ["--cfg", f'transport/link/tls/connect_private_key:"{key}"']
+    line = refused(["-m", f"services.{service}", *SERVICES[service], *args])
+    assert "transport/link/tls/connect_private_key" in line and str(key) in line, line
+
+
+def test_a_sensor_group_that_is_not_the_scene_s_exits_2() -> None:
+    line = refused(["-m", "services.sensor", "--group", "agent9-cameras"])
+    assert "agent9-cameras" in line
 
 
 def test_a_missing_plan_key_exits_2_naming_it(tmp_path: Path) -> None:
