@@ -24,8 +24,7 @@ class RegionPeers:
         self.overlay = overlay
         self.region = region
         self.stale_after_s = stale_after_s
-        others = [r for r in range(overlay.regions.regions) if r != region]
-        self.priors = {r: overlay.clique(r, overlay.free_time_s) for r in others}
+        self.priors = {r: c for r, c in overlay.free_flow_cliques().items() if r != region}
         self._latest: dict[int, tuple[Clique, float]] = {}
         self._view: dict[int, Clique] = dict(self.priors)
         self._fresh: frozenset[int] = frozenset()

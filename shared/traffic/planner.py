@@ -122,7 +122,6 @@ class RoutePlanner:
         self._edge_dst = dst[self._order]
         self._edge_connector_s = connector_s[self._order]
         self._free_time_s = self._length_m / self._free_mps
-        self._free_cliques: dict[int, Clique] | None = None  # every region at free flow (a shard's)
         self._load = np.zeros(n)  # vehicles planned onto each lane (the sum of all `_planned`)
         self._cond: LaneConditions | None = None  # the conditions `_speed` / `_count` were built from
         self._speed = self._free_mps.copy()
@@ -251,7 +250,7 @@ class RoutePlanner:
             return self._fastest(current_lane, destination, times)
         shard = self.shard
         if free_flow:
-            shard = ShardView(shard.overlay, shard.region, self._free_flow_cliques())
+            shard = ShardView(shard.overlay, shard.region, shard.overlay.free_flow_cliques())
         return self._fastest_sharded(shard, current_lane, destination, times)
 
     def _unless_it_saves(
@@ -265,15 +264,6 @@ class RoutePlanner:
         shortest_s = self._route_time_s(shortest, times)
         saves_s = shortest_s - self._route_time_s(fastest, times)
         return fastest if saves_s > self.cfg.detour_min_saving * shortest_s else shortest
-
-    def _free_flow_cliques(self) -> dict[int, Clique]:
-        if self._free_cliques is None:
-            assert self.shard is not None
-            overlay = self.shard.overlay
-            self._free_cliques = {
-                r: overlay.clique(r, self._free_time_s) for r in range(overlay.regions.regions)
-            }
-        return self._free_cliques
 
     def clique(self, cond: LaneConditions, policy: PolicyName | None = None) -> Clique:
         """This shard's clique on `cond` (what it publishes to the other shards)."""

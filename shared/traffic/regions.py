@@ -168,6 +168,7 @@ class Overlay:
         self._connector_s = connector_times_s(network, edges, turn_penalty_s)
         self._edge = {(a, b): k for k, (a, b) in enumerate(edges)}
         self._graphs: dict[int | None, tuple[csr_matrix, NDArray[np.int64]]] = {}
+        self._free_cliques: dict[int, Clique] | None = None
         self.crossing_index = {c: k for k, c in enumerate(self.crossing)}
         self._leaving: dict[int, list[str]] = {r: [] for r in range(regions.regions)}
         for c in self.crossing:
@@ -271,6 +272,14 @@ class Overlay:
         for a, b in itertools.pairwise([from_lane, *lanes]):
             total += self._connector_s[self._edge[(a, b)]] + lane_time_s[self.index[b]]
         return float(total)
+
+    def free_flow_cliques(self) -> dict[int, Clique]:
+        """Every region's clique at free flow (a silent region's prior, the free-flow shortest routes'
+        overlay), made once. The same object on every call, so the searches cached per cliques object are
+        shared: do not modify it."""
+        if self._free_cliques is None:
+            self._free_cliques = {r: self.clique(r, self.free_time_s) for r in range(self.regions.regions)}
+        return self._free_cliques
 
     def clique(self, region: int, lane_time_s: FloatArray) -> Clique:
         """Region `region`'s crossing times on `lane_time_s` (what its shard publishes)."""

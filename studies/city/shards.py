@@ -50,7 +50,7 @@ class ShardedCoordinator:
         self.max_vehicles = max_vehicles
         self.shards: dict[int, CoordinatorCore | None] = {r: self._start(r) for r in range(regions.regions)}
         self.free_s = self.overlay.free_time_s  # a lost shard's region's prior, and a clique's floor
-        self.priors = {r: self.overlay.clique(r, self.free_s) for r in range(regions.regions)}
+        self.priors = self.overlay.free_flow_cliques()
         self.counts: Counter[str] = Counter()
         self.busy_s: defaultdict[int, float] = defaultdict(float)  # this step's work per shard, s
         self.step_ms: dict[int, list[float]] = {}  # per shard, its work in each step, ms
