@@ -14,12 +14,14 @@ that the kernel does not report: no RST, no ICMP); a lossy link drops a share of
 
 from __future__ import annotations
 
+import itertools
 import os
 import shutil
 import subprocess
 from dataclasses import dataclass, field
 
 CUT_TABLE = "rmmdet_cut"
+_CREATED = itertools.count()  # NetHosts made by this process
 VETH = "eth0"
 
 
@@ -52,8 +54,11 @@ class NetHosts:
 
     @classmethod
     def create(cls, octets: dict[str, int]) -> NetHosts:
-        pid = os.getpid()
-        hosts = cls(subnet=f"10.77.{pid % 250 + 1}", tag=f"{pid % 100000}", octets=dict(octets))
+        pid, n = os.getpid(), next(_CREATED)
+        # Names unique per creation, not per process: the namespaces a previous creation of this process
+        # deleted take their veth pairs with them asynchronously (the kernel's netns cleanup), so reusing a
+        # name at once can meet "File exists" on a busy machine.
+        hosts = cls(subnet=f"10.77.{(pid + n) % 250 + 1}", tag=f"{pid % 10000}{n % 10}", octets=dict(octets))
         hosts.bridge = f"rmb{hosts.tag}"
         try:
             _run("ip", "link", "add", hosts.bridge, "type", "bridge")
