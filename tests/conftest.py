@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator
 
 import pytest
@@ -17,6 +18,19 @@ def default_pki() -> None:
 
     if not plan_key_paths(DEFAULT_PKI_DIR).key.exists():
         init_pki(DEFAULT_PKI_DIR, [])
+
+
+@pytest.fixture(autouse=True)
+def restore_root_logging() -> Iterator[None]:
+    """A test that runs a program's main in-process (a service's `setup_logging`, the rmmdet CLI's
+    `logging.basicConfig`) leaves the root logger at INFO with a handler on that test's captured stderr,
+    closed when the test ends: the next module's first log line (test_sim_plans, then the viewer's
+    endpoints) printed 'I/O operation on closed file'."""
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    yield
+    root.handlers[:] = handlers
+    root.setLevel(level)
 
 
 @pytest.fixture(scope="session")

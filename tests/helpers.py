@@ -22,6 +22,15 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def wait_until(pred, timeout_s: float, what: str = "condition", poll_s: float = 0.05) -> float:
+    """Poll `pred()` until true; the seconds it took (AssertionError naming `what` after the timeout)."""
+    t0 = time.monotonic()
+    while not pred():
+        assert time.monotonic() - t0 < timeout_s, f"{what} not within {timeout_s} s"
+        time.sleep(poll_s)
+    return time.monotonic() - t0
+
+
 def wait_port(port: int, timeout_s: float = 10.0) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:

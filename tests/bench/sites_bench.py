@@ -25,9 +25,9 @@ import numpy as np
 
 from shared.machine import git_commit, machine_info
 from shared.readme import replace_section
-from tests.helpers import start_router, stop
+from tests.helpers import start_router, stop, wait_until
 from tests.integration import netns
-from tests.integration.secure_sites import AGENTS, five_hosts, loopback_transits, wait_for
+from tests.integration.secure_sites import AGENTS, five_hosts, loopback_transits
 
 RESULTS = Path(__file__).resolve().parent / "results" / "sites.json"
 STARTUP_S = 120.0
@@ -64,10 +64,10 @@ def cut_site(sites: Any, site: str, agent: str, cut_s: float) -> dict[str, Any]:
 def run(samples: int, cut_s: float) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="sites-bench-") as tmp, five_hosts(Path(tmp), STARTUP_S) as sites:
         n0 = len(sites.watch.transits())
-        wait_for(lambda: len(sites.watch.transits(n0)) >= samples, 4 * samples / 15 + 30, "object lists")
+        wait_until(lambda: len(sites.watch.transits(n0)) >= samples, 4 * samples / 15 + 30, "object lists")
         secure = sites.watch.transits(n0)[:samples]
         cuts = [cut_site(sites, site, agent, cut_s) for site, agent in SITES.items()]
-        wait_for(lambda: not sites.watch.unacknowledged_pushes(), 30, "pushed plans acknowledged")
+        wait_until(lambda: not sites.watch.unacknowledged_pushes(), 30, "pushed plans acknowledged")
         with sites.watch.lock:
             pushed, acks = len(sites.watch.pushed), len(sites.watch.acks)
     router = start_router()

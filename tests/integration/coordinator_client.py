@@ -101,6 +101,12 @@ def counters(report: ServiceHealth) -> dict[str, int]:
     return {c.name: c.value for c in report.counters}
 
 
+def coordinator_counters(session: zenoh.Session) -> dict[str, int]:
+    """The coordinator's counters now; none while it does not answer."""
+    report = coordinator_health(session)
+    return counters(report) if report is not None else {}
+
+
 @dataclass
 class MapLog:
     """Traffic maps received: (monotonic arrival, {agent: LIVE/STALE/LOST})."""

@@ -23,7 +23,7 @@ from shared.bus.session import open_session
 from shared.security.pki import init_pki
 from shared.security.sites import Layout, bundle_host, identity_config, load_layout
 from sim.config import fleet_ids
-from tests.helpers import REPO_ROOT, Router, spawn, stop
+from tests.helpers import REPO_ROOT, Router, spawn, stop, wait_until
 from tests.integration import netns
 from tests.integration.coordinator_client import MapLog
 
@@ -78,15 +78,6 @@ class Inbox:
     def payloads(self, key: str) -> list[bytes]:
         with self.lock:
             return [p for k, p in self.samples if k == key]
-
-
-def wait_for(pred, timeout_s: float, what: str, poll_s: float = 0.05) -> float:
-    """Wait until `pred()`; returns the seconds it took (AssertionError after `timeout_s`)."""
-    t0 = time.monotonic()
-    while not pred():
-        assert time.monotonic() - t0 < timeout_s, f"{what} not within {timeout_s} s"
-        time.sleep(poll_s)
-    return time.monotonic() - t0
 
 
 # --- five hosts in network namespaces (tests/integration/test_secure_sites.py, tests/bench/sites_bench.py)
@@ -301,7 +292,7 @@ def loopback_transits(router: Router, samples: int, timeout_s: float) -> list[fl
     node.open()
     try:
         watch.start(node)
-        wait_for(lambda: len(watch.transits()) >= samples, timeout_s, "loopback object lists")
+        wait_until(lambda: len(watch.transits()) >= samples, timeout_s, "loopback object lists")
     finally:
         watch.stop()
         node.close()

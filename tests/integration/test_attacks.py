@@ -47,7 +47,7 @@ from shared.paths import DEFAULT_PKI_DIR
 from shared.security.pki import plan_key_paths
 from shared.security.plan_signing import PlanVerifier
 from shared.timebase import NS_PER_S
-from tests.helpers import Router, spawn, start_router, stop
+from tests.helpers import Router, spawn, start_router, stop, wait_until
 from tests.integration import attacker as atk
 from tests.integration.coordinator_client import MapLog, RouteClient, coordinator_health, counters
 
@@ -138,14 +138,6 @@ class System:
     def assert_alive(self) -> None:
         dead = {name: p.returncode for name, p in self.procs.items() if p.poll() is not None}
         assert not dead, f"processes exited: {dead}"
-
-
-def wait_until(pred, timeout_s: float, what: str) -> float:
-    deadline = time.monotonic() + timeout_s
-    while not pred():
-        assert time.monotonic() < deadline, f"{what} not within {timeout_s} s"
-        time.sleep(0.05)
-    return time.monotonic()
 
 
 def delta(after: dict[str, int], before: dict[str, int], name: str) -> int:

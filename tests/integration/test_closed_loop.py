@@ -23,8 +23,8 @@ from shared.bus.liveliness import alive_tokens
 from shared.bus.node import Node
 from shared.bus.streams import get_stream
 from shared.supervision.verdict import query_health
-from tests.helpers import Router, spawn, stop
-from tests.integration.coordinator_client import coordinator_health, counters
+from tests.helpers import Router, spawn, stop, wait_until
+from tests.integration.coordinator_client import coordinator_counters, coordinator_health, counters
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 
@@ -62,13 +62,6 @@ class Bus:
     def pushed_acks(self) -> dict[str, int]:
         with self.lock:
             return {pid: self.acks[pid] for pid in self.pushed if pid in self.acks}
-
-
-def wait_until(pred, timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not pred():
-        assert time.monotonic() < deadline, f"{what} not within {timeout_s} s"
-        time.sleep(0.1)
 
 
 @pytest.fixture
@@ -116,17 +109,14 @@ def test_vehicles_follow_and_acknowledge_plans(loop) -> None:
     router, node, bus, procs = loop
     wait_until(lambda: bus.accepted() >= MIN_ACCEPTED, STARTUP_S, f"{MIN_ACCEPTED} ACCEPTED acks")
 
-    def coordinator_counters() -> dict[str, int]:
-        report = coordinator_health(node.session)
-        assert report is not None
-        return counters(report)
-
     # The acks this test saw on the bus reach the coordinator's loop a moment later (its next tick; on a
     # loaded host, later): wait for its own count rather than race it.
     wait_until(
-        lambda: coordinator_counters().get("acks/accepted", 0) >= 1, 10.0, "the coordinator counts the acks"
+        lambda: coordinator_counters(node.session).get("acks/accepted", 0) >= 1,
+        10.0,
+        "the coordinator counts the acks",
     )
-    c = coordinator_counters()
+    c = coordinator_counters(node.session)
     assert c["plans/served"] >= MIN_ACCEPTED and c["acks/accepted"] >= 1, c
     assert not any(k.startswith("rejected/") for k in c), c
 

@@ -43,7 +43,7 @@ from shared.supervision.verdict import query_health
 from shared.timebase import SimTime
 from sim.config import load_sim_settings
 from sim.pacing import PERIOD_WINDOW, silence_after_s
-from tests.helpers import Router, spawn, stop
+from tests.helpers import Router, spawn, stop, wait_until
 from tests.integration.coordinator_client import MapLog, RouteClient
 
 pytestmark = [pytest.mark.integration, pytest.mark.fault, pytest.mark.timeout(240)]
@@ -366,8 +366,16 @@ def test_a_restarted_sim_is_taken_by_sensors_and_mec_within_2_s(chain_factory) -
         if item is not None and item.header.stamp.ToNanoseconds() / 1e9 >= new_run_s:
             t_tick = time.monotonic()
     t_frames = out.wait(lambda r: r[3] >= new_run_s, RESTART_WITHIN_S + 1.0, since=t_tick)
-    with out.lock:
-        t_sensor = min(t for t, sensor, stamp in out.frames if stamp >= new_run_s)
+
+    def first_frame() -> float | None:
+        """Arrival of the new run's first sensor frame: its own subscriber may hear it after the MEC's
+        first object list of the run (another subscription, another thread)."""
+        with out.lock:
+            return min((t for t, _sensor, stamp in out.frames if stamp >= new_run_s), default=None)
+
+    wait_until(lambda: first_frame() is not None, RESTART_WITHIN_S + 1.0, "a sensor frame of the new run")
+    t_sensor = first_frame()
+    assert t_sensor is not None
     print(
         f"sim restart: first sensor frame {t_sensor - t_tick:.3f} s, first object list "
         f"{t_frames - t_tick:.3f} s after the new run's first tick"

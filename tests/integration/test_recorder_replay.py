@@ -18,7 +18,7 @@ from shared.bus.session import open_session
 from shared.bus.streams import stream_for_key
 from shared.recording.bus import REPLAY_PREFIX
 from shared.recording.reader import decode_record, read_records
-from tests.helpers import Router, spawn, stop
+from tests.helpers import Router, spawn, stop, wait_until
 from tests.shared.recording.samples import Sent, traffic
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(90)]
@@ -33,14 +33,6 @@ N_PER_TYPE = 5
 #: Pause between published samples, seconds (distinct receive times, a visible replay pace).
 PUBLISH_PERIOD_S = 0.02
 WAIT_S = 15.0
-
-
-def wait_until(predicate, timeout_s: float = WAIT_S, what: str = "condition") -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.05)
 
 
 def health_counters(session: zenoh.Session) -> dict[str, int] | None:
@@ -61,7 +53,7 @@ def matched_publishers(session: zenoh.Session, samples: list[Sent]) -> dict[str,
             assert stream is not None
             publishers[s.key] = session.declare_publisher(s.key, **stream.qos.publisher_kwargs())
     for pub in publishers.values():
-        wait_until(lambda pub=pub: pub.matching_status.matching, what="a subscriber")
+        wait_until(lambda pub=pub: pub.matching_status.matching, WAIT_S, what="a subscriber")
     return publishers
 
 
@@ -114,7 +106,7 @@ def test_record_with_the_service_then_replay_with_the_cli(router: Router, tmp_pa
     recorder = spawn([*RECORDER, "--out", str(out), *router.client_args()])
     try:
         with open_session(router.client_config(), timeout_s=5) as session:
-            wait_until(lambda: health_counters(session) is not None, what="recorder health")
+            wait_until(lambda: health_counters(session) is not None, WAIT_S, what="recorder health")
             publish(session, samples)
             # bad input: counted by the recorder, never recorded, never fatal
             bad = session.declare_publisher(samples[1].key)
@@ -126,7 +118,7 @@ def test_record_with_the_service_then_replay_with_the_cli(router: Router, tmp_pa
                 counters = health_counters(session) or {}
                 return counters.get("recorded") == len(samples) and counters.get("rejected/encoding") == 2
 
-            wait_until(settled, what="every sample recorded")
+            wait_until(settled, WAIT_S, what="every sample recorded")
             counters = health_counters(session) or {}
         assert counters.get("dropped/queue_full", 0) == 0
         assert counters[f"recorded/{samples[0].key}"] == N_PER_TYPE
@@ -154,7 +146,7 @@ def test_record_with_the_service_then_replay_with_the_cli(router: Router, tmp_pa
             )
             stdout, _ = proc.communicate(timeout=30)
             assert proc.returncode == 0, stdout
-            wait_until(lambda: collector.count() >= len(samples), what="replayed samples")
+            wait_until(lambda: collector.count() >= len(samples), WAIT_S, what="replayed samples")
             time.sleep(0.2)  # nothing more may arrive
         finally:
             collector.undeclare()
@@ -191,7 +183,7 @@ def test_cli_record_for_a_duration_and_replay_a_selected_key(router: Router, tmp
             )
             stdout, _ = replay.communicate(timeout=30)
             assert replay.returncode == 0, stdout
-            wait_until(lambda: collector.count() >= 3, what="replayed camera frames")
+            wait_until(lambda: collector.count() >= 3, WAIT_S, what="replayed camera frames")
             time.sleep(0.2)
         finally:
             collector.undeclare()
@@ -206,7 +198,7 @@ def test_recorder_stops_cleanly_on_sigterm_with_nothing_recorded(router: Router,
     recorder = spawn([*RECORDER, "--out", str(out), *router.client_args()])
     try:
         with open_session(router.client_config(), timeout_s=5) as session:
-            wait_until(lambda: health_counters(session) is not None, what="recorder health")
+            wait_until(lambda: health_counters(session) is not None, WAIT_S, what="recorder health")
         assert stop(recorder, signal.SIGTERM, timeout_s=10) == 0
     except subprocess.TimeoutExpired:
         raise
@@ -232,7 +224,7 @@ def test_a_sigkilled_recorder_leaves_a_readable_file_losing_at_most_one_flush_in
     sent_at: list[float] = []
     try:
         with open_session(router.client_config(), timeout_s=5) as session:
-            wait_until(lambda: health_counters(session) is not None, what="recorder health")
+            wait_until(lambda: health_counters(session) is not None, WAIT_S, what="recorder health")
             publishers = matched_publishers(session, samples)
             for i, s in enumerate(samples):
                 publishers[s.key].put(s.payload, encoding=s.encoding, attachment=s.attachment)

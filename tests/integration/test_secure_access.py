@@ -27,8 +27,8 @@ from shared.paths import DEFAULT_SCENE
 from shared.scene.calibration import calibration_set
 from shared.scene.scene import Scene
 from shared.security.pki import init_pki, rotate_ca
-from tests.helpers import free_port, spawn, stop, wait_port
-from tests.integration.secure_sites import Deployment, Inbox, make_deployment, wait_for
+from tests.helpers import free_port, spawn, stop, wait_port, wait_until
+from tests.integration.secure_sites import Deployment, Inbox, make_deployment
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 
@@ -156,7 +156,7 @@ def test_each_identity_puts_only_on_its_own_keys(deployment: Deployment) -> None
             for i, (ident, key, _) in enumerate(PUTS):
                 sessions[ident].put(key, f"{i}".encode())
             allowed = [(k, f"{i}".encode()) for i, (_, k, ok) in enumerate(PUTS) if ok]
-            wait_for(lambda: all(p in inbox.payloads(k) for k, p in allowed), 5, "authorized puts")
+            wait_until(lambda: all(p in inbox.payloads(k) for k, p in allowed), 5, "authorized puts")
             time.sleep(SETTLE_S)
         finally:
             sub.undeclare()

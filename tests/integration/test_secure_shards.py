@@ -23,9 +23,10 @@ import pytest
 from rmmdet.v1.health_pb2 import HealthLevel, ServiceHealth
 
 from shared.bus.streams import shard_instance
+from tests.helpers import wait_until
 from tests.integration import netns
 from tests.integration.coordinator_client import coordinator_health, counters
-from tests.integration.secure_sites import Sites, five_hosts, wait_for
+from tests.integration.secure_sites import Sites, five_hosts
 
 UNAVAILABLE = netns.available()
 pytestmark = [
@@ -71,7 +72,7 @@ def nominal(sites: Sites, region: int) -> bool:
 def test_crossing_vehicles_get_and_acknowledge_plans_from_the_new_shard(sites: Sites) -> None:
     for region in (0, 1):
         for name in ("handovers/adopted", "acks/accepted"):
-            wait_for(lambda r=region, n=name: counter(sites, r, n) >= 1, 60 * SCALE, f"{name} on {region}")
+            wait_until(lambda r=region, n=name: counter(sites, r, n) >= 1, 60 * SCALE, f"{name} on {region}")
     for region in (0, 1):
         report = health(sites, region)
         assert report is not None
@@ -81,13 +82,13 @@ def test_crossing_vehicles_get_and_acknowledge_plans_from_the_new_shard(sites: S
 
 def test_a_cut_shard_affects_only_its_region(sites: Sites) -> None:
     maps, watch = sites.watch.maps, sites.watch
-    wait_for(lambda: nominal(sites, 0), 30 * SCALE, "shard 0 NOMINAL")
+    wait_until(lambda: nominal(sites, 0), 30 * SCALE, "shard 0 NOMINAL")
     served_before = counter(sites, 0, "plans/served") + counter(sites, 0, "plans/pushed")
     accepted_before = watch.accepted()
     cut_at = time.monotonic()
     sites.hosts.cut("shard1")
     try:
-        prior_s = wait_for(
+        prior_s = wait_until(
             lambda: "planned on a prior" in message(sites, 0), PRIOR_WITHIN_S, "region 1 on the prior"
         )
         time.sleep(max(0.0, CUT_S - (time.monotonic() - cut_at)))
@@ -96,11 +97,11 @@ def test_a_cut_shard_affects_only_its_region(sites: Sites) -> None:
     finally:
         sites.hosts.restore("shard1")
     back_at = time.monotonic()
-    back_s = wait_for(
+    back_s = wait_until(
         lambda: health(sites, 1) is not None and nominal(sites, 0), BACK_WITHIN_S, "shard 1 back, 0 NOMINAL"
     )
     print(f"cut shard1: region 1 on the prior after {prior_s:.2f} s; back {back_s:.2f} s after the link")
     assert during and all(states.get(a) == "LIVE" for states in during for a in REGION0_AGENTS)
     assert served_during > served_before, "shard 0 stopped serving while shard 1 was cut"
-    wait_for(lambda: watch.accepted() > accepted_before, 20 * SCALE, "plans acknowledged after the cut")
+    wait_until(lambda: watch.accepted() > accepted_before, 20 * SCALE, "plans acknowledged after the cut")
     assert back_at - cut_at >= CUT_S

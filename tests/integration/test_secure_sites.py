@@ -28,10 +28,10 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from tests.helpers import Router
+from tests.helpers import Router, wait_until
 from tests.integration import netns
 from tests.integration.coordinator_client import coordinator_health, counters
-from tests.integration.secure_sites import AGENTS, Sites, five_hosts, loopback_transits, wait_for
+from tests.integration.secure_sites import AGENTS, Sites, five_hosts, loopback_transits
 
 UNAVAILABLE = netns.available()
 pytestmark = [
@@ -63,13 +63,13 @@ def sites(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Sites]:
 def test_objects_maps_and_plans_flow_across_hosts(sites: Sites) -> None:
     watch = sites.watch
     t0 = time.monotonic()
-    wait_for(lambda: watch.accepted() >= MIN_ACCEPTED, 60 * SCALE, "accepted plans")
-    wait_for(lambda: len(watch.maps.since(t0)) >= 2, 5 * SCALE, "maps keep coming (2 Hz)")
+    wait_until(lambda: watch.accepted() >= MIN_ACCEPTED, 60 * SCALE, "accepted plans")
+    wait_until(lambda: len(watch.maps.since(t0)) >= 2, 5 * SCALE, "maps keep coming (2 Hz)")
 
 
 def test_transit_against_one_loopback_router(sites: Sites, router: Router) -> None:
     n0 = len(sites.watch.transits())
-    wait_for(lambda: len(sites.watch.transits(n0)) >= TRANSIT_SAMPLES, 60 * SCALE, "object lists")
+    wait_until(lambda: len(sites.watch.transits(n0)) >= TRANSIT_SAMPLES, 60 * SCALE, "object lists")
     secure = np.array(sites.watch.transits(n0)[:TRANSIT_SAMPLES]) * 1e3
     loopback = np.array(loopback_transits(router, TRANSIT_SAMPLES, 60 * SCALE)) * 1e3
     print(
@@ -94,7 +94,7 @@ def test_a_cut_site_goes_stale_and_comes_back(sites: Sites) -> None:
     back_at = time.monotonic()
     live_at = maps.wait(lambda s: s.get(VICTIM) == "LIVE", LIVE_WITHIN_S + 10.0, since=back_at)
     # The coverage changes made the coordinator push plans to the vehicles (another host): all acknowledged.
-    wait_for(lambda: not watch.unacknowledged_pushes(), 10 * SCALE, "every pushed plan acknowledged")
+    wait_until(lambda: not watch.unacknowledged_pushes(), 10 * SCALE, "every pushed plan acknowledged")
     with watch.lock:
         pushed = len(watch.pushed)
     print(
@@ -121,10 +121,10 @@ def test_plans_are_all_delivered_over_a_lossy_link(sites: Sites) -> None:
         watch.maps.wait(lambda s: s.get("agent3") != "LIVE", 5 * SCALE, since=time.monotonic())
         # Out until the coordinator has re-planned around it (restored at once, the blip could fall
         # between two re-plan rounds and change no plan), then back: plans pushed both ways.
-        wait_for(lambda: len(watch.pushed - before) >= 1, 20 * SCALE, "plans pushed over the lossy link")
+        wait_until(lambda: len(watch.pushed - before) >= 1, 20 * SCALE, "plans pushed over the lossy link")
         sites.hosts.restore("site3")
         watch.maps.wait(lambda s: s.get("agent3") == "LIVE", 10 * SCALE, since=time.monotonic())
-        wait_for(lambda: not watch.unacknowledged_pushes(), 20 * SCALE, "every pushed plan acknowledged")
+        wait_until(lambda: not watch.unacknowledged_pushes(), 20 * SCALE, "every pushed plan acknowledged")
     finally:
         sites.hosts.restore("vehicles")
     with watch.lock:

@@ -16,8 +16,8 @@ from shared.devices.mjpeg import MAX_PART_BYTES, MjpegStream, StreamError, parse
 from shared.devices.site import StreamCamera
 from shared.devices.sources import CameraSource
 from sim.emulators.mjpeg import MjpegServer
-from tests.helpers import free_port
-from tests.shared.devices.test_sources import Collector, jpeg, wait_until
+from tests.helpers import free_port, wait_until
+from tests.shared.devices.test_sources import Collector, jpeg
 
 pytestmark = pytest.mark.timeout(30)
 JPEG_A = b"\xff\xd8" + b"A" * 30 + b"\xff\xd9"

@@ -7,7 +7,7 @@ from __future__ import annotations
 import socket
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 
 import can
 import numpy as np
@@ -19,7 +19,7 @@ from shared.devices.sources import CameraSource, LidarSource, Output, RadarSourc
 from sim.emulators.ars408 import Ars408Emulator, Target
 from sim.emulators.mjpeg import MjpegServer
 from sim.emulators.robosense import LidarSender, RobosenseEmulator
-from tests.helpers import free_port
+from tests.helpers import free_port, wait_until
 
 pytestmark = pytest.mark.timeout(60)
 T0_NS = 1_790_000_000_000_000_000
@@ -45,13 +45,6 @@ class Collector:
             assert time.monotonic() - start < timeout_s, f"{self.count()} of {n} outputs after {timeout_s} s"
             time.sleep(0.01)
         return time.monotonic() - start
-
-
-def wait_until(cond: Callable[[], bool], timeout_s: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        assert time.monotonic() < deadline, "condition not met in time"
-        time.sleep(0.02)
 
 
 # --- lidar ------------------------------------------------------------------------------------------
@@ -89,7 +82,7 @@ def turn(emulator: RobosenseEmulator, k: int) -> list[bytes]:
 
 def test_lidar_frames_with_the_units_clock(lidar) -> None:
     source, sender, out = lidar
-    wait_until(lambda: source.stream.info is not None)
+    wait_until(lambda: source.stream.info is not None, 10.0)
     for k in range(3):
         sender.send_turn(turn(sender.emulator, k))
         time.sleep(0.05)
@@ -124,7 +117,7 @@ def test_difop_withheld_then_sent(lidar) -> None:
 
 def test_packets_cut_mid_frame_drop_that_frame_only(lidar) -> None:
     source, sender, out = lidar
-    wait_until(lambda: source.stream.info is not None)
+    wait_until(lambda: source.stream.info is not None, 10.0)
     sender.cut_after = 30  # of 75 packets a turn
     for k in range(3):
         sender.send_turn(turn(sender.emulator, k))
