@@ -73,7 +73,9 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         if args.instance == INSTANCE:
             args.instance = shard_instance(args.shard)
     signer = PlanSigner.load(settings.plan_signing_key)
-    with Node(conf, service=SERVICE, instance=args.instance, scope=SCOPE, stop=shutdown.event) as node:
+    with Node(
+        conf, service=SERVICE, instance=args.instance, scope=SCOPE, stop=shutdown.event, present_at_open=False
+    ) as node:
         # Coverage, map smoothing and plan timing run on the clock of record (sim time when a sim runs).
         clock = SimTime()
         node.follow_sim_time(clock)
@@ -90,6 +92,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             bind={"vehicle": "vehicle_id"},
         )
         node.queryable(rpc.key, rpc)
+        node.declare_presence()  # vehicles ask the moment they see it: only once the route RPC answers
         log.info(
             "coordinator up: scene %s, %s, agents %s, policy %s, maps %.1f Hz, replan every %.1f s, "
             "plan key %s",

@@ -48,9 +48,6 @@ log = logging.getLogger("services.sim.plans")
 #: Outstanding replies held between ticks; more than one per vehicle only if ticks stall.
 REPLY_QUEUE_PER_VEHICLE = 4
 PUSHED_QUEUE = 1024  # pushed plans held between ticks
-#: After a coordinator's presence token appears, every vehicle asks for a plan this much later, wall s:
-#: the token comes with its session, the route queryable a moment after.
-REASK_AFTER_JOIN_S = 0.3
 
 
 class PlanClient:
@@ -99,7 +96,6 @@ class PlanClient:
         self.coordinators = node.presence(
             get_stream("alive").pattern(scope="cloud", service=names.COORDINATOR), hold_leaves=False
         )
-        self._ask_all_at: float | None = None
         self.retry = RequestRetry()
         self._by_id = {v.id: v for v in traffic.vehicles}
         # Each vehicle's last plan end (plan id, status), repeated in its requests (`ended_plan_id`).
@@ -139,11 +135,9 @@ class PlanClient:
         for end in self.traffic.take_plan_ends():  # completed or left by a detour: the coordinator is told
             self.acknowledge(end.vehicle_id, end.plan_id, end.version, end.status, end.reason, stamp_ns)
             self._ended[end.vehicle_id] = (end.plan_id, end.status)
+        # The coordinator declares its token once its route RPC answers (services/coordinator/main.py).
         if any(alive for _, alive in self.coordinators.changes()):
             self.counters.inc("plans/coordinator_joined")
-            self._ask_all_at = time.monotonic() + REASK_AFTER_JOIN_S
-        if self._ask_all_at is not None and time.monotonic() >= self._ask_all_at:
-            self._ask_all_at = None
             for v in self.traffic.vehicles:
                 v.ask_now = True
         for v in self.traffic.vehicles:

@@ -301,12 +301,15 @@ class Node:
         open_timeout_s: float | None = None,
         stop: threading.Event | None = None,
         announce: bool = True,
+        present_at_open: bool = True,
         counters: Counters | None = None,
     ) -> None:
         """`open_timeout_s`/`stop` bound the wait for the router at `open()` (default: wait until
         it is reachable or `stop` is set). `announce=False`: no presence token and no health queryable
         (a session that only acts for another, e.g. a vehicle's identity inside the sim); `counters`: that
-        other's, so what this session refuses is counted and reported there."""
+        other's, so what this session refuses is counted and reported there. `present_at_open=False`:
+        the presence token waits for `declare_presence()`, for a service whose presence tells others to
+        call it now (the coordinator's: every vehicle asks at once), declared once it can answer."""
         self.service = validate_id(service, "service")
         self.instance = validate_id(instance, "instance")
         self.scope = validate_id(scope, "scope")
@@ -318,6 +321,8 @@ class Node:
         self._open_timeout_s = open_timeout_s
         self._stop = stop
         self._announce = announce
+        self._present_at_open = present_at_open
+        self._token: Any = None
         self._session: zenoh.Session | None = None
         self._declared: list[Any] = []
         self.uplink = Uplink()  # this session's link to the bus (open transports)
@@ -350,18 +355,32 @@ class Node:
                 )
             )
             if self._announce:
-                self._declared.append(self._session.liveliness().declare_token(self.alive_key))
                 self._declared.append(self._session.declare_queryable(self.health_key, self._on_health_query))
+                if self._present_at_open:
+                    self.declare_presence()
         except Exception:
             self.close()
             raise
         log.info("node %s up (zid %s)", self.source_id, self._session.info.zid())
+
+    def declare_presence(self) -> None:
+        """Declare this process's presence token (`rmmdet/v1/{scope}/@alive/{service}/{instance}`), once.
+        Zenoh sends a session's declarations in order, so whoever sees the token can already reach
+        everything declared before it."""
+        if not self._announce:
+            raise RuntimeError(f"node {self.source_id} does not announce itself")
+        with self._lock:
+            if self._token is not None:
+                return
+            self._token = self.session.liveliness().declare_token(self.alive_key)
+            self._declared.append(self._token)
 
     def close(self) -> None:
         with self._lock:
             declared, self._declared = self._declared, []
             self._publishers.clear()
             session, self._session = self._session, None
+            self._token = None
         for entity in reversed(declared):
             try:
                 entity.undeclare()

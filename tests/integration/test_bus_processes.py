@@ -12,11 +12,11 @@ import pytest
 from rmmdet.v1.perception_pb2 import TrackedObjects
 
 from shared.bus.codec import encoding_for
-from shared.bus.liveliness import LivelinessMonitor
+from shared.bus.liveliness import LivelinessMonitor, alive_tokens
 from shared.bus.node import Node
 from shared.bus.session import open_session
 from shared.bus.streams import get_stream
-from tests.helpers import Router, free_port, spawn, start_router, stop
+from tests.helpers import Router, free_port, spawn, start_router, stop, wait_until
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
 
@@ -235,3 +235,27 @@ def test_node_declares_one_publisher_per_key_and_source(router: Router) -> None:
         assert node.publisher("route_plan", vehicle="car01") is first  # its sequence numbers go on
         assert node.publisher("route_plan", vehicle="car02") is not first
         assert node.publisher("route_plan", vehicle="car01", source_id="cloud/other/x") is not first
+
+
+def test_a_node_can_declare_its_presence_once_it_is_ready(router: Router) -> None:
+    """`present_at_open=False`: the health queryable at once, the presence token only at
+    `declare_presence()` (once, however often asked); a node that does not announce itself has none."""
+    with Node(router.client_config(), service="test", instance="watcher", scope="site") as watcher:
+        key = get_stream("alive").key(scope="site", service="test", instance="late")
+
+        def present() -> bool:
+            return bool(alive_tokens(watcher.session, key, timeout_s=0.5))
+
+        with Node(
+            router.client_config(), service="test", instance="late", scope="site", present_at_open=False
+        ) as late:
+            time.sleep(0.3)
+            assert not present()
+            assert any(r.ok is not None for r in watcher.session.get(late.health_key, timeout=2.0))
+            late.declare_presence()
+            late.declare_presence()
+            wait_until(present, 5.0, "the token once declared")
+        wait_until(lambda: not present(), 5.0, "the token gone with the node")
+        quiet = Node(router.client_config(), service="test", instance="quiet", scope="site", announce=False)
+        with quiet, pytest.raises(RuntimeError, match="does not announce"):
+            quiet.declare_presence()

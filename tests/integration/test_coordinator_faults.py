@@ -23,8 +23,11 @@ import pytest
 from rmmdet.v1.health_pb2 import HealthLevel
 from rmmdet.v1.planning_pb2 import RoutePlan
 
+from shared.bus import names
+from shared.bus.liveliness import alive_tokens
 from shared.bus.node import Node
-from tests.helpers import Router, spawn, stop
+from shared.bus.streams import get_stream
+from tests.helpers import Router, spawn, stop, wait_until
 from tests.integration.coordinator_client import MapLog, RouteClient, coordinator_health, counters
 
 pytestmark = [pytest.mark.integration, pytest.mark.fault, pytest.mark.timeout(120)]
@@ -165,3 +168,31 @@ def test_served_plans_are_copied_for_viewers_only_while_watched(cluster: Cluster
     cluster.plan()
     report = coordinator_health(cluster.node.session)
     assert report is not None and counters(report)["plans/copied"] == before, "copied with nobody watching"
+
+
+def test_a_present_coordinator_answers_at_once(router: Router) -> None:
+    """The coordinator's presence token tells every vehicle to ask now (a restarted coordinator serves
+    them all at once, reliability R3), so it is declared only once the route RPC answers: requests sent
+    the moment the token appears all get a plan. With the token declared at the session's opening,
+    most of them found no queryable yet and went unanswered (the sim papered over it with a 0.3 s wait,
+    too short on a busy host)."""
+    alive = get_stream("alive").pattern(scope="cloud", service=names.COORDINATOR)
+    with Node(router.client_config(), service="test", instance="first-ask", scope="site") as node:
+        for trial in range(3):
+            coordinator = spawn(["-m", "services.coordinator", *router.client_args()])
+            try:
+                wait_until(lambda: bool(alive_tokens(node.session, alive, timeout_s=0.2)), STARTUP_S, "token")
+                replies: dict[str, object] = {}
+
+                def ask(vehicle: str, replies: dict[str, object] = replies) -> None:
+                    replies[vehicle] = RouteClient(node, f"test/{vehicle}").request(vehicle, "l0", "j3")
+
+                askers = [threading.Thread(target=ask, args=(f"v{i:02d}",)) for i in range(10)]
+                for t in askers:
+                    t.start()
+                for t in askers:
+                    t.join()
+            finally:
+                stop(coordinator)
+            unanswered = sorted(v for v, reply in replies.items() if not isinstance(reply, RoutePlan))
+            assert not unanswered, f"trial {trial}: asked at the token, not planned: {unanswered}"
