@@ -7,6 +7,7 @@ which command wrote it at which commit (`provenance`)."""
 from __future__ import annotations
 
 import re
+import shlex
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -26,7 +27,8 @@ PROVENANCE = re.compile(
 
 def invocation(argv: Sequence[str] | None = None) -> str:
     """This process's command line as a user types it: `python -m <module> ...` for a module or a
-    script of this repository, `<entry point> ...` for an installed command such as `rmmdet`."""
+    script of this repository, `<entry point> ...` for an installed command such as `rmmdet`; arguments
+    quoted as the shell needs them (a `--label` with spaces)."""
     argv = list(sys.argv if argv is None else argv)
     prog = Path(argv[0])
     name = prog.name
@@ -38,7 +40,7 @@ def invocation(argv: Sequence[str] | None = None) -> str:
         else:
             module = ".".join(rel.with_suffix("").parts).removesuffix(".__main__")
             name = f"python -m {module}"
-    return " ".join([name, *argv[1:]])
+    return " ".join([name, shlex.join(argv[1:])]) if argv[1:] else name
 
 
 #: What the generators themselves write (results and pages): a change there does not make a run "+dirty".

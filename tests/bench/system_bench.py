@@ -2,6 +2,7 @@
 
     python -m tests.bench.system_bench [--minutes 10] [--warmup-s 60] [--speed 1] [--record-s 120]
                                        [--label TEXT] [--readme]
+    python -m tests.bench.system_bench --render-only    # the docs' table again from the results file
 
 Starts the system with `make up` (refuses if it is already up), lets it settle `--warmup-s`, then
 measures for `--minutes` and stops it with `make down`. The judge of every performance change: a
@@ -484,12 +485,18 @@ def fmt(v: Any, digits: int = 0) -> str:
     return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}f}"
 
 
+def cpu_name(machine: dict[str, Any]) -> str:
+    """The run's CPU model, short (runs on different hosts are not comparable: the VM's CPU changed)."""
+    model = str(machine.get("cpu_model", "–"))
+    return " ".join(model.replace("(R)", "").replace("(TM)", "").removesuffix(" Processor").split())
+
+
 def readme_table(runs: list[dict[str, Any]]) -> str:
     lines = [
         "| run (label, commit) | speed | RTF | CPU cores | health OK probes | FULL % (a1/a2/a3) "
         "| all LIVE % | objects Hz sim (a1/a2/a3) | sensor→objects p50/p95 ms | objects→map p95 ms "
-        "| objects→plan p95 ms (plans) | other load (cores) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| objects→plan p95 ms (plans) | other load (cores) | host CPU |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for run in runs:
         r = run["result"]
@@ -509,7 +516,8 @@ def readme_table(runs: list[dict[str, Any]]) -> str:
             f" | {' / '.join(fmt(x.get('sim_p50_ms')) + '/' + fmt(x.get('sim_p95_ms')) for x in lat)}"
             f" | {fmt(coord.get('objects_to_map', {}).get('sim_p95_ms'))}"
             f" | {fmt(plan_latency(coord).get('sim_p95_ms'))} ({plan_latency(coord).get('count', 0)})"
-            f" | {fmt(r.get('host', {}).get('other_cpu_cores'), 2)} |"
+            f" | {fmt(r.get('host', {}).get('other_cpu_cores'), 2)}"
+            f" | {cpu_name(run.get('machine', {}))} |"
         )
     # The CPU budget table is the default `make up`'s: the newest run at 1x without a recording or a
     # view client.
@@ -627,7 +635,15 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--out", type=Path, default=RESULTS)
     parser.add_argument("--readme", action="store_true", help="rewrite the README's system table")
+    parser.add_argument(
+        "--render-only",
+        action="store_true",
+        help="run nothing: rewrite the docs' system table from the results file (--out)",
+    )
     args = parser.parse_args(argv)
+    if args.render_only:
+        replace_section("system-bench", readme_table(json.loads(args.out.read_text())["runs"]))
+        return 0
     commit = git_commit()  # of the code `make up` starts (commits made while it runs are not in it)
     result = run(args)
     passed = acceptance(result)

@@ -32,6 +32,10 @@ def test_the_command_is_named_as_a_user_types_it() -> None:
     assert invocation(["/x/.venv/bin/rmmdet", "experiments", "city", "--readme"]) == (
         "rmmdet experiments city --readme"
     )
+    assert invocation([script, "--label", "run 2 (quiet)"]) == (
+        "python -m tests.bench.city_bench --label 'run 2 (quiet)'"
+    )
+    assert invocation([script]) == "python -m tests.bench.city_bench"
 
 
 def test_every_generated_section_names_its_command_and_commit() -> None:
