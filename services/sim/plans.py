@@ -40,7 +40,7 @@ from shared.bus.streams import get_stream
 from shared.security.identities import vehicle_identity
 from shared.shutdown import GracefulShutdown
 from shared.traffic.plans import Ack
-from shared.vehicle.plan_client import Outcome, PlanCheck, PlanExpiry, RequestRetry, VehicleLink
+from shared.vehicle.plan_client import JoinAsks, Outcome, PlanCheck, PlanExpiry, RequestRetry, VehicleLink
 from sim.traffic import TrafficSim, Vehicle
 
 log = logging.getLogger("services.sim.plans")
@@ -97,6 +97,7 @@ class PlanClient:
             get_stream("alive").pattern(scope="cloud", service=names.COORDINATOR), hold_leaves=False
         )
         self.retry = RequestRetry()
+        self.join_asks = JoinAsks()
         self._by_id = {v.id: v for v in traffic.vehicles}
         # Each vehicle's last plan end (plan id, status), repeated in its requests (`ended_plan_id`).
         self._ended: dict[str, tuple[str, Ack]] = {}
@@ -138,6 +139,8 @@ class PlanClient:
         # The coordinator declares its token once its route RPC answers (services/coordinator/main.py).
         if any(alive for _, alive in self.coordinators.changes()):
             self.counters.inc("plans/coordinator_joined")
+            self.join_asks.joined()
+        if self.join_asks.due(now_s):
             for v in self.traffic.vehicles:
                 v.ask_now = True
         for v in self.traffic.vehicles:

@@ -118,6 +118,28 @@ class RequestRetry:
         return out
 
 
+class JoinAsks:
+    """When every vehicle asks again because a coordinator's presence token appeared: at once for a join
+    after a quiet `min_interval_s`, else once that interval after the last ask-all. A token that flaps (a
+    forger declaring and dropping one, a link bouncing) then costs one round of requests per interval,
+    not one per sim tick. Monotonic seconds."""
+
+    def __init__(self, min_interval_s: float = 1.0) -> None:
+        self.min_interval_s = min_interval_s
+        self._last_s: float | None = None
+        self._pending = False
+
+    def joined(self) -> None:
+        self._pending = True
+
+    def due(self, now_s: float) -> bool:
+        """True when every vehicle should ask now (then not again before `min_interval_s`)."""
+        if not self._pending or (self._last_s is not None and now_s - self._last_s < self.min_interval_s):
+            return False
+        self._pending, self._last_s = False, now_s
+        return True
+
+
 class VehicleLink:
     """One vehicle's route RPC querier, pushed-plan subscription and ack publisher on `node`. Replies
     (`Outcome`s, checked by `check`) go to `outcomes`; pushed plans (unchecked: `PlanCheck.accept`

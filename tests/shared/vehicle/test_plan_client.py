@@ -131,3 +131,21 @@ def test_an_unanswered_request_is_asked_again_with_backoff_until_answered() -> N
     assert retry.unanswered("v01", now_s=21.5) and retry.unanswered("v01", now_s=24.0)
     assert not retry.unanswered("v01", now_s=30.0)  # a fourth in a row: given up (counted)
     assert retry.due(100.0) == []
+
+
+def test_a_flapping_coordinator_token_asks_every_vehicle_once_per_interval() -> None:
+    """A join after a quiet interval: every vehicle asks at once; joins repeated within it (a forged
+    token declared and dropped three times, a bouncing link) make one more round at the interval's end."""
+    from shared.vehicle.plan_client import JoinAsks
+
+    asks = JoinAsks(min_interval_s=1.0)
+    assert not asks.due(0.0)  # nobody joined
+    asks.joined()
+    assert asks.due(10.0) and not asks.due(10.0)
+    for t in (10.2, 10.4, 10.6):
+        asks.joined()
+        assert not asks.due(t)
+    assert not asks.due(10.99)
+    assert asks.due(11.0) and not asks.due(11.5)
+    asks.joined()
+    assert not asks.due(11.9) and asks.due(12.0)
