@@ -642,6 +642,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     if args.render_only:
+        if not args.out.is_file():
+            parser.error(f"--render-only: no results file {args.out}")
         replace_section("system-bench", readme_table(json.loads(args.out.read_text())["runs"]))
         return 0
     commit = git_commit()  # of the code `make up` starts (commits made while it runs are not in it)
