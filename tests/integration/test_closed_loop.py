@@ -9,6 +9,7 @@ RMMDET_COORD_REPLAN_INTERVAL_S), and the vehicles acknowledge them.
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import threading
@@ -22,6 +23,7 @@ from rmmdet.v1.planning_pb2 import AckStatus
 from shared.bus.node import Node
 from shared.bus.streams import get_stream
 from shared.supervision.verdict import query_health
+from shared.vehicle.plan_client import JoinAsks
 from tests.helpers import Router, spawn, stop, wait_until
 from tests.integration.coordinator_client import coordinator_counters, coordinator_health, counters
 
@@ -37,6 +39,7 @@ PUSH_WITHIN_S = 10.0 * SCALE
 MEC_AGENT = "agent3"  # the roundabout: most routes pass it
 REPLANNED_WITHIN_S = 2.0 * SCALE
 COORDINATOR_DOWN_S = 10.0
+JOIN_ASK_INTERVAL_S = JoinAsks().min_interval_s
 
 
 @dataclass
@@ -167,3 +170,37 @@ def test_a_restarted_coordinator_serves_every_vehicle_at_once(loop) -> None:
         f"the sim's plan counters {sim_plans}"
     )
     assert took <= REPLANNED_WITHIN_S
+
+
+def sim_counter(node: Node, name: str) -> int:
+    reports, _ = query_health(node.session)
+    return sum(c.value for r in reports if r.service == "sim" for c in r.counters if c.name == name)
+
+
+def test_a_flapping_forged_coordinator_token_costs_one_round_of_requests_per_second(loop) -> None:
+    """A coordinator's token makes every vehicle ask at once (R3). Forged and flapped (declared and
+    dropped every 0.1 s, three bursts in a few seconds; on a site without ACL anyone may declare it), it
+    must not have every vehicle ask on every sim tick: one round per second at most, and every vehicle
+    keeps following its plan."""
+    _router, node, bus, _procs = loop
+    every = int(VEHICLES)
+    wait_until(lambda: len(bus.vehicles_following()) == every, STARTUP_S, "a plan for every vehicle")
+    forged = get_stream("alive").key(scope="cloud", service="coordinator", instance="forged")
+    requested0, joined0 = sim_counter(node, "plans/requested"), sim_counter(node, "plans/coordinator_joined")
+    t0 = time.monotonic()
+    for _burst in range(3):
+        for _flap in range(10):
+            token = node.session.liveliness().declare_token(forged)
+            time.sleep(0.05)
+            token.undeclare()
+            time.sleep(0.05)
+        time.sleep(1.0)
+    elapsed_s = time.monotonic() - t0
+    requested = sim_counter(node, "plans/requested") - requested0
+    joined = sim_counter(node, "plans/coordinator_joined") - joined0
+    rounds = math.ceil(elapsed_s / JOIN_ASK_INTERVAL_S) + 1
+    print(f"forged token flapped 30 times in {elapsed_s:.1f} s: {joined} joins seen, {requested} requests")
+    assert joined >= 3, "the forged joins reached the sim"
+    # At most one round per interval, plus each vehicle's own per-lane requests meanwhile (< 1 per s).
+    assert requested <= every * (rounds + math.ceil(elapsed_s)), requested
+    assert len(bus.vehicles_following()) == every
