@@ -75,17 +75,17 @@ def birds_eye(scene: Scene, vehicles: list[tuple[str, float, float, float]] | No
     """BGR top-down map; `vehicles` = (id, x_m, y_m, yaw_rad) to draw."""
     px = TablePixels.of(scene)
     img = cv2.cvtColor(road_texture(scene, PX_PER_M), cv2.COLOR_RGB2BGR)
-    road = scene.spec.road
+    deck = None if scene.spec.road is None else scene.spec.road.deck
     for lane in scene.spec.lanes:  # the viaduct deck (not in the ground texture) and lane directions
         pts = np.asarray(scene.lane_centreline(lane.id))
-        deck = pts[:, 2] > road.elevated_min_z_m
-        if deck.any():
+        on_deck = pts[:, 2] > deck.min_z_m if deck is not None else np.zeros(len(pts), bool)
+        if deck is not None and on_deck.any():
             cv2.polylines(
                 img,
-                [px(pts[deck]).astype(np.int32)],
+                [px(pts[on_deck]).astype(np.int32)],
                 False,
                 (150, 158, 158),
-                round(road.deck_width_m * PX_PER_M),
+                round(deck.width_m * PX_PER_M),
             )
         s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts[:, :2], axis=0), axis=1))])
         for at in np.arange(ARROW_EVERY_M / 2, s[-1], ARROW_EVERY_M):

@@ -81,6 +81,8 @@ def road_texture(scene: Scene, px_per_m: float = TEXTURE_PX_PER_M) -> np.ndarray
         return np.round(np.column_stack([cols, rows]) * 4).astype(np.int32)  # 2 fractional bits
 
     road = scene.spec.road
+    if road is None:  # a site without a lane map: bare ground
+        return img
     width_px = max(1, round(road.lane_width_m * px_per_m))
     for lane in scene.spec.lanes:
         pts = np.asarray(scene.lane_centreline(lane.id))
@@ -238,6 +240,9 @@ class StaticWorld(_Client):
 
     def _build_viaduct(self) -> None:
         road = self.scene.spec.road
+        if road is None or road.deck is None:
+            return
+        deck = road.deck
         for lane in self.scene.spec.lanes:
             pts = np.asarray(self.scene.lane_centreline(lane.id))
             elevated = pts[:, 2] > road.elevated_min_z_m
@@ -258,17 +263,17 @@ class StaticWorld(_Client):
                 quat = quat_from_rpy(0.0, pitch, yaw)
                 rot = Rotation.from_quat(quat)
                 # The deck's top face is the road surface: centre sits half a thickness below it.
-                centre = (pa + pb_) / 2 + rot.apply([0, 0, -road.deck_thickness_m / 2])
-                half = [length / 2 + 0.01, road.deck_width_m / 2, road.deck_thickness_m / 2]
+                centre = (pa + pb_) / 2 + rot.apply([0, 0, -deck.thickness_m / 2])
+                half = [length / 2 + 0.01, deck.width_m / 2, deck.thickness_m / 2]
                 self.body_kind[_box(self.cid, centre.tolist(), half, quat, DECK_RGBA)] = "viaduct"
-            pillar_marks = np.arange(s[first] + road.pillar_spacing_m / 2, s[last], road.pillar_spacing_m)
+            pillar_marks = np.arange(s[first] + deck.pillar_spacing_m / 2, s[last], deck.pillar_spacing_m)
             for m in pillar_marks:
                 p = np.array([np.interp(m, s, pts[:, k]) for k in range(3)])
                 if p[2] < PILLAR_MIN_Z_M:
                     continue
-                height = p[2] - road.deck_thickness_m
+                height = p[2] - deck.thickness_m
                 self.body_kind[
-                    _cylinder(self.cid, [p[0], p[1], 0.0], road.pillar_radius_m, height, PILLAR_RGBA)
+                    _cylinder(self.cid, [p[0], p[1], 0.0], deck.pillar_radius_m, height, PILLAR_RGBA)
                 ] = "pillar"
 
     def _build_static_objects(self) -> None:

@@ -222,15 +222,35 @@ class AgentSpec(_Strict):
     )
 
 
+class DeckSpec(_Strict):
+    """An elevated deck (the sand table's viaduct): where lanes leave the ground."""
+
+    min_z_m: float = Field(ge=0, description="lane points above this are on the deck")
+    width_m: float = Field(gt=0)
+    thickness_m: float = Field(gt=0)
+    pillar_spacing_m: float = Field(gt=0)
+    pillar_radius_m: float = Field(gt=0)
+
+
 class RoadSpec(_Strict):
-    lane_width_m: float = Field(0.3, gt=0)
-    corner_radius_m: float = Field(0.4, ge=0, description="default fillet radius of lane corners")
-    sample_step_m: float = Field(0.02, gt=0, description="resampling step of lane centrelines")
-    deck_width_m: float = Field(0.34, gt=0, description="viaduct deck width")
-    deck_thickness_m: float = Field(0.04, gt=0)
-    elevated_min_z_m: float = Field(0.02, ge=0, description="lane points above this are on the deck")
-    pillar_spacing_m: float = Field(1.0, gt=0)
-    pillar_radius_m: float = Field(0.03, gt=0)
+    """Road geometry of a site with a lane map, in the scene's metres (no defaults: a default would be
+    one site's size)."""
+
+    lane_width_m: float = Field(gt=0)
+    corner_radius_m: float = Field(ge=0, description="default fillet radius of lane corners")
+    sample_step_m: float = Field(gt=0, description="resampling step of lane centrelines")
+    deck: DeckSpec | None = Field(None, description="an elevated deck; None: every lane on the ground")
+    design_speed_mps: float | None = Field(
+        None,
+        gt=0,
+        description="the site's top speed where no lane gives one (a site without a lane map): the "
+        "characteristic speed of its scale (shared/scene/scale.py)",
+    )
+
+    @property
+    def elevated_min_z_m(self) -> float:
+        """Lane points above this are on the deck (infinite without a deck)."""
+        return math.inf if self.deck is None else self.deck.min_z_m
 
 
 class VehicleSpec(_Strict):
@@ -271,7 +291,7 @@ class SceneSpec(_Strict):
     scene_id: Id
     description: str = ""
     table: TableSpec
-    road: RoadSpec = RoadSpec()
+    road: RoadSpec | None = Field(None, description="road geometry; required with a lane map")
     vehicle: VehicleSpec
     static_objects: list[StaticObjectSpec] = Field(default_factory=list)
     junctions: list[JunctionSpec] = Field(default_factory=list)
@@ -279,6 +299,15 @@ class SceneSpec(_Strict):
     areas: list[AreaSpec] = Field(default_factory=list)
     agents: list[AgentSpec] = Field(default_factory=list)
     sensors: list[SensorSpec] = Field(default_factory=list)
+
+    @property
+    def top_speed_mps(self) -> float:
+        """The site's characteristic speed: its highest lane speed limit, else `road.design_speed_mps`."""
+        if self.lanes:
+            return max(lane.speed_limit_mps for lane in self.lanes)
+        if self.road is not None and self.road.design_speed_mps is not None:
+            return self.road.design_speed_mps
+        raise ValueError(f"scene {self.scene_id}: no lanes and no road.design_speed_mps: its top speed is unknown")
 
     @model_validator(mode="after")
     def _references(self) -> SceneSpec:
@@ -294,6 +323,8 @@ class SceneSpec(_Strict):
             dupes = sorted({i for i in ids if ids.count(i) > 1})
             if dupes:
                 raise ValueError(f"duplicate {what} ids: {dupes}")
+        if self.lanes and self.road is None:
+            raise ValueError("a scene with lanes needs a `road` block (lane width, corner radius, sample step)")
         numbers = [j.number for j in self.junctions]
         if len(set(numbers)) != len(numbers):
             raise ValueError("duplicate junction numbers")

@@ -107,7 +107,7 @@ class RoadNetwork:
 
     def __init__(self, scene: Scene) -> None:
         self.scene = scene
-        step = scene.spec.road.sample_step_m
+        step = scene.road.sample_step_m
         self.lanes: dict[str, Path] = {
             lane.id: Path(lane.id, np.asarray(scene.lane_centreline(lane.id)), lane_id=lane.id)
             for lane in scene.spec.lanes

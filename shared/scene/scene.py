@@ -33,6 +33,7 @@ from shared.scene.model import (
     AreaSpec,
     JunctionSpec,
     LaneSpec,
+    RoadSpec,
     SceneSpec,
     SensorKindName,
     SensorSpec,
@@ -75,6 +76,13 @@ class Scene:
     @property
     def scene_id(self) -> str:
         return self.spec.scene_id
+
+    @property
+    def road(self) -> RoadSpec:
+        """The road block; ValueError for a site without one (no lane map)."""
+        if self.spec.road is None:
+            raise ValueError(f"scene {self.scene_id} has no road (no lane map)")
+        return self.spec.road
 
     def table_grid(self, cell_m: float) -> CellGrid:
         """Square cells of `cell_m` over the whole table (the last row / column may overhang it)."""
@@ -206,8 +214,8 @@ class Scene:
     def lane_centreline(self, lane_id: str) -> FloatArray:
         """Rounded, resampled centreline (N, 3) of a lane in driving direction."""
         lane = self.lanes[lane_id]
-        radius = lane.corner_radius_m if lane.corner_radius_m is not None else self.spec.road.corner_radius_m
-        pts = centreline(lane.points_m, radius, self.spec.road.sample_step_m)
+        radius = lane.corner_radius_m if lane.corner_radius_m is not None else self.road.corner_radius_m
+        pts = centreline(lane.points_m, radius, self.road.sample_step_m)
         pts.setflags(write=False)
         return pts
 
