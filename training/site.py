@@ -107,7 +107,7 @@ def train_lidar(
     import torch
 
     from shared.detection.lidar.pointpillars.onnx_detector import OnnxPointPillars
-    from training.pointpillars.data import read_split
+    from training.pointpillars.data import read_split, with_mean_size
     from training.pointpillars.evaluation import accuracy
     from training.pointpillars.export import export_onnx
     from training.pointpillars.quantize import KEEP_FLOAT, OP_TYPES
@@ -121,6 +121,7 @@ def train_lidar(
     if not train_frames:
         raise FileNotFoundError(f"{data}: no training frames")
     out.mkdir(parents=True, exist_ok=True)
+    config = with_mean_size(config, train_frames)
     model, history = train(config, train_frames, val_frames, out)
     fp32 = out / LIDAR_ONNX
     example = next((f.points for f in train_frames if len(f.points)), None)

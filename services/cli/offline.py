@@ -263,8 +263,10 @@ def eval_detectors(
     onnxruntime threads, pre/post-processing included)."""
     from shared.datasets.layout import SPLITS, DatasetLayout
     from shared.detection import evaluate as ev
+    from shared.detection.lidar.cluster import ClusterLidarConfig
     from shared.detection.registry import camera_detector, lidar_detector
     from shared.metrics.detection import RecallSampling
+    from studies.dataset.generate import dataset_scene
 
     layout = DatasetLayout(data)
     if not layout.manifest.exists():
@@ -288,11 +290,14 @@ def eval_detectors(
             for t in (1, 2)
         }
         results["camera"].append(result)
+    # The cluster detector at the dataset's scene: its vehicle and scale (agent frames: lidars at the origin).
+    cluster = ClusterLidarConfig.for_scene(dataset_scene(layout).spec)
     for name in lidar if lidar is not None else ["pointpillars", "cluster", "oracle"]:
         sampling = cast(RecallSampling, recall_sampling)  # checked above
-        result = ev.evaluate_lidar(lidar_detector(name), layout, split, limit, sampling)
+        result = ev.evaluate_lidar(lidar_detector(name, cluster=cluster), layout, split, limit, sampling)
         result["latency_ms"] = {
-            f"{t}_threads": ev.lidar_latency(lidar_detector(name, threads=t), lidar_samples) for t in (1, 2)
+            f"{t}_threads": ev.lidar_latency(lidar_detector(name, threads=t, cluster=cluster), lidar_samples)
+            for t in (1, 2)
         }
         results["lidar"].append(result)
     table = Table(title=f"detectors on {data} / {split}")

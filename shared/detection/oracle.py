@@ -28,6 +28,7 @@ no false positives, score 1): configure the noise you want to simulate.
 from __future__ import annotations
 
 import math
+from typing import Annotated
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -40,9 +41,8 @@ from shared.detection.interface import (
     empty_camera_detections,
     empty_lidar_detections,
 )
-from shared.scene.scene import vehicle_size_m as scene_vehicle_size_m
+from shared.scene.scale import LENGTH, Length, from_scene
 
-# Default vehicle size (AWS Deepracer, 1:18): length, width, height, metres.
 BOX3D_COLUMNS = 7
 BOX2D_COLUMNS = 4
 
@@ -79,19 +79,19 @@ class ScoreModel(_Config):
 class OracleLidarConfig(_Config):
     """Error model of `OracleLidarDetector` (metres, radians, agent frame)."""
 
-    position_noise_m: float = Field(0.0, ge=0.0, description="Gaussian sigma of each centre coordinate, m")
-    size_noise_m: float = Field(0.0, ge=0.0, description="Gaussian sigma of each box size dx, dy, dz, m")
-    min_size_m: float = Field(0.01, gt=0.0, description="noisy sizes are clipped to at least this, m")
+    position_noise_m: Length = Field(0.0, ge=0.0, description="Gaussian sigma of each centre coordinate, m")
+    size_noise_m: Length = Field(0.0, ge=0.0, description="Gaussian sigma of each box size dx, dy, dz, m")
+    min_size_m: Length = Field(0.01, gt=0.0, description="noisy sizes are clipped to at least this, m")
     yaw_noise_rad: float = Field(0.0, ge=0.0, description="Gaussian sigma of the yaw, rad (not re-wrapped)")
     detection_probability: float = Field(1.0, ge=0.0, le=1.0, description="chance a true box is reported")
     false_positives_per_frame: float = Field(0.0, ge=0.0, description="Poisson mean of false positives")
-    fp_region_m: tuple[float, float, float, float] = Field(
+    fp_region_m: Annotated[tuple[float, float, float, float], LENGTH] = Field(
         (-3.0, -3.0, 3.0, 3.0), description="x_min, y_min, x_max, y_max of false-positive centres, m"
     )
-    fp_size_m: tuple[float, float, float] = Field(
-        default_factory=scene_vehicle_size_m,
-        description="dx, dy, dz of false positives, m (default: the scene's vehicle; they stand on the "
-        "table, z = dz / 2)",
+    fp_size_m: Annotated[tuple[float, float, float] | None, from_scene("the scene's vehicle")] = Field(
+        None,
+        description="dx, dy, dz of false positives, m (the MEC sets the scene's vehicle; needed with false "
+        "positives); they stand on the ground, z = dz / 2",
     )
     tp_score: ScoreModel = Field(ScoreModel(), description="scores of detected true boxes")
     fp_score: ScoreModel = Field(ScoreModel(mean=0.5, std=0.15), description="scores of false positives")
@@ -101,7 +101,10 @@ class OracleLidarConfig(_Config):
         x0, y0, x1, y1 = self.fp_region_m
         if not (x0 < x1 and y0 < y1):
             raise ValueError(f"fp_region_m must have x_min < x_max and y_min < y_max, got {self.fp_region_m}")
-        if min(self.fp_size_m) <= 0.0:
+        if self.fp_size_m is None:
+            if self.false_positives_per_frame > 0.0:
+                raise ValueError("false positives need fp_size_m (the scene's vehicle)")
+        elif min(self.fp_size_m) <= 0.0:
             raise ValueError(f"fp_size_m must be positive, got {self.fp_size_m}")
         return self
 
@@ -188,6 +191,8 @@ class OracleLidarDetector:
         cfg = self.config
         rng = self._rng
         n = int(rng.poisson(cfg.false_positives_per_frame))
+        if n == 0 or cfg.fp_size_m is None:  # the config requires a size whenever the rate is positive
+            return np.zeros((0, 9))
         x0, y0, x1, y1 = cfg.fp_region_m
         dx, dy, dz = cfg.fp_size_m
         rows = np.column_stack(

@@ -13,12 +13,17 @@ loads the others' libraries.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from shared.detection.camera.config import CARD_FILE, ONNX_FILE
 from shared.detection.card import is_card
 from shared.detection.interface import CameraDetector, LidarDetector
 from shared.detection.precision import model_file
 from shared.paths import DEPLOY_DIR
+
+if TYPE_CHECKING:
+    from shared.detection.lidar.cluster import ClusterLidarConfig
+    from shared.detection.oracle import OracleLidarConfig
 
 MODELS_DIR = DEPLOY_DIR / "models"
 CAMERA_DETECTORS = ("onnx", "oracle")
@@ -65,8 +70,16 @@ def camera_detector(
 
 
 def lidar_detector(
-    name: str, threads: int = 1, seed: int = 0, models_dir: Path = MODELS_DIR, precision: str = "fp32"
+    name: str,
+    threads: int = 1,
+    seed: int = 0,
+    models_dir: Path = MODELS_DIR,
+    precision: str = "fp32",
+    cluster: ClusterLidarConfig | None = None,
+    oracle: OracleLidarConfig | None = None,
 ) -> LidarDetector:
+    """`cluster` is required for the cluster detector (its settings at the site's scale, with the
+    scene's vehicle and lidars: `MecSettings.for_site`); `oracle` configures the oracle."""
     if name == "pointpillars" or is_card(name):
         if name == "pointpillars":
             learned_model(models_dir, LIDAR_MODEL, precision)  # names the tool that writes a missing one
@@ -78,11 +91,13 @@ def lidar_detector(
     if name == "cluster":
         from shared.detection.lidar.cluster import ClusterLidarDetector
 
-        return ClusterLidarDetector()
+        if cluster is None:
+            raise ValueError("the cluster detector needs its settings for the site (the scene's vehicle)")
+        return ClusterLidarDetector(cluster)
     if name == "oracle":
         from shared.detection.oracle import OracleLidarDetector
 
-        return OracleLidarDetector(seed=seed)
+        return OracleLidarDetector(oracle, seed=seed)
     raise ValueError(f"unknown lidar detector {name!r}: expected one of {LIDAR_DETECTORS} or a card (.yaml)")
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
 from numpy.typing import NDArray
@@ -20,6 +21,7 @@ from shared.geometry.boxes import box2d_centres
 from shared.geometry.camera import pixel_rays
 from shared.perception.radar_camera import camera_position_cov, fuse_positions
 from shared.perception.views import CameraView, RoadSurface
+from shared.scene.scale import Length, from_scene
 
 FloatArray = NDArray[np.float64]
 
@@ -27,11 +29,11 @@ FloatArray = NDArray[np.float64]
 class CameraOnlyConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    car_size_m: tuple[float, float, float] | None = Field(
+    car_size_m: Annotated[tuple[float, float, float] | None, from_scene("the scene's vehicle")] = Field(
         None,
         description="length, width, height given to camera-only and radar objects (default: the scene's car)",
     )
-    merge_radius_m: float = Field(
+    merge_radius_m: Length = Field(
         0.2, gt=0, description="positions of one car from several cameras merge within this"
     )
     pixel_std_px: float = Field(2.1, gt=0, description="box-centre noise, px (at fx 353 px)")
@@ -41,7 +43,7 @@ class CameraOnlyConfig(BaseModel):
     border_margin_px: float = Field(
         2.0, ge=0, description="boxes touching the border are skipped (centre is cut)"
     )
-    max_fit_shift_m: float = Field(
+    max_fit_shift_m: Length = Field(
         0.3, gt=0, description="the box fit may move the ray-cast position at most this far (else kept)"
     )
     min_cameras_with_range: int = Field(

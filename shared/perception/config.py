@@ -8,9 +8,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from shared.config import RmmdetSettings, settings_config
+from shared.config import RmmdetSettings, settings_config, with_overrides
+from shared.datasets.layout import agent_origin_m
+from shared.detection.lidar.cluster import ClusterLidarConfig
+from shared.detection.oracle import OracleLidarConfig
 from shared.detection.precision import Precision
 from shared.paths import REPO_ROOT
 from shared.perception.camera_only import CameraOnlyConfig
@@ -18,6 +22,8 @@ from shared.perception.lidar_camera import LidarCameraConfig
 from shared.perception.lidar_preprocess import LidarPreprocessConfig
 from shared.perception.radar_camera import RadarCameraConfig
 from shared.scene.cadence import MAX_EVERY_N
+from shared.scene.scale import Length, SiteScale, at_scale
+from shared.scene.scene import Scene
 from shared.tracking.tracker import TrackerConfig
 
 DEFAULT_MEC_CONFIG = REPO_ROOT / "deploy" / "mec" / "mec.yaml"
@@ -63,6 +69,13 @@ class DetectorsConfig(_Model):
         "merged",
         pattern="^(merged|preprocessed)$",
         description="cloud given to the 3D detector: merged (PointPillars was trained on it) or preprocessed",
+    )
+    cluster: ClusterLidarConfig = Field(
+        default_factory=ClusterLidarConfig,
+        description="the `cluster` lidar detector (its vehicle prior and lidar positions from the scene)",
+    )
+    oracle_lidar: OracleLidarConfig = Field(
+        default_factory=OracleLidarConfig, description="the `oracle` lidar detector's error model"
     )
 
 
@@ -117,11 +130,46 @@ class MecSettings(RmmdetSettings):
     tracker: TrackerConfig = TrackerConfig()
     sync: SyncConfig = SyncConfig()
     health: HealthConfig = HealthConfig()
-    surface_half_width_m: float = Field(
+    surface_half_width_m: Length = Field(
         0.2, gt=0, description="road-surface lookup radius around lane samples"
+    )
+    surface_sample_step_m: Length = Field(
+        0.05, gt=0, description="lane centrelines (or a site's bare ground) are sampled at this spacing"
+    )
+    lidar_position_std_m: Length = Field(
+        0.02, gt=0, description="per-axis noise of a lidar box centre given to the tracker (PointPillars)"
     )
     score_calibration: Path | None = Field(
         DEFAULT_SCORE_CALIBRATION,
         description="calibrated-confidence tables (JSON, shared/perception/confidence.py); null: raw scores",
     )
     report_interval_s: float = Field(10.0, gt=0, description="log interval of rates and counters")
+
+    def for_site(self, scene: Scene, agent_id: str) -> MecSettings:
+        """These settings for one agent of `scene`: every scaled default at the scene's scale
+        (shared/scene/scale.py), and what the scene says filled in: the vehicle prior of the cluster
+        detector, of the oracle's false positives and of camera-only objects, the agent's lidar positions
+        (agent frame) and their reach. Building them again changes nothing."""
+        settings = at_scale(self, SiteScale.of(scene.spec))
+        car = scene.spec.vehicle.size_m
+        det = settings.detectors
+        cluster = det.cluster
+        lidars = scene.sensors_of(agent_id, "lidar")
+        cluster_fill: dict[str, object] = {"vehicle_size_m": cluster.vehicle_size_m or car}
+        if lidars and "sensor_xy_m" not in cluster.model_fields_set:
+            origin = agent_origin_m(scene, agent_id)
+            xy = [np.asarray(scene.T_world_from_sensor(s.id))[:2, 3] - origin[:2] for s in lidars]
+            cluster_fill["sensor_xy_m"] = tuple((float(x), float(y)) for x, y in xy)
+            reach_m = max(s.lidar.max_range_m for s in lidars if s.lidar is not None)
+            cluster_fill["max_range_m"] = min(cluster.max_range_m, reach_m)  # no farther than any lidar sees
+        oracle = det.oracle_lidar
+        return with_overrides(
+            settings,
+            {
+                "detectors": {
+                    "cluster": cluster_fill,
+                    "oracle_lidar": {"fp_size_m": oracle.fp_size_m or car},
+                },
+                "camera_only": {"car_size_m": settings.camera_only.car_size_m or car},
+            },
+        )

@@ -146,6 +146,7 @@ class MecCore:
         if unknown:
             raise ValueError(f"{sorted(unknown)} are not sensors of {agent_id}")
         self.agent_id = agent_id
+        settings = settings.for_site(scene, agent_id)  # at the scene's scale, its sizes filled in
         self.settings = settings
         self.kinds = {s.id: s.kind for s in specs}
         self._scene, self._specs = scene, specs

@@ -49,7 +49,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 import open3d as o3d
@@ -60,6 +60,7 @@ from scipy import ndimage
 from shared.datasets.layout import MIN_LIDAR_POINTS, agent_origin_m
 from shared.detection.lidar.ground import SEARCH, SlabSearch, Verdict, above_table, peel_slabs
 from shared.geometry._validate import rigid_transform
+from shared.scene.scale import LENGTH, Length
 from shared.scene.scene import Scene
 
 FloatArray = NDArray[np.float64]
@@ -86,10 +87,10 @@ class LidarPreprocessConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     # crop
-    crop_min_m: tuple[float, float, float] | None = Field(
+    crop_min_m: Annotated[tuple[float, float, float] | None, LENGTH] = Field(
         None, description="lower x, y, z corner of the kept box, m, agent frame (None, with crop_max_m: off)"
     )
-    crop_max_m: tuple[float, float, float] | None = Field(
+    crop_max_m: Annotated[tuple[float, float, float] | None, LENGTH] = Field(
         None, description="upper x, y, z corner of the kept box, m, agent frame (None, with crop_min_m: off)"
     )
     # statistical outlier removal
@@ -108,8 +109,8 @@ class LidarPreprocessConfig(BaseModel):
     )
     # table
     remove_table: bool = Field(True, description="remove table points by height")
-    table_z_m: float = Field(0.0, description="table surface height in the agent frame, m")
-    table_tolerance_m: float = Field(
+    table_z_m: Length = Field(0.0, description="table surface height in the agent frame, m")
+    table_tolerance_m: Length = Field(
         0.02,
         ge=0.0,
         description="points up to this above the table are table, m (simulated table returns reach "
@@ -117,13 +118,13 @@ class LidarPreprocessConfig(BaseModel):
     )
     # viaduct deck
     remove_deck: bool = Field(True, description="remove the viaduct deck (and ramps) found by RANSAC")
-    deck_cluster_cell_m: float = Field(
+    deck_cluster_cell_m: Length = Field(
         0.1,
         gt=0.0,
         description="BEV grid cell of the clusters searched for a deck, m (cells touching by an edge or a "
         "corner join); larger joins more of a sparse far deck, and more vehicles on it",
     )
-    deck_min_extent_m: float = Field(
+    deck_min_extent_m: Length = Field(
         0.6,
         gt=0.0,
         description="only clusters whose BEV bounding box is longer than this are searched, m "
@@ -136,7 +137,7 @@ class LidarPreprocessConfig(BaseModel):
         "deck: 0.4 m)",
     )
     # voxel subsampling
-    voxel_size_m: float = Field(
+    voxel_size_m: Length = Field(
         0.0, ge=0.0, description="voxel edge, m; keeps the point nearest each voxel's centroid (0: off)"
     )
 

@@ -44,8 +44,6 @@ from shared.tracking.track_table import Track
 from shared.tracking.tracker import MultiObjectTracker
 
 FloatArray = NDArray[np.float64]
-# Per-axis position noise of a lidar box centre (PointPillars on the table), m.
-LIDAR_POSITION_STD_M = 0.02
 
 
 @dataclass
@@ -81,11 +79,12 @@ class AgentResult:
 
 
 def lidar_measurement(
-    box: FloatArray, score: float, modalities: frozenset[str], sensors: tuple[str, ...]
+    box: FloatArray, score: float, modalities: frozenset[str], sensors: tuple[str, ...], position_std_m: float
 ) -> Measurement:
+    """A lidar box as a tracker measurement; `position_std_m`: per-axis noise of its centre, m."""
     return Measurement(
         position_m=np.asarray(box[:2], float),
-        position_cov_m2=np.eye(2) * LIDAR_POSITION_STD_M**2,
+        position_cov_m2=np.eye(2) * position_std_m**2,
         z_m=float(box[2]),
         size_m=np.asarray(box[3:6], float),
         yaw_rad=float(box[6]),
@@ -126,6 +125,7 @@ class AgentPipeline:
         sensor_ids: Collection[str] | None = None,
     ) -> None:
         """`sensor_ids`: fuse only these of the agent's sensors (default all; tests, partial sites)."""
+        settings = settings.for_site(scene, agent_id)  # the scene's scale and sizes (idempotent)
         self.scene = scene
         self.agent_id = agent_id
         self.cfg = settings
@@ -134,9 +134,10 @@ class AgentPipeline:
         self.lidar_ids = [s.id for s in specs if s.kind == "lidar"]
         self.radar_specs = [s for s in specs if s.kind == "radar"]
         self.views = {c: CameraView.from_scene(scene, c) for c in self.camera_ids}
-        self.surface = RoadSurface(scene, settings.surface_half_width_m)
-        car = scene.spec.vehicle
-        self.car_size_m = settings.camera_only.car_size_m or (car.length_m, car.width_m, car.height_m)
+        self.surface = RoadSurface(
+            scene, settings.surface_half_width_m, settings.surface_sample_step_m, agent_id
+        )
+        self.car_size_m = settings.camera_only.car_size_m or scene.spec.vehicle.size_m
         det = settings.detectors
         self.camera_detector = cameras
         if self.camera_detector is None and self.camera_ids:
@@ -148,7 +149,11 @@ class AgentPipeline:
         self.lidar_detector = lidar
         if self.lidar_detector is None and self.lidar_ids:
             self.lidar_detector = lidar_detector(
-                det.lidar, threads=det.lidar_threads, precision=det.lidar_precision
+                det.lidar,
+                threads=det.lidar_threads,
+                precision=det.lidar_precision,
+                cluster=det.cluster,
+                oracle=det.oracle_lidar,
             )
             if hasattr(self.lidar_detector, "warm_up"):  # the ONNX model: its arena at size from the start
                 self.lidar_detector.warm_up()
@@ -330,7 +335,10 @@ class AgentPipeline:
                     else:
                         score = max(s_lidar, s_camera)
                     modalities = frozenset({LIDAR, CAMERA})
-                    out.append(lidar_measurement(box, score, modalities, (cam, *self.lidar_ids)))
+                    sensors = (cam, *self.lidar_ids)
+                    out.append(
+                        lidar_measurement(box, score, modalities, sensors, self.cfg.lidar_position_std_m)
+                    )
             # Without any camera there is nothing to confirm with: lidar boxes pass (degraded mode).
             # With cameras, a lidar box no camera confirmed must be confident on its own.
             if lc.keep_unmatched_lidar or not dets2d:
@@ -338,7 +346,11 @@ class AgentPipeline:
                 for i in [i for i in res.unmatched_3d if boxes3d[i, 7] >= min_score]:
                     out.append(
                         lidar_measurement(
-                            boxes3d[i, :7], boxes3d[i, 7], frozenset({LIDAR}), tuple(self.lidar_ids)
+                            boxes3d[i, :7],
+                            boxes3d[i, 7],
+                            frozenset({LIDAR}),
+                            tuple(self.lidar_ids),
+                            self.cfg.lidar_position_std_m,
                         )
                     )
             for cam, unused in res.unused_2d.items():

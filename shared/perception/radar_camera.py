@@ -27,7 +27,7 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Annotated
 
 import numpy as np
 from numpy.polynomial.hermite_e import hermegauss
@@ -37,6 +37,7 @@ from scipy.optimize import linear_sum_assignment
 
 from shared.geometry.boxes import iou2d_matrix
 from shared.geometry.transforms import polar_to_cartesian, transform_points
+from shared.scene.scale import LENGTH, Length
 from shared.tracking.measurement import CAMERA, RADAR, Measurement
 
 if TYPE_CHECKING:
@@ -70,7 +71,6 @@ class RadarCameraConfig(BaseModel):
 
     roi: RoiSizeConfig = RoiSizeConfig()
     min_iou: float = Field(0.6, gt=0, le=1, description="pairs below this ROI / camera-box IoU are dropped")
-    object_height_m: float = Field(0.21, gt=0, description="car height: the POI is at half of it")
     position: str = Field(
         "weighted",
         pattern="^(radar|weighted)$",
@@ -80,21 +80,21 @@ class RadarCameraConfig(BaseModel):
     camera_depth_std_fraction: float = Field(
         0.08, gt=0, description="camera depth-along-ray noise as a fraction of the range (ground-plane fit)"
     )
-    cross_radar_gate_m: float = Field(
+    cross_radar_gate_m: Length = Field(
         0.5, gt=0, description="one car seen by two radars: positions this close merge (reference: 0.5 m)"
     )
     keep_unmatched_radar: bool = Field(
         True, description="radar targets without a camera box still become radar-only measurements"
     )
     min_rcs_dbsm: float = Field(-15.0, description="targets below this RCS are treated as clutter")
-    level_tolerance_m: float | None = Field(
+    level_tolerance_m: Annotated[float | None, LENGTH] = Field(
         0.05,
         ge=0,
         description="a target's measured height picks its road level (deck or table beneath): the "
         "reflection lies on the car, between the surface and a car height above it, give or take this "
         "(range noise, pitch on the ramps), m; None: elevation not trusted, nearest lane in xy",
     )
-    lane_lateral_std_m: float | None = Field(
+    lane_lateral_std_m: Annotated[float | None, LENGTH] = Field(
         0.03,
         gt=0,
         description="cars keep to their lane's centreline (simulated traffic: |offset| p95 0.03 m on the "
@@ -102,7 +102,7 @@ class RadarCameraConfig(BaseModel):
         "where along a face seen end-on the reflection lies (tuned on 2 seeds: 0.01 / 0.02 / 0.03 / 0.04 "
         "m gave tracked AP-BEV@0.7 0.75 / 0.83 / 0.87 / 0.84); None: no lane constraint",
     )
-    reflection_std_m: float = Field(
+    reflection_std_m: Length = Field(
         0.06,
         ge=0,
         description="spread of the reflecting point about the assumed centre (corner vs face), m: added "
@@ -122,7 +122,7 @@ class RadarCameraConfig(BaseModel):
         "candidates and its lane or camera settles it (chosen on the tuning seeds 201-205: 0 / 0.05 / 0.1 / "
         "0.15 rad; cars on the viaduct's curves stray up to 0.16 rad, p95); 0: the lane heading alone",
     )
-    centre_offset_m: float = Field(
+    centre_offset_m: Length = Field(
         0.12,
         ge=0,
         description="the radar reflects off a car's nearest point; its centre lies this much farther along "
@@ -401,7 +401,7 @@ def radar_measurements(
     targets, world, surface_z = targets.subset(on_road), world[on_road], surface_z[on_road]
     reflection = reflection[on_road]
     level = None if level is None else level[on_road]
-    world[:, 2] = surface_z + cfg.object_height_m / 2
+    world[:, 2] = surface_z + height / 2  # the POI: half the car's height above its road
     lane_yaw = surface.lane_heading(world[:, :2], level)  # cars follow their lane
     spread = np.zeros((len(targets), 2, 2))
     if cfg.centre_from_lane_heading:

@@ -4,9 +4,10 @@
 operations fusion uses: project 3D boxes to image boxes, back-project pixels onto a horizontal plane,
 and tell whether an image box touches the image border (a truncated detection).
 
-`RoadSurface`: the height of the driving surface under a table point, from the scene's lane
-centrelines (the table, the viaduct deck and its ramps). A camera-only detection is placed where its
-viewing ray first meets a lane surface, so a car on the deck is not projected down to the table.
+`RoadSurface`: the height of the driving surface under a point, from the scene's lane centrelines (the
+table, the viaduct deck and its ramps), or, at a site without a lane map, the bare ground around the
+agent's sensors. A camera-only detection is placed where its viewing ray first meets a lane surface, so
+a car on the deck is not projected down to the table.
 """
 
 from __future__ import annotations
@@ -25,8 +26,6 @@ FloatArray = NDArray[np.float64]
 
 # Fixed-point steps of `CameraView.fit_centre` (the residual shrinks ~10x per step).
 CENTRE_FIT_ITERATIONS = 3
-# Lane centrelines are resampled at this spacing for the surface lookup, metres.
-SURFACE_SAMPLE_STEP_M = 0.05
 # Slack on k-d tree search radii so rounding never drops a sample at the exact limit, metres.
 NEAR_M = 1e-6
 
@@ -166,32 +165,43 @@ class CameraView:
 
 
 class RoadSurface:
-    """Driving-surface heights sampled along every lane of the scene.
+    """Driving-surface heights sampled along every lane of the scene (or over the bare ground of a site
+    without a lane map: z = 0, no direction of travel).
 
     Parameters
     ----------
     scene : Scene
     half_width_m : float
         A point belongs to a lane sample within this xy distance (half a lane plus margin), metres.
+    sample_step_m : float
+        Spacing of the samples along lane centrelines and over junction discs, metres (the site's scale:
+        `MecSettings.surface_sample_step_m`).
+    agent_id : str, optional
+        Without a lane map, the ground is sampled around this agent's sensors (default: every sensor).
     """
 
-    def __init__(self, scene: Scene, half_width_m: float) -> None:
+    def __init__(
+        self, scene: Scene, half_width_m: float, sample_step_m: float, agent_id: str | None = None
+    ) -> None:
+        if not (half_width_m > 0 and sample_step_m > 0):
+            raise ValueError(f"half width and sample step must be > 0, got {half_width_m}, {sample_step_m}")
         samples, headings = [], []
         for lane in scene.spec.lanes:
             line = np.asarray(scene.lane_centreline(lane.id), float)
             seg = np.diff(line, axis=0)
             for p, d in zip(line[:-1], seg, strict=True):
-                n = max(1, int(np.ceil(np.linalg.norm(d[:2]) / SURFACE_SAMPLE_STEP_M)))
+                n = max(1, int(np.ceil(np.linalg.norm(d[:2]) / sample_step_m)))
                 samples.append(p + np.outer(np.arange(n) / n, d))
                 headings.append(np.full(n, np.arctan2(d[1], d[0])))
         # Junction discs (lanes stop at their edge): surface samples without a direction of travel.
         for j in scene.spec.junctions:
-            r = np.arange(-j.radius_m, j.radius_m + 1e-9, SURFACE_SAMPLE_STEP_M)
-            gx, gy = np.meshgrid(r, r)
-            disc = np.column_stack([gx.ravel(), gy.ravel()])
-            disc = disc[(disc**2).sum(1) <= j.radius_m**2]
+            disc = _disc_grid(j.radius_m, sample_step_m)
             samples.append(np.column_stack([disc + j.position_m[:2], np.full(len(disc), j.position_m[2])]))
             headings.append(np.full(len(disc), np.nan))
+        if not scene.spec.lanes:
+            ground = bare_ground_m(scene, half_width_m, agent_id)
+            samples.append(ground)
+            headings.append(np.full(len(ground), np.nan))
         self.points_m = np.concatenate(samples)
         self.heading_rad = np.concatenate(headings)  # direction of travel of the lane at each sample
         self.half_width_m = half_width_m
@@ -282,3 +292,26 @@ class RoadSurface:
                 if len(t) and np.isfinite(t_best := t.min()):
                     out[i] = o + t_best * ray
         return out
+
+
+def _disc_grid(radius_m: float, step_m: float) -> FloatArray:
+    """(N, 2) points of a square grid of `step_m` inside a disc of `radius_m` about the origin."""
+    r = np.arange(-radius_m, radius_m + 1e-9, step_m)
+    gx, gy = np.meshgrid(r, r)
+    disc = np.column_stack([gx.ravel(), gy.ravel()])
+    return disc[(disc**2).sum(1) <= radius_m**2]
+
+
+def bare_ground_m(scene: Scene, half_width_m: float, agent_id: str | None = None) -> FloatArray:
+    """(N, 3) samples of the ground (z = 0) of a site without a lane map: a grid over the disc around each
+    of the agent's sensors (every sensor without `agent_id`) as far as it sees (a lidar's or radar's
+    max_range_m, a camera's far_m). The grid spacing is `half_width_m`, so every point of the disc lies
+    within `half_width_m` of a sample and the size of the grid follows the site's scale."""
+    parts = []
+    for s in scene.sensors_of(agent_id):
+        reach_m = s.camera.far_m if s.camera is not None else (s.lidar or s.radar).max_range_m  # type: ignore[union-attr]
+        parts.append(_disc_grid(reach_m, half_width_m) + np.asarray(scene.T_world_from_sensor(s.id))[:2, 3])
+    if not parts:
+        raise ValueError(f"scene {scene.scene_id} has neither lanes nor sensors: no surface to sample")
+    xy = np.unique(np.round(np.concatenate(parts) / half_width_m).astype(np.int64), axis=0) * half_width_m
+    return np.column_stack([xy, np.zeros(len(xy))])

@@ -254,14 +254,15 @@ class RoadSpec(_Strict):
 
 
 class VehicleSpec(_Strict):
-    """Body of every vehicle (AWS Deepracer, 1:18). No defaults: the scene file is the one home of the
-    vehicle's size (`vehicle_size_m` reads it for the modules that have no scene at hand)."""
+    """Body and drive of every vehicle. No defaults: the scene file is the one home of the vehicle's size
+    and acceleration, and they set the scale of every scaled setting (shared/scene/scale.py)."""
 
     length_m: float = Field(gt=0)
     width_m: float = Field(gt=0)
     height_m: float = Field(gt=0)
     wheelbase_m: float = Field(gt=0)
     max_steer_rad: float = Field(gt=0, lt=1.57)
+    max_accel_mps2: float = Field(gt=0, description="acceleration it drives with (car following)")
 
     @property
     def size_m(self) -> tuple[float, float, float]:
@@ -307,7 +308,9 @@ class SceneSpec(_Strict):
             return max(lane.speed_limit_mps for lane in self.lanes)
         if self.road is not None and self.road.design_speed_mps is not None:
             return self.road.design_speed_mps
-        raise ValueError(f"scene {self.scene_id}: no lanes and no road.design_speed_mps: its top speed is unknown")
+        raise ValueError(
+            f"scene {self.scene_id}: no lanes and no road.design_speed_mps: its top speed is unknown"
+        )
 
     @model_validator(mode="after")
     def _references(self) -> SceneSpec:
@@ -324,7 +327,9 @@ class SceneSpec(_Strict):
             if dupes:
                 raise ValueError(f"duplicate {what} ids: {dupes}")
         if self.lanes and self.road is None:
-            raise ValueError("a scene with lanes needs a `road` block (lane width, corner radius, sample step)")
+            raise ValueError(
+                "a scene with lanes needs a `road` block (lane width, corner radius, sample step)"
+            )
         numbers = [j.number for j in self.junctions]
         if len(set(numbers)) != len(numbers):
             raise ValueError("duplicate junction numbers")

@@ -7,8 +7,8 @@ its *kind* in its type, and its default is stated for the reference site the pro
 multiplied by the factor of its kind for that scene; a setting given explicitly (a profile's settings
 file, an environment override, a constructor argument) is taken as written, in the scene's own units.
 
-Kinds and their factors, with ``L`` = scene length / reference length and ``V`` = scene speed /
-reference speed (`SiteScale.of`):
+Kinds and their factors, with ``L`` = scene length / reference length, ``V`` = scene speed /
+reference speed and ``A`` = scene acceleration / reference acceleration (`SiteScale.of`):
 
 ========================  =========  ==========================================================
 kind                      factor     examples
@@ -17,8 +17,9 @@ kind                      factor     examples
 ``Area`` (m²)             L²         position variances
 ``PerLength`` (1/m)       1 / L      a radius that grows with the square of the range, per m²
 ``Speed`` (m/s)           V          velocity noise, speed thresholds
-``Acceleration`` (m/s²)   V          process noise (time is not scaled: sensors run at 10 Hz
-                                     at every size, so an acceleration scales as speed / time)
+``Acceleration`` (m/s²)   A          process noise, car-following accelerations (no power of
+                                     L and V fits: a DeepRacer reaches 1.5 lengths/s at 0.6 m/s²,
+                                     a car 3 lengths/s at ~2.5 m/s²; the vehicle says it)
 ``FromScene``             --         not a default at all: the builder reads it from the scene
                                      (vehicle size, sensor range, sensor positions)
 ========================  =========  ==========================================================
@@ -26,8 +27,9 @@ kind                      factor     examples
 Unscaled, and so plain ``float``: times (s), rates (Hz), counts, angles (rad), ratios, scores and pixel
 quantities of an image (they belong to the camera and its detector, not to the size of the site).
 
-The characteristic length of a scene is its vehicle's length; its characteristic speed the highest
-lane speed limit, or ``road.design_speed_mps`` for a site without a lane map.
+Times are not scaled: sensors run at 10 Hz at every size. The characteristic length of a scene is its
+vehicle's length; its characteristic speed the highest lane speed limit, or ``road.design_speed_mps``
+for a site without a lane map; its characteristic acceleration the vehicle's ``max_accel_mps2``.
 """
 
 from __future__ import annotations
@@ -41,21 +43,23 @@ from pydantic import BaseModel
 if TYPE_CHECKING:
     from shared.scene.model import SceneSpec
 
-#: The reference site every scaled default was tuned on: the sand table's vehicle length (an AWS
-#: DeepRacer, deploy/scenes/sand_table.yaml) and its lanes' top speed limit. A test checks that the
-#: sand table's scale is exactly 1.
+#: The reference site every scaled default was tuned on: the sand table's vehicle length and
+#: acceleration (an AWS DeepRacer, deploy/scenes/sand_table.yaml) and its lanes' top speed limit. A
+#: test checks that the sand table's scale is exactly 1.
 REFERENCE_LENGTH_M = 0.33
 REFERENCE_SPEED_MPS = 0.5
+REFERENCE_ACCEL_MPS2 = 0.6
 
 
 @dataclass(frozen=True)
 class Scales:
-    """Marker in a field's `Annotated` type: how its default scales. `power_length` and `power_speed`
-    are the exponents of L and V in its factor."""
+    """Marker in a field's `Annotated` type: how its default scales. `power_length`, `power_speed` and
+    `power_accel` are the exponents of L, V and A in its factor."""
 
     kind: str
     power_length: int = 0
     power_speed: int = 0
+    power_accel: int = 0
 
 
 @dataclass(frozen=True)
@@ -69,7 +73,7 @@ LENGTH = Scales("length", power_length=1)
 AREA = Scales("area", power_length=2)
 PER_LENGTH = Scales("per_length", power_length=-1)
 SPEED = Scales("speed", power_speed=1)
-ACCELERATION = Scales("acceleration", power_speed=1)
+ACCELERATION = Scales("acceleration", power_accel=1)
 
 Length = Annotated[float, LENGTH]
 Area = Annotated[float, AREA]
@@ -86,25 +90,34 @@ def from_scene(what: str) -> FromSceneMarker:
 
 @dataclass(frozen=True)
 class SiteScale:
-    """The factors of one scene against the reference site (1, 1 on the sand table)."""
+    """The factors of one scene against the reference site (1, 1, 1 on the sand table)."""
 
     length: float
     speed: float
+    accel: float
 
     def __post_init__(self) -> None:
-        if not (self.length > 0 and self.speed > 0 and math.isfinite(self.length * self.speed)):
-            raise ValueError(f"scale factors must be positive and finite, got {self.length}, {self.speed}")
+        factors = (self.length, self.speed, self.accel)
+        if not all(f > 0 and math.isfinite(f) for f in factors):
+            raise ValueError(f"scale factors must be positive and finite, got {factors}")
 
     @classmethod
     def of(cls, spec: SceneSpec) -> SiteScale:
-        """The scale of a scene: its vehicle's length and its top speed against the reference's."""
-        return cls(spec.vehicle.length_m / REFERENCE_LENGTH_M, spec.top_speed_mps / REFERENCE_SPEED_MPS)
+        """The scale of a scene: its vehicle's length and acceleration and its top speed against the
+        reference's."""
+        return cls(
+            spec.vehicle.length_m / REFERENCE_LENGTH_M,
+            spec.top_speed_mps / REFERENCE_SPEED_MPS,
+            spec.vehicle.max_accel_mps2 / REFERENCE_ACCEL_MPS2,
+        )
 
     def factor(self, scales: Scales) -> float:
-        return float(self.length**scales.power_length * self.speed**scales.power_speed)
+        return float(
+            self.length**scales.power_length * self.speed**scales.power_speed * self.accel**scales.power_accel
+        )
 
 
-REFERENCE = SiteScale(1.0, 1.0)
+REFERENCE = SiteScale(1.0, 1.0, 1.0)
 
 
 def scales_of(field_metadata: list[Any]) -> Scales | FromSceneMarker | None:
@@ -126,20 +139,23 @@ def _scaled_value(value: Any, factor: float) -> Any:
 M = TypeVar("M", bound=BaseModel)
 
 
-def at_scale(model: M, scale: SiteScale) -> M:
+def at_scale(model: M, scale: SiteScale, *, defaulted: bool = False) -> M:
     """`model` with every scaled setting left at its default multiplied by its kind's factor, nested
-    models included. Settings given explicitly stay as written. The result has every scaled setting
-    marked as given, so building it again for the same scale changes nothing (idempotent)."""
+    models included (a nested model that is itself a default, from its field's default or default
+    factory, counts as default throughout: `defaulted`). Settings given explicitly stay as written.
+    The result has every scaled setting marked as given, so building it again for the same scale
+    changes nothing (idempotent)."""
     update: dict[str, Any] = {}
     for name, info in type(model).model_fields.items():
         value = getattr(model, name)
+        unset = defaulted or name not in model.model_fields_set
         if isinstance(value, BaseModel):
-            scaled = at_scale(value, scale)
+            scaled = at_scale(value, scale, defaulted=unset)
             if scaled is not value:
                 update[name] = scaled
             continue
         marker = scales_of(info.metadata)
-        if isinstance(marker, Scales) and name not in model.model_fields_set:
+        if isinstance(marker, Scales) and unset:
             update[name] = _scaled_value(value, scale.factor(marker))
     return model.model_copy(update=update) if update else model
 

@@ -34,6 +34,7 @@ from collections.abc import Iterable
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from shared.scene.scale import Acceleration, Length, Speed
 from shared.tracking import kalman
 from shared.tracking.association import associate
 from shared.tracking.heading import resolve_yaw
@@ -52,21 +53,21 @@ class TrackerConfig(BaseModel):
         description="constant_velocity (state x, y, vx, vy) or identity (the paper's A = I: position random "
         "walk, velocity fixed at 0)",
     )
-    accel_std_mps2: float = Field(
+    accel_std_mps2: Acceleration = Field(
         0.5,
         ge=0,
         description="constant velocity: white-noise acceleration std, m/s² (cars reach ~0.6 m/s and turn on "
         "~0.5 m radii, ~0.7 m/s² lateral)",
     )
-    identity_process_std_m: float = Field(
+    identity_process_std_m: Length = Field(
         0.3,
         ge=0,
         description="identity model: position random-walk std after 1 s, m (Q = std² · dt per axis)",
     )
-    initial_velocity_std_mps: float = Field(
+    initial_velocity_std_mps: Speed = Field(
         0.5, gt=0, description="velocity std of a new track, m/s (cars drive at <= ~0.6 m/s)"
     )
-    gate_m: float = Field(
+    gate_m: Length = Field(
         0.5,
         gt=0,
         description="association gate: Euclidean distance from the predicted position, m (paper 0.5)",
@@ -104,7 +105,7 @@ class TrackerConfig(BaseModel):
     score_smoothing: float = Field(
         0.3, gt=0, le=1, description="weight of a new detection score in the exponential average (1: none)"
     )
-    heading_from_velocity_min_mps: float = Field(
+    heading_from_velocity_min_mps: Speed = Field(
         0.05, ge=0, description="the velocity sets the heading sign only above this speed, m/s"
     )
     heading_min_speed_sigmas: float = Field(
@@ -113,7 +114,7 @@ class TrackerConfig(BaseModel):
         description="... and only when the speed exceeds this many stds of its estimate (0: off), so a "
         "stopped car's velocity noise does not flip its heading",
     )
-    range_rate_min_range_m: float = Field(
+    range_rate_min_range_m: Length = Field(
         0.05, gt=0, description="range-rate updates are skipped for targets closer to the radar, m"
     )
     max_tracks: int = Field(

@@ -249,6 +249,12 @@ def _work(job: tuple[DatasetSettings, Path, str, int]) -> SeedResult:
     return result
 
 
+def dataset_scene(layout: DatasetLayout) -> Scene:
+    """The scene a generated dataset was drawn in: its manifest's sim settings' scene."""
+    settings = json.loads(layout.manifest.read_text())["settings"]
+    return Scene.load(load_sim_settings(_resolve(Path(settings["sim_settings"]))).scene)
+
+
 def finish(cfg: DatasetSettings, layout: DatasetLayout) -> dict[str, Any]:
     """Split lists, data.yaml and manifest.json from the markers of completed seeds."""
     results = [json.loads(p.read_text()) for p in sorted((layout.root / "progress").glob("*.json"))]

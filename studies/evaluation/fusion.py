@@ -262,8 +262,10 @@ def single_modality_measurements(
     the ones the MEC did not decode (camera cadence) included: a camera-only system sees them all."""
     out: dict[str, list[Measurement]] = {}
     if pipeline.lidar_ids:
+        std_m = pipeline.cfg.lidar_position_std_m
+        only = frozenset({"lidar"})
         out["lidar"] = [
-            lidar_measurement(b[:7], b[7], frozenset({"lidar"}), tuple(pipeline.lidar_ids))
+            lidar_measurement(b[:7], b[7], only, tuple(pipeline.lidar_ids), std_m)
             for b in result.lidar_boxes_world
         ]
     camera_boxes = dict(result.camera_boxes)

@@ -22,9 +22,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
+from shared.perception.config import MecSettings
 from shared.perception.pipeline import merge_across_sensors
 from shared.perception.radar_camera import (
-    RadarCameraConfig,
     RadarTargets,
     centres_from_reflections,
     targets_to_world,
@@ -83,8 +83,9 @@ def run_noise(
     radars = scene.sensors_of("agent2", "radar")
     T = {r.id: np.asarray(scene.T_world_from_sensor(r.id), float) for r in radars}
     rng = np.random.default_rng(seed)
-    rc = RadarCameraConfig()
-    surface = RoadSurface(scene, SURFACE_HALF_WIDTH_M)
+    mec = MecSettings().for_site(scene, "agent2")  # the MEC's surface and radar settings at this scene
+    rc = mec.radar_camera
+    surface = RoadSurface(scene, mec.surface_half_width_m, mec.surface_sample_step_m, "agent2")
     car_xy = (scene.spec.vehicle.length_m, scene.spec.vehicle.width_m)
     runs = [NoiseRun(v) for v in variances]
     trackers = {
@@ -166,7 +167,6 @@ IDENTITY_PROCESS_STD_M = 0.1
 MIN_CROSS_GATE_M = 0.5
 CROSS_GATE_SIGMAS = 3.0
 RADAR = frozenset({"radar"})
-SURFACE_HALF_WIDTH_M = 0.2  # as the MEC's default (MecSettings.surface_half_width_m)
 USE_RANGE_RATE = False  # measured: no gain at high noise (the EKF's position cross-term)
 # Range-rate variance given to the tracker: the scene radars' 0.01 m/s noise plus margin, m²/s².
 RANGE_RATE_VARIANCE_M2PS2 = 0.02**2

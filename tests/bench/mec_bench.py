@@ -90,8 +90,19 @@ def fusion_tracking(scene: Scene, agent: str, n_objects: int, mec: MecSettings) 
             rows, cols = [p[0] for p in pairs], [p[1] for p in pairs]
             merged, _ = lidar_camera.merge_boxes(boxes[rows], dets[v.sensor_id][cols], v, mec.lidar_camera)
             for box, i in zip(merged, rows, strict=True):
-                meas.append(lidar_measurement(box, scores[i], frozenset({"lidar", "camera"}), (v.sensor_id,)))
-        meas += [lidar_measurement(boxes[i], scores[i], frozenset({"lidar"}), ()) for i in res.unmatched_3d]
+                meas.append(
+                    lidar_measurement(
+                        box,
+                        scores[i],
+                        frozenset({"lidar", "camera"}),
+                        (v.sensor_id,),
+                        mec.lidar_position_std_m,
+                    )
+                )
+        meas += [
+            lidar_measurement(boxes[i], scores[i], frozenset({"lidar"}), (), mec.lidar_position_std_m)
+            for i in res.unmatched_3d
+        ]
         tracker.step(frame / FRAME_HZ, meas)
         if frame >= WARMUP_FRAMES:
             times.append(time.perf_counter() - t0)

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from shared.config import with_overrides
 from shared.datasets.sources import DEFAULT_SOURCE, DataSource, lidar_items
 from shared.detection.lidar.pointpillars.coding import BOX_COLUMNS, encode_targets
 from shared.detection.lidar.pointpillars.config import AugmentConfig, GridConfig, PointPillarsConfig
@@ -44,6 +45,18 @@ def read_split(
     if max_frames is not None:
         items = items[:max_frames]
     return [Frame(i.stem, i.points().astype(np.float32, copy=False), i.boxes, i.ignore) for i in items]
+
+
+def with_mean_size(config: PointPillarsConfig, frames: list[Frame]) -> PointPillarsConfig:
+    """`config` with `head.mean_size_m` fixed: as given, else the median (dx, dy, dz) of the labelled boxes
+    of `frames` (the training split), so the size prior is the site's vehicles at any scale."""
+    if config.head.mean_size_m is not None:
+        return config
+    sizes = np.concatenate([f.boxes[:, 3:6] for f in frames if len(f.boxes)] or [np.zeros((0, 3))])
+    if not len(sizes):
+        raise ValueError("no labelled boxes to take the size prior from: set head.mean_size_m")
+    median = tuple(float(v) for v in np.median(sizes, axis=0))
+    return with_overrides(config, {"head": {"mean_size_m": median}})
 
 
 # --- augmentation (points (N, 4) and boxes (G, 7) transformed together) ---------------------------

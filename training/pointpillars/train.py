@@ -38,7 +38,7 @@ from shared.detection.lidar.pointpillars.coding import (
     rotated_nms,
 )
 from shared.detection.lidar.pointpillars.config import PointPillarsConfig, TrainConfig
-from training.pointpillars.data import Frame, PillarDataset, collate, read_split
+from training.pointpillars.data import Frame, PillarDataset, collate, read_split, with_mean_size
 from training.pointpillars.evaluation import accuracy
 from training.pointpillars.net import PointPillarsNet, count_parameters, peak_scores
 
@@ -300,7 +300,7 @@ def main(argv: list[str] | None = None) -> None:
         len(val_frames),
         time.perf_counter() - t0,
     )
-    train(config, train_frames, val_frames, args.out, args.device)
+    train(with_mean_size(config, train_frames), train_frames, val_frames, args.out, args.device)
 
 
 if __name__ == "__main__":

@@ -32,7 +32,7 @@ Yaw is in [-pi/2, pi/2) (front and back are indistinguishable).
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -44,12 +44,12 @@ from scipy.spatial import cKDTree
 from shared.detection.interface import CAR_CLASS_ID, check_points, empty_lidar_detections
 from shared.detection.lidar.box_fit import BoxFitParams, FittedBox, fit_vehicle_box
 from shared.detection.lidar.ground import SEARCH, SlabSearch, Verdict, above_table, peel_slabs
-from shared.scene.scene import vehicle_size_m as scene_vehicle_size_m
+from shared.scene.model import SceneSpec
+from shared.scene.scale import Length, PerLength, SiteScale, at_scale, from_scene
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-# AWS Deepracer (1:18): length, width, height, metres.
 # Guards the line-of-sight direction of a point at the sensor's own position, metres.
 _MIN_RANGE_M = 1e-6
 
@@ -60,60 +60,67 @@ class ClusterLidarConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     # range crop
-    sensor_xy_m: tuple[tuple[float, float], ...] = Field(
+    sensor_xy_m: Annotated[tuple[tuple[float, float], ...], from_scene("the agent's lidars")] = Field(
         ((0.0, 0.0),),
         min_length=1,
         description="xy of the agent's lidars in the agent frame (range, and the hidden side of a single "
         "face); the default, the agent origin, is exact for a one-lidar agent",
     )
-    min_range_m: float = Field(0.1, ge=0.0, description="drop points nearer (BEV) to a lidar than this")
-    max_range_m: float = Field(6.0, gt=0.0, description="drop points farther (BEV) from every lidar")
-    z_min_m: float = Field(-0.1, description="drop points below this height")
-    z_max_m: float = Field(1.0, description="drop points above this height")
+    min_range_m: Length = Field(0.1, ge=0.0, description="drop points nearer (BEV) to a lidar than this")
+    max_range_m: Length = Field(6.0, gt=0.0, description="drop points farther (BEV) from every lidar")
+    z_min_m: Length = Field(-0.1, description="drop points below this height")
+    z_max_m: Length = Field(1.0, description="drop points above this height")
     # table
-    table_z_m: float = Field(0.0, description="table surface height in the agent frame")
-    ground_tolerance_m: float = Field(0.02, ge=0.0, description="points up to this above the table are table")
+    table_z_m: Length = Field(0.0, description="table surface height in the agent frame")
+    ground_tolerance_m: Length = Field(
+        0.02, ge=0.0, description="points up to this above the table are table"
+    )
     # elevated surfaces (viaduct deck)
     surfaces: SlabSearch = Field(
         default_factory=SlabSearch, description="search for surfaces in clusters larger than a vehicle"
     )
     # clustering
-    cluster_eps_min_m: float = Field(0.05, gt=0.0, description="clustering radius near the lidar")
+    cluster_eps_min_m: Length = Field(0.05, gt=0.0, description="clustering radius near the lidar")
     cluster_eps_per_m: float = Field(
         0.03,
         ge=0.0,
         description="radius growth per metre of range (~1.2x the 32-line lidar's 0.025 rad step)",
     )
-    cluster_eps_max_m: float = Field(0.12, gt=0.0, description="largest clustering radius")
-    cluster_radial_eps_per_m2: float = Field(
+    cluster_eps_max_m: Length = Field(0.12, gt=0.0, description="largest clustering radius")
+    cluster_radial_eps_per_m2: PerLength = Field(
         0.06,
         ge=0.0,
         description="radius along the line of sight per squared metre of range: rings on a roof lie "
         "~range^2 * (0.023 rad channel step) / (0.41 m sensor height above the roof) apart",
     )
-    cluster_radial_eps_max_m: float = Field(
+    cluster_radial_eps_max_m: Length = Field(
         0.25, gt=0.0, description="largest radius along the line of sight"
     )
     min_points: int = Field(5, ge=1, description="fewest points of a vehicle cluster")
     # vehicle prior and filters
-    vehicle_size_m: tuple[float, float, float] = Field(
-        default_factory=scene_vehicle_size_m,
-        description="length, width, height prior, m (default: the scene's vehicle)",
+    vehicle_size_m: Annotated[tuple[float, float, float] | None, from_scene("the scene's vehicle")] = Field(
+        None, description="length, width, height prior, m (the MEC sets the scene's vehicle; required)"
     )
-    min_extent_m: float = Field(0.08, ge=0.0, description="longest BEV side must reach this (rejects poles)")
-    max_length_m: float = Field(0.45, gt=0.0, description="longest BEV side of a vehicle cluster")
-    max_width_m: float = Field(0.32, gt=0.0, description="shorter BEV side of a vehicle cluster")
-    min_height_m: float = Field(0.05, ge=0.0, description="cluster top above its support surface, at least")
-    max_height_m: float = Field(0.30, gt=0.0, description="cluster top above its support surface, at most")
+    min_extent_m: Length = Field(0.08, ge=0.0, description="longest BEV side must reach this (rejects poles)")
+    max_length_m: Length = Field(0.45, gt=0.0, description="longest BEV side of a vehicle cluster")
+    max_width_m: Length = Field(0.32, gt=0.0, description="shorter BEV side of a vehicle cluster")
+    min_height_m: Length = Field(0.05, ge=0.0, description="cluster top above its support surface, at least")
+    max_height_m: Length = Field(0.30, gt=0.0, description="cluster top above its support surface, at most")
     # box fit
     angle_step_rad: float = Field(math.radians(1.0), gt=0.0, description="coarse L-shape angle step")
-    closeness_min_m: float = Field(0.01, gt=0.0, description="d0 of the closeness criterion")
-    flat_face_m: float = Field(0.04, gt=0.0, description="cluster depth below which it is a single face")
-    edge_band_m: float = Field(0.02, gt=0.0, description="band at a rectangle edge for counting its points")
+    closeness_min_m: Length = Field(0.01, gt=0.0, description="d0 of the closeness criterion")
+    flat_face_m: Length = Field(0.04, gt=0.0, description="cluster depth below which it is a single face")
+    edge_band_m: Length = Field(0.02, gt=0.0, description="band at a rectangle edge for counting its points")
     edge_support_ratio: float = Field(2.0, ge=1.0, description="point ratio that marks the visible edge")
-    size_tolerance_m: float = Field(0.03, ge=0.0, description="measured sizes within this of the prior")
+    size_tolerance_m: Length = Field(0.03, ge=0.0, description="measured sizes within this of the prior")
     # score
     score_half_points: float = Field(20.0, gt=0.0, description="points at which the score is 0.5")
+
+    @classmethod
+    def for_scene(cls, spec: SceneSpec) -> ClusterLidarConfig:
+        """The defaults at the scale of a scene, with its vehicle as the prior (lidars at the origin of
+        the frame: a dataset's agent frames; the MEC also sets its lidars, `MecSettings.for_site`)."""
+        return at_scale(cls(vehicle_size_m=spec.vehicle.size_m), SiteScale.of(spec))
 
     @model_validator(mode="after")
     def _ranges(self) -> ClusterLidarConfig:
@@ -123,7 +130,7 @@ class ClusterLidarConfig(BaseModel):
             raise ValueError("z_min_m must be below z_max_m")
         if self.cluster_eps_min_m > self.cluster_eps_max_m:
             raise ValueError("cluster_eps_min_m must not exceed cluster_eps_max_m")
-        if min(self.vehicle_size_m) <= 0.0:
+        if self.vehicle_size_m is not None and min(self.vehicle_size_m) <= 0.0:
             raise ValueError("vehicle_size_m must be positive")
         return self
 
@@ -182,18 +189,22 @@ class ClusterLidarDetector:
 
     Parameters
     ----------
-    config : ClusterLidarConfig, optional
+    config : ClusterLidarConfig
+        With `vehicle_size_m` set (the MEC sets it, with the sensor positions, from the scene).
     """
 
     name = "cluster"
 
-    def __init__(self, config: ClusterLidarConfig | None = None) -> None:
-        self.config = config or ClusterLidarConfig()
+    def __init__(self, config: ClusterLidarConfig) -> None:
+        if config.vehicle_size_m is None:
+            raise ValueError("the cluster detector needs vehicle_size_m (the scene's vehicle)")
+        self.config = config
+        self._prior_m: tuple[float, float, float] = config.vehicle_size_m
         cfg = self.config
         self._sensors = np.asarray(cfg.sensor_xy_m, dtype=np.float64).reshape(-1, 2)
         self._fit = BoxFitParams(
-            length_m=cfg.vehicle_size_m[0],
-            width_m=cfg.vehicle_size_m[1],
+            length_m=self._prior_m[0],
+            width_m=self._prior_m[1],
             angle_step_rad=cfg.angle_step_rad,
             closeness_min_m=cfg.closeness_min_m,
             flat_face_m=cfg.flat_face_m,
@@ -278,7 +289,7 @@ class ClusterLidarDetector:
         height = float(pts[:, 2].max()) - base
         if not cfg.min_height_m <= height <= cfg.max_height_m:
             return None
-        prior_h = cfg.vehicle_size_m[2]
+        prior_h = self._prior_m[2]
         dz = prior_h if height <= prior_h + cfg.size_tolerance_m else height
         n = pts.shape[0]
         score = n / (n + cfg.score_half_points)

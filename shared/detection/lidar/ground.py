@@ -24,11 +24,13 @@ import enum
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Generic, Literal, TypeVar
+from typing import Annotated, Generic, Literal, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
+
+from shared.scene.scale import LENGTH, Length
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -221,14 +223,14 @@ class SlabSearch(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    tolerance_m: float = Field(0.015, gt=0.0, description="RANSAC inlier distance to a surface, m")
+    tolerance_m: Length = Field(0.015, gt=0.0, description="RANSAC inlier distance to a surface, m")
     max_tilt_rad: float = Field(
         0.3, ge=0.0, lt=math.pi / 2, description="steepest surface, rad (ramps are ~0.2 rad)"
     )
-    thickness_m: float = Field(0.04, ge=0.0, description="slab thickness removed around a surface, m")
+    thickness_m: Length = Field(0.04, ge=0.0, description="slab thickness removed around a surface, m")
     min_points: int = Field(15, ge=3, description="fewest inliers of a surface")
-    cell_m: float = Field(0.1, gt=0.0, description="BEV cell of a surface's inlier footprint, m")
-    min_top_m: float | None = Field(
+    cell_m: Length = Field(0.1, gt=0.0, description="BEV cell of a surface's inlier footprint, m")
+    min_top_m: Annotated[float | None, LENGTH] = Field(
         None, description="a surface counts only if some inlier is at least this high, m (None: any height)"
     )
     max_peels: int = Field(4, ge=0, description="surfaces removed from one cluster at most (ramps + deck)")

@@ -7,6 +7,7 @@ import pytest
 
 from shared.datasets.layout import DatasetLayout
 from shared.detection import evaluate as ev
+from shared.detection.lidar.cluster import ClusterLidarConfig
 from shared.detection.oracle import (
     OracleCameraConfig,
     OracleCameraDetector,
@@ -15,7 +16,9 @@ from shared.detection.oracle import (
 )
 from shared.detection.registry import camera_detector, lidar_detector
 from studies.dataset.config import DatasetSettings, SplitSeeds
-from studies.dataset.generate import generate
+from studies.dataset.generate import dataset_scene, generate
+
+TABLE_CLUSTER = ClusterLidarConfig(vehicle_size_m=(0.33, 0.22, 0.21))
 
 
 @pytest.fixture(scope="module")
@@ -46,13 +49,15 @@ def test_noisy_oracles_score_less(layout: DatasetLayout) -> None:
 
 def test_latency_reports_percentiles(layout: DatasetLayout) -> None:
     samples = list(ev.lidar_samples(layout, "test"))
-    lat = ev.lidar_latency(lidar_detector("cluster"), samples)
+    lat = ev.lidar_latency(lidar_detector("cluster", cluster=TABLE_CLUSTER), samples)
     assert lat["n"] == len(samples) and 0 < lat["p50"] <= lat["p95"]
 
 
 def test_registry_builds_by_name_and_refuses_unknown_names() -> None:
     assert lidar_detector("pointpillars").name == "pointpillars"
-    assert lidar_detector("cluster").name == "cluster"
+    assert lidar_detector("cluster", cluster=TABLE_CLUSTER).name == "cluster"
+    with pytest.raises(ValueError, match="cluster detector needs"):
+        lidar_detector("cluster")  # no site settings: no vehicle prior
     assert camera_detector("oracle").name == "oracle-camera"
     with pytest.raises(ValueError, match="unknown lidar detector"):
         lidar_detector("yolo")
@@ -69,3 +74,9 @@ def test_lidar_ap_can_sample_as_the_kitti_devkit(layout: DatasetLayout) -> None:
     gt = devkit["gt_boxes"]
     assert devkit["bev_ap70"] == pytest.approx(min(gt - 1, 40) / 40)  # thresholds fill points 0..gt-1
     assert r40["bev_ap70"] == pytest.approx(1.0)
+
+
+def test_a_generated_dataset_knows_its_scene(layout: DatasetLayout) -> None:
+    assert dataset_scene(layout).scene_id == "sand_table"
+    cluster = ClusterLidarConfig.for_scene(dataset_scene(layout).spec)
+    assert cluster.vehicle_size_m == (0.33, 0.22, 0.21) and cluster.max_range_m == 6.0  # the table: scale 1

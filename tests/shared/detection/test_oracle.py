@@ -21,6 +21,7 @@ TRUTH3D = np.array(
     [[1.0, 0.5, 0.105, 0.33, 0.22, 0.21, 0.3], [-2.0, 1.5, 0.505, 0.33, 0.22, 0.21, -1.2]], np.float64
 )
 TRUTH2D = np.array([[10.0, 20.0, 110.0, 90.0], [300.0, 200.0, 380.0, 260.0]])
+CAR_M = (0.33, 0.22, 0.21)  # the false positives' size: a table car
 MANY = 20000  # samples for the noise statistics: sigma estimates within ~1 %
 
 
@@ -63,7 +64,7 @@ def test_lidar_sizes_clipped_to_minimum() -> None:
 
 
 def test_lidar_miss_rate_and_false_positive_rate() -> None:
-    cfg = OracleLidarConfig(detection_probability=0.7, false_positives_per_frame=3.0)
+    cfg = OracleLidarConfig(detection_probability=0.7, false_positives_per_frame=3.0, fp_size_m=CAR_M)
     det = OracleLidarDetector(cfg, seed=3)
     frames = 2000
     tp_total = fp_total = 0
@@ -82,7 +83,9 @@ def test_lidar_miss_rate_and_false_positive_rate() -> None:
 
 
 def test_lidar_reproducible_with_seed() -> None:
-    cfg = OracleLidarConfig(position_noise_m=0.05, detection_probability=0.5, false_positives_per_frame=2)
+    cfg = OracleLidarConfig(
+        position_noise_m=0.05, detection_probability=0.5, false_positives_per_frame=2, fp_size_m=CAR_M
+    )
     truth = np.repeat(TRUTH3D, 20, axis=0)
     np.testing.assert_array_equal(lidar_run(cfg, truth, seed=7), lidar_run(cfg, truth, seed=7))
     assert not np.array_equal(lidar_run(cfg, truth, seed=7), lidar_run(cfg, truth, seed=8))
@@ -109,6 +112,8 @@ def test_lidar_config_validation() -> None:
         OracleLidarConfig(fp_region_m=(1.0, 0.0, -1.0, 2.0))
     with pytest.raises(ValidationError):
         OracleLidarConfig(fp_size_m=(0.3, 0.0, 0.2))
+    with pytest.raises(ValidationError, match="fp_size_m"):
+        OracleLidarConfig(false_positives_per_frame=1.0)  # false positives of no size: the scene's car
     with pytest.raises(ValidationError):
         OracleLidarConfig(detection_probability=1.5)
     with pytest.raises(ValidationError):

@@ -78,7 +78,7 @@ def test_pairing_keeps_a_close_pair_that_raw_distances_would_split() -> None:
 
 def test_target_height_picks_the_deck_or_the_lane_beneath(scene: Scene) -> None:
     # (0.15, 3.3): the northbound table lane l2 (x = 0.15) passes under the westbound deck (y = 3.3).
-    surface = RoadSurface(scene, half_width_m=0.2)
+    surface = RoadSurface(scene, half_width_m=0.2, sample_step_m=0.05)
     xy = np.array([[0.15, 3.3], [0.15, 3.3]])
     # A radar sees the top edge of a car on the table (0.21 m) and the bottom edge of one on the deck.
     level = radar_camera.level_ranges(np.array([0.21, 0.40]), CAR[2], 0.05)
@@ -191,7 +191,7 @@ def test_viaduct_radar_places_a_car_yawed_off_its_lane_on_the_lane(scene: Scene)
         )
         pipe = AgentPipeline(scene, "agent2", settings, sensor_ids=["radar_2"])
         ((m,),) = pipe.radar_measurements(AgentInputs(stamp_ns=0, radar={"radar_2": scan}))
-        assert m.z_m == pytest.approx(0.4 + settings.radar_camera.object_height_m / 2)
+        assert m.z_m == pytest.approx(0.4 + scene.spec.vehicle.height_m / 2)  # half a car over the deck
         found[lane_std, yaw_std] = abs(m.position_m - truth_xy)
     off_lane = found[None, 0.0][0]
     assert off_lane > 0.15  # the corner on the wrong side: off by about the car's width
@@ -276,7 +276,7 @@ def test_truncated_detection_is_not_merged(cam: CameraView) -> None:
 
 
 def test_camera_only_places_cars_on_the_lane_surface(scene: Scene) -> None:
-    surface = RoadSurface(scene, half_width_m=0.2)
+    surface = RoadSurface(scene, half_width_m=0.2, sample_step_m=0.05)
     lane = scene.spec.lanes[0]
     line = np.asarray(scene.lane_centreline(lane.id))
     views = {c.id: CameraView.from_scene(scene, c.id) for c in scene.sensors_of(kind="camera")}

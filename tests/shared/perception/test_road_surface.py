@@ -13,7 +13,9 @@ from shared.scene.scene import Scene
 HALF_WIDTH_M = 0.2
 
 
-_SURFACE = RoadSurface(Scene.load(DEFAULT_SCENE), HALF_WIDTH_M)  # one for all tests (hypothesis: no fixtures)
+_SURFACE = RoadSurface(
+    Scene.load(DEFAULT_SCENE), HALF_WIDTH_M, 0.05
+)  # one for all tests (hypothesis: no fixtures)
 
 
 def brute_nearest(s: RoadSurface, xy: np.ndarray, z_range: np.ndarray | None) -> np.ndarray:

@@ -103,7 +103,7 @@ def encode_targets(boxes: np.ndarray, ignore: np.ndarray, grid: GridConfig, head
     regression[REG_OFFSET_X, r, c] = (b[:, 0] - xs[c]) / cell
     regression[REG_OFFSET_Y, r, c] = (b[:, 1] - ys[r]) / cell
     regression[REG_Z, r, c] = b[:, 2] / cell
-    regression[REG_LOG_SIZE, r, c] = np.log(np.maximum(b[:, 3:6], 1e-6) / np.asarray(head.mean_size_m)).T
+    regression[REG_LOG_SIZE, r, c] = np.log(np.maximum(b[:, 3:6], 1e-6) / np.asarray(head.mean_size())).T
     regression[REG_SIN2, r, c] = np.sin(2 * axis)
     regression[REG_COS2, r, c] = np.cos(2 * axis)
     regression[REG_DIRECTION, r, c] = direction
@@ -138,7 +138,7 @@ def decode(
     out[:, 0] = xs[col] + reg[REG_OFFSET_X] * cell
     out[:, 1] = ys[row] + reg[REG_OFFSET_Y] * cell
     out[:, 2] = reg[REG_Z] * cell
-    out[:, 3:6] = np.exp(reg[REG_LOG_SIZE]).T * np.asarray(head.mean_size_m)
+    out[:, 3:6] = np.exp(reg[REG_LOG_SIZE]).T * np.asarray(head.mean_size())
     axis = 0.5 * np.arctan2(reg[REG_SIN2], reg[REG_COS2])
     axis = head.direction_offset_rad + wrap_angle(2 * (axis - head.direction_offset_rad)) / 2
     out[:, 6] = wrap_angle(axis + np.pi * (reg[REG_DIRECTION] > 0))

@@ -16,8 +16,6 @@ from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from shared.scene.scene import vehicle_size_m as scene_vehicle_size_m
-
 # The backbone has two stride-2 stages; the neck brings both to stride 2, so the grid must divide by 4.
 GRID_DIVISOR = 4
 HEAD_STRIDE = 2
@@ -108,11 +106,19 @@ class HeadConfig(_Model):
     ignore_radius_m: float = Field(
         0.2, ge=0, description="heatmap loss is masked within this distance of an ignore box centre, metres"
     )
-    mean_size_m: tuple[float, float, float] = Field(
-        default_factory=scene_vehicle_size_m,
-        description="reference (dx, dy, dz), m, default the scene's vehicle; sizes are regressed as "
-        "log(size / this) (a trained model keeps its own in its config)",
+    mean_size_m: tuple[float, float, float] | None = Field(
+        None,
+        description="reference (dx, dy, dz), m; sizes are regressed as log(size / this). None: the median "
+        "size of the training labels, fixed when training starts (a trained model keeps its own in its "
+        "config)",
     )
+
+    def mean_size(self) -> tuple[float, float, float]:
+        """`mean_size_m`, which a trained or training model always has."""
+        if self.mean_size_m is None:
+            raise ValueError("head.mean_size_m is unset: training fixes it from its labels (with_mean_size)")
+        return self.mean_size_m
+
     direction_offset_rad: float = Field(
         math.pi / 4,
         description="headings are split into axis (mod pi, from sin/cos of 2*yaw) + direction bit; the bit "

@@ -9,6 +9,7 @@ import pytest
 
 from shared.detection.lidar.pointpillars.config import (
     GridConfig,
+    HeadConfig,
     NetConfig,
     PointPillarsConfig,
     TrainConfig,
@@ -28,6 +29,7 @@ def tiny_config() -> PointPillarsConfig:
         net=NetConfig(
             pfn_channels=16, stage_channels=(16, 32), stage_layers=(1, 1), neck_channels=16, head_channels=16
         ),
+        head=HeadConfig(mean_size_m=(0.33, 0.22, 0.21)),  # the synthetic frames' vehicles
         train=TrainConfig(epochs=1, batch_size=4, lr=5e-3, crop_size_m=0.0, num_threads=1),
     )
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -18,6 +19,7 @@ from shared.detection.lidar.cluster import (
 from tests.shared.detection.lidar.raycast import Lidar, scan
 
 L, W, H = 0.33, 0.22, 0.21
+CAR_SIZE_M = (L, W, H)
 DECK_TOP = 0.40
 DECK_THICKNESS = 0.04
 TABLE_CARS = np.array(
@@ -58,12 +60,22 @@ def match(dets: np.ndarray, cars: np.ndarray) -> list[tuple[np.ndarray, np.ndarr
     return pairs
 
 
+def detector(**settings: Any) -> ClusterLidarDetector:
+    """The detector with the table car as its prior (the MEC sets the scene's)."""
+    return ClusterLidarDetector(ClusterLidarConfig(vehicle_size_m=CAR_SIZE_M, **settings))
+
+
+def test_refuses_to_run_without_the_scenes_vehicle() -> None:
+    with pytest.raises(ValueError, match="vehicle_size_m"):
+        ClusterLidarDetector(ClusterLidarConfig())
+
+
 def scene(lidar: Lidar, seed: int = 0) -> np.ndarray:
     return scan(lidar, np.vstack([CARS, STATIC]), np.random.default_rng(seed))
 
 
 def test_finds_every_vehicle_within_3cm_and_5deg() -> None:
-    dets = ClusterLidarDetector().detect(scene(HIGH_DENSE))
+    dets = detector().detect(scene(HIGH_DENSE))
     assert dets.shape == (len(CARS), 9) and dets.dtype == np.float32
     for det, car in match(dets, CARS):
         assert np.hypot(det[0] - car[0], det[1] - car[1]) < 0.03
@@ -75,15 +87,15 @@ def test_finds_every_vehicle_within_3cm_and_5deg() -> None:
 
 
 def test_ignores_ground_deck_pillars_pole_and_building() -> None:
-    dets = ClusterLidarDetector().detect(scan(HIGH_DENSE, STATIC, np.random.default_rng(1)))
+    dets = detector().detect(scan(HIGH_DENSE, STATIC, np.random.default_rng(1)))
     assert dets.shape == (0, 9)
     only_table = scan(HIGH_DENSE, np.zeros((0, 7)), np.random.default_rng(2))
-    assert ClusterLidarDetector().detect(only_table).shape == (0, 9)
+    assert detector().detect(only_table).shape == (0, 9)
 
 
 def test_simulator_density_still_finds_every_vehicle() -> None:
     # At the simulator's 32 x 250 rays a car 2.7 m away gets ~3 points per ring and face: looser bounds.
-    dets = ClusterLidarDetector().detect(scene(HIGH_SIM))
+    dets = detector().detect(scene(HIGH_SIM))
     assert dets.shape[0] == len(CARS)
     for det, car in match(dets, CARS):
         assert np.hypot(det[0] - car[0], det[1] - car[1]) < 0.04
@@ -102,7 +114,7 @@ def test_two_low_lidars_merged_cloud() -> None:
             for x, y in sensors
         ]
     )
-    dets = ClusterLidarDetector(ClusterLidarConfig(sensor_xy_m=sensors)).detect(cloud)
+    dets = detector(sensor_xy_m=sensors).detect(cloud)
     assert dets.shape[0] == len(TABLE_CARS)
     for det, car in match(dets, TABLE_CARS):
         assert np.hypot(det[0] - car[0], det[1] - car[1]) < 0.03
@@ -111,18 +123,18 @@ def test_two_low_lidars_merged_cloud() -> None:
 
 def test_deterministic() -> None:
     cloud = scene(HIGH_SIM)
-    np.testing.assert_array_equal(ClusterLidarDetector().detect(cloud), ClusterLidarDetector().detect(cloud))
+    np.testing.assert_array_equal(detector().detect(cloud), detector().detect(cloud))
 
 
 def test_range_crop_and_min_points() -> None:
     cloud = scene(HIGH_DENSE)
-    near = ClusterLidarDetector(ClusterLidarConfig(max_range_m=2.0)).detect(cloud)
+    near = detector(max_range_m=2.0).detect(cloud)
     assert near.shape[0] == 3 and np.all(np.hypot(near[:, 0], near[:, 1]) < 2.0)
-    assert ClusterLidarDetector(ClusterLidarConfig(min_points=100_000)).detect(cloud).shape == (0, 9)
+    assert detector(min_points=100_000).detect(cloud).shape == (0, 9)
 
 
 def test_empty_and_invalid_input() -> None:
-    det = ClusterLidarDetector()
+    det = detector()
     out = det.detect(np.zeros((0, 4), np.float32))
     assert out.shape == (0, 9) and out.dtype == np.float32
     cloud = scene(HIGH_SIM)

@@ -26,7 +26,7 @@ from training.pointpillars.evaluation import accuracy, centre_errors
 GRID = GridConfig(
     x_min_m=-0.8, x_max_m=0.8, y_min_m=-0.8, y_max_m=0.8, pillar_size_m=0.05
 )  # head 16x16, 0.1 m
-HEAD = HeadConfig()
+HEAD = HeadConfig(mean_size_m=(0.33, 0.22, 0.21))
 POST = PostConfig(score_threshold=0.3)
 
 
