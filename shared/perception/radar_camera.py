@@ -52,18 +52,30 @@ REFLECTION_FIT_ITERATIONS = 6
 
 
 class RoiSizeConfig(BaseModel):
-    """ROI size S = alpha / d + beta per image axis, d = optical depth of the POI."""
+    """ROI size S = alpha / d + beta per image axis, d = optical depth of the POI (the paper's form), with
+    alpha from the camera and the car: width alpha = width_factor x fx x car length, height alpha =
+    height_factor x fx x car height, so one setting fits every camera and every scale."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    alpha_width_px_m: float = Field(
-        130.0, gt=0, description="width scale, px m (about 1.1 x fx x car length 0.33 m at fx 353 px)"
+    width_factor: float = Field(
+        1.115,
+        gt=0,
+        description="ROI width over the car's length as imaged (cars seen at any heading; the table's "
+        "130 px m at fx 353 px, car 0.33 m)",
     )
     beta_width_px: float = Field(0.0, description="width offset, px")
-    alpha_height_px_m: float = Field(
-        98.0, gt=0, description="height scale, px m (car height 0.21 m seen from pitched cameras, fx 353 px)"
+    height_factor: float = Field(
+        1.3207,
+        gt=0,
+        description="ROI height over the car's height as imaged (pitched cameras see roof and side; the "
+        "table's 98 px m at fx 353 px, car 0.21 m)",
     )
     beta_height_px: float = Field(0.0, description="height offset, px")
+
+    def alpha_px_m(self, fx_px: float, car_size_m: tuple[float, float, float]) -> tuple[float, float]:
+        """(width, height) alpha of a camera of focal length `fx_px` and the scene's car, px m."""
+        return self.width_factor * fx_px * car_size_m[0], self.height_factor * fx_px * car_size_m[2]
 
 
 class RadarCameraConfig(BaseModel):
@@ -245,11 +257,14 @@ def level_ranges(reflection_z_m: FloatArray, car_height_m: float, tolerance_m: f
     return np.column_stack([z - car_height_m - tolerance_m, z + tolerance_m])
 
 
-def roi_boxes(uv_px: FloatArray, depth_m: FloatArray, cfg: RoiSizeConfig) -> FloatArray:
-    """(K, 4) ROIs `[x0, y0, x1, y1]` centred on the POIs; NaN rows where the POI is behind the camera."""
+def roi_boxes(
+    uv_px: FloatArray, depth_m: FloatArray, cfg: RoiSizeConfig, alpha_px_m: tuple[float, float]
+) -> FloatArray:
+    """(K, 4) ROIs `[x0, y0, x1, y1]` centred on the POIs; NaN rows where the POI is behind the camera.
+    `alpha_px_m`: (width, height) alpha of the camera (`RoiSizeConfig.alpha_px_m`)."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        w = cfg.alpha_width_px_m / depth_m + cfg.beta_width_px
-        h = cfg.alpha_height_px_m / depth_m + cfg.beta_height_px
+        w = alpha_px_m[0] / depth_m + cfg.beta_width_px
+        h = alpha_px_m[1] / depth_m + cfg.beta_height_px
     half = np.column_stack([w, h]) / 2.0
     boxes = np.concatenate([uv_px - half, uv_px + half], axis=1)
     boxes[~(depth_m > 0)] = np.nan
@@ -431,7 +446,7 @@ def radar_measurements(
     if cam is not None and cam in dets2d and len(dets2d[cam]):
         view = views[cam]
         uv, depth = view.project(world)
-        rois = roi_boxes(uv, depth, cfg.roi)
+        rois = roi_boxes(uv, depth, cfg.roi, cfg.roi.alpha_px_m(float(view.K[0, 0]), car_size_m))
         free = [j for j in range(len(dets2d[cam])) if j not in used_2d[cam]]
         m = match_rois(rois, dets2d[cam][free, :4], cfg.min_iou)
         counts["radar_camera/matched"] += len(m.radar_index)

@@ -25,7 +25,6 @@ from shared.geometry.transforms import (
     matrix_from_pose,
     matrix_from_xyz_rpy,
 )
-from shared.paths import DEFAULT_SCENE
 from shared.scene.cadence import frame_due
 from shared.scene.lanes import centreline
 from shared.scene.model import (
@@ -37,7 +36,6 @@ from shared.scene.model import (
     SceneSpec,
     SensorKindName,
     SensorSpec,
-    VehicleSpec,
 )
 
 FloatArray = np.ndarray
@@ -257,14 +255,3 @@ class Scene:
             np.minimum.at(out, point[inside], area[inside])  # the first area in file order wins
         out[out == len(self.spec.areas)] = -1
         return out
-
-
-@functools.cache
-def vehicle_size_m(path: Path = DEFAULT_SCENE) -> tuple[float, float, float]:
-    """(length, width, height) of the vehicles of the scene file `path`, m: the default size prior of the
-    modules that are built without a scene (detector configs)."""
-    data = read_yaml(path).get("vehicle")
-    try:
-        return VehicleSpec.model_validate(data).size_m
-    except ValidationError as err:
-        raise ConfigError(f"{path}: invalid vehicle: {err}") from None

@@ -44,10 +44,18 @@ def test_radar_polar_to_world_uses_the_full_pose() -> None:
 
 
 def test_roi_size_follows_alpha_over_d_plus_beta() -> None:
-    cfg = RoiSizeConfig(alpha_width_px_m=100, beta_width_px=4, alpha_height_px_m=50, beta_height_px=2)
-    rois = radar_camera.roi_boxes(np.array([[320.0, 240.0], [10.0, 10.0]]), np.array([2.0, -1.0]), cfg)
+    cfg = RoiSizeConfig(width_factor=1.0, beta_width_px=4, height_factor=2.0, beta_height_px=2)
+    alpha = cfg.alpha_px_m(200.0, (0.5, 0.2, 0.125))  # 1 x 200 x 0.5 = 100, 2 x 200 x 0.125 = 50 px m
+    assert alpha == pytest.approx((100.0, 50.0))
+    rois = radar_camera.roi_boxes(np.array([[320.0, 240.0], [10.0, 10.0]]), np.array([2.0, -1.0]), cfg, alpha)
     np.testing.assert_allclose(rois[0], [320 - 27, 240 - 13.5, 320 + 27, 240 + 13.5])
     assert np.isnan(rois[1]).all()  # behind the camera
+
+
+def test_the_roi_of_the_table_camera_keeps_its_tuned_size() -> None:
+    # 130 and 98 px m were tuned at fx 353.35 px for the 0.33 x 0.22 x 0.21 m car; the factors keep them.
+    width, height = RoiSizeConfig().alpha_px_m(353.35, (0.33, 0.22, 0.21))
+    assert width == pytest.approx(130.0, abs=0.05) and height == pytest.approx(98.0, abs=0.05)
 
 
 def test_hungarian_on_iou_keeps_pairs_above_threshold() -> None:
