@@ -75,8 +75,6 @@ _XYZ = 3
 STAGES = ("input", "after_crop", "after_outliers", "after_table", "after_deck", "after_voxel")
 # ... and the rows dropped for a NaN or infinite value (not a stage that can be switched off).
 NON_FINITE = "non_finite"
-# A plane is a deck only if some inlier is this high, m (see LidarPreprocessConfig.deck).
-_DECK_MIN_TOP_M = 0.3
 # BEV cells touching by an edge or a corner belong to one component.
 _EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)
 
@@ -131,7 +129,7 @@ class LidarPreprocessConfig(BaseModel):
         "(a 0.33 x 0.22 m vehicle spans at most 0.4 m)",
     )
     deck: SlabSearch = Field(
-        default_factory=lambda: SlabSearch(min_top_m=_DECK_MIN_TOP_M),
+        default_factory=lambda: SlabSearch(min_top_m=0.3),  # a default: scaled with the site
         description="the surface search (`shared.detection.lidar.ground.SlabSearch`); min_top_m: a plane is "
         "a deck only if some inlier is at least this high, m (vehicle roofs: 0.21 m, buildings: <= 0.25 m; "
         "deck: 0.4 m)",

@@ -17,6 +17,8 @@ kind                      factor     examples
 ``Area`` (m²)             L²         position variances
 ``PerLength`` (1/m)       1 / L      a radius that grows with the square of the range, per m²
 ``Speed`` (m/s)           V          velocity noise, speed thresholds
+``Ratio`` (m/m, ...)      1          a length per length (a radius that grows with range):
+                                     named in a unit of size, but scale-free
 ``Acceleration`` (m/s²)   A          process noise, car-following accelerations (no power of
                                      L and V fits: a DeepRacer reaches 1.5 lengths/s at 0.6 m/s²,
                                      a car 3 lengths/s at ~2.5 m/s²; the vehicle says it)
@@ -74,12 +76,14 @@ AREA = Scales("area", power_length=2)
 PER_LENGTH = Scales("per_length", power_length=-1)
 SPEED = Scales("speed", power_speed=1)
 ACCELERATION = Scales("acceleration", power_accel=1)
+RATIO = Scales("ratio")
 
 Length = Annotated[float, LENGTH]
 Area = Annotated[float, AREA]
 PerLength = Annotated[float, PER_LENGTH]
 Speed = Annotated[float, SPEED]
 Acceleration = Annotated[float, ACCELERATION]
+Ratio = Annotated[float, RATIO]
 Length3 = Annotated[tuple[float, float, float], LENGTH]
 
 
@@ -112,6 +116,7 @@ class SiteScale:
         )
 
     def factor(self, scales: Scales) -> float:
+        """The factor of a kind at this scale (1 for a ratio)."""
         return float(
             self.length**scales.power_length * self.speed**scales.power_speed * self.accel**scales.power_accel
         )

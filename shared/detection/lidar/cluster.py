@@ -45,7 +45,7 @@ from shared.detection.interface import CAR_CLASS_ID, check_points, empty_lidar_d
 from shared.detection.lidar.box_fit import BoxFitParams, FittedBox, fit_vehicle_box
 from shared.detection.lidar.ground import SEARCH, SlabSearch, Verdict, above_table, peel_slabs
 from shared.scene.model import SceneSpec
-from shared.scene.scale import Length, PerLength, SiteScale, at_scale, from_scene
+from shared.scene.scale import Length, PerLength, Ratio, SiteScale, at_scale, from_scene
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -81,7 +81,7 @@ class ClusterLidarConfig(BaseModel):
     )
     # clustering
     cluster_eps_min_m: Length = Field(0.05, gt=0.0, description="clustering radius near the lidar")
-    cluster_eps_per_m: float = Field(
+    cluster_eps_per_m: Ratio = Field(
         0.03,
         ge=0.0,
         description="radius growth per metre of range (~1.2x the 32-line lidar's 0.025 rad step)",
