@@ -240,12 +240,6 @@ class RoadSpec(_Strict):
     corner_radius_m: float = Field(ge=0, description="default fillet radius of lane corners")
     sample_step_m: float = Field(gt=0, description="resampling step of lane centrelines")
     deck: DeckSpec | None = Field(None, description="an elevated deck; None: every lane on the ground")
-    design_speed_mps: float | None = Field(
-        None,
-        gt=0,
-        description="the site's top speed where no lane gives one (a site without a lane map): the "
-        "characteristic speed of its scale (shared/scene/scale.py)",
-    )
 
     @property
     def elevated_min_z_m(self) -> float:
@@ -293,6 +287,12 @@ class SceneSpec(_Strict):
     description: str = ""
     table: TableSpec
     road: RoadSpec | None = Field(None, description="road geometry; required with a lane map")
+    design_speed_mps: float | None = Field(
+        None,
+        gt=0,
+        description="the site's top speed where no lane gives one (a site without a lane map): the "
+        "characteristic speed of its scale (shared/scene/scale.py)",
+    )
     vehicle: VehicleSpec
     static_objects: list[StaticObjectSpec] = Field(default_factory=list)
     junctions: list[JunctionSpec] = Field(default_factory=list)
@@ -303,14 +303,12 @@ class SceneSpec(_Strict):
 
     @property
     def top_speed_mps(self) -> float:
-        """The site's characteristic speed: its highest lane speed limit, else `road.design_speed_mps`."""
+        """The site's characteristic speed: its highest lane speed limit, else `design_speed_mps`."""
         if self.lanes:
             return max(lane.speed_limit_mps for lane in self.lanes)
-        if self.road is not None and self.road.design_speed_mps is not None:
-            return self.road.design_speed_mps
-        raise ValueError(
-            f"scene {self.scene_id}: no lanes and no road.design_speed_mps: its top speed is unknown"
-        )
+        if self.design_speed_mps is not None:
+            return self.design_speed_mps
+        raise ValueError(f"scene {self.scene_id}: no lanes and no design_speed_mps: its top speed is unknown")
 
     @model_validator(mode="after")
     def _references(self) -> SceneSpec:

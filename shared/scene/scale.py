@@ -30,7 +30,7 @@ Unscaled, and so plain ``float``: times (s), rates (Hz), counts, angles (rad), r
 quantities of an image (they belong to the camera and its detector, not to the size of the site).
 
 Times are not scaled: sensors run at 10 Hz at every size. The characteristic length of a scene is its
-vehicle's length; its characteristic speed the highest lane speed limit, or ``road.design_speed_mps``
+vehicle's length; its characteristic speed the highest lane speed limit, or ``design_speed_mps``
 for a site without a lane map; its characteristic acceleration the vehicle's ``max_accel_mps2``.
 """
 
