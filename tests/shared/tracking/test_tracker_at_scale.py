@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from shared.perception.config import MecSettings
 from shared.scene.scale import (
     REFERENCE_ACCEL_MPS2,
     REFERENCE_LENGTH_M,
@@ -41,7 +42,7 @@ def drive(config: TrackerConfig, frames: int, noise_m: float, seed: int = 0) -> 
 @pytest.mark.parametrize("seed", range(5))
 def test_a_car_at_50_kmh_is_confirmed_within_3_frames_under_one_id(seed: int) -> None:
     config = at_scale(TrackerConfig(), REAL)
-    noise_m = at_scale(TrackerConfig(), REAL).gate_m / 25  # the lidar's centre noise at this scale: ~0.27 m
+    noise_m = at_scale(MecSettings(), REAL).lidar_position_std_m  # the MEC's lidar noise here: 0.27 m
     published = drive(config, 30, noise_m, seed)
     assert published[2] != []  # confirmed on its third frame (3 of 3)
     assert {i for ids in published for i in ids} == {1}  # one id throughout
