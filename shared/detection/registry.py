@@ -27,7 +27,7 @@ if TYPE_CHECKING:
 
 MODELS_DIR = DEPLOY_DIR / "models"
 CAMERA_DETECTORS = ("onnx", "oracle")
-LIDAR_DETECTORS = ("pointpillars", "cluster", "oracle")
+LIDAR_DETECTORS = ("pointpillars", "cluster", "background", "oracle")
 CAMERA_MODEL = Path("camera") / ONNX_FILE
 CAMERA_CARD = Path("camera") / CARD_FILE
 LIDAR_MODEL = Path("lidar") / "pointpillars.onnx"
@@ -78,8 +78,9 @@ def lidar_detector(
     cluster: ClusterLidarConfig | None = None,
     oracle: OracleLidarConfig | None = None,
 ) -> LidarDetector:
-    """`cluster` is required for the cluster detector (its settings at the site's scale, with the
-    scene's vehicle and lidars: `MecSettings.for_site`); `oracle` configures the oracle."""
+    """`cluster` is required for the cluster and background detectors (their settings at the site's scale,
+    with the scene's vehicle and lidars: `MecSettings.for_site`; the background detector's static-scene
+    removal is the MEC's, per lidar: `shared.perception.background`); `oracle` configures the oracle."""
     if name == "pointpillars" or is_card(name):
         if name == "pointpillars":
             learned_model(models_dir, LIDAR_MODEL, precision)  # names the tool that writes a missing one
@@ -88,12 +89,14 @@ def lidar_detector(
         if name != "pointpillars":
             lidar.name = f"{lidar.name}:{name}"  # results tell the cards apart
         return lidar
-    if name == "cluster":
+    if name in ("cluster", "background"):  # background: the MEC removes each lidar's static scene first
         from shared.detection.lidar.cluster import ClusterLidarDetector
 
         if cluster is None:
-            raise ValueError("the cluster detector needs its settings for the site (the scene's vehicle)")
-        return ClusterLidarDetector(cluster)
+            raise ValueError(f"the {name} detector needs its settings for the site (the scene's vehicle)")
+        detector = ClusterLidarDetector(cluster)
+        detector.name = name
+        return detector
     if name == "oracle":
         from shared.detection.oracle import OracleLidarDetector
 

@@ -17,6 +17,7 @@ from shared.detection.lidar.cluster import ClusterLidarConfig
 from shared.detection.oracle import OracleLidarConfig
 from shared.detection.precision import Precision
 from shared.paths import REPO_ROOT
+from shared.perception.background import BackgroundConfig
 from shared.perception.camera_only import CameraOnlyConfig
 from shared.perception.lidar_camera import LidarCameraConfig
 from shared.perception.lidar_preprocess import LidarPreprocessConfig
@@ -43,8 +44,9 @@ class DetectorsConfig(_Model):
     )
     lidar: str = Field(
         "pointpillars",
-        description="lidar detector: pointpillars | cluster | oracle | the path of a model card (an "
-        "OpenPCDet PointPillars export)",
+        description="lidar detector: pointpillars | cluster | background (a model of each lidar's static "
+        "scene, its foreground clustered) | oracle | the path of a model card (an OpenPCDet PointPillars "
+        "export)",
     )
     camera_threads: int = Field(2, ge=1, description="onnxruntime intra-op threads of the camera model")
     lidar_threads: int = Field(2, ge=1, description="onnxruntime intra-op threads of the lidar model")
@@ -72,7 +74,13 @@ class DetectorsConfig(_Model):
     )
     cluster: ClusterLidarConfig = Field(
         default_factory=ClusterLidarConfig,
-        description="the `cluster` lidar detector (its vehicle prior and lidar positions from the scene)",
+        description="the `cluster` and `background` lidar detectors' clustering and box fit (vehicle prior "
+        "and lidar positions from the scene)",
+    )
+    background: BackgroundConfig = Field(
+        default_factory=BackgroundConfig,
+        description="the `background` lidar detector's model of the static scene, per lidar "
+        "(shared/perception/background.py); its foreground goes to the cluster detector",
     )
     oracle_lidar: OracleLidarConfig = Field(
         default_factory=OracleLidarConfig, description="the `oracle` lidar detector's error model"

@@ -32,6 +32,7 @@ from shared.datasets.layout import agent_origin_m
 from shared.detection.interface import CameraDetector, DetectorInputError, LidarDetector
 from shared.detection.registry import camera_detector, lidar_detector
 from shared.perception import camera_only, lidar_camera, radar_camera
+from shared.perception.background import RangeBackground, RangeImage, saved_background
 from shared.perception.confidence import FUSED, ScoreCalibration
 from shared.perception.config import MecSettings
 from shared.perception.lidar_preprocess import agent_frame_transforms, merge_clouds, preprocess
@@ -157,6 +158,14 @@ class AgentPipeline:
             )
             if hasattr(self.lidar_detector, "warm_up"):  # the ONNX model: its arena at size from the start
                 self.lidar_detector.warm_up()
+        # The background detector: each lidar's static scene removed from its own cloud, before merging.
+        self.backgrounds = {
+            s.id: RangeBackground(
+                RangeImage.of(s.lidar), det.background, saved_background(det.background, s.id)
+            )
+            for s in specs
+            if s.lidar is not None and det.lidar == "background"
+        }
         self.origin_m = agent_origin_m(scene, agent_id) if self.lidar_ids else np.zeros(3)
         self.lidar_T = agent_frame_transforms(scene, agent_id) if self.lidar_ids else {}
         self.radar_T = {s.id: np.asarray(scene.T_world_from_sensor(s.id), float) for s in self.radar_specs}
@@ -247,6 +256,8 @@ class AgentPipeline:
         ids = [c for c in self.lidar_ids if c in clouds]
         if not ids or self.lidar_detector is None:
             return np.zeros((0, 9))
+        if self.backgrounds:
+            clouds = {c: clouds[c][self.backgrounds[c].foreground(clouds[c][:, :3])] for c in ids}
         merged = merge_clouds([(self.lidar_T[c], clouds[c]) for c in ids])
         if self.cfg.detectors.lidar_input == "preprocessed":
             pre = preprocess(merged, self.cfg.preprocess)

@@ -1,0 +1,230 @@
+"""Background model of a roadside lidar's static scene: what is always there is not a vehicle.
+
+A pole-mounted lidar sees the same ground, buildings, trees, poles and signs on every revolution. Each of
+its rays (a cell of its range image: channel x azimuth bin) keeps a histogram of the ranges it returned,
+on log-spaced range bins, as exponentially weighted frequencies: the weight of a bin is the share of
+recent revolutions in which the ray returned there. The ray's *background* is the nearest range bin
+whose share reaches ``background_fraction``: the ground or a wall (nearly every revolution), a tree's
+leaves (often enough, even though the ray sometimes passes through). A return nearer than its ray's
+background by more than ``margin_bins`` is *foreground* (a vehicle, a pedestrian); a ray with no
+background (it never hits anything, e.g. above the horizon) makes every return foreground.
+
+Learning
+--------
+- From nothing, online: the first ``warmup_frames`` revolutions are averaged with equal weight (the
+  shares are exact frequencies), and no point is called foreground until then.
+- Then slowly: each revolution adds ``learn_rate`` to the bin it returned in and decays the rest, so a
+  car parked for minutes becomes background (time constant 1 / learn_rate revolutions) while a queue at
+  a red light does not.
+- A ray that returns *farther* than its background on ``clear_after_frames`` revolutions in a row saw
+  through it: its nearer bins are forgotten, so the background of a parked car that left goes in
+  seconds, not minutes. A porous tree, seen through now and then but not for that many revolutions in a
+  row, keeps its share.
+- Saved with the site (`save` / `load`, a NumPy .npz), e.g. learned from a recorded empty period.
+
+Units: metres, radians; points in the lidar's own frame (+x forward, z up), as the sensor sends them.
+Cost: one histogram update and one comparison per point; the background is re-derived every
+``refresh_frames`` revolutions.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field
+
+from shared.devices.robosense import MODELS
+from shared.scene.model import LidarModel
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+IntArray = NDArray[np.int64]
+
+MODEL_FORMAT = 1  # version of the saved model's layout
+
+
+class BackgroundConfig(BaseModel):
+    """Settings of `RangeBackground` (scale-free: ranges are binned relative to the lidar's own span)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    range_bins: int = Field(128, ge=8, le=1024, description="log-spaced range bins over the lidar's span")
+    warmup_frames: int = Field(
+        30, ge=1, description="revolutions averaged with equal weight before any point is called foreground"
+    )
+    learn_rate: float = Field(
+        0.0005,
+        gt=0,
+        lt=1,
+        description="weight of a new revolution after warm-up: an object standing still for ~1 / rate "
+        "revolutions (200 s at 10 Hz) joins the background, a queue at a light does not",
+    )
+    clear_after_frames: int = Field(
+        20,
+        ge=1,
+        description="revolutions in a row a ray must return beyond its background before the nearer bins "
+        "are forgotten (a parked car that left; a tree seen through 40 % of the time: 0.4^20 ~ 1e-8)",
+    )
+    background_fraction: float = Field(
+        0.15, gt=0, lt=1, description="a range returned in at least this share of revolutions is background"
+    )
+    margin_bins: int = Field(
+        2, ge=0, description="foreground: nearer than the background by more than this many range bins"
+    )
+    refresh_frames: int = Field(10, ge=1, description="the background is re-derived every n revolutions")
+    models_dir: Path | None = Field(
+        None,
+        description="saved models to start from, `<lidar id>.npz` each (learned from an empty period); a "
+        "lidar without one learns online",
+    )
+
+
+@dataclass(frozen=True)
+class RangeImage:
+    """The ray layout of one lidar: its channels' elevations and its azimuth bins."""
+
+    elevations_rad: FloatArray  # (C,) ascending
+    azimuth_bins: int
+    min_range_m: float
+    max_range_m: float
+
+    @classmethod
+    def of(cls, model: LidarModel) -> RangeImage:
+        if model.device is not None:
+            elevations = np.sort(np.radians(np.asarray(MODELS[model.device].example_vertical_deg, float)))
+        else:
+            lo, hi = model.vertical_range_rad
+            elevations = np.linspace(lo, hi, model.channels)
+        return cls(elevations, model.horizontal_samples, max(model.min_range_m, 1e-3), model.max_range_m)
+
+    @property
+    def cells(self) -> int:
+        return len(self.elevations_rad) * self.azimuth_bins
+
+    def cell_of(self, xyz: FloatArray) -> tuple[IntArray, FloatArray]:
+        """Range-image cell (channel x azimuth bin) and range of each (N, 3) point."""
+        horizontal = np.hypot(xyz[:, 0], xyz[:, 1])
+        rng = np.hypot(horizontal, xyz[:, 2])
+        elevation = np.arctan2(xyz[:, 2], horizontal)
+        edges = (self.elevations_rad[1:] + self.elevations_rad[:-1]) / 2  # nearest channel
+        channel = np.searchsorted(edges, elevation)
+        azimuth = np.arctan2(xyz[:, 1], xyz[:, 0])
+        column = np.floor((azimuth + math.pi) / (2 * math.pi) * self.azimuth_bins).astype(np.int64)
+        column = np.clip(column, 0, self.azimuth_bins - 1)
+        return channel * self.azimuth_bins + column, rng
+
+
+class RangeBackground:
+    """The background model of one lidar (module docstring). `foreground(xyz)` classifies one
+    revolution's points and learns from them."""
+
+    def __init__(self, layout: RangeImage, config: BackgroundConfig, model_path: Path | None = None) -> None:
+        self.layout = layout
+        self.config = config
+        self._log_lo = math.log(layout.min_range_m)
+        self._per_bin = (math.log(layout.max_range_m) - self._log_lo) / config.range_bins
+        self.weights = np.zeros((layout.cells, config.range_bins), np.float32)
+        self.frames = 0
+        self.background_bin = np.full(layout.cells, config.range_bins, np.int64)  # none: all foreground
+        self.through_streak = np.zeros(layout.cells, np.int32)  # revolutions in a row seen beyond it
+        if model_path is not None:
+            self.load(model_path)
+
+    @property
+    def ready(self) -> bool:
+        """True once warm-up is over (a loaded model is)."""
+        return self.frames >= self.config.warmup_frames
+
+    def range_bin(self, range_m: FloatArray) -> IntArray:
+        b = np.floor((np.log(np.maximum(range_m, 1e-9)) - self._log_lo) / self._per_bin)
+        return np.clip(b, 0, self.config.range_bins - 1).astype(np.int64)
+
+    def foreground(self, xyz: FloatArray, learn: bool = True) -> BoolArray:
+        """(N,) True where a point of this revolution stands in front of the background (all False
+        during warm-up); then, with `learn`, the revolution is learned."""
+        xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
+        cell, rng = self.layout.cell_of(xyz)
+        b = self.range_bin(rng)
+        if self.ready:
+            front = b < self.background_bin[cell] - self.config.margin_bins
+        else:
+            front = np.zeros(len(b), bool)
+        if learn:
+            self._learn(cell, b)
+        return front
+
+    def _learn(self, cell: IntArray, b: IntArray) -> None:
+        cfg = self.config
+        self.frames += 1
+        warm = self.frames <= cfg.warmup_frames
+        cleared = np.zeros(len(cell), bool)
+        rate = 1.0 / self.frames if warm else cfg.learn_rate
+        if warm:
+            self.weights *= np.float32(1.0 - rate)  # an exact average over the warm-up
+        elif self.frames % cfg.refresh_frames == 0:
+            self.weights *= np.float32((1.0 - rate) ** cfg.refresh_frames)  # the decay, in blocks
+        if not warm:
+            through = b > self.background_bin[cell] + cfg.margin_bins
+            self.through_streak[cell] = np.where(through, self.through_streak[cell] + 1, 0)
+            cleared = through & (self.through_streak[cell] >= cfg.clear_after_frames)
+            if cleared.any():
+                rows, reach = cell[cleared], b[cleared] - cfg.margin_bins
+                nearer = np.arange(cfg.range_bins)[None, :] < reach[:, None]
+                self.weights[rows] = np.where(nearer, np.float32(0.0), self.weights[rows])
+                self.through_streak[rows] = 0
+        self.weights[cell, b] += np.float32(rate)
+        if cleared.any():
+            self._refresh_rows(cell[cleared])
+        if warm or self.frames % cfg.refresh_frames == 0:
+            self.refresh()
+
+    def refresh(self) -> None:
+        """Re-derive each ray's background bin from its weights."""
+        self._refresh_rows(np.arange(self.layout.cells))
+
+    def _refresh_rows(self, rows: IntArray) -> None:
+        above = self.weights[rows] >= self.config.background_fraction
+        self.background_bin[rows] = np.where(above.any(axis=1), above.argmax(axis=1), self.config.range_bins)
+
+    def save(self, path: Path) -> None:
+        """Write the model (weights, frames, layout) to `path` (.npz)."""
+        np.savez_compressed(
+            path,
+            format=MODEL_FORMAT,
+            weights=self.weights,
+            frames=self.frames,
+            elevations_rad=self.layout.elevations_rad,
+            azimuth_bins=self.layout.azimuth_bins,
+            range_span_m=(self.layout.min_range_m, self.layout.max_range_m),
+        )
+
+    def load(self, path: Path) -> None:
+        """Start from a saved model; ValueError if it was learned for another ray layout."""
+        with np.load(path) as saved:
+            if int(saved["format"]) != MODEL_FORMAT:
+                raise ValueError(
+                    f"{path}: background model format {int(saved['format'])}, not {MODEL_FORMAT}"
+                )
+            same = (
+                int(saved["azimuth_bins"]) == self.layout.azimuth_bins
+                and np.allclose(saved["elevations_rad"], self.layout.elevations_rad)
+                and np.allclose(saved["range_span_m"], (self.layout.min_range_m, self.layout.max_range_m))
+                and saved["weights"].shape == self.weights.shape
+            )
+            if not same:
+                raise ValueError(f"{path}: a background model of another lidar layout or range binning")
+            self.weights = saved["weights"].astype(np.float32)
+            self.frames = max(int(saved["frames"]), self.config.warmup_frames)
+        self.refresh()
+
+
+def saved_background(config: BackgroundConfig, lidar_id: str) -> Path | None:
+    """The saved model of `lidar_id` in `config.models_dir`, if there is one."""
+    if config.models_dir is None:
+        return None
+    path = config.models_dir / f"{lidar_id}.npz"
+    return path if path.is_file() else None

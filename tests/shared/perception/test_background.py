@@ -1,0 +1,138 @@
+"""The lidar background model (shared/perception/background.py) on synthetic revolutions: ground, a wall,
+a porous tree, passing, queued and parked cars."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from shared.perception.background import BackgroundConfig, RangeBackground, RangeImage
+from shared.scene.model import LidarModel
+
+LIDAR = LidarModel(
+    channels=16,
+    horizontal_samples=360,
+    vertical_min_rad=-0.5,
+    vertical_max_rad=0.1,
+    min_range_m=0.5,
+    max_range_m=100.0,
+)
+LAYOUT = RangeImage.of(LIDAR)
+HEIGHT_M = 6.0  # on a pole
+CAR_COLUMNS = np.arange(40, 46)  # the azimuth bins a car covers, in every downward channel
+TREE_COLUMNS = np.arange(200, 206)
+WALL_COLUMNS = np.arange(300, 320)
+
+
+def rays() -> tuple[np.ndarray, np.ndarray]:
+    """Elevation and azimuth of every cell's centre ray, (C * H,) each."""
+    az = (np.arange(LAYOUT.azimuth_bins) + 0.5) / LAYOUT.azimuth_bins * 2 * math.pi - math.pi
+    el, az = np.meshgrid(LAYOUT.elevations_rad, az, indexing="ij")
+    return el.ravel(), az.ravel()
+
+
+EL, AZ = rays()
+COLUMN = np.tile(np.arange(LAYOUT.azimuth_bins), len(LAYOUT.elevations_rad))
+DOWN = EL < -0.05
+
+
+def points(ranges: np.ndarray) -> np.ndarray:
+    keep = np.isfinite(ranges)
+    r, el, az = ranges[keep], EL[keep], AZ[keep]
+    return np.column_stack([r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)])
+
+
+def static_ranges(rng: np.random.Generator, tree_hit: float = 0.6) -> np.ndarray:
+    """Ground for the downward rays (none above), a wall at 20 m, a tree at 12 m hit `tree_hit` of the
+    time."""
+    r = np.where(DOWN, HEIGHT_M / np.sin(np.maximum(-EL, 1e-3)), np.inf)
+    r[np.isin(COLUMN, WALL_COLUMNS)] = 20.0
+    tree = np.isin(COLUMN, TREE_COLUMNS) & DOWN & (rng.random(len(r)) < tree_hit)
+    r[tree] = np.minimum(r[tree], 12.0)
+    return r + rng.normal(0.0, 0.02, len(r))
+
+
+def with_car(r: np.ndarray, at_m: float = 8.0) -> tuple[np.ndarray, np.ndarray]:
+    """The rays a car at `at_m` covers return from it; (ranges, which rays)."""
+    car = np.isin(COLUMN, CAR_COLUMNS) & DOWN & (r > at_m)
+    out = r.copy()
+    out[car] = at_m
+    return out, car
+
+
+def learned(frames: int = 40, **config: object) -> tuple[RangeBackground, np.random.Generator]:
+    rng = np.random.default_rng(0)
+    model = RangeBackground(LAYOUT, BackgroundConfig(**config))  # type: ignore[arg-type]
+    for _ in range(frames):
+        model.foreground(points(static_ranges(rng)))
+    return model, rng
+
+
+def car_share(model: RangeBackground, rng: np.random.Generator, learn: bool = True) -> float:
+    """Share of a car's points called foreground in one revolution."""
+    r, car = with_car(static_ranges(rng))
+    keep = np.isfinite(r)
+    return float(model.foreground(points(r), learn)[car[keep]].mean())
+
+
+def test_nothing_is_foreground_during_warm_up() -> None:
+    model = RangeBackground(LAYOUT, BackgroundConfig(warmup_frames=30))
+    rng = np.random.default_rng(0)
+    for _ in range(29):
+        r, _ = with_car(static_ranges(rng))
+        assert not model.foreground(points(r)).any()
+    assert not model.ready
+
+
+def test_the_static_scene_is_background_and_a_passing_car_is_not() -> None:
+    model, rng = learned()
+    assert model.ready
+    for _ in range(200):
+        front = model.foreground(points(static_ranges(rng)))
+        assert front.mean() < 0.001  # ground, wall and the porous tree: background
+    assert car_share(model, rng) == 1.0
+
+
+def test_a_porous_tree_stays_background_for_minutes() -> None:
+    model, rng = learned()
+    tree = np.isin(COLUMN, TREE_COLUMNS) & DOWN
+    for _ in range(3000):  # 5 min at 10 Hz, seen through 40 % of the time
+        r = static_ranges(rng, tree_hit=0.6)
+        keep = np.isfinite(r)
+        front = model.foreground(points(r))
+    assert not front[(tree & (r < 13.0))[keep]].any()
+
+
+def test_a_queue_at_a_light_stays_foreground_and_a_parked_car_joins_the_background() -> None:
+    model, rng = learned()
+    shares = [car_share(model, rng) for _ in range(300)]  # a 30 s red light
+    assert min(shares) == 1.0
+    for _ in range(700):  # parked: 100 s in all
+        car_share(model, rng)
+    assert car_share(model, rng) < 0.05
+
+
+def test_a_parked_car_that_leaves_is_forgotten_within_seconds() -> None:
+    model, rng = learned()
+    for _ in range(1200):
+        car_share(model, rng)
+    assert car_share(model, rng) < 0.05  # part of the scene now
+    for _ in range(25):  # it left: the ground is seen again beyond it, 2.5 s
+        model.foreground(points(static_ranges(rng)))
+    assert car_share(model, rng, learn=False) == 1.0  # a new car on that spot is a vehicle again
+
+
+def test_a_saved_model_starts_ready_and_refuses_another_layout(tmp_path: Path) -> None:
+    model, rng = learned()
+    path = tmp_path / "agent1_lidar.npz"
+    model.save(path)
+    loaded = RangeBackground(LAYOUT, BackgroundConfig(), path)
+    assert loaded.ready
+    np.testing.assert_array_equal(loaded.background_bin, model.background_bin)
+    assert car_share(loaded, rng) == 1.0
+    other = RangeImage.of(LIDAR.model_copy(update={"horizontal_samples": 720}))
+    with pytest.raises(ValueError, match="another lidar layout"):
+        RangeBackground(other, BackgroundConfig(), path)
