@@ -45,43 +45,27 @@ $(PROTO_STAMP): $(INSTALLED) $(PROTO_SRC) proto/generate.py
 proto: $(INSTALLED) ## (re)generate the protobuf Python code into proto/gen
 	$(BIN)/python proto/generate.py
 
-# SENSORS=sim (default): the sim's sensor groups publish their frames. SENSORS=wire: they emulate the
-# site file's devices on the wire (Robosense UDP, ARS 408 CAN over slcan, MJPEG over HTTP) and the device
-# services (services/device) read them onto the bus, as with real sensors.
+# Profiles (deploy/profiles/, composed by shared/supervision/profiles.py): base.yaml with one overlay per
+# variable. SCENE: deploy/profiles/scene/<SCENE>.yaml, or any deploy/scenes/<SCENE>.yaml. SENSORS=sim: the
+# sim's sensor groups publish their frames; SENSORS=wire: they emulate the site file's devices on the wire
+# (Robosense UDP, ARS 408 CAN over slcan, MJPEG over HTTP) and the device services read them onto the bus.
+# SHARDS=N > 1: the coordinator as N region shards over the scene's region map of N regions. SITE: another
+# device site file. SPEED: sim seconds per wall second. `make up` renders the programs and the services'
+# settings into .run/profile/ (deploy/local/supervisord.conf includes the programs).
+SCENE ?= sand_table
 SENSORS ?= sim
-SITE ?= deploy/devices/sand_table_wire.yaml
-ifeq ($(SENSORS),wire)
-export RMMDET_SENSOR_ARGS := --wire $(SITE)
-export RMMDET_DEVICES := true
-else ifeq ($(SENSORS),sim)
-export RMMDET_SENSOR_ARGS :=
-export RMMDET_DEVICES := false
-else
-$(error SENSORS must be sim or wire, not $(SENSORS))
-endif
-export RMMDET_SITE := $(SITE)
-
-# SHARDS=1 (default): one coordinator for the table. SHARDS=2: the coordinator split into two region
-# shards (deploy/coordinator/regions/sand_table_2.json), each its own process (services/coordinator/shard.py).
 SHARDS ?= 1
-ifeq ($(SHARDS),2)
-export RMMDET_COORD_ARGS := --shard 0
-export RMMDET_COORD_SHARDS__REGIONS := deploy/coordinator/regions/sand_table_2.json
-export RMMDET_SHARD1 := true
-else ifeq ($(SHARDS),1)
-export RMMDET_COORD_ARGS :=
-export RMMDET_SHARD1 := false
-else
-$(error SHARDS must be 1 or 2, not $(SHARDS))
-endif
-
+SITE ?=
 SPEED ?=
-up: install pki ## start router and every service under supervisord (idempotent); SPEED=x: sim seconds per wall second; SENSORS=wire: through emulated devices and the device services; SHARDS=2: the coordinator as two region shards
+PROFILE_ARGS = --scene $(SCENE) --sensors $(SENSORS) --shards $(SHARDS) $(if $(SITE),--site $(SITE)) $(if $(SPEED),--set settings.sim.overrides.speed=$(SPEED))
+
+up: install pki ## start router and every service under supervisord (idempotent); SCENE=name; SENSORS=wire: through emulated devices and the device services; SHARDS=2: the coordinator as two region shards; SPEED=x: sim seconds per wall second
 	@mkdir -p $(RUN_DIR)/logs
 	@if $(BIN)/supervisorctl -c $(SUPERVISOR_CONF) pid >/dev/null 2>&1; then \
-	  echo "already up"; \
+	  echo "already up (make down first to change the profile)"; \
 	else \
-	  $(if $(SPEED),RMMDET_SIM_SPEED=$(SPEED)) $(BIN)/supervisord -c $(SUPERVISOR_CONF) && echo "supervisord started"; \
+	  $(BIN)/python -m shared.supervision.profiles $(PROFILE_ARGS) && \
+	  $(BIN)/supervisord -c $(SUPERVISOR_CONF) && echo "supervisord started"; \
 	fi
 	@$(BIN)/python -m services.cli.main wait-ready --timeout 30
 	@$(BIN)/supervisorctl -c $(SUPERVISOR_CONF) status || true

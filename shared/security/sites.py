@@ -17,7 +17,6 @@ import ipaddress
 import json
 import logging
 import os
-import shlex
 import sys
 from pathlib import Path
 from typing import Any
@@ -41,6 +40,7 @@ from shared.security.pki import (
     plan_key_paths,
     trusted_plan_keys,
 )
+from shared.supervision.programs import Program, render_program
 
 log = logging.getLogger(__name__)
 
@@ -257,30 +257,10 @@ def check_certificate(pki_dir: Path, identity: str, address: str | None = None) 
             raise ConfigError(f"{path}: does not name {address}; reissue it: {fix}")
 
 
-def _supervisor_value(value: str) -> str:
-    """A value quoted for supervisord's `environment=` (shell-like quoting; `%` is its interpolation)."""
-    value = value.replace("%", "%%")
-    return f"'{value}'" if '"' in value else f'"{value}"'
-
-
 def supervisor_program(name: str, args: list[str], config: Path, env: dict[str, str], logs: Path) -> str:
-    environment = ",".join(f"{k}={_supervisor_value(v)}" for k, v in {**env, "PYTHONUNBUFFERED": "1"}.items())
-    return f"""[program:{name}]
-command={shlex.join([sys.executable, *args, "--config", str(config)])}
-directory={REPO_ROOT}
-autorestart=true
-startsecs=1
-startretries=1000
-stopsignal=INT
-stopwaitsecs=5
-stopasgroup=true
-killasgroup=true
-redirect_stderr=true
-stdout_logfile={logs / f"{name}.log"}
-stdout_logfile_maxbytes=10MB
-stdout_logfile_backups=2
-environment={environment}
-"""
+    """The host's program `name`: `args` with its Zenoh `--config`, its `env` (plan keys, the layout's)."""
+    program = Program(name, [*args, "--config", str(config)], env=env)
+    return render_program(program, python=sys.executable, directory=REPO_ROOT, logs=logs)
 
 
 def write_vehicle_configs(layout: Layout, host: str, pki_dir: Path, out_dir: Path) -> Path:
