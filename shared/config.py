@@ -82,9 +82,11 @@ def deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]
 def with_overrides(model: M, overrides: Mapping[str, Any]) -> M:
     """A copy of `model` with `overrides` deep-merged in (`deep_merge`) and validated like a file:
     `with_overrides(mec, {"detectors": {"camera_threads": 1}})`. The one way settings are overridden
-    in code; environment variables are not read again."""
+    in code; environment variables are not read again. What was left at its default stays so (only the
+    given values and the overrides are validated), so a size default still scales with the scene it is
+    built for (shared/scene/scale.py)."""
     try:
-        return type(model).model_validate(deep_merge(model.model_dump(), dict(overrides)))
+        return type(model).model_validate(deep_merge(model.model_dump(exclude_unset=True), dict(overrides)))
     except ValidationError as err:
         raise ConfigError(f"{type(model).__name__}: {err}") from None
 
