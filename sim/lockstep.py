@@ -76,7 +76,7 @@ class LockstepSim:
         )
         specs = list(scene.spec.sensors) if sensor_ids is None else [scene.sensor(s) for s in sensor_ids]
         specs = [override(s, rate_hz, model_overrides) for s in specs]
-        self.rig = SensorRig(scene, specs, lighting)
+        self.rig = SensorRig(scene, specs, lighting, settings.world)
 
     def ground_truth(self) -> GroundTruth:
         """Ground truth of the current tick, stamped with the epoch + simulated time."""

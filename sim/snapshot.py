@@ -6,8 +6,8 @@ The traffic runs lock-step for `at_s` simulated seconds; then every camera is ca
 renderer the sensor services use, with its ground-truth visible boxes drawn in) and a top-down map is
 drawn: the road texture, lane directions, junctions with the paper's flow-count numbers, areas,
 buildings, the vehicles at that instant, and every sensor with its field of view (cameras: horizontal
-FOV out to `CAMERA_FOV_DRAW_M`; radars: azimuth FOV out to `RADAR_FOV_DRAW_M`; lidars: a ring at
-`LIDAR_RING_DRAW_M`, they see 360 deg).
+FOV out to `camera_fov_m`; radars: azimuth FOV out to `radar_fov_m`; lidars: a ring at `lidar_ring_m`,
+they see 360 deg: `BirdsEyeSettings`, sim/config.py, scaled to the scene).
 """
 
 from __future__ import annotations
@@ -19,17 +19,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from shared.scene.scale import SiteScale, at_scale
 from shared.scene.scene import Scene
-from sim.config import SimSettings
+from sim.config import BirdsEyeSettings, SimSettings
 from sim.lockstep import LockstepSim
 from sim.sensors.camera import CameraFrame
 from sim.world import road_texture
 
-PX_PER_M = 100
-CAMERA_FOV_DRAW_M = 1.6
-RADAR_FOV_DRAW_M = 2.5  # the 8 m range would tint the whole table
-LIDAR_RING_DRAW_M = 1.0
-ARROW_EVERY_M = 0.8
 SENSOR_BGR = {"camera": (255, 160, 0), "lidar": (0, 200, 255), "radar": (60, 60, 255)}
 AREA_BGR = (255, 255, 255)
 VEHICLE_OUTLINE_BGR = (0, 0, 0)
@@ -47,7 +43,7 @@ class TablePixels:
     px_per_m: float
 
     @classmethod
-    def of(cls, scene: Scene, px_per_m: float = PX_PER_M) -> TablePixels:
+    def of(cls, scene: Scene, px_per_m: float) -> TablePixels:
         t = scene.spec.table
         return cls(t.origin_m[0], t.origin_m[1] + t.size_y_m, px_per_m)
 
@@ -71,10 +67,17 @@ def _text(img: np.ndarray, text: str, at: tuple[int, int], scale: float = 0.45, 
     cv2.putText(img, text, at, FONT, scale, bgr, 1, cv2.LINE_AA)
 
 
-def birds_eye(scene: Scene, vehicles: list[tuple[str, float, float, float]] | None = None) -> np.ndarray:
-    """BGR top-down map; `vehicles` = (id, x_m, y_m, yaw_rad) to draw."""
-    px = TablePixels.of(scene)
-    img = cv2.cvtColor(road_texture(scene, PX_PER_M), cv2.COLOR_RGB2BGR)
+def birds_eye(
+    scene: Scene,
+    vehicles: list[tuple[str, float, float, float]] | None = None,
+    drawing: BirdsEyeSettings | None = None,
+) -> np.ndarray:
+    """BGR top-down map; `vehicles` = (id, x_m, y_m, yaw_rad) to draw; `drawing` (default: the
+    defaults) at the scene's scale."""
+    draw = at_scale(drawing or BirdsEyeSettings(), SiteScale.of(scene.spec))
+    px_per_m = draw.px_per_m
+    px = TablePixels.of(scene, px_per_m)
+    img = cv2.cvtColor(road_texture(scene, px_per_m=px_per_m), cv2.COLOR_RGB2BGR)
     deck = None if scene.spec.road is None else scene.spec.road.deck
     for lane in scene.spec.lanes:  # the viaduct deck (not in the ground texture) and lane directions
         pts = np.asarray(scene.lane_centreline(lane.id))
@@ -85,10 +88,10 @@ def birds_eye(scene: Scene, vehicles: list[tuple[str, float, float, float]] | No
                 [px(pts[on_deck]).astype(np.int32)],
                 False,
                 (150, 158, 158),
-                round(deck.width_m * PX_PER_M),
+                round(deck.width_m * px_per_m),
             )
         s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts[:, :2], axis=0), axis=1))])
-        for at in np.arange(ARROW_EVERY_M / 2, s[-1], ARROW_EVERY_M):
+        for at in np.arange(draw.arrow_every_m / 2, s[-1], draw.arrow_every_m):
             i = int(np.searchsorted(s, at))
             j = min(i + 3, len(pts) - 1)
             if j > i:
@@ -103,16 +106,16 @@ def birds_eye(scene: Scene, vehicles: list[tuple[str, float, float, float]] | No
             corners = cv2.boxPoints(rect)
             cv2.fillPoly(img, [px(corners).astype(np.int32)], bgr)
         else:
-            cv2.circle(img, px.point((cx, cy)), max(2, round(obj.size_m[0] / 2 * PX_PER_M)), bgr, -1)
+            cv2.circle(img, px.point((cx, cy)), max(2, round(obj.size_m[0] / 2 * px_per_m)), bgr, -1)
     for area in scene.spec.areas:
         poly = px(np.asarray(area.polygon_m)).astype(np.int32)
         cv2.polylines(img, [poly], True, AREA_BGR, 1, cv2.LINE_AA)
         u, v = poly.min(axis=0)
         _text(img, area.name, (int(u) + 4, int(v) + 16), 0.5)
-    for j in scene.spec.junctions:
-        u, v = px.point(j.position_m)
+    for junction in scene.spec.junctions:
+        u, v = px.point(junction.position_m)
         cv2.circle(img, (u, v), 14, (0, 215, 255), -1, cv2.LINE_AA)
-        cv2.putText(img, str(j.number), (u - 6, v + 6), FONT, 0.6, (0, 0, 0), 2, cv2.LINE_AA)
+        cv2.putText(img, str(junction.number), (u - 6, v + 6), FONT, 0.6, (0, 0, 0), 2, cv2.LINE_AA)
     overlay = img.copy()
     for spec in scene.spec.sensors:
         T = np.asarray(scene.T_world_from_sensor(spec.id))
@@ -120,12 +123,13 @@ def birds_eye(scene: Scene, vehicles: list[tuple[str, float, float, float]] | No
         yaw = math.atan2(T[1, 0], T[0, 0])
         bgr = SENSOR_BGR[spec.kind]
         if spec.camera is not None:
-            wedge = _wedge(origin, yaw, spec.camera.hfov_rad, CAMERA_FOV_DRAW_M)
+            wedge = _wedge(origin, yaw, spec.camera.hfov_rad, draw.camera_fov_m)
         elif spec.radar is not None:
-            wedge = _wedge(origin, yaw, spec.radar.hfov_rad, min(spec.radar.max_range_m, RADAR_FOV_DRAW_M))
+            wedge = _wedge(origin, yaw, spec.radar.hfov_rad, min(spec.radar.max_range_m, draw.radar_fov_m))
         else:
             wedge = None
-            cv2.circle(overlay, px.point(origin), round(LIDAR_RING_DRAW_M * PX_PER_M), bgr, 2, cv2.LINE_AA)
+            ring_px = round(draw.lidar_ring_m * px_per_m)
+            cv2.circle(overlay, px.point(origin), ring_px, bgr, 2, cv2.LINE_AA)
         if wedge is not None:
             cv2.fillPoly(overlay, [px(wedge).astype(np.int32)], bgr, cv2.LINE_AA)
     img = cv2.addWeighted(overlay, 0.25, img, 0.75, 0)

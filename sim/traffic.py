@@ -20,8 +20,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from shared.geometry.boxes import bev_iou_matrix
-from shared.scene.model import LEVEL_SEPARATION_M
 from shared.scene.road_network import Path, RoadNetwork
+from shared.scene.scale import SiteScale, at_scale
 from shared.scene.scene import Scene
 from shared.traffic.plans import Ack, vehicle_decision
 from sim.config import TrafficSettings, fleet_ids
@@ -137,7 +137,10 @@ class TrafficSim:
         keep_trips: bool = True,
     ) -> None:
         """`keep_trips`: log every completed trip in `trips` (the studies' travel times); a live sim,
-        which runs for days, only counts them (`trips_completed`): the log would grow without bound."""
+        which runs for days, only counts them (`trips_completed`): the log would grow without bound.
+        `settings`' sizes, speeds and accelerations left at their defaults are scaled to `scene` (`cfg`
+        holds the result; the sand table's are the defaults as written)."""
+        settings = at_scale(settings, SiteScale.of(scene.spec))
         self.scene = scene
         self.net = network
         self.cfg = settings
@@ -221,7 +224,8 @@ class TrafficSim:
     def _too_close_to_any(self, pos: np.ndarray) -> bool:
         spacing = SPAWN_SPACING_FACTOR * self.length_m
         return any(
-            math.hypot(v.x - pos[0], v.y - pos[1]) < spacing and abs(v.z - pos[2]) < LEVEL_SEPARATION_M
+            math.hypot(v.x - pos[0], v.y - pos[1]) < spacing
+            and abs(v.z - pos[2]) < self.cfg.level_separation_m
             for v in self.vehicles
         )
 
@@ -347,7 +351,7 @@ class TrafficSim:
         # so the exact rotated-box test runs on those few pairs, not on every pair every check.
         d = boxes[:, None, :3] - boxes[None, :, :3]
         near = (np.hypot(d[..., 0], d[..., 1]) < math.hypot(self.length_m, self.width_m)) & (
-            np.abs(d[..., 2]) < LEVEL_SEPARATION_M
+            np.abs(d[..., 2]) < self.cfg.level_separation_m
         )
         pairs = []
         for i, j in zip(*np.nonzero(np.triu(near, k=1)), strict=True):
@@ -485,7 +489,7 @@ class TrafficSim:
         free = 1.0 - (v.v / v0) ** p.exponent
         if math.isinf(gap):
             return p.max_accel_mps2 * free
-        if gap <= 1e-3:
+        if gap <= 1e-3:  # a numerical guard (the IDM term divides by the gap), not a site size
             return -p.max_decel_mps2
         s_star = p.min_gap_m + max(
             0.0,
@@ -524,7 +528,7 @@ class TrafficSim:
         target = self._target_point(paths, v.s, lookahead)
         alpha = math.atan2(target[1] - v.y, target[0] - v.x) - v.yaw
         alpha = math.remainder(alpha, 2 * math.pi)
-        ld = max(math.hypot(target[0] - v.x, target[1] - v.y), 1e-3)
+        ld = max(math.hypot(target[0] - v.x, target[1] - v.y), 1e-3)  # numerical guard (divides)
         steer = math.atan2(2.0 * self.wheelbase_m * math.sin(alpha), ld)
         steer = min(max(steer, -self.max_steer_rad), self.max_steer_rad)
         v.yaw_rate = v.v / self.wheelbase_m * math.tan(steer)
@@ -537,7 +541,8 @@ class TrafficSim:
         v.pitch = -math.atan(v.path.grade_at(v.s))
 
     def _advance(self, v: Vehicle, s_guess: float) -> None:
-        s_new = v.path.project(np.array([v.x, v.y]), s_guess)
+        window_m = self.cfg.project_window_m
+        s_new = v.path.project(np.array([v.x, v.y]), s_guess, window_m)
         while s_guess >= v.path.length_m - 1e-9 and s_new >= v.path.length_m - 1e-6:
             overflow = max(s_guess - v.path.length_m, 0.0)
             if not self._enter_next(v):
@@ -545,7 +550,7 @@ class TrafficSim:
                 v.v = 0.0
                 return
             s_guess = overflow
-            s_new = v.path.project(np.array([v.x, v.y]), overflow)
+            s_new = v.path.project(np.array([v.x, v.y]), overflow, window_m)
         v.s = max(s_new, 0.0)
         if v.releasing is not None and v.path.lane_id is not None and v.s >= self.length_m / 2:
             self.occupant[v.releasing] = None

@@ -7,7 +7,8 @@ Two kinds of PyBullet clients are built from the same scene (each its own DIRECT
 - `VehicleWorld`: only the vehicles, moved to each tick's ground-truth poses. Sensors render and
   ray-cast it per frame and combine with the static result by depth (correct occlusion both ways).
 A full world (static + vehicles in one client) serves whole-scene renders and checks.
-Units: metres, radians; colours RGBA in [0, 1].
+What the scene does not size (table slab, texture resolution, markings, deck pieces, ray tolerances) is
+`WorldSettings` (sim/config.py), scaled to the scene here. Units: metres, radians; colours RGBA in [0, 1].
 """
 
 from __future__ import annotations
@@ -24,22 +25,16 @@ import numpy as np
 import pybullet as pb
 from scipy.spatial.transform import Rotation
 
+from shared.scene.scale import SiteScale, at_scale
 from shared.scene.scene import Scene
+from sim.config import WorldSettings
 
-TABLE_THICKNESS_M = 0.02
-TEXTURE_PX_PER_M = 128
-TABLE_TILE_M = 0.5
-SLAB_DROP_M = 0.002  # below the visual tiles
 TABLE_RGB = (92, 140, 84)  # lawn
 ROAD_RGB = (70, 70, 74)
 MARKING_RGB = (235, 235, 235)
 JUNCTION_RGB = (80, 80, 86)
-MARKING_WIDTH_M = 0.012
-DASH_M = 0.08
 DECK_RGBA = (0.62, 0.62, 0.6, 1.0)
 PILLAR_RGBA = (0.55, 0.55, 0.53, 1.0)
-DECK_PIECE_M = 0.12  # deck is built from short boxes following the lane (grade and curvature)
-PILLAR_MIN_Z_M = 0.15
 TYRE_RGBA = (0.08, 0.08, 0.08, 1.0)
 
 # Vehicle body parts (fractions of the scene's vehicle box), all inside the ground-truth box so that
@@ -64,10 +59,20 @@ def quat_from_rpy(roll: float, pitch: float, yaw: float) -> list[float]:
     return [float(q) for q in Rotation.from_euler("ZYX", [yaw, pitch, roll]).as_quat()]
 
 
-def road_texture(scene: Scene, px_per_m: float = TEXTURE_PX_PER_M) -> np.ndarray:
-    """Top-down RGB image of the table: lawn, road surface, junction pads, lane markings.
+def world_settings(scene: Scene, settings: WorldSettings | None = None) -> WorldSettings:
+    """`settings` (default: the defaults) at `scene`'s scale (idempotent: scaled settings stay so)."""
+    return at_scale(settings or WorldSettings(), SiteScale.of(scene.spec))
+
+
+def road_texture(
+    scene: Scene, settings: WorldSettings | None = None, px_per_m: float | None = None
+) -> np.ndarray:
+    """Top-down RGB image of the table: lawn, road surface, junction pads, lane markings, at `px_per_m`
+    (default: the world's texture resolution).
 
     Row 0 is the table's max-y edge (image v grows toward -y), column 0 its min-x edge."""
+    world = world_settings(scene, settings)
+    px_per_m = world.texture_px_per_m if px_per_m is None else px_per_m
     table = scene.spec.table
     w = round(table.size_x_m * px_per_m)
     h = round(table.size_y_m * px_per_m)
@@ -101,13 +106,13 @@ def road_texture(scene: Scene, px_per_m: float = TEXTURE_PX_PER_M) -> np.ndarray
             2,
         )
     # Lane edge markings: dashed lines at both edges of every ground lane.
-    mark_px = max(1, round(MARKING_WIDTH_M * px_per_m))
+    mark_px = max(1, round(world.marking_width_m * px_per_m))
     for lane in scene.spec.lanes:
         pts = np.asarray(scene.lane_centreline(lane.id))
         d = np.gradient(pts[:, :2], axis=0)
         n = np.column_stack([-d[:, 1], d[:, 0]]) / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
         s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
-        on = (np.floor(s / DASH_M) % 2 == 0) & (pts[:, 2] <= road.elevated_min_z_m)
+        on = (np.floor(s / world.marking_dash_m) % 2 == 0) & (pts[:, 2] <= road.elevated_min_z_m)
         for side in (-1, 1):
             edge = pts[:, :2] + side * n * road.lane_width_m / 2
             start = None
@@ -173,30 +178,33 @@ def _cylinder(
 
 
 class StaticWorld(_Client):
-    """Table, road texture, viaduct, static objects. `body_kind[body_id]` names what each body is."""
+    """Table, road texture, viaduct, static objects. `body_kind[body_id]` names what each body is;
+    `settings` are the world's at the scene's scale."""
 
-    def __init__(self, scene: Scene) -> None:
+    def __init__(self, scene: Scene, settings: WorldSettings | None = None) -> None:
         super().__init__()
         self.scene = scene
+        self.settings = world_settings(scene, settings)
         self.body_kind: dict[int, str] = {}
         self._build_table()
         self._build_viaduct()
         self._build_static_objects()
 
     def _build_table(self) -> None:
-        cid, table = self.cid, self.scene.spec.table
+        cid, table, world = self.cid, self.scene.spec.table, self.settings
         x0, y0 = table.origin_m
         x1, y1 = x0 + table.size_x_m, y0 + table.size_y_m
         # Textured top: square tiles, each a two-triangle mesh with its own crop of the road texture.
         # Small triangles keep TinyRenderer's interpolation stable at grazing view angles.
-        texture = road_texture(self.scene)
+        texture = road_texture(self.scene, world)
         px_per_m = texture.shape[1] / table.size_x_m
-        nx_tiles = max(1, math.ceil(table.size_x_m / TABLE_TILE_M))
-        ny_tiles = max(1, math.ceil(table.size_y_m / TABLE_TILE_M))
+        tile_m = world.table_tile_m
+        nx_tiles = max(1, math.ceil(table.size_x_m / tile_m))
+        ny_tiles = max(1, math.ceil(table.size_y_m / tile_m))
         for j in range(ny_tiles):
             for i in range(nx_tiles):
-                tx0, ty0 = x0 + i * TABLE_TILE_M, y0 + j * TABLE_TILE_M
-                tx1, ty1 = min(tx0 + TABLE_TILE_M, x1), min(ty0 + TABLE_TILE_M, y1)
+                tx0, ty0 = x0 + i * tile_m, y0 + j * tile_m
+                tx1, ty1 = min(tx0 + tile_m, x1), min(ty0 + tile_m, y1)
                 c0, c1 = round((tx0 - x0) * px_per_m), round((tx1 - x0) * px_per_m)
                 r0, r1 = round((y1 - ty1) * px_per_m), round((y1 - ty0) * px_per_m)
                 hx, hy = (tx1 - tx0) / 2, (ty1 - ty0) / 2
@@ -218,14 +226,14 @@ class StaticWorld(_Client):
                 self.body_kind[body] = "table"
         col = pb.createCollisionShape(
             pb.GEOM_BOX,
-            halfExtents=[table.size_x_m / 2, table.size_y_m / 2, TABLE_THICKNESS_M / 2],
+            halfExtents=[table.size_x_m / 2, table.size_y_m / 2, world.table_thickness_m / 2],
             physicsClientId=cid,
         )
         # The slab needs a visual of its own: PyBullet draws a body without one as a white box, which
         # would z-fight with the tiles. Its top sits just below them.
         slab_vis = pb.createVisualShape(
             pb.GEOM_BOX,
-            halfExtents=[table.size_x_m / 2, table.size_y_m / 2, TABLE_THICKNESS_M / 2],
+            halfExtents=[table.size_x_m / 2, table.size_y_m / 2, world.table_thickness_m / 2],
             rgbaColor=[c / 255 for c in TABLE_RGB] + [1.0],
             physicsClientId=cid,
         )
@@ -233,7 +241,7 @@ class StaticWorld(_Client):
             0,
             col,
             slab_vis,
-            [(x0 + x1) / 2, (y0 + y1) / 2, -TABLE_THICKNESS_M / 2 - SLAB_DROP_M],
+            [(x0 + x1) / 2, (y0 + y1) / 2, -world.table_thickness_m / 2 - world.table_slab_drop_m],
             physicsClientId=cid,
         )
         self.body_kind[slab] = "table"
@@ -251,7 +259,7 @@ class StaticWorld(_Client):
             s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
             idx = np.nonzero(elevated)[0]
             first, last = max(idx[0] - 1, 0), min(idx[-1] + 1, len(pts) - 1)
-            marks = np.arange(s[first], s[last], DECK_PIECE_M)
+            marks = np.arange(s[first], s[last], self.settings.deck_piece_m)
             marks = np.append(marks, s[last])
             for a, b in itertools.pairwise(marks):
                 pa = np.array([np.interp(a, s, pts[:, k]) for k in range(3)])
@@ -264,12 +272,16 @@ class StaticWorld(_Client):
                 rot = Rotation.from_quat(quat)
                 # The deck's top face is the road surface: centre sits half a thickness below it.
                 centre = (pa + pb_) / 2 + rot.apply([0, 0, -deck.thickness_m / 2])
-                half = [length / 2 + 0.01, deck.width_m / 2, deck.thickness_m / 2]
+                half = [
+                    length / 2 + self.settings.deck_piece_overlap_m,
+                    deck.width_m / 2,
+                    deck.thickness_m / 2,
+                ]
                 self.body_kind[_box(self.cid, centre.tolist(), half, quat, DECK_RGBA)] = "viaduct"
             pillar_marks = np.arange(s[first] + deck.pillar_spacing_m / 2, s[last], deck.pillar_spacing_m)
             for m in pillar_marks:
                 p = np.array([np.interp(m, s, pts[:, k]) for k in range(3)])
-                if p[2] < PILLAR_MIN_Z_M:
+                if p[2] < self.settings.pillar_min_z_m:
                     continue
                 height = p[2] - deck.thickness_m
                 self.body_kind[
@@ -297,13 +309,14 @@ class StaticWorld(_Client):
 class VehicleWorld(_Client):
     """Vehicle bodies only; `update()` moves them to a set of poses (extra bodies are parked away)."""
 
-    PARKED_Z_M = -50.0
-
-    def __init__(self, scene: Scene, client: int | None = None) -> None:
+    def __init__(
+        self, scene: Scene, client: int | None = None, settings: WorldSettings | None = None
+    ) -> None:
         if client is None:
             super().__init__()
         else:
             self.cid = client
+        self.settings = world_settings(scene, settings)
         body = scene.spec.vehicle
         self.size_m = (body.length_m, body.width_m, body.height_m)
         self.bodies: dict[str, int] = {}
@@ -348,7 +361,7 @@ class VehicleWorld(_Client):
             collisionFramePositions=positions,
             physicsClientId=self.cid,
         )
-        body = pb.createMultiBody(0, col, vis, [0, 0, self.PARKED_Z_M], physicsClientId=self.cid)
+        body = pb.createMultiBody(0, col, vis, [0, 0, self.settings.parked_z_m], physicsClientId=self.cid)
         self.bodies[vehicle_id] = body
         self.body_vehicle[body] = vehicle_id
         self._rgba[vehicle_id] = rgba
@@ -374,16 +387,16 @@ class VehicleWorld(_Client):
         for vid, body in self.bodies.items():
             if vid not in seen:
                 pb.resetBasePositionAndOrientation(
-                    body, [0, 0, self.PARKED_Z_M], [0, 0, 0, 1], physicsClientId=self.cid
+                    body, [0, 0, self.settings.parked_z_m], [0, 0, 0, 1], physicsClientId=self.cid
                 )
 
 
 class FullWorld(StaticWorld):
     """Static scene and vehicles in one client (whole-scene renders, collision checks)."""
 
-    def __init__(self, scene: Scene) -> None:
-        super().__init__(scene)
-        self.vehicles = VehicleWorld(scene, client=self.cid)
+    def __init__(self, scene: Scene, settings: WorldSettings | None = None) -> None:
+        super().__init__(scene, settings)
+        self.vehicles = VehicleWorld(scene, client=self.cid, settings=self.settings)
 
     def update(self, poses: list[VehiclePose]) -> None:
         self.vehicles.update(poses)

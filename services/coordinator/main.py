@@ -72,6 +72,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         core = shard_core(scene, settings, args.shard)
         if args.instance == INSTANCE:
             args.instance = shard_instance(args.shard)
+    settings = core.settings  # at the scene's scale (CoordinatorCore): one set of settings from here on
     signer = PlanSigner.load(settings.plan_signing_key)
     with Node(
         conf, service=SERVICE, instance=args.instance, scope=SCOPE, stop=shutdown.event, present_at_open=False

@@ -36,13 +36,12 @@ from shared.bus.node import Node
 from shared.bus.rpc import RpcDeclined, RpcDeferred, RpcRejected, RpcServer
 from shared.bus.streams import get_stream, limits, region_of_instance
 from shared.config import ConfigError
-from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.timebase import SimTime
 from shared.traffic import messages
 from shared.traffic.config import CoordinatorSettings
 from shared.traffic.core import CoordinatorCore
-from shared.traffic.lanes import lane_agents
+from shared.traffic.lanes import lane_agents, lane_network
 from shared.traffic.peers import RegionPeers
 from shared.traffic.planner import ShardView
 from shared.traffic.regions import Clique, Overlay, RegionMap, agent_regions
@@ -59,7 +58,7 @@ def shard_core(scene: Scene, settings: CoordinatorSettings, region: int) -> Coor
     its lanes, serving the vehicles on them. ConfigError for a region the map does not have."""
     if settings.shards.regions is None:
         raise ConfigError("--shard needs shards.regions (a region map) in the coordinator settings")
-    net = RoadNetwork(scene)
+    net = lane_network(scene)
     try:
         regions = RegionMap.load(settings.shards.regions, net)
     except (OSError, ValueError, KeyError) as err:

@@ -25,7 +25,10 @@ SensorKindName = Literal["camera", "lidar", "radar"]
 
 #: Vehicles further apart in height than this are on different road levels (viaduct deck / table):
 #: they neither collide nor are they one vehicle seen twice. The deck is 0.4 m above the table; the
-#: ramps climb 0.4 m over 2 m, so two cars a car length apart on a ramp differ by ~0.07 m.
+#: ramps climb 0.4 m over 2 m, so two cars a car length apart on a ramp differ by ~0.07 m. The
+#: reference (sand table) value only: the default of the scaled `Length` settings that use it (the
+#: coordinator's MapConfig.level_separation_m, the sim's TrafficSettings.level_separation_m), scaled
+#: to the scene they run (shared/scene/scale.py); no code compares heights against it directly.
 LEVEL_SEPARATION_M = 0.1
 
 

@@ -23,7 +23,6 @@ FloatArray = np.ndarray
 
 BEZIER_HANDLE_FRACTION = 0.45  # handle length as a fraction of the chord: close to a circular arc
 BEZIER_SAMPLES = 64
-PROJECT_WINDOW_M = 0.4  # projection search window around the previous progress
 
 
 @dataclass
@@ -64,7 +63,7 @@ class Path:
         i = int(np.clip(np.searchsorted(self.s, s_m, side="right") - 1, 0, len(self.s) - 1))
         return float(self.grade[i])
 
-    def project(self, xy: FloatArray, s_hint_m: float, window_m: float = PROJECT_WINDOW_M) -> float:
+    def project(self, xy: FloatArray, s_hint_m: float, window_m: float) -> float:
         """Arc length of the point of this path nearest to `xy`, searched near `s_hint_m`."""
         lo = int(np.searchsorted(self.s, s_hint_m - window_m))
         hi = int(np.searchsorted(self.s, s_hint_m + window_m)) + 1

@@ -1,5 +1,9 @@
 """Coordinator settings: maps, coverage, planning, plan delivery. Typed, with defaults and descriptions.
 
+Sizes and speeds (`Length`, `Speed`) are stated for the sand table and scaled to the scene the
+coordinator runs (`CoordinatorCore` builds with `at_scale`, shared/scene/scale.py); a value given in a
+settings file or the environment is taken as written, in the scene's units, so the base file gives none.
+
 Loaded from `deploy/coordinator/coordinator.yaml` with environment overrides `RMMDET_COORD_<SECTION>__<FIELD>`
 (e.g. `RMMDET_COORD_PLANNER__POLICY=shortest`).
 """
@@ -15,6 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from shared.config import RmmdetSettings, load_settings, settings_config
 from shared.paths import DEFAULT_PKI_DIR, DEFAULT_SCENE, REPO_ROOT
 from shared.scene.model import LEVEL_SEPARATION_M
+from shared.scene.scale import Length, Speed
 from shared.security.pki import plan_key_paths
 
 DEFAULT_COORDINATOR_CONFIG = REPO_ROOT / "deploy" / "coordinator" / "coordinator.yaml"
@@ -36,16 +41,16 @@ class MapConfig(_Section):
     speed_valid_s: float = Field(
         15.0, gt=0, description="a lane/area/cell speed without a new sample for this long is invalid"
     )
-    grid_cell_m: float = Field(0.25, gt=0, description="cell size of the density/speed grid")
-    dedup_gate_m: float = Field(
+    grid_cell_m: Length = Field(0.25, gt=0, description="cell size of the density/speed grid")
+    dedup_gate_m: Length = Field(
         0.3, gt=0, description="objects of two agents closer than this (same level) are one vehicle"
     )
-    level_separation_m: float = Field(
+    level_separation_m: Length = Field(
         LEVEL_SEPARATION_M,
         gt=0,
         description="objects further apart in z are on different levels (deck / ground)",
     )
-    lane_match_max_m: float = Field(
+    lane_match_max_m: Length = Field(
         0.3, gt=0, description="an object further than this from every lane centreline is off-lane"
     )
     lane_level_weight: float = Field(
@@ -54,7 +59,7 @@ class MapConfig(_Section):
     heading_gate_rad: float = Field(
         math.pi / 2, gt=0, le=math.pi, description="a moving object's heading must agree with its lane's"
     )
-    min_speed_for_heading_mps: float = Field(
+    min_speed_for_heading_mps: Speed = Field(
         0.05, ge=0, description="below this speed the velocity direction is not used to pick the lane"
     )
     min_existence_probability: float = Field(
@@ -94,7 +99,7 @@ class PlannerConfig(_Section):
     load_horizon_lanes: int = Field(
         3, ge=1, description="lanes ahead of each planned vehicle counted as its future load"
     )
-    min_speed_mps: float = Field(
+    min_speed_mps: Speed = Field(
         0.05, gt=0, description="perceived speeds are floored here (a stopped queue is slow, not closed)"
     )
     detour_min_saving: float = Field(

@@ -33,13 +33,14 @@ from rmmdet.v1.traffic_pb2 import TrafficMap
 from shared.bus.health import DEGRADED, NOMINAL
 from shared.bus.ordering import OrderGate
 from shared.bus.streams import limits, validate_id
-from shared.scene.road_network import RoadNetwork
+from shared.scene.scale import SiteScale, at_scale
 from shared.scene.scene import Scene
 from shared.timebase import NS_PER_S
 from shared.traffic import messages
 from shared.traffic.claims import Claim, Given, claim_problem, followed_rest, repeats
 from shared.traffic.config import CoordinatorSettings
 from shared.traffic.coverage import AgentState, CoverageTracker
+from shared.traffic.lanes import lane_network
 from shared.traffic.maps import AgentObjects, TrafficMapBuilder, TrafficSnapshot, merge_agents
 from shared.traffic.planner import (
     ONE_JUNCTION_POLICIES,
@@ -86,7 +87,9 @@ class CoordinatorCore:
     Parameters
     ----------
     scene, settings
-        The table and the coordinator settings (`planner.policy` is the policy served).
+        The site and the coordinator settings (`planner.policy` is the policy served). The scene needs
+        a lane map (ConfigError otherwise); the settings' sizes and speeds left at their defaults are
+        scaled to it (`settings` holds the result; the sand table's are the defaults as written).
     max_vehicles : int
         Vehicles whose plans are tracked at once; a further one evicts the longest idle (`PlanBook.heard`).
     ground_truth : bool
@@ -108,6 +111,8 @@ class CoordinatorCore:
         shard: ShardView | None = None,
         shard_agents: list[str] | None = None,
     ) -> None:
+        network = lane_network(scene)
+        settings = at_scale(settings, SiteScale.of(scene.spec))
         self.settings = settings
         self.ground_truth = ground_truth
         self.shard = shard
@@ -115,7 +120,6 @@ class CoordinatorCore:
             self.agents = [GROUND_TRUTH]
         else:
             self.agents = list(scene.agents) if shard_agents is None else sorted(shard_agents)
-        network = RoadNetwork(scene)
         self.net = network
         self.coverage = CoverageTracker(self.agents, settings.coverage)
         self.builder = TrafficMapBuilder(scene, network, settings.maps)

@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from shared.config import ConfigError
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.traffic.config import MapConfig
@@ -22,6 +23,19 @@ IntArray = NDArray[np.int64]
 
 OFF_LANE = -1
 MAX_LANES_IN_REACH = 6  # lanes that can pass within lane_match_max_m of one point (junction mouths)
+
+
+def lane_network(scene: Scene) -> RoadNetwork:
+    """The road network the coordinator maps and plans on. A scene without a lane map (a site that runs
+    perception only) has nothing to map or plan on: a ConfigError naming the scene, not an error from
+    deep inside the network or the lane index."""
+    if not scene.spec.lanes or scene.spec.road is None:
+        where = f" ({scene.source})" if scene.source is not None else ""
+        raise ConfigError(
+            f"scene {scene.scene_id}{where} has no lane map: the coordinator needs one (lanes, junctions and "
+            "a road block) for its per-lane traffic maps and its routes"
+        )
+    return RoadNetwork(scene)
 
 
 class LaneLocator:

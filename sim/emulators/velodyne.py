@@ -18,7 +18,7 @@ import numpy as np
 PACKET_LEN = 1206
 BLOCKS = 12
 BLOCK_LEN = 100
-DISTANCE_UNIT_M = 0.002
+DISTANCE_UNIT_M = 0.002  # a device fact (the VLP-16 protocol's range unit), the same at every site size
 RETURN_STRONGEST = 0x37
 PRODUCT_ID = {"VLP16": 0x22, "VLP32C": 0x28}
 VLP16_ELEVATION_DEG = tuple(

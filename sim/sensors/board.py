@@ -6,7 +6,8 @@ not onto its primitive boxes) in the board frame of `shared.calibration.solve.Bo
 its columns, y along its rows, origin at the first inner corner; a white margin of one square around
 the pattern. The square whose corner is the origin (x, y in [-square, 0]) is black, and the pattern
 has one odd and one even number of squares, so a 180 deg turn swaps the colours: the detector orders
-the corners from that square, and a view cannot be read upside down.
+the corners from that square, and a view cannot be read upside down. Where the session puts the board
+(distances, search grid, clearances) is `BoardSessionSettings` (sim/config.py), scaled to the scene.
 """
 
 from __future__ import annotations
@@ -21,13 +22,19 @@ import yaml
 
 from shared.calibration.solve import Board
 from shared.geometry.camera import project_points
+from shared.scene.scale import SiteScale, at_scale
 from shared.scene.scene import Scene
+from sim.config import BoardSessionSettings
 from sim.sensors.camera import render
 from sim.world import StaticWorld
 
 PX_PER_SQUARE = 64
 MARGIN_SQUARES = 1
-TABLE_CLEARANCE_M = 0.001  # a board on the table lies this far above it (no z-fighting with the table)
+
+
+def board_session(scene: Scene, session: BoardSessionSettings | None = None) -> BoardSessionSettings:
+    """`session` (default: the defaults) at `scene`'s scale (idempotent)."""
+    return at_scale(session or BoardSessionSettings(), SiteScale.of(scene.spec))
 
 
 def board_texture(board: Board) -> np.ndarray:
@@ -73,7 +80,8 @@ class BoardRenderer:
         )
         cid = self.static.cid
         visual = pb.createVisualShape(pb.GEOM_MESH, fileName=str(mesh), physicsClientId=cid)
-        self.body = pb.createMultiBody(0, -1, visual, [0.0, 0.0, -100.0], physicsClientId=cid)
+        parked = [0.0, 0.0, self.static.settings.parked_z_m]  # until `render` puts it somewhere
+        self.body = pb.createMultiBody(0, -1, visual, parked, physicsClientId=cid)
         tex = pb.loadTexture(str(texture), physicsClientId=cid)
         pb.changeVisualShape(self.body, -1, textureUniqueId=tex, rgbaColor=[1, 1, 1, 1], physicsClientId=cid)
 
@@ -134,20 +142,27 @@ def views_in_front(
 
 
 def standing_on(
-    scene: Scene, camera_id: str, board: Board, ahead_m: float, side_m: float = 0.0, surface_z_m: float = 0.0
+    scene: Scene,
+    camera_id: str,
+    board: Board,
+    ahead_m: float,
+    side_m: float = 0.0,
+    surface_z_m: float = 0.0,
+    session: BoardSessionSettings | None = None,
 ) -> np.ndarray:
     """A pose (world, 4x4) of `board` standing upright on the surface at height `surface_z_m` (the
     table, 0, or the viaduct's deck) `ahead_m` in front of the camera's foot along its heading and
-    `side_m` to its left, its printed face turned to the camera's foot, its lowest row of squares
-    `TABLE_CLEARANCE_M` above the surface: a surveyed target (every corner's world position known), as
-    a site surveys one with a total station."""
+    `side_m` to its left, its printed face turned to the camera's foot, its lowest row of squares the
+    session's `table_clearance_m` above the surface: a surveyed target (every corner's world position
+    known), as a site surveys one with a total station."""
+    clearance_m = board_session(scene, session).table_clearance_m
     forward, left, foot = _heading(scene, camera_id)
     centre = foot + forward * ahead_m + left * side_m
     # board x across (to the camera's right), y up, z (printed face) towards the camera
     R = np.column_stack([-left, [0.0, 0.0, 1.0], -forward])
     width = (board.cols - 1) * board.square_m
     # the first inner corner: one square and the white margin above the bottom edge, at the left end
-    lift = (1 + MARGIN_SQUARES) * board.square_m + TABLE_CLEARANCE_M
+    lift = (1 + MARGIN_SQUARES) * board.square_m + clearance_m
     T = np.eye(4)
     T[:3, :3] = R
     T[:3, 3] = centre + left * width / 2 + np.array([0.0, 0.0, surface_z_m + lift])
@@ -182,21 +197,26 @@ def board_outline(board: Board, T_world_from_board: np.ndarray) -> np.ndarray:
 
 SUPPORTS = ("table", "viaduct")  # what a board may stand on
 ROWS = 3  # rows of placements at different distances
-ROW_GAP_M = 0.15  # each row of placements at least this far beyond the one before
-FLAT_M = 0.002  # a board's base is level if the surface under its ends and middle agrees this well
 IMAGE_MARGIN_PX = 8
-LENS_CLEARANCE_M = 0.05
 
 
-def standing_placements(scene: Scene, camera_id: str, board: Board, world: StaticWorld) -> list[np.ndarray]:
+def standing_placements(
+    scene: Scene,
+    camera_id: str,
+    board: Board,
+    world: StaticWorld,
+    session: BoardSessionSettings | None = None,
+) -> list[np.ndarray]:
     """Board poses standing on the table or the deck where the camera sees the whole board: candidates
-    on a grid ahead of the camera's foot (0.2-3 m, across +-0.6 m, 5 cm apart), each on the surface
-    under it, kept if that surface is level under the board's base, the board's outline lies inside the
-    image and no line of sight to its outline or inner corners is blocked; of those, up to `ROWS` rows
-    from the nearest on (`ROW_GAP_M` apart), three across each. The table's cameras get the table in
+    on a grid ahead of the camera's foot (the session's `ahead_m`, `across_m` to either side,
+    `step_m` apart; on the table 0.2-3 m, +-0.6 m, 5 cm), each on the surface under it, kept if that
+    surface is level under the board's base (`flat_m`), the board's outline lies inside the image and
+    no line of sight to its outline or inner corners is blocked; of those, up to `ROWS` rows from the
+    nearest on (`row_gap_m` apart), three across each. The table's cameras get the table in
     front of them; the viaduct's mast cameras, whose lower view the deck fills, the deck. (Chosen
     against the cameras' pose errors: two rows at fixed fractions of the optical axis's reach put
     the mast cameras' boards behind the deck and cam_5's 1 cm off.)"""
+    session = board_session(scene, session)
     forward, left, foot = _heading(scene, camera_id)
     camera = np.asarray(scene.T_world_from_sensor(camera_id))[:3, 3]
     K, dist = np.asarray(scene.K(camera_id)), scene.distortion(camera_id)
@@ -207,27 +227,31 @@ def standing_placements(scene: Scene, camera_id: str, board: Board, world: Stati
     x0, _, x1, _ = outline_extent(board)
     width = x1 - x0
     seen: list[tuple[float, float, np.ndarray]] = []
-    for ahead in np.arange(0.2, 3.0, 0.05):
-        for side in np.arange(-0.6, 0.61, 0.05):
+    step_m, across_m = session.step_m, session.across_m
+    for ahead in np.arange(*session.ahead_m, step_m):
+        # The last side within a fifth of a step of `across_m` is on the grid (floating-point steps).
+        for side in np.arange(-across_m, across_m + step_m / 5, step_m):
             centre = foot + forward * ahead + left * side
-            found = [surface_z(world, *(centre + left * k * width / 2)[:2]) for k in (-1, 0, 1)]
+            ends = [centre + left * k * width / 2 for k in (-1, 0, 1)]
+            found = [surface_z(world, float(end[0]), float(end[1]), session) for end in ends]
             under = [z for z in found if z is not None]
-            if len(under) < len(found) or np.ptp(under) > FLAT_M:
+            if len(under) < len(found) or np.ptp(under) > session.flat_m:
                 continue
-            T = standing_on(scene, camera_id, board, float(ahead), float(side), under[1])
+            T = standing_on(scene, camera_id, board, float(ahead), float(side), under[1], session)
             outline = board_outline(board, T)
             px, _ = project_points(outline, T_opt, K, dist)  # NaN behind the camera: not inside
             inside = np.all((px >= IMAGE_MARGIN_PX) & (px <= size_px - IMAGE_MARGIN_PX))
-            if inside and all(clear_lines(world, camera, np.vstack([outline, board_points(board, T)]))):
+            points = np.vstack([outline, board_points(board, T)])
+            if inside and all(clear_lines(world, camera, points, session)):
                 seen.append((float(ahead), float(side), T))
     if not seen:
         return []
-    # The nearest row seen and up to ROWS - 1 more, each the nearest ROW_GAP_M beyond the one before
+    # The nearest row seen and up to ROWS - 1 more, each the nearest `row_gap_m` beyond the one before
     # (near: large in the image; several depths: the pose's distance is not one plane's), each at its
     # leftmost, middle and rightmost.
     rows = sorted({a for a, _, _ in seen})
     chosen = [rows[0]]
-    while len(chosen) < ROWS and (beyond := [r for r in rows if r >= chosen[-1] + ROW_GAP_M]):
+    while len(chosen) < ROWS and (beyond := [r for r in rows if r >= chosen[-1] + session.row_gap_m]):
         chosen.append(beyond[0])
     picked: list[np.ndarray] = []
     for row in chosen:
@@ -236,10 +260,14 @@ def standing_placements(scene: Scene, camera_id: str, board: Board, world: Stati
     return picked
 
 
-def surface_z(world: StaticWorld, x: float, y: float) -> float | None:
+def surface_z(
+    world: StaticWorld, x: float, y: float, session: BoardSessionSettings | None = None
+) -> float | None:
     """Height of the table or viaduct deck at (x, y), m; None where something else is on top or
-    nothing is there."""
-    body, _, _, position, _ = pb.rayTest([x, y, 10.0], [x, y, -1.0], physicsClientId=world.cid)[0]
+    nothing is there (a ray down from the session's `survey_top_m` to its `survey_bottom_m`)."""
+    session = board_session(world.scene, session)
+    top, bottom = [x, y, session.survey_top_m], [x, y, session.survey_bottom_m]
+    body, _, _, position, _ = pb.rayTest(top, bottom, physicsClientId=world.cid)[0]
     if body < 0 or world.body_kind.get(body) not in SUPPORTS:
         return None
     return float(position[2])
@@ -250,32 +278,49 @@ def board_points(board: Board, T_world_from_board: np.ndarray) -> np.ndarray:
     return board.object_points() @ T_world_from_board[:3, :3].T + T_world_from_board[:3, 3]
 
 
-def clear_lines(world: StaticWorld, camera: np.ndarray, targets: np.ndarray) -> list[bool]:
+def clear_lines(
+    world: StaticWorld, camera: np.ndarray, targets: np.ndarray, session: BoardSessionSettings | None = None
+) -> list[bool]:
     """For each target point: nothing of the static world between it and the camera (the board is not
-    in it); each line starts `LENS_CLEARANCE_M` out of the camera (its own mast is not in the way)."""
+    in it); each line starts the session's `lens_clearance_m` out of the camera (its own mast is not in
+    the way)."""
+    clearance_m = board_session(world.scene, session).lens_clearance_m
     direction = (targets - camera) / np.linalg.norm(targets - camera, axis=1, keepdims=True)
-    starts = camera + direction * LENS_CLEARANCE_M
+    starts = camera + direction * clearance_m
     hits = pb.rayTestBatch(starts.tolist(), targets.tolist(), physicsClientId=world.cid)
     return [hit[0] < 0 for hit in hits]
 
 
 def render_views(
-    scene: Scene, camera_id: str, board: Board, out: Path, views: int, seed: int = 0
+    scene: Scene,
+    camera_id: str,
+    board: Board,
+    out: Path,
+    views: int,
+    seed: int = 0,
+    session: BoardSessionSettings | None = None,
 ) -> list[Path]:
-    """`views` images of `board` in front of the camera (0.3-0.6 m away) as PNGs in `out`: a session's
-    intrinsics photographs."""
+    """`views` images of `board` in front of the camera (the session's `view_distance_m` away: 0.3-0.6 m
+    on the table) as PNGs in `out`: a session's intrinsics photographs."""
+    distance_m = board_session(scene, session).view_distance_m
     out.mkdir(parents=True, exist_ok=True)
     paths = []
     with BoardRenderer(scene, camera_id, board) as renderer:
-        for k, T in enumerate(
-            views_in_front(scene, camera_id, board, views, np.random.default_rng(seed), (0.3, 0.6))
-        ):
+        rng = np.random.default_rng(seed)
+        for k, T in enumerate(views_in_front(scene, camera_id, board, views, rng, distance_m)):
             paths.append(out / f"{camera_id}_view_{k:02d}.png")
             cv2.imwrite(str(paths[-1]), cv2.cvtColor(renderer.render(T), cv2.COLOR_RGB2BGR))
     return paths
 
 
-def render_standing(scene: Scene, camera_id: str, board: Board, board_text: str, out: Path) -> Path:
+def render_standing(
+    scene: Scene,
+    camera_id: str,
+    board: Board,
+    board_text: str,
+    out: Path,
+    session: BoardSessionSettings | None = None,
+) -> Path:
     """The board standing on the table or deck at `standing_placements`, one PNG each in `out`, and the survey
     file naming each image with the board's surveyed pose (`board_text` as the survey's `board`)."""
     from shared.calibration.workflow import pose_spec
@@ -283,7 +328,7 @@ def render_standing(scene: Scene, camera_id: str, board: Board, board_text: str,
     out.mkdir(parents=True, exist_ok=True)
     placements = []
     with BoardRenderer(scene, camera_id, board) as renderer:
-        placements_T = standing_placements(scene, camera_id, board, renderer.static)
+        placements_T = standing_placements(scene, camera_id, board, renderer.static, session)
         if not placements_T:
             raise ValueError(f"{camera_id} sees no place to stand the board")
         for k, T in enumerate(placements_T):

@@ -33,7 +33,6 @@ from sim.world import StaticWorld, VehiclePose, VehicleWorld
 
 RAY_BATCH_SIZE = pb.MAX_RAY_INTERSECTION_BATCH_SIZE - 1  # PyBullet's limit per rayTestBatch call
 NO_HIT_BODY = -1  # rayTestBatch objectUniqueId of a ray that hit nothing
-CANDIDATE_MARGIN_M = 0.005  # vehicle box grown by this much when picking rays to cast
 MIN_DIRECTION = 1e-12  # direction components below this are clamped (slab test without 0 / 0)
 
 # Reflectivity per surface kind (static kinds are StaticWorld.body_kind values; others are objects).
@@ -188,7 +187,8 @@ class LidarSimulator:
         # Rays leave from up to the lens offset away from the sensor origin: the candidate test (rays
         # from the origin) sees boxes grown by that much.
         lens_m = float(np.max(np.linalg.norm(self.origins_sensor, axis=1)))
-        self._half_m = np.asarray(vehicles.size_m) / 2 + CANDIDATE_MARGIN_M + lens_m
+        margin_m = vehicles.settings.vehicle_ray_margin_m
+        self._half_m = np.asarray(vehicles.size_m) / 2 + margin_m + lens_m
 
     @property
     def num_rays(self) -> int:

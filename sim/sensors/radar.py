@@ -17,10 +17,10 @@ evaluated at the (noise-free) target point.
 Occlusion (reference B.6): an n x n grid (n = occlusion_samples, cell centres) is laid on each box face
 that faces the radar; a ray from the radar origin to each sample is tested against the static world
 and against the vehicle world. A sample is blocked when a static body, or a body of another vehicle,
-is hit more than OCCLUSION_TOLERANCE_M before the sample. Samples are weighted by their face's area
-seen from the radar (area x cosine of the viewing angle); the vehicle is dropped when the blocked
-weight fraction exceeds occlusion_max_fraction. All rays of a scan go into one rayTestBatch call per
-world (split only past PyBullet's batch limit).
+is hit more than the world's `occlusion_tolerance_m` (sim/config.py WorldSettings) before the sample.
+Samples are weighted by their face's area seen from the radar (area x cosine of the viewing angle);
+the vehicle is dropped when the blocked weight fraction exceeds occlusion_max_fraction. All rays of a
+scan go into one rayTestBatch call per world (split only past PyBullet's batch limit).
 
 Measurement noise: Gaussian on range, azimuth and range rate (elevation is reported noise-free);
 each visible vehicle is detected with probability detection_probability. Clutter: Poisson
@@ -46,9 +46,7 @@ from shared.scene.scene import Scene
 from sim.world import StaticWorld, VehicleWorld
 
 SNR_REF_DB = 45.0  # SNR of a 0 dBsm target at 1 m
-OCCLUSION_TOLERANCE_M = 0.005  # hits this close to a sample count as reaching it
 RAY_BATCH_MAX = 16000  # PyBullet refuses batches of more than 16384 rays
-MIN_RANGE_NOISY_M = 0.0  # noisy ranges are clipped here
 
 
 def _zeros3() -> np.ndarray:
@@ -189,7 +187,8 @@ class RadarSimulator:
         if not cands:
             return []
         lengths = np.linalg.norm(ends - self.origin_w, axis=1)
-        before = 1.0 - OCCLUSION_TOLERANCE_M / np.maximum(lengths, 1e-9)  # hit fraction limit
+        tolerance_m = self.vehicles.settings.occlusion_tolerance_m
+        before = 1.0 - tolerance_m / np.maximum(lengths, 1e-9)  # hit fraction limit
         s_body, s_frac = self._ray_hits(self.static.cid, ends)
         v_body, v_frac = self._ray_hits(self.vehicles.cid, ends)
         static_blocked = (s_body >= 0) & (s_frac < before)
@@ -228,7 +227,8 @@ class RadarSimulator:
             rcs = float(rng.normal(m.vehicle_rcs_dbsm, m.rcs_noise_std_db))
             targets.append(
                 SimRadarTarget(
-                    range_m=max(MIN_RANGE_NOISY_M, c.range_m + float(rng.normal(0.0, m.range_noise_std_m))),
+                    # A noisy range is clipped at 0: a range is never negative, at any scale.
+                    range_m=max(0.0, c.range_m + float(rng.normal(0.0, m.range_noise_std_m))),
                     azimuth_rad=c.azimuth_rad + float(rng.normal(0.0, m.azimuth_noise_std_rad)),
                     elevation_rad=c.elevation_rad,
                     range_rate_mps=range_rate + float(rng.normal(0.0, m.range_rate_noise_std_mps)),

@@ -30,6 +30,7 @@ from rmmdet.v1.sim_pb2 import GroundTruth
 
 from shared.scene.model import SensorSpec
 from shared.scene.scene import Scene
+from sim.config import WorldSettings
 from sim.ground_truth import poses_from_ground_truth
 from sim.sensors.camera import CameraFrame, CameraRenderer, Lighting, add_noise, vehicles_box_corners
 from sim.sensors.lidar import LidarScan, LidarSimulator, to_point_cloud
@@ -173,15 +174,22 @@ def build_sensor(
 
 
 class SensorRig:
-    """The sensors `specs` of `scene` over their own PyBullet worlds (static scene + vehicles).
+    """The sensors `specs` of `scene` over their own PyBullet worlds (static scene + vehicles, built
+    with `world`, default the defaults, at the scene's scale).
 
     Use as a context manager (or call close()) to release the PyBullet clients."""
 
-    def __init__(self, scene: Scene, specs: list[SensorSpec], lighting: Lighting | None = None) -> None:
+    def __init__(
+        self,
+        scene: Scene,
+        specs: list[SensorSpec],
+        lighting: Lighting | None = None,
+        world: WorldSettings | None = None,
+    ) -> None:
         self.scene = scene
         self.specs = list(specs)
-        self.static = StaticWorld(scene)
-        self.vehicles = VehicleWorld(scene)
+        self.static = StaticWorld(scene, world)
+        self.vehicles = VehicleWorld(scene, settings=self.static.settings)
         light = lighting or Lighting()
         try:
             self.sensors: dict[str, Sensor] = {

@@ -24,7 +24,7 @@ from sim.sensors.lidar import (
     to_point_cloud,
 )
 from sim.traffic import TrafficSim
-from sim.world import SLAB_DROP_M, FullWorld, StaticWorld, VehiclePose, VehicleWorld
+from sim.world import FullWorld, StaticWorld, VehiclePose, VehicleWorld
 
 LIDAR = "lidar_11"  # at (-0.62, 2.12, 0.15), agent1's intersection
 RANGE_TOL_M = 1e-4  # PyBullet casts of the same segment agree to float precision
@@ -112,7 +112,8 @@ def test_cast_rays_chunks_large_batches(static: StaticWorld) -> None:
     ends = np.column_stack([xy, np.full(count, height_m - drop_m)])
     fraction, body = cast_rays(static.cid, origin, ends)
     assert np.all(body >= 0)
-    expected = (height_m + SLAB_DROP_M) / drop_m  # the slab's top is the only collision surface
+    # The slab's top is the only collision surface.
+    expected = (height_m + static.settings.table_slab_drop_m) / drop_m
     np.testing.assert_allclose(fraction, expected, atol=RANGE_TOL_M)
 
 

@@ -8,12 +8,14 @@ import cv2
 import numpy as np
 
 from shared.scene.scene import Scene
-from sim.config import SimSettings
-from sim.snapshot import PX_PER_M, TablePixels, snapshot
+from sim.config import BirdsEyeSettings, SimSettings
+from sim.snapshot import TablePixels, snapshot
+
+PX_PER_M = BirdsEyeSettings().px_per_m  # the sand table's (scale 1)
 
 
 def test_table_pixels_put_the_max_y_edge_on_row_zero(scene: Scene) -> None:
-    px = TablePixels.of(scene)
+    px = TablePixels.of(scene, PX_PER_M)
     t = scene.spec.table
     x0, y0 = t.origin_m
     corners = np.array([[x0, y0 + t.size_y_m], [x0 + t.size_x_m, y0]])

@@ -21,6 +21,8 @@ SPEED_MPS = 0.5
 
 
 VEHICLE = read_yaml(DEFAULT_SCENE)["vehicle"]  # the sand table's car (the scene file is its home)
+# Table-sized road geometry (no deck): these scenes' lanes and lengths are sized for the table's car.
+ROAD = {"lane_width_m": 0.3, "corner_radius_m": 0.4, "sample_step_m": 0.02}
 
 
 def _lane(lane_id: str, a: str, b: str, area: str, points: list[tuple[float, float]], **kw: Any) -> dict:
@@ -52,6 +54,7 @@ def planner_scene() -> Scene:
     spec = {
         "scene_id": "planner_square",
         "vehicle": VEHICLE,
+        "road": ROAD,
         "table": {"size_x_m": 8.0, "size_y_m": 8.0, "origin_m": (-4.0, -4.0)},
         "junctions": [
             {"id": "jz", "number": 1, "position_m": (-1.0, 0.0, 0.0)},
@@ -96,6 +99,7 @@ def map_scene() -> Scene:
     spec = {
         "scene_id": "map_strip",
         "vehicle": VEHICLE,
+        "road": ROAD,
         "table": {"size_x_m": 5.0, "size_y_m": 3.0, "origin_m": (-1.0, -1.0)},
         "junctions": [
             {"id": "j1", "number": 1, "position_m": (0.5, 0.5, 0.0)},
