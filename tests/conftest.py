@@ -7,7 +7,9 @@ from collections.abc import Iterator
 
 import pytest
 
-from tests.helpers import TEST_SCENE, Router, start_router, stop
+from shared.paths import DEFAULT_SCENE
+from shared.scene.scene import Scene
+from tests.helpers import FULL_SCALE_SCENE, TEST_SCENE, Router, start_router, stop
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -38,6 +40,18 @@ def test_scene():
     from shared.scene.scene import Scene
 
     return Scene.load(TEST_SCENE)
+
+
+@pytest.fixture(scope="session")
+def table_scene() -> Scene:
+    """The sand table: the reference scale (1, 1, 1)."""
+    return Scene.load(DEFAULT_SCENE)
+
+
+@pytest.fixture(scope="session")
+def full_scene() -> Scene:
+    """The real-size intersection (deploy/scenes/intersection.yaml)."""
+    return Scene.load(FULL_SCALE_SCENE)
 
 
 @pytest.fixture

@@ -14,6 +14,7 @@ from shared.paths import REPO_ROOT as REPO_ROOT  # re-exported: the tests take i
 
 DATA_DIR = Path(__file__).resolve().parent / "data"
 TEST_SCENE = DATA_DIR / "test_scene.yaml"
+FULL_SCALE_SCENE = REPO_ROOT / "deploy" / "scenes" / "intersection.yaml"  # the real-size site
 
 
 def free_port() -> int:

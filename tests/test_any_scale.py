@@ -23,7 +23,7 @@ from pydantic import BaseModel, Field
 
 from shared.config import with_overrides
 from shared.detection.oracle import OracleCameraDetector, OracleLidarDetector
-from shared.paths import DEFAULT_SCENE, DEPLOY_DIR, REPO_ROOT
+from shared.paths import REPO_ROOT
 from shared.perception.config import MecSettings
 from shared.perception.core import MecCore
 from shared.scene.scale import Scales, SiteScale, scaled_fields, scales_of
@@ -31,7 +31,6 @@ from shared.scene.scene import Scene
 from shared.traffic.config import CoordinatorSettings
 from sim.config import SimSettings
 
-FULL_SCALE_SCENE = DEPLOY_DIR / "scenes" / "intersection.yaml"
 UNIT = re.compile(r"_(m|mps|mps2|m2|m2ps2|per_m|per_m2|px_m)$")
 
 # Module constants with a unit of size that do not scale, and why.
@@ -121,22 +120,14 @@ def mec_settings(scene: Scene, agent_id: str, settings: MecSettings | None = Non
     return core.settings
 
 
-@pytest.fixture(scope="module")
-def table() -> Scene:
-    return Scene.load(DEFAULT_SCENE)
-
-
-@pytest.fixture(scope="module")
-def full() -> Scene:
-    return Scene.load(FULL_SCALE_SCENE)
-
-
 # --- the scale itself ---------------------------------------------------------------------------
 
 
-def test_the_table_is_the_reference_and_the_intersection_is_real_size(table: Scene, full: Scene) -> None:
-    assert SiteScale.of(table.spec) == SiteScale(1.0, 1.0, 1.0)
-    scale = SiteScale.of(full.spec)
+def test_the_table_is_the_reference_and_the_intersection_is_real_size(
+    table_scene: Scene, full_scene: Scene
+) -> None:
+    assert SiteScale.of(table_scene.spec) == SiteScale(1.0, 1.0, 1.0)
+    scale = SiteScale.of(full_scene.spec)
     assert scale.length > 10 and scale.speed > 10 and scale.accel > 2
 
 
@@ -181,24 +172,24 @@ def test_a_planted_size_constant_is_found(tmp_path: Path) -> None:
 # --- the cores at 1:1 --------------------------------------------------------------------------------
 
 
-def test_the_mec_at_real_size_keeps_no_table_value(table: Scene, full: Scene) -> None:
-    full_agent = full.spec.agents[0].id
-    table_agent = next(a.id for a in table.spec.agents if table.sensors_of(a.id, "lidar"))
-    at_full = mec_settings(full, full_agent)
-    assert table_sized(at_full, mec_settings(table, table_agent)) == []
+def test_the_mec_at_real_size_keeps_no_table_value(table_scene: Scene, full_scene: Scene) -> None:
+    full_agent = full_scene.spec.agents[0].id
+    table_agent = next(a.id for a in table_scene.spec.agents if table_scene.sensors_of(a.id, "lidar"))
+    at_full = mec_settings(full_scene, full_agent)
+    assert table_sized(at_full, mec_settings(table_scene, table_agent)) == []
     # The real-size core really is real-size: the tracker's gate holds a car's 10 Hz step at 50 km/h.
     assert at_full.tracker.gate_m > 13.9 / 10
-    assert at_full.detectors.cluster.vehicle_size_m == full.spec.vehicle.size_m
+    assert at_full.detectors.cluster.vehicle_size_m == full_scene.spec.vehicle.size_m
 
 
-def test_a_table_value_given_to_the_real_size_mec_is_found(table: Scene, full: Scene) -> None:
+def test_a_table_value_given_to_the_real_size_mec_is_found(table_scene: Scene, full_scene: Scene) -> None:
     planted = with_overrides(MecSettings(), {"tracker": {"gate_m": 0.5}})  # the table's gate, by hand
-    at_full = mec_settings(full, full.spec.agents[0].id, planted)
-    table_agent = next(a.id for a in table.spec.agents if table.sensors_of(a.id, "lidar"))
-    assert table_sized(at_full, mec_settings(table, table_agent)) == ["tracker.gate_m = 0.5"]
+    at_full = mec_settings(full_scene, full_scene.spec.agents[0].id, planted)
+    table_agent = next(a.id for a in table_scene.spec.agents if table_scene.sensors_of(a.id, "lidar"))
+    assert table_sized(at_full, mec_settings(table_scene, table_agent)) == ["tracker.gate_m = 0.5"]
 
 
-def test_the_base_settings_files_give_no_size(table: Scene) -> None:
+def test_the_base_settings_files_give_no_size(table_scene: Scene) -> None:
     # A size in a base file would be taken as written at every scale: sizes belong in a site's profile.
     from shared.config import read_yaml
     from shared.perception.config import DEFAULT_MEC_CONFIG

@@ -11,7 +11,6 @@ import pytest
 from pydantic import BaseModel
 
 from shared.config import read_yaml, with_overrides
-from shared.paths import DEFAULT_SCENE, DEPLOY_DIR
 from shared.scene.model import LEVEL_SEPARATION_M
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scale import Scales, SiteScale, at_scale, scaled_fields
@@ -29,18 +28,7 @@ from sim.traffic import TrafficSim
 from sim.world import StaticWorld, VehicleWorld, world_settings
 from tests.test_any_scale import undeclared_unit_fields
 
-FULL_SCALE_SCENE = DEPLOY_DIR / "scenes" / "intersection.yaml"
 TICK_HZ = 60.0
-
-
-@pytest.fixture(scope="module")
-def table() -> Scene:
-    return Scene.load(DEFAULT_SCENE)
-
-
-@pytest.fixture(scope="module")
-def full() -> Scene:
-    return Scene.load(FULL_SCALE_SCENE)
 
 
 def assert_real_size(at_table: BaseModel, at_full: BaseModel, scale: SiteScale) -> None:
@@ -77,31 +65,33 @@ def traffic(scene: Scene, settings: TrafficSettings | None = None, vehicles: int
     return TrafficSim(scene, RoadNetwork(scene), cfg, seed=1, tick_hz=TICK_HZ)
 
 
-def test_the_table_traffic_runs_the_defaults_as_written(table: Scene) -> None:
-    cfg = traffic(table).cfg
+def test_the_table_traffic_runs_the_defaults_as_written(table_scene: Scene) -> None:
+    cfg = traffic(table_scene).cfg
     assert scaled_fields(cfg) == scaled_fields(TrafficSettings())
     assert cfg.level_separation_m == LEVEL_SEPARATION_M and cfg.idm.max_accel_mps2 == 0.6
 
 
-def test_the_real_size_traffic_keeps_no_table_value(table: Scene, full: Scene) -> None:
-    at_full = traffic(full).cfg
-    assert_real_size(traffic(table).cfg, at_full, SiteScale.of(full.spec))
+def test_the_real_size_traffic_keeps_no_table_value(table_scene: Scene, full_scene: Scene) -> None:
+    at_full = traffic(full_scene).cfg
+    assert_real_size(traffic(table_scene).cfg, at_full, SiteScale.of(full_scene.spec))
     # The car's own acceleration, the site's top speed.
-    assert at_full.idm.max_accel_mps2 == pytest.approx(full.spec.vehicle.max_accel_mps2)
-    assert at_full.max_speed_mps == pytest.approx(full.spec.top_speed_mps)
+    assert at_full.idm.max_accel_mps2 == pytest.approx(full_scene.spec.vehicle.max_accel_mps2)
+    assert at_full.max_speed_mps == pytest.approx(full_scene.spec.top_speed_mps)
 
 
-def test_a_size_given_explicitly_is_taken_as_written(full: Scene) -> None:
-    cfg = traffic(full, TrafficSettings.model_validate({"vehicles": 2, "idm": {"min_gap_m": 2.0}})).cfg
+def test_a_size_given_explicitly_is_taken_as_written(full_scene: Scene) -> None:
+    cfg = traffic(full_scene, TrafficSettings.model_validate({"vehicles": 2, "idm": {"min_gap_m": 2.0}})).cfg
     assert cfg.idm.min_gap_m == 2.0
     assert cfg.idm.max_accel_mps2 == pytest.approx(2.5)  # the rest still scaled
     # Overridden in code as the flow experiment does (shared.config.with_overrides): still scaled.
-    overridden = traffic(full, with_overrides(TrafficSettings(), {"vehicles": 2, "route_policy": "plan"})).cfg
-    assert overridden.idm.min_gap_m == pytest.approx(0.1 * SiteScale.of(full.spec).length)
+    overridden = traffic(
+        full_scene, with_overrides(TrafficSettings(), {"vehicles": 2, "route_policy": "plan"})
+    ).cfg
+    assert overridden.idm.min_gap_m == pytest.approx(0.1 * SiteScale.of(full_scene.spec).length)
 
 
-def test_the_real_size_traffic_drives_at_real_speeds_without_collisions(full: Scene) -> None:
-    sim = traffic(full, vehicles=10)
+def test_the_real_size_traffic_drives_at_real_speeds_without_collisions(full_scene: Scene) -> None:
+    sim = traffic(full_scene, vehicles=10)
     speeds = []
     for tick in range(round(40 * TICK_HZ)):
         sim.step()
@@ -116,34 +106,36 @@ def test_the_real_size_traffic_drives_at_real_speeds_without_collisions(full: Sc
 
 
 @pytest.fixture(scope="module")
-def worlds(full: Scene) -> Iterator[tuple[StaticWorld, VehicleWorld]]:
-    static = StaticWorld(full)
-    vehicles = VehicleWorld(full, settings=static.settings)
+def worlds(full_scene: Scene) -> Iterator[tuple[StaticWorld, VehicleWorld]]:
+    static = StaticWorld(full_scene)
+    vehicles = VehicleWorld(full_scene, settings=static.settings)
     yield static, vehicles
     vehicles.close()
     static.close()
 
 
-def test_the_table_worlds_run_the_defaults_as_written(table: Scene, static: StaticWorld) -> None:
+def test_the_table_worlds_run_the_defaults_as_written(table_scene: Scene, static: StaticWorld) -> None:
     assert scaled_fields(static.settings) == scaled_fields(WorldSettings())
-    assert scaled_fields(board_session(table)) == scaled_fields(BoardSessionSettings())
-    drawing = at_scale(BirdsEyeSettings(), SiteScale.of(table.spec))
+    assert scaled_fields(board_session(table_scene)) == scaled_fields(BoardSessionSettings())
+    drawing = at_scale(BirdsEyeSettings(), SiteScale.of(table_scene.spec))
     assert scaled_fields(drawing) == scaled_fields(BirdsEyeSettings())
 
 
 def test_the_real_size_worlds_keep_no_table_value(
-    table: Scene, full: Scene, worlds: tuple[StaticWorld, VehicleWorld]
+    table_scene: Scene, full_scene: Scene, worlds: tuple[StaticWorld, VehicleWorld]
 ) -> None:
-    scale = SiteScale.of(full.spec)
+    scale = SiteScale.of(full_scene.spec)
     static, vehicles = worlds
-    assert_real_size(world_settings(table), static.settings, scale)
+    assert_real_size(world_settings(table_scene), static.settings, scale)
     assert vehicles.settings == static.settings
-    assert_real_size(board_session(table), board_session(full), scale)
+    assert_real_size(board_session(table_scene), board_session(full_scene), scale)
     assert_real_size(
-        at_scale(BirdsEyeSettings(), SiteScale.of(table.spec)), at_scale(BirdsEyeSettings(), scale), scale
+        at_scale(BirdsEyeSettings(), SiteScale.of(table_scene.spec)),
+        at_scale(BirdsEyeSettings(), scale),
+        scale,
     )
     # The road texture has the table's resolution in pixels per car length, not per metre.
-    assert static.settings.texture_px_per_m * full.spec.vehicle.length_m == pytest.approx(128 * 0.33)
+    assert static.settings.texture_px_per_m * full_scene.spec.vehicle.length_m == pytest.approx(128 * 0.33)
 
 
 def test_the_real_size_world_stands_on_its_table(worlds: tuple[StaticWorld, VehicleWorld]) -> None:
