@@ -15,6 +15,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import zenoh
+from threadpoolctl import threadpool_limits
 
 from shared.bus.zenoh_config import DEFAULT_CLIENT_CONFIG, add_zenoh_args, config_from_args
 from shared.config import ConfigError
@@ -27,6 +28,19 @@ ServiceMain = Callable[[zenoh.Config, argparse.Namespace, GracefulShutdown], int
 log = logging.getLogger(__name__)
 CONFIG_ERROR_EXIT = 2  # a configuration a service cannot start with (argparse's status for a bad flag)
 DEFAULT_REPORT_INTERVAL_S = 10.0  # log interval of rates and counters where no settings file says
+
+
+def one_blas_thread() -> None:
+    """Limit this process's BLAS to one thread. NumPy's OpenBLAS starts a worker per core, and after each
+    call that worker spins for a while waiting for the next: a service calling BLAS at 10 Hz (the lidar
+    group's ray test, `rays_hitting_boxes`) kept it spinning at ~87 % of a core on this 2-core host, for
+    matrices small enough that one thread is as fast. Each service is one process among a dozen: the
+    host's cores are shared by processes, not by threads. The limit holds for the libraries loaded when it
+    is set: NumPy's and SciPy's OpenBLAS are loaded first."""
+    import numpy  # noqa: F401
+    import scipy.linalg  # noqa: F401
+
+    threadpool_limits(limits=1, user_api="blas")
 
 
 def positive_float(text: str) -> float:
@@ -71,6 +85,7 @@ def run_service(
     add_zenoh_args(parser, default_zenoh_config)
     args = parser.parse_args(argv)
     setup_logging(service, args.instance)
+    one_blas_thread()
     try:
         try:
             conf = config_from_args(args)
