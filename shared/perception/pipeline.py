@@ -138,7 +138,8 @@ class AgentPipeline:
         self.surface = RoadSurface(
             scene, settings.surface_half_width_m, settings.surface_sample_step_m, agent_id
         )
-        self.car_size_m = settings.camera_only.car_size_m or scene.spec.vehicle.size_m
+        assert settings.camera_only.car_size_m is not None  # for_site fills it from the scene
+        self.car_size_m = settings.camera_only.car_size_m
         det = settings.detectors
         self.camera_detector = cameras
         if self.camera_detector is None and self.camera_ids:
