@@ -31,6 +31,7 @@ from shared.geometry.transforms import transform_points
 __all__ = [
     "box3d_to_image_box",
     "intrinsics_from_fov",
+    "near_clipped_extent",
     "pixel_rays",
     "pixel_to_world_on_plane",
     "project_points",
@@ -330,3 +331,63 @@ def box3d_to_image_box(
     visible = any_in_front & (boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1])
     boxes[~visible] = 0.0
     return boxes, visible
+
+
+# Every pair of a box's 8 corners: the segment between two corners of a convex box lies inside it, so
+# the points where these segments cross a plane include every vertex of the box's section by that plane.
+_CORNER_PAIRS = np.array([(i, j) for i in range(8) for j in range(i + 1, 8)])
+
+
+def near_clipped_extent(
+    corners_world: ArrayLike, T_optical_from_world: ArrayLike, K: ArrayLike, near_m: float
+) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+    """Image extent of each 3D box clipped to the near plane, as a renderer draws it (ideal pinhole).
+
+    The part of a box at depth >= ``near_m`` is a convex solid whose vertices are the box's corners at
+    that depth and the points where its edges cross the plane ``z = near_m``; its image is the convex
+    hull of their projections, so their bounding rectangle is the box's exact extent in an image
+    rendered with that near plane. Unlike :func:`box3d_to_image_box` (corners behind the camera
+    skipped), a box that straddles the camera plane, e.g. a vehicle passing under a pole-top camera,
+    gets its true extent rather than a smaller one; the extent is not clamped to the image.
+
+    Parameters
+    ----------
+    corners_world : array_like, shape (N, 8, 3)
+        Box corners in the world, metres.
+    T_optical_from_world : array_like, shape (4, 4)
+        Extrinsics, world to optical frame.
+    K : array_like, shape (3, 3)
+        Camera matrix (no distortion).
+    near_m : float
+        Near clipping distance along the optical axis, metres (> 0).
+
+    Returns
+    -------
+    lo_px, hi_px : numpy.ndarray, shape (N, 2)
+        Smallest and largest (u, v), pixels; NaN where the box lies wholly nearer than ``near_m``.
+    in_view : numpy.ndarray of bool, shape (N,)
+        False for boxes wholly nearer than ``near_m`` (behind the camera included).
+    """
+    corners = check.finite_array(corners_world, "corners_world", (None, 8, 3))
+    if not near_m > 0.0:
+        raise ValueError(f"near_m must be positive, got {near_m}")
+    T = check.rigid_transform(T_optical_from_world, "T_optical_from_world")
+    Km = np.asarray(K, float)
+    cam = corners @ T[:3, :3].T + T[:3, 3]  # (N, 8, 3) optical frame
+    a, b = cam[:, _CORNER_PAIRS[:, 0]], cam[:, _CORNER_PAIRS[:, 1]]  # (N, 28, 3)
+    za, zb = a[..., 2] - near_m, b[..., 2] - near_m
+    crosses = za * zb < 0.0
+    s = np.where(crosses, za / np.where(crosses, za - zb, 1.0), 0.0)
+    section = a + s[..., None] * (b - a)  # on the near plane where `crosses`
+    points = np.concatenate([cam, section], axis=1)  # (N, 36, 3)
+    keep = np.concatenate([cam[..., 2] >= near_m, crosses], axis=1)
+    z = np.where(keep, points[..., 2], 1.0)
+    u = np.where(keep, Km[0, 0] * points[..., 0] / z + Km[0, 2], np.nan)
+    v = np.where(keep, Km[1, 1] * points[..., 1] / z + Km[1, 2], np.nan)
+    in_view = keep.any(axis=1)
+    lo = np.full((len(cam), 2), np.nan)
+    hi = np.full((len(cam), 2), np.nan)
+    if in_view.any():
+        uv = np.stack([u[in_view], v[in_view]], axis=-1)
+        lo[in_view], hi[in_view] = np.nanmin(uv, axis=1), np.nanmax(uv, axis=1)
+    return lo, hi, in_view

@@ -20,7 +20,7 @@ import pybullet as pb
 from scipy.spatial.transform import Rotation
 
 from shared.geometry.boxes import box3d_corners
-from shared.geometry.camera import project_points
+from shared.geometry.camera import near_clipped_extent
 from shared.scene.model import CameraModel
 from shared.scene.scene import Scene
 from sim.world import StaticWorld, VehiclePose, VehicleWorld
@@ -194,21 +194,17 @@ class CameraRenderer:
             return {}
         if corners_w is None:
             corners_w = vehicles_box_corners(poses, self.vehicles.size_m)
-        uv, z = project_points(corners_w.reshape(-1, 3), self.T, self.K)
-        uv, z = uv.reshape(len(poses), 8, 2), z.reshape(len(poses), 8)
-        in_front = z > self.model.near_m
+        # Clipped to the near plane as the renderer clips: a vehicle passing under a pole-top camera
+        # straddles the camera plane and would otherwise need a full-frame render (~100 ms at 1920 x 1200).
+        lo, hi, in_view = near_clipped_extent(corners_w, self.T, self.K, self.model.near_m)
         rects = {}
         for i, pose in enumerate(poses):
-            if not in_front[i].any():
+            if not in_view[i]:
                 continue
-            if not in_front[i].all():
-                rects[pose.vehicle_id] = (0, 0, self.width, self.height)  # straddles the camera plane
-                continue
-            lo, hi = uv[i].min(axis=0), uv[i].max(axis=0)
-            u0 = max(int(np.floor(lo[0])) - ROI_MARGIN_PX, 0)
-            v0 = max(int(np.floor(lo[1])) - ROI_MARGIN_PX, 0)
-            u1 = min(int(np.ceil(hi[0])) + ROI_MARGIN_PX, self.width)
-            v1 = min(int(np.ceil(hi[1])) + ROI_MARGIN_PX, self.height)
+            u0 = max(int(np.floor(lo[i, 0])) - ROI_MARGIN_PX, 0)
+            v0 = max(int(np.floor(lo[i, 1])) - ROI_MARGIN_PX, 0)
+            u1 = min(int(np.ceil(hi[i, 0])) + ROI_MARGIN_PX, self.width)
+            v1 = min(int(np.ceil(hi[i, 1])) + ROI_MARGIN_PX, self.height)
             if u1 > u0 and v1 > v0:
                 rects[pose.vehicle_id] = (u0, v0, u1, v1)
         return rects

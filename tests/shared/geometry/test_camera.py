@@ -8,6 +8,7 @@ import pytest
 from shared.geometry.camera import (
     box3d_to_image_box,
     intrinsics_from_fov,
+    near_clipped_extent,
     pixel_rays,
     pixel_to_world_on_plane,
     project_points,
@@ -259,3 +260,37 @@ def test_box3d_to_image_box_validates() -> None:
 def test_invalid_inputs_raise(call, match: str) -> None:
     with pytest.raises(ValueError, match=match):
         call()
+
+
+def _axis_box(lo_xyz: list[float], hi_xyz: list[float]) -> np.ndarray:
+    """(1, 8, 3) corners of an axis-aligned box."""
+    xs, ys, zs = zip(lo_xyz, hi_xyz, strict=True)
+    return np.array([[[x, y, z] for x in xs for y in ys for z in zs]], float)
+
+
+def test_near_clipped_extent_known_answer_for_a_box_through_the_camera_plane() -> None:
+    # Optical frame = world; the box spans depth -1..3 m, so the renderer draws its part at 1..3 m and
+    # its nearest face, on the near plane, sets the extent: x +-1 m, y +-0.5 m at 1 m depth.
+    K = np.array([[100.0, 0, 50], [0, 100.0, 40], [0, 0, 1]])
+    lo, hi, in_view = near_clipped_extent(_axis_box([-1, -0.5, -1], [1, 0.5, 3]), np.eye(4), K, 1.0)
+    assert in_view.tolist() == [True]
+    np.testing.assert_allclose(lo[0], [-50.0, -10.0])
+    np.testing.assert_allclose(hi[0], [150.0, 90.0])
+    # The corners in front alone (box3d_to_image_box's rule) give the far face only: 1/3 of that size.
+    front, _ = box3d_to_image_box(_axis_box([-1, -0.5, -1], [1, 0.5, 3]), np.eye(4), K, 10_000, 10_000)
+    assert front[0, 2] == pytest.approx(50 + 100 / 3)
+
+
+def test_near_clipped_extent_equals_the_corners_for_a_box_in_front_and_is_empty_behind() -> None:
+    K = np.array([[800.0, 0, 320], [0, 800.0, 240], [0, 0, 1]])
+    T = np.eye(4)
+    T[:3, 3] = [0.3, -0.2, 0.0]
+    box = _axis_box([-1, -0.5, 4], [1.5, 0.5, 9])
+    lo, hi, in_view = near_clipped_extent(np.concatenate([box, box - [0, 0, 20]]), T, K, 0.5)
+    uv, _ = project_points(box[0], T, K)
+    np.testing.assert_allclose(lo[0], uv.min(axis=0))
+    np.testing.assert_allclose(hi[0], uv.max(axis=0))
+    assert in_view.tolist() == [True, False]
+    assert np.isnan(lo[1]).all() and np.isnan(hi[1]).all()
+    with pytest.raises(ValueError, match="near_m"):
+        near_clipped_extent(box, T, K, 0.0)
