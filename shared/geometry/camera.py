@@ -384,7 +384,7 @@ def near_clipped_extent(
     z = np.where(keep, points[..., 2], 1.0)
     u = np.where(keep, Km[0, 0] * points[..., 0] / z + Km[0, 2], np.nan)
     v = np.where(keep, Km[1, 1] * points[..., 1] / z + Km[1, 2], np.nan)
-    in_view = keep.any(axis=1)
+    in_view: NDArray[np.bool_] = np.asarray(keep.any(axis=1), bool)
     lo = np.full((len(cam), 2), np.nan)
     hi = np.full((len(cam), 2), np.nan)
     if in_view.any():
