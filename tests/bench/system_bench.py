@@ -64,6 +64,7 @@ from shared.machine import git_commit, machine_info
 from shared.paths import DEFAULT_SCENE, REPO_ROOT
 from shared.readme import replace_section
 from shared.scene.scene import Scene
+from shared.supervision.profiles import Choice, compose
 from shared.supervision.verdict import level_name, probe
 from shared.timebase import NS_PER_S
 
@@ -71,6 +72,7 @@ RESULTS = REPO_ROOT / "tests" / "bench" / "results" / "system.json"
 SUPERVISOR_CONF = REPO_ROOT / "deploy" / "local" / "supervisord.conf"
 PROBE_EVERY_S = 10.0
 VIEW_CLIENT = "view-client"  # --view-client: its process, sampled like the system's, not counted in it
+DEFAULT_PROFILE_SCENE = Choice().scene  # `make up` without SCENE=
 OTHER_LOAD_WARN_CORES = 0.1  # other work on the host beyond this makes the run no measurement of the system
 
 
@@ -320,10 +322,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if supervised_pids():
         raise SystemExit("the system is already up: `make down` first (this benchmark starts it itself)")
     env = dict(os.environ)
-    make = ["make", "-C", str(REPO_ROOT), "up", f"SENSORS={args.sensors}"] + (
+    make = ["make", "-C", str(REPO_ROOT), "up", f"SENSORS={args.sensors}", f"SCENE={args.scene}"] + (
         [f"SPEED={args.speed}"] if args.speed != 1.0 else []
     )
-    scene = Scene.load(DEFAULT_SCENE)
+    profile, _ = compose(Choice(scene=args.scene))
+    scene = Scene.load(profile.scene or DEFAULT_SCENE)
     sampler = ProcessSampler()
     tap = Tap()
     probes: list[dict[str, Any]] = []
@@ -455,6 +458,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     return result
 
 
+def scene_of(run: dict[str, Any]) -> str:
+    """The profile scene a run was made on (runs before the option ran the default)."""
+    return str(run["args"].get("scene", DEFAULT_PROFILE_SCENE))
+
+
 def acceptance(r: dict[str, Any]) -> dict[str, bool]:
     """The live-system issue's acceptance points, judged on one run."""
     agents = r.get("agents", {})
@@ -508,6 +516,7 @@ def readme_table(runs: list[dict[str, Any]]) -> str:
             + (f" + record {run['args']['record_s']:.0f} s" if run["args"]["record_s"] else "")
             + (" + view client" if run["args"].get("view_client") else "")
             + (" + SENSORS=wire" if run["args"].get("sensors", "sim") == "wire" else "")
+            + (f" + SCENE={scene_of(run)}" if scene_of(run) != DEFAULT_PROFILE_SCENE else "")
             + f" | {fmt(r.get('sim', {}).get('real_time_factor'), 2)} | {r['cpu_cores_total']:.2f}"
             f" | {r['probes']['ok']}/{r['probes']['count']}"
             f" | {'/'.join(fmt(100 * a.get('fraction_full', math.nan), 1) for a in agents)}"
@@ -528,6 +537,7 @@ def readme_table(runs: list[dict[str, Any]]) -> str:
         and not r["args"]["record_s"]
         and not r["args"].get("view_client")
         and r["args"].get("sensors", "sim") == "sim"
+        and scene_of(r) == DEFAULT_PROFILE_SCENE
     ]
     last = (plain or runs)[-1]
     lines += [
@@ -548,7 +558,13 @@ def readme_table(runs: list[dict[str, Any]]) -> str:
         lines.append(
             f"| {name} | {p['cpu_cores']:.3f} | {p['rss_mb_max']:.0f} | {slope} | {threads} | {fds} |"
         )
-    wire = [r for r in runs if r["args"].get("sensors", "sim") == "wire" and r["args"]["speed"] == 1.0]
+    wire = [
+        r
+        for r in runs
+        if r["args"].get("sensors", "sim") == "wire"
+        and r["args"]["speed"] == 1.0
+        and scene_of(r) == DEFAULT_PROFILE_SCENE
+    ]
     if wire:
         lines += ["", *wire_cost_table(wire[-1], last)]
     return "\n".join(lines)
@@ -627,6 +643,9 @@ def main(argv: list[str] | None = None) -> int:
         default="sim",
         help="make up SENSORS=...: wire = emulated devices",
     )
+    parser.add_argument(
+        "--scene", default=DEFAULT_PROFILE_SCENE, help="make up SCENE=... (deploy/profiles/scene)"
+    )
     parser.add_argument("--label", default="default", help="name of this run in the results")
     parser.add_argument(
         "--view-client",
@@ -663,6 +682,7 @@ def main(argv: list[str] | None = None) -> int:
             "speed": args.speed,
             "record_s": args.record_s,
             "sensors": args.sensors,
+            "scene": args.scene,
             "view_client": args.view_client,
         },
         "machine": machine_info(),
