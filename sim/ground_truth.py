@@ -7,10 +7,17 @@ import math
 from rmmdet.v1.perception_pb2 import ObjectClass
 from rmmdet.v1.sim_pb2 import GroundTruth, JunctionFlow, SimClock, VehicleGroundTruth
 
+from shared.scene.model import VehicleLabel
 from shared.scene.scene import Scene
 from sim.traffic import TrafficSim
 from sim.world import VehiclePose
 
+#: A vehicle class's ground-truth label (shared/scene/model.py VehicleLabel) as the message's enum.
+OBJECT_CLASS: dict[VehicleLabel, int] = {
+    "car": ObjectClass.OBJECT_CLASS_CAR,
+    "truck": ObjectClass.OBJECT_CLASS_TRUCK,
+    "bus": ObjectClass.OBJECT_CLASS_BUS,
+}
 RGBA_BITS = 8
 RGBA_MAX = (1 << RGBA_BITS) - 1
 
@@ -31,11 +38,12 @@ def unpack_rgba(value: int) -> tuple[float, float, float, float]:
 def ground_truth_message(traffic: TrafficSim, scene: Scene, seed: int, tick_hz: float) -> GroundTruth:
     """World state of the current tick (header left to the publisher)."""
     msg = GroundTruth(seed=seed, tick_hz=tick_hz)
-    h = traffic.height_m
     for v in traffic.vehicles:
+        h = v.body.height_m
         gt = VehicleGroundTruth(
             vehicle_id=v.id,
-            label=ObjectClass.OBJECT_CLASS_CAR,
+            label=OBJECT_CLASS[v.body.label],
+            vehicle_class=v.body.name,
             yaw_rate_radps=v.yaw_rate,
             lane_id=v.path.id,
             lane_progress_m=max(v.s, 0.0),
@@ -51,7 +59,7 @@ def ground_truth_message(traffic: TrafficSim, scene: Scene, seed: int, tick_hz: 
         c.x = v.x + math.sin(v.pitch) * math.cos(v.yaw) * h / 2
         c.y = v.y + math.sin(v.pitch) * math.sin(v.yaw) * h / 2
         c.z = v.z + math.cos(v.pitch) * h / 2
-        gt.box.size_m.x, gt.box.size_m.y, gt.box.size_m.z = traffic.length_m, traffic.width_m, h
+        gt.box.size_m.x, gt.box.size_m.y, gt.box.size_m.z = v.body.size_m
         gt.box.yaw_rad = v.yaw
         gt.velocity_mps.x, gt.velocity_mps.y, gt.velocity_mps.z = v.velocity_mps
         msg.vehicles.append(gt)
@@ -81,6 +89,12 @@ def sim_clock_message(
     return clock
 
 
+def _box_size(v: VehicleGroundTruth) -> tuple[float, float, float] | None:
+    """The vehicle's own box size; None for a message that gives none (the scene's vehicle then)."""
+    size = (v.box.size_m.x, v.box.size_m.y, v.box.size_m.z)
+    return size if all(d > 0 for d in size) else None
+
+
 def poses_from_ground_truth(msg: GroundTruth) -> list[VehiclePose]:
     return [
         VehiclePose(
@@ -89,6 +103,7 @@ def poses_from_ground_truth(msg: GroundTruth) -> list[VehiclePose]:
             yaw_rad=v.box.yaw_rad,
             pitch_rad=v.pitch_rad,
             rgba=unpack_rgba(v.color_rgba),
+            size_m=_box_size(v),
         )
         for v in msg.vehicles
     ]

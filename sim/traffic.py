@@ -1,13 +1,15 @@
 """Traffic on the sand table: kinematic vehicles with pure-pursuit lane following, IDM car following
 and exclusive junctions; trips between random origin/destination junctions; route choice per policy.
 
-Each vehicle is a kinematic bicycle (wheelbase from the scene) steered by pure pursuit toward a point
-ahead on its path (lane, then junction connector, then next lane) and sped by the Intelligent Driver
-Model against the nearest vehicle or stop line ahead along that path. Junctions are exclusive zones
-(the paper's node queue, docs/references.md (D.4)): a vehicle asks to enter `junction_request_m`
-before its lane ends, is admitted first-come-first-served once the junction is empty and its exit
-lane has room for it, and stops at the stop line until then. Arrivals at each junction are counted
-(the paper's flow points). Deterministic: one seeded generator, vehicles updated in id order.
+Each vehicle is a kinematic bicycle (wheelbase, steering and acceleration of its class in the scene)
+steered by pure pursuit toward a point ahead on its path (lane, then junction connector, then next lane)
+and sped by the Intelligent Driver Model against the nearest vehicle or stop line ahead along that path.
+Junctions are exclusive zones (the paper's node queue, docs/references.md (D.4)): a vehicle asks to
+enter `junction_request_m` before its lane ends, is admitted first-come-first-served once the junction
+is empty and its exit lane has room for it, and stops at the stop line until then. Gaps, stop lines and
+room are measured with each vehicle's own length (a scene may mix classes: cars, vans, trucks;
+`SceneSpec.traffic_mix`). Arrivals at each junction are counted (the paper's flow points).
+Deterministic: one seeded generator, vehicles updated in id order.
 Units: metres, seconds, radians.
 """
 
@@ -20,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from shared.geometry.boxes import bev_iou_matrix
+from shared.scene.model import VehicleSpec
 from shared.scene.road_network import Path, RoadNetwork
 from shared.scene.scale import SiteScale, at_scale
 from shared.scene.scene import Scene
@@ -44,7 +47,27 @@ PALETTE_RGBA: tuple[tuple[float, float, float, float], ...] = (
 SPAWN_ATTEMPTS = 200
 #: Separates the per-vehicle trip generators from the traffic's generator (`trip_draws: per_vehicle`).
 TRIP_STREAM = 0x5452
-SPAWN_SPACING_FACTOR = 2.0  # x vehicle length between spawned vehicles
+#: Seeds the shuffle of the fleet's classes apart from the traffic's generator, so a scene without a mix
+#: draws exactly what it drew before classes existed, and a mix's placement draws do not shift with it.
+CLASS_STREAM = 0x434C
+SPAWN_SPACING_FACTOR = 2.0  # x the two vehicles' mean length between the centres of spawned vehicles
+
+
+def fleet_classes(mix: list[tuple[VehicleSpec, float]], count: int, seed: int) -> list[VehicleSpec]:
+    """The class of each of `count` vehicles: as near the mix's fractions as whole vehicles allow (each
+    class its whole share, the vehicles left over to the largest remainders, ties in the mix's order),
+    in an order shuffled by `seed`. One class: no draw at all."""
+    if len(mix) == 1:
+        return [mix[0][0]] * count
+    shares = [fraction * count for _, fraction in mix]
+    counts = [math.floor(share) for share in shares]
+    # Remainders rounded so that equal shares tie exactly (12 x 0.7 is 8.3999..., 12 x 0.2 2.4000...).
+    by_remainder = sorted(range(len(mix)), key=lambda k: (-round(shares[k] - counts[k], 9), k))
+    for k in by_remainder[: count - sum(counts)]:
+        counts[k] += 1
+    classes = [body for (body, _), n in zip(mix, counts, strict=True) for _ in range(n)]
+    order = np.random.default_rng([seed, CLASS_STREAM]).permutation(count)
+    return [classes[i] for i in order]
 
 
 @dataclass
@@ -83,6 +106,7 @@ class Vehicle:
     id: str
     index: int
     rgba: tuple[float, float, float, float]
+    body: VehicleSpec  # its class: size, wheelbase, steering, acceleration
     path: Path
     s: float
     x: float
@@ -148,12 +172,9 @@ class TrafficSim:
         self.dt = 1.0 / tick_hz
         self.tick = 0
         self.time_s = 0.0
-        body = scene.spec.vehicle
-        self.length_m = body.length_m
-        self.width_m = body.width_m
-        self.height_m = body.height_m
-        self.wheelbase_m = body.wheelbase_m
-        self.max_steer_rad = body.max_steer_rad
+        # The IDM's max acceleration is the reference class's (scaled with it); each class drives with
+        # its own, the same factor above or below it.
+        self._reference_accel_mps2 = scene.spec.vehicle.max_accel_mps2
         self.junction_ids = [j.id for j in scene.spec.junctions]
         self.queues: dict[str, list[str]] = {j: [] for j in self.junction_ids}
         self.occupant: dict[str, str | None] = dict.fromkeys(self.junction_ids)
@@ -170,8 +191,10 @@ class TrafficSim:
         self._by_id: dict[str, Vehicle] = {}
         self.circulating = {lane.id for lane in scene.spec.lanes if lane.circulating}
         # Ring metering: entering traffic is held back while the ring is this full, so circulating
-        # vehicles always find room ahead (a full ring would gridlock).
-        slot_m = self.length_m + settings.idm.min_gap_m
+        # vehicles always find room ahead (a full ring would gridlock): counted in slots of the fleet's
+        # longest class, so that a ring of only those still moves.
+        longest_m = max(body.length_m for body, _ in scene.spec.fleet_mix)
+        slot_m = longest_m + settings.idm.min_gap_m
         self.ring_capacity = (
             sum(max(1, int(network.lanes[lane].length_m // slot_m)) for lane in self.circulating) - 1
         )
@@ -182,19 +205,24 @@ class TrafficSim:
     def _spawn(self, count: int) -> None:
         lanes = sorted(self.net.lanes)
         lengths = np.array([self.net.lanes[lane].length_m for lane in lanes])
-        margin = self.cfg.junction_request_m + self.length_m
-        usable = np.maximum(lengths - margin - self.length_m, 0.0)
-        if usable.sum() <= 0:
-            raise ValueError("no lane is long enough to spawn vehicles on")
-        spacing = SPAWN_SPACING_FACTOR * self.length_m
-        for index, vid in enumerate(fleet_ids(count)):
+        usable: dict[str, np.ndarray] = {}  # per class: the length of each lane it may be placed on
+        for body, _ in self.scene.spec.fleet_mix:
+            margin = self.cfg.junction_request_m + body.length_m
+            usable[body.name] = np.maximum(lengths - margin - body.length_m, 0.0)
+            if usable[body.name].sum() <= 0:
+                raise ValueError(f"no lane is long enough to spawn a {body.name} on")
+        bodies = fleet_classes(self.scene.spec.fleet_mix, count, self._seed)
+        for index, (vid, body) in enumerate(zip(fleet_ids(count), bodies, strict=True)):
+            length = body.length_m
+            margin = self.cfg.junction_request_m + length
+            p_lane = usable[body.name] / usable[body.name].sum()
             for _ in range(SPAWN_ATTEMPTS):
-                lane_id = lanes[int(self.rng.choice(len(lanes), p=usable / usable.sum()))]
+                lane_id = lanes[int(self.rng.choice(len(lanes), p=p_lane))]
                 path = self.net.lanes[lane_id]
-                s = float(self.rng.uniform(self.length_m, path.length_m - margin))
+                s = float(self.rng.uniform(length, path.length_m - margin))
                 clash = any(
-                    v.path is path and abs(v.s - s) < spacing for v in self.vehicles
-                ) or self._too_close_to_any(path.position(s))
+                    v.path is path and abs(v.s - s) < self._spawn_spacing_m(v, length) for v in self.vehicles
+                ) or self._too_close_to_any(path.position(s), length)
                 if not clash:
                     break
             else:
@@ -205,6 +233,7 @@ class TrafficSim:
                 id=vid,
                 index=index,
                 rgba=PALETTE_RGBA[index % len(PALETTE_RGBA)],
+                body=body,
                 path=path,
                 s=s,
                 x=float(pos[0]),
@@ -221,10 +250,14 @@ class TrafficSim:
         for vehicle in self.vehicles:  # after placement, so placement draws do not depend on this
             vehicle.next_destination = self._new_destination(vehicle, exclude=vehicle.destination)
 
-    def _too_close_to_any(self, pos: np.ndarray) -> bool:
-        spacing = SPAWN_SPACING_FACTOR * self.length_m
+    @staticmethod
+    def _spawn_spacing_m(v: Vehicle, length_m: float) -> float:
+        """Least centre distance between `v` and a vehicle `length_m` long placed at spawn."""
+        return SPAWN_SPACING_FACTOR * ((v.body.length_m + length_m) / 2)
+
+    def _too_close_to_any(self, pos: np.ndarray, length_m: float) -> bool:
         return any(
-            math.hypot(v.x - pos[0], v.y - pos[1]) < spacing
+            math.hypot(v.x - pos[0], v.y - pos[1]) < self._spawn_spacing_m(v, length_m)
             and abs(v.z - pos[2]) < self.cfg.level_separation_m
             for v in self.vehicles
         )
@@ -344,13 +377,12 @@ class TrafficSim:
         """Pairs of vehicles whose bodies overlap (same level): must stay empty."""
         if len(self.vehicles) < 2:
             return []
-        boxes = np.array(
-            [[v.x, v.y, v.z, self.length_m, self.width_m, self.height_m, v.yaw] for v in self.vehicles]
-        )
-        # Broad phase: two footprints can only overlap with their centres closer than a full diagonal,
-        # so the exact rotated-box test runs on those few pairs, not on every pair every check.
+        boxes = np.array([[v.x, v.y, v.z, *v.body.size_m, v.yaw] for v in self.vehicles])
+        # Broad phase: two footprints can only overlap with their centres closer than the mean of their
+        # full diagonals, so the exact rotated-box test runs on those few pairs, not on every pair.
+        diagonal = np.hypot(boxes[:, 3], boxes[:, 4])
         d = boxes[:, None, :3] - boxes[None, :, :3]
-        near = (np.hypot(d[..., 0], d[..., 1]) < math.hypot(self.length_m, self.width_m)) & (
+        near = (np.hypot(d[..., 0], d[..., 1]) < (diagonal[:, None] + diagonal[None, :]) / 2) & (
             np.abs(d[..., 2]) < self.cfg.level_separation_m
         )
         pairs = []
@@ -390,10 +422,14 @@ class TrafficSim:
             v.requested_at_s = self.time_s
             self.queues[junction].append(v.id)
 
-    def _exit_has_room(self, lane_id: str, occ: Occupancy) -> bool:
-        """The rearmost vehicle on the lane (if any) has left room for one more at its start."""
+    def _exit_has_room(self, v: Vehicle, lane_id: str, occ: Occupancy) -> bool:
+        """The rearmost vehicle on the lane (if any) has left room for `v` at its start: its rear half
+        and `v`'s whole length, and the least gap."""
         on_lane = occ.get(lane_id)
-        return not on_lane or on_lane[0][0] >= 1.5 * self.length_m + self.cfg.idm.min_gap_m
+        if not on_lane:
+            return True
+        s_rear, rear = on_lane[0]
+        return s_rear >= rear.body.length_m / 2 + v.body.length_m + self.cfg.idm.min_gap_m
 
     def _ring_count(self) -> int:
         return sum(
@@ -404,7 +440,7 @@ class TrafficSim:
         )
 
     def _may_enter(self, v: Vehicle, lane_id: str, occ: Occupancy) -> bool:
-        if not self._exit_has_room(lane_id, occ):
+        if not self._exit_has_room(v, lane_id, occ):
             return False
         entering_ring = lane_id in self.circulating and v.lane_id not in self.circulating
         return not (entering_ring and self._ring_count() >= self.ring_capacity)
@@ -476,27 +512,27 @@ class TrafficSim:
             for s_other, other in occ.get(path.id, []):
                 if other is v or (k == 0 and s_other <= v.s):
                     continue
-                return offset + s_other - self.length_m, other.v
+                return offset + s_other - (v.body.length_m + other.body.length_m) / 2, other.v
             offset += path.length_m
             if offset > self.cfg.horizon_m:
                 return math.inf, 0.0
         if paths[-1].lane_id is not None and paths[-1] is v.path and not v.admitted:
-            return offset - self.length_m / 2, 0.0  # stop line at the lane end
+            return offset - v.body.length_m / 2, 0.0  # stop line at the lane end
         return math.inf, 0.0
 
     def _idm_accel(self, v: Vehicle, v0: float, gap: float, lead_v: float) -> float:
         p = self.cfg.idm
+        a_max = p.max_accel_mps2 * (v.body.max_accel_mps2 / self._reference_accel_mps2)
         free = 1.0 - (v.v / v0) ** p.exponent
         if math.isinf(gap):
-            return p.max_accel_mps2 * free
+            return a_max * free
         if gap <= 1e-3:  # a numerical guard (the IDM term divides by the gap), not a site size
             return -p.max_decel_mps2
         s_star = p.min_gap_m + max(
             0.0,
-            v.v * p.time_headway_s
-            + v.v * (v.v - lead_v) / (2 * math.sqrt(p.max_accel_mps2 * p.comfort_decel_mps2)),
+            v.v * p.time_headway_s + v.v * (v.v - lead_v) / (2 * math.sqrt(a_max * p.comfort_decel_mps2)),
         )
-        return max(p.max_accel_mps2 * (free - (s_star / gap) ** 2), -p.max_decel_mps2)
+        return max(a_max * (free - (s_star / gap) ** 2), -p.max_decel_mps2)
 
     def _speed_limit(self, path: Path) -> float:
         lane_ids = [path.lane_id] if path.lane_id is not None else [path.from_lane, path.to_lane]
@@ -529,9 +565,10 @@ class TrafficSim:
         alpha = math.atan2(target[1] - v.y, target[0] - v.x) - v.yaw
         alpha = math.remainder(alpha, 2 * math.pi)
         ld = max(math.hypot(target[0] - v.x, target[1] - v.y), 1e-3)  # numerical guard (divides)
-        steer = math.atan2(2.0 * self.wheelbase_m * math.sin(alpha), ld)
-        steer = min(max(steer, -self.max_steer_rad), self.max_steer_rad)
-        v.yaw_rate = v.v / self.wheelbase_m * math.tan(steer)
+        wheelbase_m, max_steer_rad = v.body.wheelbase_m, v.body.max_steer_rad
+        steer = math.atan2(2.0 * wheelbase_m * math.sin(alpha), ld)
+        steer = min(max(steer, -max_steer_rad), max_steer_rad)
+        v.yaw_rate = v.v / wheelbase_m * math.tan(steer)
         v.x += v.v * math.cos(v.yaw) * dt
         v.y += v.v * math.sin(v.yaw) * dt
         v.yaw = math.remainder(v.yaw + v.yaw_rate * dt, 2 * math.pi)
@@ -552,7 +589,7 @@ class TrafficSim:
             s_guess = overflow
             s_new = v.path.project(np.array([v.x, v.y]), overflow, window_m)
         v.s = max(s_new, 0.0)
-        if v.releasing is not None and v.path.lane_id is not None and v.s >= self.length_m / 2:
+        if v.releasing is not None and v.path.lane_id is not None and v.s >= v.body.length_m / 2:
             self.occupant[v.releasing] = None
             v.releasing = None
 

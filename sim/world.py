@@ -1,5 +1,5 @@
 """PyBullet sand table built from the scene file: table with a painted road texture, viaduct deck and
-pillars, buildings and poles, and Deepracer-size vehicles.
+pillars, buildings, poles and signal heads, and vehicles (each class the same body model at its own size).
 
 Two kinds of PyBullet clients are built from the same scene (each its own DIRECT connection):
 - `StaticWorld`: everything that never moves. Sensors render / ray-cast it once per sensor and keep
@@ -43,6 +43,11 @@ CHASSIS_Z_FRACTION = (0.15, 0.55)  # bottom, top of the chassis as fractions of 
 SHELL_FRACTION = (0.7, 0.82, 0.45)  # length, width, height of the top shell
 WHEEL_RADIUS_FRACTION = 0.15  # of the body height: 0.0315 m for the Deepracer
 
+# Signal heads: unlit lenses (no phases are simulated), as dark tints of red, amber and green, top down.
+SIGNAL_LAMP_RGBA = ((0.45, 0.05, 0.05, 1.0), (0.5, 0.33, 0.02, 1.0), (0.05, 0.35, 0.12, 1.0))
+SIGNAL_LAMP_FILL = 0.85  # lens diameter / the housing's width (a 300 mm lens in a 350 mm wide head)
+SIGNAL_LAMP_DEPTH_FRACTION = 0.07  # lens protrusion / the housing's depth (~2 cm on a 0.3 m deep head)
+
 
 @dataclass(frozen=True)
 class VehiclePose:
@@ -53,6 +58,7 @@ class VehiclePose:
     yaw_rad: float
     pitch_rad: float = 0.0
     rgba: tuple[float, float, float, float] = (0.8, 0.1, 0.1, 1.0)
+    size_m: tuple[float, float, float] | None = None  # length, width, height; None: the scene's vehicle
 
 
 def quat_from_rpy(roll: float, pitch: float, yaw: float) -> list[float]:
@@ -177,6 +183,37 @@ def _cylinder(
     return pb.createMultiBody(0, col, vis, [base[0], base[1], base[2] + height / 2], physicsClientId=cid)
 
 
+def _signal_lamps(
+    cid: int,
+    base: tuple[float, float, float],
+    size_m: tuple[float, float, float],
+    yaw: float,
+    collision: bool,
+) -> list[int]:
+    """The three lamp faces of a signal head (red over amber over green) on its +x face: each a thin
+    upright disc a third of the housing high, filling `SIGNAL_LAMP_FILL` of its width or height."""
+    depth, width, height = size_m
+    radius = SIGNAL_LAMP_FILL * min(width, height / 3) / 2
+    lens_m = SIGNAL_LAMP_DEPTH_FRACTION * depth
+    # A cylinder's axis is its z: tilt it onto the facing direction (pitch 90 deg, then the head's yaw).
+    quat = quat_from_rpy(0.0, math.pi / 2, yaw)
+    forward = np.array([math.cos(yaw), math.sin(yaw), 0.0])
+    bodies = []
+    for k, rgba in enumerate(SIGNAL_LAMP_RGBA):
+        centre = np.array(base) + forward * (depth / 2 + lens_m / 2)
+        centre[2] += height * (5 - 2 * k) / 6  # the centres of the upper, middle and lower thirds
+        vis = pb.createVisualShape(
+            pb.GEOM_CYLINDER, radius=radius, length=lens_m, rgbaColor=list(rgba), physicsClientId=cid
+        )
+        col = (
+            pb.createCollisionShape(pb.GEOM_CYLINDER, radius=radius, height=lens_m, physicsClientId=cid)
+            if collision
+            else -1
+        )
+        bodies.append(pb.createMultiBody(0, col, vis, centre.tolist(), quat, physicsClientId=cid))
+    return bodies
+
+
 class StaticWorld(_Client):
     """Table, road texture, viaduct, static objects. `body_kind[body_id]` names what each body is;
     `settings` are the world's at the scene's scale."""
@@ -292,7 +329,9 @@ class StaticWorld(_Client):
         for obj in self.scene.spec.static_objects:
             x, y, z = obj.position_m
             sx, sy, sz = obj.size_m
-            if obj.kind == "box":
+            if obj.kind == "cylinder":
+                body = _cylinder(self.cid, [x, y, z], sx / 2, sz, obj.rgba, obj.collision)
+            else:
                 body = _box(
                     self.cid,
                     [x, y, z + sz / 2],
@@ -301,9 +340,10 @@ class StaticWorld(_Client):
                     obj.rgba,
                     obj.collision,
                 )
-            else:
-                body = _cylinder(self.cid, [x, y, z], sx / 2, sz, obj.rgba, obj.collision)
             self.body_kind[body] = obj.id
+            if obj.kind == "signal_head":
+                for lamp in _signal_lamps(self.cid, obj.position_m, obj.size_m, obj.yaw_rad, obj.collision):
+                    self.body_kind[lamp] = obj.id
 
 
 class VehicleWorld(_Client):
@@ -317,14 +357,21 @@ class VehicleWorld(_Client):
         else:
             self.cid = client
         self.settings = world_settings(scene, settings)
-        body = scene.spec.vehicle
-        self.size_m = (body.length_m, body.width_m, body.height_m)
+        # The reference class's size: the body of a pose that gives none of its own.
+        self.size_m = scene.spec.vehicle.size_m
         self.bodies: dict[str, int] = {}
         self.body_vehicle: dict[int, str] = {}
-        self._rgba: dict[str, tuple[float, float, float, float]] = {}
+        self._looks: dict[str, tuple[tuple[float, float, float, float], tuple[float, float, float]]] = {}
 
-    def _create(self, vehicle_id: str, rgba: tuple[float, float, float, float]) -> int:
-        length, width, height = self.size_m
+    def size_of(self, pose: VehiclePose) -> tuple[float, float, float]:
+        """The body size of the vehicle at `pose`: its own, else the scene's vehicle's."""
+        return self.size_m if pose.size_m is None else pose.size_m
+
+    def _create(
+        self, vehicle_id: str, rgba: tuple[float, float, float, float], size_m: tuple[float, float, float]
+    ) -> int:
+        # Every class is the same body model scaled to its own box (no class-specific geometry).
+        length, width, height = size_m
         z0 = -height / 2  # box centre frame
         c_lo, c_hi = CHASSIS_Z_FRACTION
         wheel_r = WHEEL_RADIUS_FRACTION * height
@@ -364,19 +411,20 @@ class VehicleWorld(_Client):
         body = pb.createMultiBody(0, col, vis, [0, 0, self.settings.parked_z_m], physicsClientId=self.cid)
         self.bodies[vehicle_id] = body
         self.body_vehicle[body] = vehicle_id
-        self._rgba[vehicle_id] = rgba
+        self._looks[vehicle_id] = (rgba, size_m)
         return body
 
     def update(self, poses: list[VehiclePose]) -> None:
         seen = set()
         for pose in poses:
             body = self.bodies.get(pose.vehicle_id)
+            looks = (pose.rgba, self.size_of(pose))
             if body is None:
-                body = self._create(pose.vehicle_id, pose.rgba)
-            elif self._rgba[pose.vehicle_id] != pose.rgba:  # repaint: rebuild the body
+                body = self._create(pose.vehicle_id, *looks)
+            elif self._looks[pose.vehicle_id] != looks:  # repainted or resized: rebuild the body
                 pb.removeBody(body, physicsClientId=self.cid)
                 del self.body_vehicle[body]
-                body = self._create(pose.vehicle_id, pose.rgba)
+                body = self._create(pose.vehicle_id, *looks)
             pb.resetBasePositionAndOrientation(
                 body,
                 list(pose.center_m),

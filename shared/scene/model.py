@@ -32,6 +32,10 @@ SensorKindName = Literal["camera", "lidar", "radar"]
 LEVEL_SEPARATION_M = 0.1
 
 
+#: How far a traffic mix's fractions may sum from 1 (fractions written with a few decimals).
+MIX_SUM_TOLERANCE = 1e-6
+
+
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -250,10 +254,17 @@ class RoadSpec(_Strict):
         return math.inf if self.deck is None else self.deck.min_z_m
 
 
-class VehicleSpec(_Strict):
-    """Body and drive of every vehicle. No defaults: the scene file is the one home of the vehicle's size
-    and acceleration, and they set the scale of every scaled setting (shared/scene/scale.py)."""
+#: Ground-truth object classes a vehicle class may carry (rmmdet.v1.ObjectClass OBJECT_CLASS_<upper>).
+VehicleLabel = Literal["car", "truck", "bus"]
 
+
+class VehicleSpec(_Strict):
+    """Body and drive of one vehicle class. No defaults for sizes: the scene file is the one home of each
+    class's size and acceleration; the scene's `vehicle` (the reference class) sets the scale of every
+    scaled setting (shared/scene/scale.py)."""
+
+    name: Id = Field("car", description="class name, unique in the scene (the ground truth carries it)")
+    label: VehicleLabel = Field("car", description="its ground-truth object class")
     length_m: float = Field(gt=0)
     width_m: float = Field(gt=0)
     height_m: float = Field(gt=0)
@@ -268,12 +279,17 @@ class VehicleSpec(_Strict):
 
 
 class StaticObjectSpec(_Strict):
-    """Buildings, poles and other occluders: a box or an upright cylinder standing on the table."""
+    """Buildings, poles and other occluders: a box or an upright cylinder standing on the table; a
+    signal head is a box housing (its colour `rgba`) with three round lamp faces (red over amber over
+    green, unlit colours) on its +x face, so `yaw_rad` is the direction the lamps face."""
 
     id: Id
-    kind: Literal["box", "cylinder"]
+    kind: Literal["box", "cylinder", "signal_head"]
     position_m: Vec3 = Field(description="centre of the base")
-    size_m: Vec3 = Field(description="box: x, y, z extents; cylinder: diameter, diameter, height")
+    size_m: Vec3 = Field(
+        description="box, signal head: x, y, z extents (signal head: depth, width, height); cylinder: "
+        "diameter, diameter, height"
+    )
     yaw_rad: float = 0.0
     rgba: tuple[float, float, float, float] = (0.7, 0.7, 0.7, 1.0)
     collision: bool = Field(True, description="seen by lidar / radar rays")
@@ -296,7 +312,15 @@ class SceneSpec(_Strict):
         description="the site's top speed where no lane gives one (a site without a lane map): the "
         "characteristic speed of its scale (shared/scene/scale.py)",
     )
-    vehicle: VehicleSpec
+    vehicle: VehicleSpec = Field(description="the reference vehicle class: it sets the site's scale")
+    vehicle_classes: list[VehicleSpec] = Field(
+        default_factory=list, description="further vehicle classes (vans, trucks), each its own size"
+    )
+    traffic_mix: dict[Id, float] | None = Field(
+        None,
+        description="fraction of the fleet per class name (the reference class's too), summing to 1; "
+        "None: every vehicle is the reference class",
+    )
     static_objects: list[StaticObjectSpec] = Field(default_factory=list)
     junctions: list[JunctionSpec] = Field(default_factory=list)
     lanes: list[LaneSpec] = Field(default_factory=list)
@@ -313,8 +337,47 @@ class SceneSpec(_Strict):
             return self.design_speed_mps
         raise ValueError(f"scene {self.scene_id}: no lanes and no design_speed_mps: its top speed is unknown")
 
+    @property
+    def fleet_mix(self) -> list[tuple[VehicleSpec, float]]:
+        """(class, fraction of the fleet) for every class in the mix, the reference class first, in the
+        scene's order; the reference class alone without a mix."""
+        if self.traffic_mix is None:
+            return [(self.vehicle, 1.0)]
+        classes = [self.vehicle, *self.vehicle_classes]
+        return [(c, self.traffic_mix[c.name]) for c in classes if self.traffic_mix.get(c.name, 0.0) > 0]
+
+    def vehicle_class(self, name: str) -> VehicleSpec:
+        """The vehicle class called `name` (the reference class included)."""
+        for c in (self.vehicle, *self.vehicle_classes):
+            if c.name == name:
+                return c
+        raise KeyError(f"scene {self.scene_id}: no vehicle class {name!r}")
+
+    def _check_fleet(self) -> None:
+        names = [c.name for c in (self.vehicle, *self.vehicle_classes)]
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        if dupes:
+            raise ValueError(f"duplicate vehicle class names (the reference `vehicle` included): {dupes}")
+        if self.traffic_mix is None:
+            if self.vehicle_classes:
+                raise ValueError(
+                    f"vehicle_classes {names[1:]} given without a traffic_mix: say what fraction of the "
+                    "fleet each class is"
+                )
+            return
+        unknown = sorted(set(self.traffic_mix) - set(names))
+        if unknown:
+            raise ValueError(f"traffic_mix names unknown vehicle classes {unknown} (known: {names})")
+        bad = {n: f for n, f in self.traffic_mix.items() if not (math.isfinite(f) and 0.0 <= f <= 1.0)}
+        if bad:
+            raise ValueError(f"traffic_mix fractions must lie in [0, 1]: {bad}")
+        total = math.fsum(self.traffic_mix.values())
+        if abs(total - 1.0) > MIX_SUM_TOLERANCE:
+            raise ValueError(f"traffic_mix fractions must sum to 1, they sum to {total:.6g}")
+
     @model_validator(mode="after")
     def _references(self) -> SceneSpec:
+        self._check_fleet()
         for what, items in (
             ("junction", self.junctions),
             ("lane", self.lanes),

@@ -13,8 +13,10 @@ principal point at (W/2, H/2); the optical frame is +x right, +y down, +z forwar
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import pybullet as pb
 from scipy.spatial.transform import Rotation
@@ -82,12 +84,14 @@ def render(
     far_m: float,
     segmentation: bool = True,
     lighting: Lighting = Lighting(),
+    size_px: tuple[int, int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """RGB (h, w, 3) uint8, linear depth (h, w) and body ids (h, w; -1 = nothing) of one ROI.
 
-    `segmentation=False` skips the body-id buffer (returns None for it), which saves render time."""
+    `segmentation=False` skips the body-id buffer (returns None for it), which saves render time.
+    `size_px` (w, h): render the ROI's view at this resolution instead of its own (same frustum)."""
     u0, v0, u1, v1 = roi_px
-    w, h = u1 - u0, v1 - v0
+    w, h = size_px or (u1 - u0, v1 - v0)
     _, _, rgba, depth, seg = pb.getCameraImage(
         w,
         h,
@@ -117,13 +121,15 @@ def vehicle_box_corners(pose: VehiclePose, size_m: tuple[float, float, float]) -
 
 
 def vehicles_box_corners(poses: list[VehiclePose], size_m: tuple[float, float, float]) -> np.ndarray:
-    """(V, 8, 3) world corners of every vehicle box (one batch: shared by all cameras of a tick)."""
+    """(V, 8, 3) world corners of every vehicle box (one batch: shared by all cameras of a tick); a pose
+    without a size of its own has `size_m`."""
     if not poses:
         return np.zeros((0, 8, 3))
-    local = box3d_corners(np.array([[0, 0, 0, *size_m, 0.0]]))[0]
     rot = Rotation.from_euler("ZYX", [[p.yaw_rad, p.pitch_rad, 0.0] for p in poses]).as_matrix()
     centres = np.array([p.center_m for p in poses], float)
-    return np.einsum("vij,kj->vki", rot, local) + centres[:, None, :]
+    sizes = np.array([size_m if p.size_m is None else p.size_m for p in poses], float)
+    local = box3d_corners(np.column_stack([np.zeros((len(poses), 3)), sizes, np.zeros(len(poses))]))
+    return np.einsum("vij,vkj->vki", rot, local) + centres[:, None, :]
 
 
 def merge_rects(rects: list[tuple[int, int, int, int]]) -> list[tuple[int, int, int, int]]:
@@ -183,6 +189,8 @@ class CameraRenderer:
         self.background.setflags(write=False)
         self._last: tuple[object, CameraFrame] | None = None  # (what was in view, its frame)
         self.reused = 0  # frames that repeated the previous view and were not rendered again
+        self.roi_full_res_max_px = static.settings.camera_roi_full_res_max_px
+        self.reduced = 0  # vehicle ROIs rendered at a reduced resolution (camera_roi_full_res_max_px)
 
     def vehicle_rects(
         self, poses: list[VehiclePose], corners_w: np.ndarray | None = None
@@ -208,6 +216,36 @@ class CameraRenderer:
             if u1 > u0 and v1 > v0:
                 rects[pose.vehicle_id] = (u0, v0, u1, v1)
         return rects
+
+    def _render_roi(
+        self, roi: tuple[int, int, int, int], labels: bool
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """The vehicle world's colour, depth and ids in `roi`; a large ROI rendered at a lower
+        resolution and scaled up (colour bilinear, depth and ids nearest: no blended depths or ids)."""
+        u0, v0, u1, v1 = roi
+        w, h = u1 - u0, v1 - v0
+        limit = self.roi_full_res_max_px
+        k = math.ceil(math.sqrt(w * h / limit)) if limit is not None else 1
+        size = (math.ceil(w / k), math.ceil(h / k)) if k > 1 else None
+        rgb, depth, ids = render(
+            self.vehicles.cid,
+            self.T,
+            self.K,
+            roi,
+            self.model.near_m,
+            self.model.far_m,
+            labels,
+            self.lighting,
+            size,
+        )
+        if size is None:
+            return rgb, depth, ids
+        self.reduced += 1
+        rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_LINEAR)
+        depth = cv2.resize(depth, (w, h), interpolation=cv2.INTER_NEAREST)
+        if ids is not None:
+            ids = cv2.resize(ids, (w, h), interpolation=cv2.INTER_NEAREST)
+        return rgb, depth, ids
 
     def render(
         self, poses: list[VehiclePose], corners_w: np.ndarray | None = None, labels: bool = True
@@ -236,16 +274,7 @@ class CameraRenderer:
         visible_boxes: dict[str, tuple[int, int, int, int]] = {}
         for roi in rois:
             u0, v0, u1, v1 = roi
-            vrgb, vdepth, ids = render(
-                self.vehicles.cid,
-                self.T,
-                self.K,
-                roi,
-                self.model.near_m,
-                self.model.far_m,
-                labels,
-                self.lighting,
-            )
+            vrgb, vdepth, ids = self._render_roi(roi, labels)
             # The vehicle world holds nothing but vehicles: a pixel nearer than the far plane is one.
             front = (vdepth < self.model.far_m * FAR_FRACTION) & (
                 vdepth < self.background_depth[v0:v1, u0:u1]

@@ -124,13 +124,15 @@ def rays_hitting_boxes(
 ) -> np.ndarray:
     """(R,) mask of rays (origin + t * dirs, unit dirs, 0 <= t <= length_m) that touch any oriented box.
 
-    centres (V, 3), rotations (V, 3, 3) box-to-world, half_m (3,) half extents. A bounding-sphere test
-    over all (ray, box) pairs picks the few pairs that get the exact slab test."""
+    centres (V, 3), rotations (V, 3, 3) box-to-world, half_m (3,) or (V, 3) half extents (one size for
+    all boxes, or each its own). A bounding-sphere test over all (ray, box) pairs picks the few pairs
+    that get the exact slab test."""
     mask = np.zeros(len(dirs), bool)
     if len(centres) == 0:
         return mask
     to_centre = centres - origin  # (V, 3)
-    radius = float(np.linalg.norm(half_m))
+    half_m = np.broadcast_to(np.asarray(half_m, float), centres.shape)
+    radius = np.linalg.norm(half_m, axis=1)  # (V,)
     along = dirs @ to_centre.T  # (R, V): distance along the ray to the centre's foot
     off_axis_sq = np.sum(to_centre**2, axis=1) - along**2
     near = (off_axis_sq <= radius**2) & (along >= -radius) & (along <= length_m[:, None] + radius)
@@ -141,8 +143,8 @@ def rays_hitting_boxes(
     o_local = np.einsum("pij,pj->pi", R_T, -to_centre[box])
     d_local = np.einsum("pij,pj->pi", R_T, dirs[ray])
     d_local = np.where(np.abs(d_local) < MIN_DIRECTION, MIN_DIRECTION, d_local)
-    t1 = (-half_m - o_local) / d_local
-    t2 = (half_m - o_local) / d_local
+    t1 = (-half_m[box] - o_local) / d_local
+    t2 = (half_m[box] - o_local) / d_local
     t_enter = np.minimum(t1, t2).max(axis=1)
     t_exit = np.maximum(t1, t2).min(axis=1)
     hit = (t_exit >= np.maximum(t_enter, 0.0)) & (t_enter <= length_m[ray])
@@ -188,7 +190,7 @@ class LidarSimulator:
         # from the origin) sees boxes grown by that much.
         lens_m = float(np.max(np.linalg.norm(self.origins_sensor, axis=1)))
         margin_m = vehicles.settings.vehicle_ray_margin_m
-        self._half_m = np.asarray(vehicles.size_m) / 2 + margin_m + lens_m
+        self._grow_m = margin_m + lens_m
 
     @property
     def num_rays(self) -> int:
@@ -200,8 +202,9 @@ class LidarSimulator:
             return np.zeros(0, np.int64)
         centres = np.array([p.center_m for p in poses], float)
         rotations = Rotation.from_euler("ZYX", [[p.yaw_rad, p.pitch_rad, 0.0] for p in poses]).as_matrix()
+        half_m = np.array([self.vehicles.size_of(p) for p in poses], float) / 2 + self._grow_m
         length = np.minimum(self.static_range_m, self.model.max_range_m)
-        mask = rays_hitting_boxes(self.origin, self.dirs_world, length, centres, rotations, self._half_m)
+        mask = rays_hitting_boxes(self.origin, self.dirs_world, length, centres, rotations, half_m)
         return np.flatnonzero(mask)
 
     def cast(self, poses: list[VehiclePose]) -> RayHits:

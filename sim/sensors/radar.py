@@ -55,13 +55,15 @@ def _zeros3() -> np.ndarray:
 
 @dataclass(frozen=True)
 class VehicleState:
-    """Ground-truth state of one vehicle: box centre (m), yaw / pitch (URDF sign), world velocity (m/s)."""
+    """Ground-truth state of one vehicle: box centre (m), yaw / pitch (URDF sign), world velocity (m/s),
+    box size (length, width, height, m; None: the scene's vehicle)."""
 
     vehicle_id: str
     center_m: np.ndarray
     yaw_rad: float
     pitch_rad: float = 0.0
     velocity_mps: np.ndarray = field(default_factory=_zeros3)
+    size_m: tuple[float, float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -116,10 +118,10 @@ class RadarSimulator:
 
     # --- geometry ----------------------------------------------------------------------------------
 
-    def _face_samples(self, o_local: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Samples (M, 3, box frame) on the faces that face the radar, and their weights (M,)."""
+    def _face_samples(self, o_local: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Samples (M, 3, box frame) on the faces of the box of half extents `h` that face the radar, and
+        their weights (M,)."""
         n = self.model.occlusion_samples
-        h = self.half_m
         grid = (np.arange(n) + 0.5) / n * 2 - 1  # cell centres in (-1, 1)
         pts, weights = [], []
         for axis in range(3):
@@ -153,16 +155,17 @@ class RadarSimulator:
             centre = np.asarray(state.center_m, dtype=float)
             R = Rotation.from_euler("ZYX", [state.yaw_rad, state.pitch_rad, 0.0]).as_matrix()
             o_local = R.T @ (self.origin_w - centre)
-            if np.all(np.abs(o_local) <= self.half_m):
+            half_m = self.half_m if state.size_m is None else np.asarray(state.size_m, dtype=float) / 2
+            if np.all(np.abs(o_local) <= half_m):
                 continue  # radar inside the box
-            point_w = centre + R @ np.clip(o_local, -self.half_m, self.half_m)
+            point_w = centre + R @ np.clip(o_local, -half_m, half_m)
             p_s = self.T_sensor_from_world[:3, :3] @ point_w + self.T_sensor_from_world[:3, 3]
             rng_m, az, el = (float(v[0]) for v in cartesian_to_polar(p_s[None, :]))
             if not (m.min_range_m <= rng_m <= m.max_range_m):
                 continue
             if abs(az) > m.hfov_rad / 2 or abs(el) > m.vfov_rad / 2:
                 continue
-            samples, weights = self._face_samples(o_local)
+            samples, weights = self._face_samples(o_local, half_m)
             ends.append(samples @ R.T + centre)
             cands.append(
                 _Candidate(state, point_w, rng_m, az, el, slice(n_rays, n_rays + len(samples)), weights)

@@ -74,8 +74,9 @@ class TickWorld:
                 yaw_rad=v.box.yaw_rad,
                 pitch_rad=v.pitch_rad,
                 velocity_mps=np.array([v.velocity_mps.x, v.velocity_mps.y, v.velocity_mps.z]),
+                size_m=pose.size_m,
             )
-            for v in gt.vehicles
+            for v, pose in zip(gt.vehicles, poses, strict=True)
         ]
         return cls(
             seed=gt.seed,
