@@ -155,6 +155,15 @@ class WorldSettings(_Model):
     occlusion_tolerance_m: Length = Field(
         0.005, ge=0, description="radar: a ray hit this close before a face sample counts as reaching it"
     )
+    camera_roi_full_res_max_px: int | None = Field(
+        None,
+        gt=0,
+        description="cameras: a vehicle's image rectangle larger than this many pixels is rendered at 1/k "
+        "of its size per side, k = ceil(sqrt(area / this)), and scaled up; None: always at full size. "
+        "TinyRenderer spends 100-350 ns a pixel on a near car's large triangles (95 ms for a 375k px car "
+        "beside a 1920 x 1200 camera), so one near car held a three-camera group past its frame period. "
+        "Set by the intersection's profile; the sand table renders everything at full size",
+    )
 
 
 class BoardSessionSettings(_Model):

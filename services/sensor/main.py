@@ -47,6 +47,7 @@ from shared.scene.scene import Scene
 from shared.service import exit_process, report_interval_s, run_service
 from shared.shutdown import GracefulShutdown
 from shared.timebase import SimTime
+from sim.config import DEFAULT_SIM_CONFIG, load_sim_settings
 from sim.emulators.group import WireGroup
 from sim.sensors.rig import SensorRig
 
@@ -89,7 +90,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         t0 = time.perf_counter()
         service = names.SENSOR if wire is None else names.EMULATOR
         with (
-            SensorRig(scene, specs) as rig,
+            SensorRig(scene, specs, world=load_sim_settings(args.settings).world) as rig,
             Node(conf, service=service, instance=args.group, scope=agent, stop=shutdown.event) as node,
         ):
             log.info("group %s: %d sensors ready in %.2f s", args.group, len(specs), time.perf_counter() - t0)
@@ -188,6 +189,12 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
 def add_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--group", required=True, help="sensor group: <agent>-<cameras|lidars|radars>")
     parser.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="scene YAML")
+    parser.add_argument(
+        "--settings",
+        type=Path,
+        default=DEFAULT_SIM_CONFIG,
+        help="the sim's settings (its `world` section: how the sensors render, as in lock-step runs)",
+    )
     parser.add_argument("--only", help="comma-separated subset of the group's sensors (tests)")
     parser.add_argument("--wire", type=Path, help="site file: emulate the group's devices on the wire")
 

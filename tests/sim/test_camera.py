@@ -130,3 +130,23 @@ def test_a_vehicle_through_the_camera_plane_out_of_view_is_not_rendered(scene: S
     )
     differs = np.any(frame.rgb.astype(int) - reference.astype(int) != 0, axis=2)
     assert differs.mean() < 0.01
+
+
+def test_a_large_vehicle_rectangle_renders_at_a_reduced_size_with_the_same_silhouette(
+    scene: Scene, worlds
+) -> None:
+    static, vehicles, _ = worlds
+    poses = _poses(scene)
+    vehicles.update(poses)
+    exact = CameraRenderer(scene, "cam_11", static, vehicles)
+    assert exact.roi_full_res_max_px is None  # the sand table's default: every rectangle at full size
+    reference = exact.render(poses)
+    reduced = CameraRenderer(scene, "cam_11", static, vehicles)
+    reduced.roi_full_res_max_px = max(1, min((r[2] - r[0]) * (r[3] - r[1]) for r in reference.rois) // 4)
+    frame = reduced.render(poses)
+    assert reduced.reduced == len(reference.rois) and exact.reduced == 0
+    assert frame.rgb.shape == reference.rgb.shape and frame.visible_px.keys() == reference.visible_px.keys()
+    for vid, px in reference.visible_px.items():
+        assert frame.visible_px[vid] == pytest.approx(px, rel=0.15), vid
+    differs = np.any(frame.rgb.astype(int) - reference.rgb.astype(int) != 0, axis=2)
+    assert 0 < differs.mean() < 0.01  # rendered differently (scaled up), only along edges
