@@ -101,7 +101,7 @@ def birds_eye(
     for obj in scene.spec.static_objects:
         cx, cy = obj.position_m[:2]
         bgr = tuple(int(255 * c) for c in obj.rgba[2::-1])
-        if obj.kind == "box":
+        if obj.kind != "cylinder":  # a box, or a signal head's box housing
             rect = ((cx, cy), (obj.size_m[0], obj.size_m[1]), math.degrees(obj.yaw_rad))
             corners = cv2.boxPoints(rect)
             cv2.fillPoly(img, [px(corners).astype(np.int32)], bgr)

@@ -111,6 +111,13 @@ def scale(
         f"{site.scene_id}: length x{factors.length:.4g}, speed x{factors.speed:.4g}, "
         f"acceleration x{factors.accel:.4g} (against {reference.scene_id})"
     )
+    # The fleet: the scale is the reference class's alone; the other classes drive at their own sizes.
+    fleet = ", ".join(
+        f"{body.name}{' (reference)' if body is site.spec.vehicle else ''} "
+        f"{body.length_m:g} x {body.width_m:g} x {body.height_m:g} m {fraction:.0%}"
+        for body, fraction in site.spec.fleet_mix
+    )
+    console.print(f"vehicles: {fleet}")
     table = Table("setting", "kind", reference.scene_id, site.scene_id)
     for row in rows(site, agent_id, reference):
         table.add_row(*row)

@@ -25,6 +25,8 @@ def test_the_command_shows_the_factors_and_the_settings() -> None:
     assert result.exit_code == 0, result.output
     assert "length x13.64, speed x27.8, acceleration x4.167" in result.output
     assert "tracker.gate_m" in result.output and "6.818" in result.output  # 0.5 m x 13.64
+    assert "vehicles: car (reference) 4.5 x 1.8 x 1.5 m 70%, van" in result.output
+    assert "truck 8.5 x 2.5 x 3.2 m 10%" in result.output
     table = CliRunner().invoke(app, ["scale"])
     assert table.exit_code == 0 and "length x1, speed x1, acceleration x1" in table.output
 
