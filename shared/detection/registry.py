@@ -94,6 +94,8 @@ def lidar_detector(
 
         if cluster is None:
             raise ValueError(f"the {name} detector needs its settings for the site (the scene's vehicle)")
+        if cluster.cluster_grid is None:  # a real lidar's dense foreground is linked cell by cell
+            cluster = cluster.model_copy(update={"cluster_grid": name == "background"})
         detector = ClusterLidarDetector(cluster)
         detector.name = name
         return detector

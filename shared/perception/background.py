@@ -23,8 +23,10 @@ Learning
 - Saved with the site (`save` / `load`, a NumPy .npz), e.g. learned from a recorded empty period.
 
 Units: metres, radians; points in the lidar's own frame (+x forward, z up), as the sensor sends them.
-Cost: one histogram update and one comparison per point; the background is re-derived every
-``refresh_frames`` revolutions.
+Cost: O(points) NumPy per revolution: each point's cell and range bin, one comparison, one histogram
+update; the decay of all weights is a running scale, not a pass over them, and one of ``refresh_frames``
+blocks of rays has its background re-derived per revolution (each ray every ``refresh_frames``), so no
+revolution pays for the whole image.
 """
 
 from __future__ import annotations
@@ -45,6 +47,9 @@ BoolArray = NDArray[np.bool_]
 IntArray = NDArray[np.int64]
 
 MODEL_FORMAT = 1  # version of the saved model's layout
+# The weights' running scale is folded back in above this (float32 keeps 7 digits: the shares of ~1e-4
+# that matter stay exact relative to it); at the default learn rate every ~28 000 revolutions.
+_RESCALE_ABOVE = 1e6
 
 
 class BackgroundConfig(BaseModel):
@@ -127,10 +132,18 @@ class RangeBackground:
         self.config = config
         self._log_lo = math.log(layout.min_range_m)
         self._per_bin = (math.log(layout.max_range_m) - self._log_lo) / config.range_bins
+        # The weights are kept multiplied by `_scale`: decaying every weight is then one division of the
+        # scale, not a pass over cells x range_bins floats (67 MB for a 64 x 2048 lidar at 128 bins, the
+        # cost of a frame); `_RESCALE_ABOVE` folds the scale back in, once every ~45 min at the default
+        # rate. `shares()` gives the true weights.
         self.weights = np.zeros((layout.cells, config.range_bins), np.float32)
+        self._scale = 1.0
         self.frames = 0
         self.background_bin = np.full(layout.cells, config.range_bins, np.int64)  # none: all foreground
         self.through_streak = np.zeros(layout.cells, np.int32)  # revolutions in a row seen beyond it
+        # Each revolution re-derives the background of one of `refresh_frames` blocks of rays in turn, so
+        # the cost is spread evenly instead of one whole-image pass every `refresh_frames` revolutions.
+        self._refresh_blocks = np.array_split(np.arange(layout.cells), config.refresh_frames)
         if model_path is not None:
             self.load(model_path)
 
@@ -139,13 +152,18 @@ class RangeBackground:
         """True once warm-up is over (a loaded model is)."""
         return self.frames >= self.config.warmup_frames
 
+    def shares(self) -> NDArray[np.float32]:
+        """(cells, range_bins) the share of recent revolutions each ray returned in each range bin."""
+        return (self.weights / np.float32(self._scale)).astype(np.float32)
+
     def range_bin(self, range_m: FloatArray) -> IntArray:
         b = np.floor((np.log(np.maximum(range_m, 1e-9)) - self._log_lo) / self._per_bin)
         return np.clip(b, 0, self.config.range_bins - 1).astype(np.int64)
 
     def foreground(self, xyz: FloatArray, learn: bool = True) -> BoolArray:
         """(N,) True where a point of this revolution stands in front of the background (all False
-        during warm-up); then, with `learn`, the revolution is learned."""
+        during warm-up); then, with `learn`, the revolution is learned. O(points) plus one block of
+        rays re-derived (`refresh_frames`)."""
         xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
         cell, rng = self.layout.cell_of(xyz)
         b = self.range_bin(rng)
@@ -161,12 +179,12 @@ class RangeBackground:
         cfg = self.config
         self.frames += 1
         warm = self.frames <= cfg.warmup_frames
-        cleared = np.zeros(len(cell), bool)
         rate = 1.0 / self.frames if warm else cfg.learn_rate
-        if warm:
-            self.weights *= np.float32(1.0 - rate)  # an exact average over the warm-up
-        elif self.frames % cfg.refresh_frames == 0:
-            self.weights *= np.float32((1.0 - rate) ** cfg.refresh_frames)  # the decay, in blocks
+        if warm:  # an exact average: the weights are counts over a scale of the revolutions seen
+            self._scale = float(self.frames)
+        else:  # every weight decays by (1 - rate)
+            self._scale /= 1.0 - rate
+        cleared_rows = np.zeros(0, np.int64)
         if not warm:
             through = b > self.background_bin[cell] + cfg.margin_bins
             self.through_streak[cell] = np.where(through, self.through_streak[cell] + 1, 0)
@@ -176,18 +194,24 @@ class RangeBackground:
                 nearer = np.arange(cfg.range_bins)[None, :] < reach[:, None]
                 self.weights[rows] = np.where(nearer, np.float32(0.0), self.weights[rows])
                 self.through_streak[rows] = 0
-        self.weights[cell, b] += np.float32(rate)
-        if cleared.any():
-            self._refresh_rows(cell[cleared])
-        if warm or self.frames % cfg.refresh_frames == 0:
-            self.refresh()
+                cleared_rows = rows
+        self.weights[cell, b] += np.float32(rate * self._scale)
+        if cleared_rows.size:
+            self._refresh_rows(cleared_rows)  # at once: the ray's background is gone now
+        if self._scale > _RESCALE_ABOVE:
+            self.weights /= np.float32(self._scale)
+            self._scale = 1.0
+        if self.frames == cfg.warmup_frames:
+            self.refresh()  # the whole background, once, when it is first used
+        elif not warm:
+            self._refresh_rows(self._refresh_blocks[self.frames % cfg.refresh_frames])
 
     def refresh(self) -> None:
         """Re-derive each ray's background bin from its weights."""
         self._refresh_rows(np.arange(self.layout.cells))
 
     def _refresh_rows(self, rows: IntArray) -> None:
-        above = self.weights[rows] >= self.config.background_fraction
+        above = self.weights[rows] >= np.float32(self.config.background_fraction * self._scale)
         self.background_bin[rows] = np.where(above.any(axis=1), above.argmax(axis=1), self.config.range_bins)
 
     def save(self, path: Path) -> None:
@@ -195,7 +219,7 @@ class RangeBackground:
         np.savez_compressed(
             path,
             format=MODEL_FORMAT,
-            weights=self.weights,
+            weights=self.shares(),
             frames=self.frames,
             elevations_rad=self.layout.elevations_rad,
             azimuth_bins=self.layout.azimuth_bins,
@@ -218,6 +242,7 @@ class RangeBackground:
             if not same:
                 raise ValueError(f"{path}: a background model of another lidar layout or range binning")
             self.weights = saved["weights"].astype(np.float32)
+            self._scale = 1.0
             self.frames = max(int(saved["frames"]), self.config.warmup_frames)
         self.refresh()
 

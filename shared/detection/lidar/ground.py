@@ -153,7 +153,8 @@ def fit_horizontal_plane(
     return plane, inliers
 
 
-def _cell_keys(xy: FloatArray, cell_m: float) -> NDArray[np.int64]:
+def cell_keys(xy: FloatArray, cell_m: float) -> NDArray[np.int64]:
+    """One int64 key per (N, 2) point: its BEV cell of side ``cell_m`` (metres)."""
     cells = np.floor(xy / cell_m).astype(np.int64)
     return np.asarray(cells[:, 0] * _CELL_KEY_STRIDE + cells[:, 1])
 
@@ -174,10 +175,10 @@ def footprint_mask(xy: FloatArray, support_xy: FloatArray, cell_m: float) -> Boo
     -------
     numpy.ndarray of bool, shape (N,)
     """
-    base = np.unique(_cell_keys(support_xy, cell_m))
+    base = np.unique(cell_keys(support_xy, cell_m))
     offsets = np.array([dx * _CELL_KEY_STRIDE + dy for dx in (-1, 0, 1) for dy in (-1, 0, 1)], np.int64)
     dilated = np.unique((base[:, None] + offsets[None, :]).ravel())
-    return np.asarray(np.isin(_cell_keys(xy, cell_m), dilated))
+    return np.asarray(np.isin(cell_keys(xy, cell_m), dilated))
 
 
 @dataclass(frozen=True)

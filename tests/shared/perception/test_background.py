@@ -136,3 +136,51 @@ def test_a_saved_model_starts_ready_and_refuses_another_layout(tmp_path: Path) -
     other = RangeImage.of(LIDAR.model_copy(update={"horizontal_samples": 720}))
     with pytest.raises(ValueError, match="another lidar layout"):
         RangeBackground(other, BackgroundConfig(), path)
+
+
+def test_the_lookup_matches_each_points_own_cell_and_bin() -> None:
+    # O(points) NumPy against the definition, one point at a time: nearest channel, azimuth bin of
+    # atan2, log-spaced range bin.
+    rng = np.random.default_rng(3)
+    model = RangeBackground(LAYOUT, BackgroundConfig())
+    xyz = rng.uniform(-60.0, 60.0, (2000, 3))
+    cell, rng_m = LAYOUT.cell_of(xyz)
+    bins = model.range_bin(rng_m)
+    lo, hi = math.log(LIDAR.min_range_m), math.log(LIDAR.max_range_m)
+    for k, (x, y, z) in enumerate(xyz):
+        r = math.sqrt(x * x + y * y + z * z)
+        elevation = math.atan2(z, math.hypot(x, y))
+        channel = int(np.argmin(np.abs(LAYOUT.elevations_rad - elevation)))
+        column = int((math.atan2(y, x) + math.pi) / (2 * math.pi) * LAYOUT.azimuth_bins) % LAYOUT.azimuth_bins
+        b = min(max(int((math.log(r) - lo) / (hi - lo) * 128), 0), 127)
+        assert (cell[k], bins[k]) == (channel * LAYOUT.azimuth_bins + column, b)
+        assert rng_m[k] == pytest.approx(r)
+
+
+def test_the_running_scale_keeps_the_exponential_shares() -> None:
+    # Weights kept over a running scale (no pass over all of them per revolution) against the plain
+    # update: every share decays by (1 - rate), the returned bin gains rate; warm-up an exact average.
+    cfg = BackgroundConfig(warmup_frames=5, learn_rate=0.05, clear_after_frames=1000)
+    model = RangeBackground(LAYOUT, cfg)
+    plain = np.zeros_like(model.weights)
+    rng = np.random.default_rng(4)
+    for frame in range(1, 400):
+        r = static_ranges(rng) * rng.uniform(0.5, 1.5)  # the whole scene moves: every share changes
+        model.foreground(points(r))
+        cell, rng_m = LAYOUT.cell_of(points(r))
+        rate = 1.0 / frame if frame <= cfg.warmup_frames else cfg.learn_rate
+        plain *= 1.0 - rate
+        plain[cell, model.range_bin(rng_m)] += rate
+    np.testing.assert_allclose(model.shares(), plain, atol=1e-5)
+
+
+def test_the_background_is_refreshed_a_block_a_revolution_and_whole_after_warm_up() -> None:
+    model, _ = learned(frames=30, warmup_frames=30, refresh_frames=10)
+    assert (model.background_bin[DOWN] < 128).all()  # derived once, whole, as warm-up ends
+    model.weights[:] = 0.0  # nothing is background any more: each revolution shows one more block
+    derived = []
+    for _ in range(10):
+        model.foreground(np.zeros((0, 3)))
+        derived.append(int((model.background_bin == 128).sum()))
+    assert derived == sorted(derived) and len(set(derived)) == 10
+    assert derived[-1] == LAYOUT.cells

@@ -178,3 +178,77 @@ def test_bev_clusters_ellipse_along_line_of_sight() -> None:
     clusters = bev_clusters(xy, origin, np.full(4, 0.06), np.full(4, 0.25))
     assert sorted(c.tolist() for c in clusters) == [[0, 1], [2], [3]]
     assert bev_clusters(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0)) == []
+
+
+def all_pairs_clusters(
+    xy: np.ndarray, origin: np.ndarray, tangential: np.ndarray, radial: np.ndarray
+) -> list[list[int]]:
+    """The linking rule of `bev_clusters` on every pair (i < j), components by a plain flood fill."""
+    n = len(xy)
+    linked = np.zeros((n, n), bool)
+    for i in range(n):
+        sight = (xy[i] - origin[i]) / max(float(np.linalg.norm(xy[i] - origin[i])), 1e-6)
+        for j in range(i + 1, n):
+            d = xy[j] - xy[i]
+            dr, dt = d @ sight, d[0] * sight[1] - d[1] * sight[0]
+            et, er = max(tangential[i], tangential[j]), max(radial[i], radial[j])
+            linked[i, j] = linked[j, i] = (dt / et) ** 2 + (dr / er) ** 2 <= 1.0
+    label = -np.ones(n, int)
+    for start in range(n):
+        if label[start] < 0:
+            label[start], stack = start, [start]
+            while stack:
+                for k in np.flatnonzero(linked[stack.pop()] & (label < 0)):
+                    label[k] = start
+                    stack.append(int(k))
+    return sorted(np.flatnonzero(label == g).tolist() for g in np.unique(label))
+
+
+def test_bev_clusters_with_per_point_reach_equal_every_pair() -> None:
+    # Each point's neighbours are searched within its own reach: the components must be those of the
+    # rule applied to every pair (so the table's `cluster` detector finds what it did).
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        xy = rng.uniform(-3.0, 3.0, (300, 2))
+        origin = np.zeros_like(xy)
+        r = np.linalg.norm(xy, axis=1)
+        tangential = np.clip(0.03 * r, 0.05, 0.12)
+        radial = np.clip(0.06 * r**2, tangential, 0.25)
+        got = sorted(c.tolist() for c in bev_clusters(xy, origin, tangential, radial))
+        assert got == all_pairs_clusters(xy, origin, tangential, radial)
+        assert 10 < len(got) < 300  # linked and unlinked pairs both occur
+
+
+def test_the_cell_grid_links_a_dense_car_and_keeps_two_cars_apart() -> None:
+    # Real size: a car 4.5 m long, dense as a 64-beam lidar's near car (~5 cm spacing), and a second
+    # one 1.5 m behind it (a queue); the table's radii at 13.6x (the intersection's scale).
+    size = (4.5, 1.8, 1.5)
+    grid = np.stack(np.meshgrid(np.arange(0, 4.5, 0.05), np.arange(0, 1.8, 0.05)), -1).reshape(-1, 2)
+    first = grid + np.array([10.0, -0.9])
+    second = grid + np.array([10.0 + 4.5 + 1.5, -0.9])
+    xy = np.vstack([first, second])
+    xyz = np.column_stack([xy, np.full(len(xy), 1.5)])
+    cfg = ClusterLidarConfig(
+        vehicle_size_m=size,
+        cluster_eps_min_m=0.68,
+        cluster_eps_max_m=1.64,
+        cluster_radial_eps_per_m2=0.0044,
+        cluster_radial_eps_max_m=3.4,
+    )
+    exact = ClusterLidarDetector(cfg)._cluster(xyz, np.arange(len(xy)))
+    cells = ClusterLidarDetector(cfg.model_copy(update={"cluster_grid": True}))._cluster(
+        xyz, np.arange(len(xy))
+    )
+    split = [np.arange(len(first)), np.arange(len(first), len(xy))]
+    for found in (exact, cells):
+        assert [c.tolist() for c in found] == [s.tolist() for s in split]
+
+
+def test_the_background_detector_links_cells_and_the_cluster_detector_every_pair() -> None:
+    from shared.detection.registry import lidar_detector
+
+    cfg = ClusterLidarConfig(vehicle_size_m=CAR_SIZE_M)
+    assert lidar_detector("background", cluster=cfg).config.cluster_grid is True  # type: ignore[attr-defined]
+    assert lidar_detector("cluster", cluster=cfg).config.cluster_grid is False  # type: ignore[attr-defined]
+    off = cfg.model_copy(update={"cluster_grid": False})
+    assert lidar_detector("background", cluster=off).config.cluster_grid is False  # type: ignore[attr-defined]
