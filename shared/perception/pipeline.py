@@ -162,7 +162,7 @@ class AgentPipeline:
         # The background detector: each lidar's static scene removed from its own cloud, before merging.
         self.backgrounds = {
             s.id: RangeBackground(
-                RangeImage.of(s.lidar), det.background, saved_background(det.background, s.id)
+                RangeImage.of(s.lidar), det.background, saved_background(det.background, scene.scene_id, s.id)
             )
             for s in specs
             if s.lidar is not None and det.lidar == "background"

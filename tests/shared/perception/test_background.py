@@ -152,7 +152,8 @@ def test_the_lookup_matches_each_points_own_cell_and_bin() -> None:
         elevation = math.atan2(z, math.hypot(x, y))
         channel = int(np.argmin(np.abs(LAYOUT.elevations_rad - elevation)))
         column = int((math.atan2(y, x) + math.pi) / (2 * math.pi) * LAYOUT.azimuth_bins) % LAYOUT.azimuth_bins
-        b = min(max(int((math.log(r) - lo) / (hi - lo) * 128), 0), 127)
+        n = model.config.range_bins
+        b = min(max(int((math.log(r) - lo) / (hi - lo) * n), 0), n - 1)
         assert (cell[k], bins[k]) == (channel * LAYOUT.azimuth_bins + column, b)
         assert rng_m[k] == pytest.approx(r)
 
@@ -176,11 +177,12 @@ def test_the_running_scale_keeps_the_exponential_shares() -> None:
 
 def test_the_background_is_refreshed_a_block_a_revolution_and_whole_after_warm_up() -> None:
     model, _ = learned(frames=30, warmup_frames=30, refresh_frames=10)
-    assert (model.background_bin[DOWN] < 128).all()  # derived once, whole, as warm-up ends
+    none = model.config.range_bins  # a ray without a background
+    assert (model.background_bin[DOWN] < none).all()  # derived once, whole, as warm-up ends
     model.weights[:] = 0.0  # nothing is background any more: each revolution shows one more block
     derived = []
     for _ in range(10):
         model.foreground(np.zeros((0, 3)))
-        derived.append(int((model.background_bin == 128).sum()))
+        derived.append(int((model.background_bin == none).sum()))
     assert derived == sorted(derived) and len(set(derived)) == 10
     assert derived[-1] == LAYOUT.cells
