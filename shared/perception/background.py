@@ -40,6 +40,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
+from shared.detection.lidar.ground import Plane, fit_ground_plane
 from shared.devices.robosense import MODELS
 from shared.paths import DEPLOY_DIR
 from shared.scene.model import LidarModel
@@ -99,6 +100,18 @@ class BackgroundConfig(BaseModel):
         "the intersection; 1: ~3)",
     )
     refresh_frames: int = Field(10, ge=1, description="the background is re-derived every n revolutions")
+    ground_refit_frames: int = Field(
+        100,
+        ge=1,
+        description="the ground plane is fitted again to the static points every n revolutions (a slow "
+        "change: the learned background), `AgentGround`",
+    )
+    ground_sample_points: int = Field(
+        5000,
+        ge=3,
+        description="static points (a random subset of the rays' backgrounds) the ground is fitted to",
+    )
+    ground_iterations: int = Field(200, ge=1, description="RANSAC hypotheses of the ground fit")
     models_dir: Path | None = Field(
         BACKGROUND_MODELS_DIR,
         description="saved models to start from, `<scene id>/<lidar id>.npz` each (`rmmdet background "
@@ -124,6 +137,14 @@ class RangeImage:
             lo, hi = model.vertical_range_rad
             elevations = np.linspace(lo, hi, model.channels)
         return cls(elevations, model.horizontal_samples, max(model.min_range_m, 1e-3), model.max_range_m)
+
+    def ray_points(self, cells: IntArray, range_m: FloatArray) -> FloatArray:
+        """(N, 3) points at `range_m` along the centre ray of each of the cells (channel x azimuth bin)."""
+        channel, column = np.divmod(cells, self.azimuth_bins)
+        elevation = self.elevations_rad[channel]
+        azimuth = (column + 0.5) / self.azimuth_bins * 2 * math.pi - math.pi
+        flat = range_m * np.cos(elevation)
+        return np.column_stack([flat * np.cos(azimuth), flat * np.sin(azimuth), range_m * np.sin(elevation)])
 
     @property
     def cells(self) -> int:
@@ -233,6 +254,16 @@ class RangeBackground:
         above = self.weights[rows] >= np.float32(self.config.background_fraction * self._scale)
         self.background_bin[rows] = np.where(above.any(axis=1), above.argmax(axis=1), self.config.range_bins)
 
+    def static_points(self, max_points: int, rng: np.random.Generator) -> FloatArray:
+        """(M <= max_points, 3) points of the static scene in the lidar frame: a random subset of the rays
+        with a background, each at its background bin's centre range along the ray's centre."""
+        rows = np.flatnonzero(self.background_bin < self.config.range_bins)
+        if rows.size > max_points:
+            rows = np.sort(rng.choice(rows, max_points, replace=False))
+        return self.layout.ray_points(
+            rows, np.exp(self._log_lo + (self.background_bin[rows] + 0.5) * self._per_bin)
+        )
+
     def save(self, path: Path) -> None:
         """Write the model (weights, frames, layout) to `path` (.npz)."""
         np.savez_compressed(
@@ -299,3 +330,49 @@ def learn_period(
         model.frames = max(model.frames, config.warmup_frames)  # a learned period is a finished warm-up
         model.refresh()
     return models
+
+
+class AgentGround:
+    """The ground under an agent's lidars in the agent frame: a plane fitted (`fit_ground_plane`, open3d's
+    RANSAC) to the static points of their background models, again every `ground_refit_frames` calls;
+    None until every model is ready. Real sites' ground is sloped, or not at z = 0 of the agent frame
+    (shared/detection/lidar/ground.py).
+
+    Parameters
+    ----------
+    config : BackgroundConfig
+    tolerance_m : float
+        Inlier distance to the plane, metres (the cluster detector's ground tolerance).
+    max_tilt_rad : float
+        Steepest ground, radians (the cluster detector's surfaces' tilt limit).
+    """
+
+    def __init__(self, config: BackgroundConfig, tolerance_m: float, max_tilt_rad: float) -> None:
+        self.config = config
+        self.tolerance_m = tolerance_m
+        self.max_tilt_rad = max_tilt_rad
+        self.plane: Plane | None = None
+        self._calls = 0
+        self._rng = np.random.default_rng(0)  # which static points: reproducible
+
+    def update(
+        self, backgrounds: Mapping[str, RangeBackground], T_agent_from_lidar: Mapping[str, FloatArray]
+    ) -> Plane | None:
+        """The ground plane after this revolution (refitted when due)."""
+        self._calls += 1
+        due = self.plane is None or self._calls % self.config.ground_refit_frames == 0
+        if not due or not backgrounds or not all(b.ready for b in backgrounds.values()):
+            return self.plane
+        per_lidar = max(self.config.ground_sample_points // len(backgrounds), 1)
+        parts = []
+        for lidar_id, model in backgrounds.items():
+            T = np.asarray(T_agent_from_lidar[lidar_id], np.float64)
+            parts.append(model.static_points(per_lidar, self._rng) @ T[:3, :3].T + T[:3, 3])
+        self.plane = fit_ground_plane(
+            np.concatenate(parts),
+            tolerance_m=self.tolerance_m,
+            max_tilt_rad=self.max_tilt_rad,
+            iterations=self.config.ground_iterations,
+            seed=0,
+        )
+        return self.plane

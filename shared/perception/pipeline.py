@@ -30,9 +30,10 @@ from numpy.typing import NDArray
 
 from shared.datasets.layout import agent_origin_m
 from shared.detection.interface import CameraDetector, DetectorInputError, LidarDetector
+from shared.detection.lidar.cluster import ClusterLidarDetector
 from shared.detection.registry import camera_detector, lidar_detector
 from shared.perception import camera_only, lidar_camera, radar_camera
-from shared.perception.background import RangeBackground, RangeImage, saved_background
+from shared.perception.background import AgentGround, RangeBackground, RangeImage, saved_background
 from shared.perception.confidence import FUSED, ScoreCalibration
 from shared.perception.config import MecSettings
 from shared.perception.lidar_preprocess import agent_frame_transforms, merge_clouds, preprocess
@@ -167,6 +168,10 @@ class AgentPipeline:
             for s in specs
             if s.lidar is not None and det.lidar == "background"
         }
+        # Their static points give the ground plane the cluster detector measures heights from.
+        self.ground = AgentGround(
+            det.background, det.cluster.ground_tolerance_m, det.cluster.surfaces.max_tilt_rad
+        )
         self.origin_m = agent_origin_m(scene, agent_id) if self.lidar_ids else np.zeros(3)
         self.lidar_T = agent_frame_transforms(scene, agent_id) if self.lidar_ids else {}
         self.radar_T = {s.id: np.asarray(scene.T_world_from_sensor(s.id), float) for s in self.radar_specs}
@@ -259,6 +264,8 @@ class AgentPipeline:
             return np.zeros((0, 9))
         if self.backgrounds:
             clouds = {c: clouds[c][self.backgrounds[c].foreground(clouds[c][:, :3])] for c in ids}
+            if isinstance(self.lidar_detector, ClusterLidarDetector):
+                self.lidar_detector.ground = self.ground.update(self.backgrounds, self.lidar_T)
         merged = merge_clouds([(self.lidar_T[c], clouds[c]) for c in ids])
         if self.cfg.detectors.lidar_input == "preprocessed":
             pre = preprocess(merged, self.cfg.preprocess)

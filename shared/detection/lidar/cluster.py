@@ -5,7 +5,9 @@ Input: one agent's merged cloud in the agent frame (world axes, z = 0 on the tab
 1. Range crop: BEV distance to the nearest lidar (``sensor_xy_m``) in [min_range, max_range] and z in
    [z_min, z_max].
 2. Table removal by height (``z <= table_z_m + ground_tolerance_m``; the table is flat and at a
-   known height, see `shared.detection.lidar.ground`).
+   known height, see `shared.detection.lidar.ground`). With a fitted ground plane (`ground`: a real
+   site's sloped or offset ground), heights (this removal, the z crop, the support of every point) are
+   measured from that plane instead.
 3. BEV clustering: single-linkage connected components (scipy KD-tree + sparse connected components)
    of points within a range-dependent ellipse aligned with the line of sight: across it
    ``clip(eps_per_m * range, eps_min, eps_max)`` (the azimuth step grows with range), along it
@@ -43,7 +45,15 @@ from scipy.spatial import cKDTree
 
 from shared.detection.interface import CAR_CLASS_ID, check_points, empty_lidar_detections
 from shared.detection.lidar.box_fit import BoxFitParams, FittedBox, fit_vehicle_box
-from shared.detection.lidar.ground import SEARCH, SlabSearch, Verdict, above_table, cell_keys, peel_slabs
+from shared.detection.lidar.ground import (
+    SEARCH,
+    Plane,
+    SlabSearch,
+    Verdict,
+    above_table,
+    cell_keys,
+    peel_slabs,
+)
 from shared.scene.model import SceneSpec
 from shared.scene.scale import Length, PerLength, Ratio, SiteScale, at_scale, from_scene
 
@@ -228,6 +238,9 @@ class ClusterLidarDetector:
         if config.vehicle_size_m is None:
             raise ValueError("the cluster detector needs vehicle_size_m (the scene's vehicle)")
         self.config = config
+        # The ground in the agent frame, when known from the data (the MEC fits it to the background
+        # model's static points, `shared.perception.background.AgentGround`); None: the table at table_z_m.
+        self.ground: Plane | None = None
         self._prior_m: tuple[float, float, float] = config.vehicle_size_m
         cfg = self.config
         self._sensors = np.asarray(cfg.sensor_xy_m, dtype=np.float64).reshape(-1, 2)
@@ -263,7 +276,9 @@ class ClusterLidarDetector:
         check_points(points)
         cfg = self.config
         xyz = np.asarray(points[:, :3], dtype=np.float64)
-        xyz = xyz[self._in_range(xyz) & above_table(xyz, cfg.table_z_m, cfg.ground_tolerance_m)]
+        ground_z = self._ground_z(xyz[:, :2])
+        keep = self._in_range(xyz, ground_z) & above_table(xyz, ground_z, cfg.ground_tolerance_m)
+        xyz, ground_z = xyz[keep], ground_z[keep]
         if xyz.shape[0] == 0:
             return empty_lidar_detections()
 
@@ -282,7 +297,7 @@ class ClusterLidarDetector:
             cfg.surfaces,
             leaf=leaf,
             recluster=lambda idx: self._cluster(xyz, idx),
-            base_z_m=cfg.table_z_m,
+            base_z_m=ground_z,
         )
         rows = [row for row in peeled.leaves if row is not None]
         if not rows:
@@ -290,14 +305,20 @@ class ClusterLidarDetector:
         out = np.asarray(rows, dtype=np.float32)
         return out[np.argsort(-out[:, 7], kind="stable")]
 
-    def _in_range(self, xyz: FloatArray) -> NDArray[np.bool_]:
+    def _ground_z(self, xy: FloatArray) -> FloatArray:
+        """Ground height under (N, 2) points: the table's, or the fitted ground plane's (`ground`), m."""
+        if self.ground is None:
+            return np.full(xy.shape[0], self.config.table_z_m)
+        return self.ground.height_at(xy)
+
+    def _in_range(self, xyz: FloatArray, ground_z: FloatArray) -> NDArray[np.bool_]:
         cfg = self.config
         _, r = nearest_sensor(xyz[:, :2], self._sensors)
+        # Heights in the agent frame on the table (z_min_m / z_max_m as given), above the ground's plane
+        # where one was fitted.
+        z = xyz[:, 2] if self.ground is None else xyz[:, 2] - ground_z
         return np.asarray(
-            (r >= cfg.min_range_m)
-            & (r <= cfg.max_range_m)
-            & (xyz[:, 2] >= cfg.z_min_m)
-            & (xyz[:, 2] <= cfg.z_max_m)
+            (r >= cfg.min_range_m) & (r <= cfg.max_range_m) & (z >= cfg.z_min_m) & (z <= cfg.z_max_m)
         )
 
     def _cluster(self, xyz: FloatArray, idx: IntArray) -> list[IntArray]:

@@ -5,6 +5,12 @@ table points are removed with a height threshold (`above_table`): fitting a plan
 only re-estimate that known plane, cost time, and can lock onto something else when the table is
 mostly occluded near a vehicle queue.
 
+A real site's ground is neither flat nor at a known height in the agent frame (a sloped road, a lidar
+pole's base above or below the crossing). With a background model (shared/perception/background.py) the
+ground is part of the static scene: `fit_ground_plane` finds it once in a while in the model's static
+points (open3d's RANSAC, the steepest ground ``max_tilt_rad``), and the clustering detector measures
+heights from that plane instead of from ``z = table_z_m`` (`ClusterLidarDetector.ground`).
+
 The viaduct deck (a 4 cm slab at up to ~0.4 m, with ramps) is not at a known height in an agent's
 frame, so it is found in the data: `fit_horizontal_plane` is a RANSAC that only hypothesises planes
 tilted at most ``max_tilt_rad`` from horizontal (walls can never win), refined by least squares.
@@ -45,15 +51,17 @@ _DEGENERATE_AREA_M2 = 1e-9
 _CELL_KEY_STRIDE = 1 << 21
 
 
-def above_table(xyz: FloatArray, table_z_m: float, tolerance_m: float) -> BoolArray:
+def above_table(xyz: FloatArray, table_z_m: float | FloatArray, tolerance_m: float) -> BoolArray:
     """Points higher than ``table_z_m + tolerance_m``.
 
     Parameters
     ----------
     xyz : numpy.ndarray, shape (N, 3)
         Agent frame, metres.
-    table_z_m, tolerance_m : float
-        Table height and the band above it counted as table (lidar noise, paint), metres.
+    table_z_m : float or numpy.ndarray, shape (N,)
+        Table (ground) height, metres: one, or the ground's under each point (a fitted plane).
+    tolerance_m : float
+        The band above it counted as table (lidar noise, paint), metres.
 
     Returns
     -------
@@ -151,6 +159,51 @@ def fit_horizontal_plane(
     if inliers.sum() < min_inliers:
         return None
     return plane, inliers
+
+
+def fit_ground_plane(
+    xyz: FloatArray, *, tolerance_m: float, max_tilt_rad: float, iterations: int, seed: int, attempts: int = 3
+) -> Plane | None:
+    """The ground: the largest plane tilted at most ``max_tilt_rad`` from horizontal (open3d's RANSAC,
+    `segment_plane`). A steeper plane found first (a building's wall) is set aside with its inliers and the
+    search repeated, ``attempts`` times at most.
+
+    Parameters
+    ----------
+    xyz : numpy.ndarray, shape (N, 3)
+        Static points (a background model's), metres.
+    tolerance_m : float
+        Inlier distance to the plane, metres.
+    max_tilt_rad : float
+        Steepest ground, radians.
+    iterations : int
+        RANSAC hypotheses per search.
+    seed : int
+        open3d's random seed (the fit is reproducible).
+    attempts : int
+        Planes tried at most.
+
+    Returns
+    -------
+    Plane or None
+        Normal up; None when no near-horizontal plane of at least 3 points is found.
+    """
+    import open3d as o3d  # the MEC's background detector only: not loaded by the others
+
+    o3d.utility.random.seed(seed)
+    left = np.asarray(xyz, np.float64)
+    for _ in range(attempts):
+        if left.shape[0] < _SAMPLE_SIZE:
+            return None
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(left))
+        model, inliers = cloud.segment_plane(tolerance_m, _SAMPLE_SIZE, iterations)
+        normal, offset = np.asarray(model[:3], np.float64), float(model[3])
+        scale = float(np.linalg.norm(normal)) * (1.0 if normal[2] >= 0.0 else -1.0)
+        plane = Plane(normal=normal / scale, offset=offset / scale)
+        if plane.normal[2] >= math.cos(max_tilt_rad):
+            return plane
+        left = np.delete(left, np.asarray(inliers, np.int64), axis=0)
+    return None
 
 
 def cell_keys(xy: FloatArray, cell_m: float) -> NDArray[np.int64]:
@@ -265,7 +318,7 @@ def peel_slabs(
     *,
     leaf: Callable[[IntArray, FloatArray], T | Literal[Verdict.SEARCH]],
     recluster: Callable[[IntArray], list[IntArray]],
-    base_z_m: float = 0.0,
+    base_z_m: float | FloatArray = 0.0,
 ) -> Peeled[T]:
     """Peel elevated slabs off the clusters that are too large to be objects.
 
@@ -282,8 +335,8 @@ def peel_slabs(
         final for ``idx`` when it is called (only an ancestor's surface can support its points).
     recluster : callable
         ``recluster(idx)``: clusters of the points ``idx`` left when a slab is removed.
-    base_z_m : float
-        Support height of points on no surface (the table), metres.
+    base_z_m : float or numpy.ndarray, shape (N,)
+        Support height of points on no surface (the table, or the ground under each point), metres.
 
     Returns
     -------
@@ -293,7 +346,7 @@ def peel_slabs(
     """
     rng = np.random.default_rng(search.seed)
     slab = np.zeros(xyz.shape[0], dtype=bool)
-    support = np.full(xyz.shape[0], base_z_m)
+    support = np.broadcast_to(np.asarray(base_z_m, np.float64), (xyz.shape[0],)).copy()
     leaves: list[T] = []
     queue = [(np.asarray(c, dtype=np.int64), search.max_peels) for c in clusters]
     while queue:

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shared.perception.background import BackgroundConfig, RangeBackground, RangeImage
+from shared.perception.background import AgentGround, BackgroundConfig, RangeBackground, RangeImage
 from shared.scene.model import LidarModel
 
 LIDAR = LidarModel(
@@ -186,3 +186,34 @@ def test_the_background_is_refreshed_a_block_a_revolution_and_whole_after_warm_u
         derived.append(int((model.background_bin == none).sum()))
     assert derived == sorted(derived) and len(set(derived)) == 10
     assert derived[-1] == LAYOUT.cells
+
+
+def test_the_ground_is_fitted_to_the_static_scene_in_the_agent_frame() -> None:
+    # The lidar 6 m above a road that rises 5 % along its +x; the agent frame is the lidar's shifted by
+    # (3, -2, 1) m. The plane fitted to the learned background is that road, moved with the frame.
+    slope = 0.05
+    normal = np.array([-slope, 0.0, 1.0]) / math.hypot(slope, 1.0)
+    offset = HEIGHT_M / math.hypot(slope, 1.0)  # normal . p + offset = 0 through (0, 0, -HEIGHT_M)
+    direction = np.column_stack([np.cos(EL) * np.cos(AZ), np.cos(EL) * np.sin(AZ), np.sin(EL)])
+    towards = direction @ normal
+    with np.errstate(divide="ignore"):
+        road = np.where(towards < 0.0, -offset / towards, np.inf)
+    road[road > LIDAR.max_range_m] = np.inf
+    rng = np.random.default_rng(6)
+    model = RangeBackground(LAYOUT, BackgroundConfig())
+    for _ in range(30):
+        model.foreground(points(road + rng.normal(0.0, 0.02, len(road))))
+    shift = np.array([3.0, -2.0, 1.0])
+    T = np.eye(4)
+    T[:3, 3] = shift
+    ground = AgentGround(BackgroundConfig(), tolerance_m=0.2, max_tilt_rad=0.3)
+    plane = ground.update({"lidar": model}, {"lidar": T})
+    assert plane is not None
+    xy = np.array([[0.0, 0.0], [20.0, 5.0], [-15.0, 10.0]])
+    truth = shift[2] - HEIGHT_M + slope * (xy[:, 0] - shift[0])
+    np.testing.assert_allclose(plane.height_at(xy), truth, atol=0.1)  # bins are 2.2 % of the range
+
+
+def test_no_ground_before_the_background_is_learned() -> None:
+    model = RangeBackground(LAYOUT, BackgroundConfig())
+    assert AgentGround(BackgroundConfig(), 0.2, 0.3).update({"lidar": model}, {"lidar": np.eye(4)}) is None

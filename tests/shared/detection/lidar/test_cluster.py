@@ -16,6 +16,7 @@ from shared.detection.lidar.cluster import (
     bev_clusters,
     nearest_sensor,
 )
+from shared.detection.lidar.ground import Plane
 from tests.shared.detection.lidar.raycast import Lidar, scan
 
 L, W, H = 0.33, 0.22, 0.21
@@ -252,3 +253,40 @@ def test_the_background_detector_links_cells_and_the_cluster_detector_every_pair
     assert lidar_detector("cluster", cluster=cfg).config.cluster_grid is False  # type: ignore[attr-defined]
     off = cfg.model_copy(update={"cluster_grid": False})
     assert lidar_detector("background", cluster=off).config.cluster_grid is False  # type: ignore[attr-defined]
+
+
+def test_heights_from_a_fitted_ground_on_a_sloped_offset_site() -> None:
+    # The table scene tilted 0.08 rad about x and lowered 0.3 m: in the agent frame a sloped ground well
+    # below z = 0, with the cars standing on it. Heights from the table's z = 0 lose the cars; from the
+    # ground's plane they are found where they stand.
+    tilt, drop = 0.08, -0.3
+    R = np.array(
+        [[1.0, 0.0, 0.0], [0.0, math.cos(tilt), -math.sin(tilt)], [0.0, math.sin(tilt), math.cos(tilt)]]
+    )
+    cloud = scene(HIGH_DENSE)
+    cloud[:, :3] = cloud[:, :3] @ R.T + [0.0, 0.0, drop]
+    sensor = R @ np.array(HIGH_DENSE.position) + [0.0, 0.0, drop]
+    cars = TABLE_CARS.copy()
+    cars[:, :3] = cars[:, :3] @ R.T + [0.0, 0.0, drop]
+    flat = detector(sensor_xy_m=((sensor[0], sensor[1]),))
+    assert len(match_within(flat.detect(cloud), cars, 0.05)) < len(cars)
+    sloped = detector(sensor_xy_m=((sensor[0], sensor[1]),))
+    sloped.ground = Plane(normal=R @ np.array([0.0, 0.0, 1.0]), offset=-drop * math.cos(tilt))
+    found = match_within(sloped.detect(cloud), cars, 0.05)
+    assert len(found) == len(cars)
+    for det, car in found:
+        assert det[2] == pytest.approx(car[2], abs=0.02)  # the box stands on the sloped ground
+
+
+def match_within(
+    dets: np.ndarray, cars: np.ndarray, tolerance_m: float
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(detection, car) of the cars with a detection centred within `tolerance_m` (BEV)."""
+    out = []
+    for car in cars:
+        if dets.shape[0] == 0:
+            continue
+        d = np.hypot(dets[:, 0] - car[0], dets[:, 1] - car[1])
+        if d.min() <= tolerance_m:
+            out.append((dets[int(np.argmin(d))].astype(np.float64), car))
+    return out

@@ -12,6 +12,7 @@ from shared.detection.lidar.ground import (
     Plane,
     SlabSearch,
     above_table,
+    fit_ground_plane,
     fit_horizontal_plane,
     footprint_mask,
     peel_slabs,
@@ -148,3 +149,23 @@ def test_peel_slabs_is_reproducible() -> None:
     ]
     np.testing.assert_array_equal(runs[0].slab, runs[1].slab)
     np.testing.assert_array_equal(runs[0].support_m, runs[1].support_m)
+
+
+def test_the_ground_plane_is_found_beside_a_larger_wall() -> None:
+    # A road rising 6 % to the east, its level 1.3 m below the frame's z = 0, and a building's wall with
+    # more points than the road: the wall is set aside, the road is the ground.
+    rng = np.random.default_rng(5)
+    slope, level = 0.06, -1.3
+    road_xy = rng.uniform(-40.0, 40.0, (3000, 2))
+    road = np.column_stack([road_xy, level + slope * road_xy[:, 0] + rng.normal(0.0, 0.03, 3000)])
+    wall = np.column_stack([np.full(5000, 30.0), rng.uniform(-40, 40, 5000), rng.uniform(0, 15, 5000)])
+    plane = fit_ground_plane(
+        np.vstack([road, wall]), tolerance_m=0.1, max_tilt_rad=0.3, iterations=300, seed=0
+    )
+    assert plane is not None
+    np.testing.assert_allclose(
+        plane.height_at(np.array([[0.0, 0.0], [20.0, -10.0]])), [level, level + 1.2], atol=0.03
+    )
+    assert (
+        fit_ground_plane(wall, tolerance_m=0.1, max_tilt_rad=0.3, iterations=300, seed=0) is None
+    )  # no ground
