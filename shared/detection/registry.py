@@ -94,8 +94,13 @@ def lidar_detector(
 
         if cluster is None:
             raise ValueError(f"the {name} detector needs its settings for the site (the scene's vehicle)")
-        if cluster.cluster_grid is None:  # a real lidar's dense foreground is linked cell by cell
-            cluster = cluster.model_copy(update={"cluster_grid": name == "background"})
+        # A real lidar's dense foreground is linked cell by cell, and close queues split; the table's
+        # cluster detector links every pair and searches a too large cluster for the deck.
+        real = name == "background"
+        if cluster.cluster_grid is None:
+            cluster = cluster.model_copy(update={"cluster_grid": real})
+        if cluster.oversize_splits is None:
+            cluster = cluster.model_copy(update={"oversize_splits": 2 if real else 0})
         detector = ClusterLidarDetector(cluster)
         detector.name = name
         return detector

@@ -13,11 +13,11 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from shared.config import RmmdetSettings, settings_config, with_overrides
 from shared.datasets.layout import agent_origin_m
-from shared.detection.lidar.cluster import ClusterLidarConfig
+from shared.detection.lidar.cluster import ClusterLidarConfig, ring_radial_eps_per_m2
 from shared.detection.oracle import OracleLidarConfig
 from shared.detection.precision import Precision
 from shared.paths import REPO_ROOT
-from shared.perception.background import BackgroundConfig
+from shared.perception.background import BackgroundConfig, RangeImage
 from shared.perception.camera_only import CameraOnlyConfig
 from shared.perception.lidar_camera import LidarCameraConfig
 from shared.perception.lidar_preprocess import LidarPreprocessConfig
@@ -164,6 +164,13 @@ class MecSettings(RmmdetSettings):
         cluster = det.cluster
         lidars = scene.sensors_of(agent_id, "lidar")
         cluster_fill: dict[str, object] = {"vehicle_size_m": cluster.vehicle_size_m or car}
+        if "vehicle_classes_m" not in cluster.model_fields_set:  # the scene's vans and trucks
+            cluster_fill["vehicle_classes_m"] = tuple(c.size_m for c in scene.spec.vehicle_classes)
+        unset = "cluster_radial_eps_per_m2" not in self.detectors.cluster.model_fields_set
+        if det.lidar == "background" and lidars and unset:  # a real lidar's own ring spacing
+            roofs = [float(scene.T_world_from_sensor(s.id)[2, 3]) - car[2] for s in lidars]
+            layouts = [RangeImage.of(s.lidar).elevations_rad for s in lidars if s.lidar is not None]
+            cluster_fill["cluster_radial_eps_per_m2"] = ring_radial_eps_per_m2(layouts, roofs)
         if lidars and "sensor_xy_m" not in cluster.model_fields_set:
             origin = agent_origin_m(scene, agent_id)
             xy = [np.asarray(scene.T_world_from_sensor(s.id))[:2, 3] - origin[:2] for s in lidars]

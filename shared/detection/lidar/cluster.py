@@ -34,6 +34,7 @@ Yaw is in [-pi/2, pi/2) (front and back are indistinguishable).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Annotated, Literal
 
 import numpy as np
@@ -62,6 +63,10 @@ IntArray = NDArray[np.int64]
 
 # cluster_grid: cells per smallest linking radius (2 sqrt(2) cells, two touching cells' span, < 1 radius).
 _CELLS_PER_MIN_RADIUS = 4.0
+# ring_radial_eps_per_m2: rings linked up to 1.5 gaps apart (one ring lost to noise or an edge: half more).
+_RING_MARGIN = 1.5
+# oversize_splits: each split links at half the radii of the step before.
+_SPLIT_RADIUS = 0.5
 # Guards the line-of-sight direction of a point at the sensor's own position, metres.
 _MIN_RANGE_M = 1e-6
 
@@ -117,10 +122,28 @@ class ClusterLidarConfig(BaseModel):
         "~300 000 pairs within its radius, a few hundred cells. None: on for the `background` detector (a "
         "real-size site's dense foreground), off for `cluster` (the table's sparse clouds, exact)",
     )
+    oversize_splits: int | None = Field(
+        None,
+        ge=0,
+        description="a cluster longer (BEV diagonal) than the largest vehicle's length gate is clustered "
+        "again with its radii halved, up to this many times, before the surface search: vehicles queued "
+        "closer than a radius (a car 1 m behind a truck, 28 m from an RS-LiDAR-32: 1.1 m radial radius). "
+        "None: 2 for the `background` detector, 0 for `cluster` (the table's deck clusters keep their "
+        "surface search)",
+    )
     min_points: int = Field(5, ge=1, description="fewest points of a vehicle cluster")
     # vehicle prior and filters
     vehicle_size_m: Annotated[tuple[float, float, float] | None, from_scene("the scene's vehicle")] = Field(
         None, description="length, width, height prior, m (the MEC sets the scene's vehicle; required)"
+    )
+    vehicle_classes_m: Annotated[
+        tuple[tuple[float, float, float], ...], from_scene("its vehicle classes")
+    ] = Field(
+        (),
+        description="length, width, height of the scene's further vehicle classes (vans, trucks), m: a "
+        "cluster larger than the prior is boxed with the smallest class it fits, and the size gates "
+        "(max_length_m, max_width_m, max_height_m, stated for the prior) grow by the largest class's share "
+        "of the prior",
     )
     min_extent_m: Length = Field(0.08, ge=0.0, description="longest BEV side must reach this (rejects poles)")
     max_length_m: Length = Field(0.45, gt=0.0, description="longest BEV side of a vehicle cluster")
@@ -139,9 +162,13 @@ class ClusterLidarConfig(BaseModel):
 
     @classmethod
     def for_scene(cls, spec: SceneSpec) -> ClusterLidarConfig:
-        """The defaults at the scale of a scene, with its vehicle as the prior (lidars at the origin of
-        the frame: a dataset's agent frames; the MEC also sets its lidars, `MecSettings.for_site`)."""
-        return at_scale(cls(vehicle_size_m=spec.vehicle.size_m), SiteScale.of(spec))
+        """The defaults at the scale of a scene, with its vehicle as the prior and its further classes
+        (lidars at the origin of the frame: a dataset's agent frames; the MEC also sets its lidars,
+        `MecSettings.for_site`)."""
+        classes = tuple(c.size_m for c in spec.vehicle_classes)
+        return at_scale(
+            cls(vehicle_size_m=spec.vehicle.size_m, vehicle_classes_m=classes), SiteScale.of(spec)
+        )
 
     @model_validator(mode="after")
     def _ranges(self) -> ClusterLidarConfig:
@@ -154,6 +181,36 @@ class ClusterLidarConfig(BaseModel):
         if self.vehicle_size_m is not None and min(self.vehicle_size_m) <= 0.0:
             raise ValueError("vehicle_size_m must be positive")
         return self
+
+
+def ring_radial_eps_per_m2(
+    elevations_rad: Sequence[FloatArray], heights_above_roof_m: Sequence[float]
+) -> float:
+    """Radius along the line of sight per squared metre of range that links a vehicle roof's rings, for
+    the given lidars (their channel elevations, rad, and their heights above the roof, m): a lidar h above
+    a roof sees its channels ``dEl`` apart there ``range^2 * dEl / h`` apart in BEV. ``dEl`` is the lidar's
+    median gap between adjacent channels (a roadside unit's dense band, where it looks along the roads),
+    times `_RING_MARGIN`; the largest over the lidars.
+
+    Parameters
+    ----------
+    elevations_rad : sequence of numpy.ndarray
+        Each lidar's channel elevations, radians.
+    heights_above_roof_m : sequence of float
+        Each lidar's height above a vehicle roof, metres (> 0).
+
+    Returns
+    -------
+    float
+        Per metre of range squared (``PerLength``).
+    """
+    out = 0.0
+    for elevations, height in zip(elevations_rad, heights_above_roof_m, strict=True):
+        gaps = np.diff(np.sort(np.asarray(elevations, np.float64)))
+        if gaps.size == 0 or height <= 0.0:
+            raise ValueError("a lidar needs two channels and a height above the roof to space its rings")
+        out = max(out, _RING_MARGIN * float(np.median(gaps)) / height)
+    return out
 
 
 def nearest_sensor(xy: FloatArray, sensors: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -244,16 +301,29 @@ class ClusterLidarDetector:
         self._prior_m: tuple[float, float, float] = config.vehicle_size_m
         cfg = self.config
         self._sensors = np.asarray(cfg.sensor_xy_m, dtype=np.float64).reshape(-1, 2)
-        self._fit = BoxFitParams(
-            length_m=self._prior_m[0],
-            width_m=self._prior_m[1],
-            angle_step_rad=cfg.angle_step_rad,
-            closeness_min_m=cfg.closeness_min_m,
-            flat_face_m=cfg.flat_face_m,
-            edge_band_m=cfg.edge_band_m,
-            edge_support_ratio=cfg.edge_support_ratio,
-            size_tolerance_m=cfg.size_tolerance_m,
+        # The prior first, then the larger classes by length (a cluster takes the first it fits in).
+        larger = sorted(
+            c for c in cfg.vehicle_classes_m if c[0] > self._prior_m[0] or c[1] > self._prior_m[1]
         )
+        self._classes = [self._prior_m, *larger]
+        self._fits = [
+            BoxFitParams(
+                length_m=length,
+                width_m=width,
+                angle_step_rad=cfg.angle_step_rad,
+                closeness_min_m=cfg.closeness_min_m,
+                flat_face_m=cfg.flat_face_m,
+                edge_band_m=cfg.edge_band_m,
+                edge_support_ratio=cfg.edge_support_ratio,
+                size_tolerance_m=cfg.size_tolerance_m,
+            )
+            for length, width, _ in self._classes
+        ]
+        # The gates, stated for the prior, grow with the largest class (1 exactly without classes).
+        grow = [max(c[k] for c in self._classes) / self._prior_m[k] for k in range(3)]
+        self._max_length_m = cfg.max_length_m * max(grow[0], 1.0)
+        self._max_width_m = cfg.max_width_m * max(grow[1], 1.0)
+        self._max_height_m = cfg.max_height_m * max(grow[2], 1.0)
 
     def detect(self, points: np.ndarray) -> np.ndarray:
         """Detect vehicles in one agent cloud.
@@ -286,10 +356,13 @@ class ClusterLidarDetector:
             if idx.size < cfg.min_points:
                 return None
             sensor, _ = nearest_sensor(xyz[idx, :2].mean(axis=0, keepdims=True), self._sensors)
-            fit = fit_vehicle_box(xyz[idx, :2], sensor[0], self._fit)
-            if fit.extent_length > cfg.max_length_m or fit.extent_width > cfg.max_width_m:
+            fit = fit_vehicle_box(xyz[idx, :2], sensor[0], self._fits[0])
+            if fit.extent_length > self._max_length_m or fit.extent_width > self._max_width_m:
                 return SEARCH
-            return self._box_row(xyz[idx], support_m[idx], fit)
+            k = self._class_of(fit)
+            if k > 0:  # larger than the prior: boxed with the class it fits
+                fit = fit_vehicle_box(xyz[idx, :2], sensor[0], self._fits[k])
+            return self._box_row(xyz[idx], support_m[idx], fit, self._classes[k][2])
 
         peeled = peel_slabs(
             xyz,
@@ -322,45 +395,72 @@ class ClusterLidarDetector:
         )
 
     def _cluster(self, xyz: FloatArray, idx: IntArray) -> list[IntArray]:
-        """Clusters (global indices) of the points ``idx``."""
+        """Clusters (global indices) of the points ``idx``; one longer than any vehicle class is clustered
+        again with its radii halved, up to `oversize_splits` times (vehicles queued closer than a radius)."""
+        clusters = self._link(xyz, idx, 1.0)
+        for step in range(1, (self.config.oversize_splits or 0) + 1):
+            out: list[IntArray] = []
+            for c in clusters:
+                extent = np.ptp(xyz[c, :2], axis=0)
+                too_long = c.size >= self.config.min_points and math.hypot(*extent) > self._max_length_m
+                out += self._link(xyz, c, _SPLIT_RADIUS**step) if too_long else [c]
+            clusters = out
+        return clusters
+
+    def _link(self, xyz: FloatArray, idx: IntArray, factor: float) -> list[IntArray]:
+        """Connected components (global indices) of the points ``idx`` at `factor` times the radii."""
         cfg = self.config
         xy = xyz[idx, :2]
         if not cfg.cluster_grid:
-            return [idx[c] for c in bev_clusters(xy, *self._radii(xy))]
+            return [idx[c] for c in bev_clusters(xy, *self._radii(xy, factor))]
         # One node per BEV cell (its mean point). Two points of one cell or of two cells that touch are at
         # most 2 sqrt(2) cells = 0.71 eps_min apart, within every point's radius: linked point by point
         # too, and so are their cells' means.
-        cell_m = cfg.cluster_eps_min_m / _CELLS_PER_MIN_RADIUS
+        cell_m = factor * cfg.cluster_eps_min_m / _CELLS_PER_MIN_RADIUS
         cells, point_cell = np.unique(cell_keys(xy, cell_m), return_inverse=True)
         count = np.bincount(point_cell, minlength=cells.size).astype(np.float64)
         means = np.column_stack(
             [np.bincount(point_cell, xy[:, k], minlength=cells.size) / count for k in range(2)]
         )
         label = np.empty(cells.size, np.int64)
-        for k, members in enumerate(bev_clusters(means, *self._radii(means))):
+        for k, members in enumerate(bev_clusters(means, *self._radii(means, factor))):
             label[members] = k
         point_label = label[point_cell]
         order = np.argsort(point_label, kind="stable")  # ascending indices within a cluster
         return [idx[c] for c in np.split(order, np.flatnonzero(np.diff(point_label[order])) + 1)]
 
-    def _radii(self, xy: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Nearest lidar (N, 2) and the linking radii across and along its line of sight (N,) each, m."""
+    def _radii(self, xy: FloatArray, factor: float = 1.0) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Nearest lidar (N, 2) and the linking radii across and along its line of sight (N,) each, m,
+        times `factor`."""
         cfg = self.config
         origin, r = nearest_sensor(xy, self._sensors)
         tangential = np.clip(cfg.cluster_eps_per_m * r, cfg.cluster_eps_min_m, cfg.cluster_eps_max_m)
         radial = np.clip(cfg.cluster_radial_eps_per_m2 * r**2, tangential, cfg.cluster_radial_eps_max_m)
-        return origin, tangential, radial
+        if factor == 1.0:
+            return origin, tangential, radial
+        return origin, tangential * factor, radial * factor
 
-    def _box_row(self, pts: FloatArray, support: FloatArray, fit: FittedBox) -> list[float] | None:
-        """Detection row of a vehicle-sized cluster, or None if it fails the extent / height filters."""
+    def _class_of(self, fit: FittedBox) -> int:
+        """Index into the classes (0: the prior) of the smallest whose length and width hold the fitted
+        extents (within the size tolerance); the largest if none does."""
+        tol = self.config.size_tolerance_m
+        for k, (length, width, _) in enumerate(self._classes):
+            if fit.extent_length <= length + tol and fit.extent_width <= width + tol:
+                return k
+        return len(self._classes) - 1
+
+    def _box_row(
+        self, pts: FloatArray, support: FloatArray, fit: FittedBox, prior_h: float
+    ) -> list[float] | None:
+        """Detection row of a vehicle-sized cluster (`prior_h`: its class's height), or None if it fails the
+        extent / height filters."""
         cfg = self.config
         if max(fit.extent_length, fit.extent_width) < cfg.min_extent_m:
             return None
         base = float(np.median(support))
         height = float(pts[:, 2].max()) - base
-        if not cfg.min_height_m <= height <= cfg.max_height_m:
+        if not cfg.min_height_m <= height <= self._max_height_m:
             return None
-        prior_h = self._prior_m[2]
         dz = prior_h if height <= prior_h + cfg.size_tolerance_m else height
         n = pts.shape[0]
         score = n / (n + cfg.score_half_points)

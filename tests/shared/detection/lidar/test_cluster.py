@@ -15,6 +15,7 @@ from shared.detection.lidar.cluster import (
     ClusterLidarDetector,
     bev_clusters,
     nearest_sensor,
+    ring_radial_eps_per_m2,
 )
 from shared.detection.lidar.ground import Plane
 from tests.shared.detection.lidar.raycast import Lidar, scan
@@ -290,3 +291,68 @@ def match_within(
         if d.min() <= tolerance_m:
             out.append((dets[int(np.argmin(d))].astype(np.float64), car))
     return out
+
+
+def test_ring_radius_from_the_lidars_channel_gaps() -> None:
+    # Channels 0.01 rad apart 5 m above a roof: rings 0.01 * r^2 / 5 apart, linked up to 1.5 gaps.
+    even = np.arange(32) * 0.01
+    assert ring_radial_eps_per_m2([even], [5.0]) == pytest.approx(1.5 * 0.01 / 5.0)
+    # A denser band (the median gap) sets it; of two lidars the wider spacing.
+    banded = np.concatenate([np.arange(20) * 0.005, 0.2 + np.arange(5) * 0.05])
+    assert ring_radial_eps_per_m2([banded], [5.0]) == pytest.approx(1.5 * 0.005 / 5.0)
+    assert ring_radial_eps_per_m2([banded, even], [5.0, 2.5]) == pytest.approx(1.5 * 0.01 / 2.5)
+    with pytest.raises(ValueError, match="height above the roof"):
+        ring_radial_eps_per_m2([even], [0.0])
+
+
+def box_surface(
+    centre_xy: tuple[float, float], size: tuple[float, float, float], step_m: float
+) -> np.ndarray:
+    """Points on a box's roof and its four sides (axis-aligned), `step_m` apart, z from 0.5 m up."""
+    (x, y), (length, width, height) = centre_xy, size
+    gx, gy = np.meshgrid(np.arange(-length / 2, length / 2, step_m), np.arange(-width / 2, width / 2, step_m))
+    roof = np.column_stack([gx.ravel() + x, gy.ravel() + y, np.full(gx.size, height)])
+    sides = []
+    for z in np.arange(0.5, height, step_m):
+        for sx in (-length / 2, length / 2):
+            ys = np.arange(-width / 2, width / 2, step_m)
+            sides.append(np.column_stack([np.full(ys.size, x + sx), ys + y, np.full(ys.size, z)]))
+        for sy in (-width / 2, width / 2):
+            xs = np.arange(-length / 2, length / 2, step_m)
+            sides.append(np.column_stack([xs + x, np.full(xs.size, y + sy), np.full(xs.size, z)]))
+    return np.vstack([roof, *sides])
+
+
+def test_a_car_queued_1m_behind_a_truck_is_split_and_each_boxed_with_its_class() -> None:
+    # Real size, 28 m down the line of sight from the lidar: the radial radius there (1.1 m) links the
+    # two; linked again at half the radii they part, the truck boxed with the truck class.
+    car, truck = (4.5, 1.8, 1.5), (8.5, 2.5, 3.2)
+    car_x = 28.0
+    truck_x = car_x + car[0] / 2 + 1.0 + truck[0] / 2
+    cloud = np.vstack([box_surface((car_x, 0.0), car, 0.25), box_surface((truck_x, 0.0), truck, 0.25)])
+    points = np.column_stack([cloud, np.zeros(len(cloud))])
+    cfg = ClusterLidarConfig(
+        vehicle_size_m=car,
+        vehicle_classes_m=((4.9, 1.9, 2.0), truck),
+        max_range_m=80.0,
+        z_max_m=13.6,
+        cluster_eps_min_m=0.68,
+        cluster_eps_max_m=1.64,
+        cluster_radial_eps_per_m2=0.0014,
+        cluster_radial_eps_max_m=3.4,
+        max_length_m=6.14,
+        max_width_m=4.36,
+        min_height_m=0.68,
+        max_height_m=4.09,
+        ground_tolerance_m=0.27,
+        size_tolerance_m=0.41,
+        cluster_grid=True,
+    )
+    merged = ClusterLidarDetector(cfg.model_copy(update={"oversize_splits": 0})).detect(points)
+    assert len(merged) == 0  # 15 m long: no vehicle
+    found = ClusterLidarDetector(cfg.model_copy(update={"oversize_splits": 2})).detect(points)
+    assert len(found) == 2
+    by_x = found[np.argsort(found[:, 0])]
+    np.testing.assert_allclose(by_x[:, 0], [car_x, truck_x], atol=0.3)
+    np.testing.assert_allclose(by_x[0, 3:6], car, atol=0.05)
+    np.testing.assert_allclose(by_x[1, 3:6], truck, atol=0.3)
