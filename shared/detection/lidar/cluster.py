@@ -141,9 +141,9 @@ class ClusterLidarConfig(BaseModel):
     ] = Field(
         (),
         description="length, width, height of the scene's further vehicle classes (vans, trucks), m: a "
-        "cluster larger than the prior is boxed with the smallest class it fits, and the size gates "
-        "(max_length_m, max_width_m, max_height_m, stated for the prior) grow by the largest class's share "
-        "of the prior",
+        "cluster larger than the prior is boxed with the smallest class it fits (none: not a vehicle), "
+        "and the size gates (max_length_m, max_width_m, max_height_m, stated for the prior) give each class "
+        "the prior's margin over its size",
     )
     min_extent_m: Length = Field(0.08, ge=0.0, description="longest BEV side must reach this (rejects poles)")
     max_length_m: Length = Field(0.45, gt=0.0, description="longest BEV side of a vehicle cluster")
@@ -319,11 +319,14 @@ class ClusterLidarDetector:
             )
             for length, width, _ in self._classes
         ]
-        # The gates, stated for the prior, grow with the largest class (1 exactly without classes).
-        grow = [max(c[k] for c in self._classes) / self._prior_m[k] for k in range(3)]
-        self._max_length_m = cfg.max_length_m * max(grow[0], 1.0)
-        self._max_width_m = cfg.max_width_m * max(grow[1], 1.0)
-        self._max_height_m = cfg.max_height_m * max(grow[2], 1.0)
+        # The gates are stated for the prior: the largest class gets the same margin over its size
+        # (exactly the settings without further classes). The height gate is each class's own.
+        longest, widest = max(c[0] for c in self._classes), max(c[1] for c in self._classes)
+        self._max_length_m = max(cfg.max_length_m, longest + cfg.max_length_m - self._prior_m[0])
+        self._max_width_m = max(cfg.max_width_m, widest + cfg.max_width_m - self._prior_m[1])
+        self._max_height_m = [cfg.max_height_m] + [
+            h + cfg.max_height_m - self._prior_m[2] for *_, h in larger
+        ]
 
     def detect(self, points: np.ndarray) -> np.ndarray:
         """Detect vehicles in one agent cloud.
@@ -360,9 +363,11 @@ class ClusterLidarDetector:
             if fit.extent_length > self._max_length_m or fit.extent_width > self._max_width_m:
                 return SEARCH
             k = self._class_of(fit)
+            if k is None:  # no vehicle class is that wide or long (a tree's crown, a wall)
+                return None
             if k > 0:  # larger than the prior: boxed with the class it fits
                 fit = fit_vehicle_box(xyz[idx, :2], sensor[0], self._fits[k])
-            return self._box_row(xyz[idx], support_m[idx], fit, self._classes[k][2])
+            return self._box_row(xyz[idx], support_m[idx], fit, k)
 
         peeled = peel_slabs(
             xyz,
@@ -440,27 +445,27 @@ class ClusterLidarDetector:
             return origin, tangential, radial
         return origin, tangential * factor, radial * factor
 
-    def _class_of(self, fit: FittedBox) -> int:
+    def _class_of(self, fit: FittedBox) -> int | None:
         """Index into the classes (0: the prior) of the smallest whose length and width hold the fitted
-        extents (within the size tolerance); the largest if none does."""
+        extents (within the size tolerance); with further classes None if none does, without them the
+        prior (its gates decide)."""
         tol = self.config.size_tolerance_m
         for k, (length, width, _) in enumerate(self._classes):
             if fit.extent_length <= length + tol and fit.extent_width <= width + tol:
                 return k
-        return len(self._classes) - 1
+        return None if len(self._classes) > 1 else 0
 
-    def _box_row(
-        self, pts: FloatArray, support: FloatArray, fit: FittedBox, prior_h: float
-    ) -> list[float] | None:
-        """Detection row of a vehicle-sized cluster (`prior_h`: its class's height), or None if it fails the
-        extent / height filters."""
+    def _box_row(self, pts: FloatArray, support: FloatArray, fit: FittedBox, k: int) -> list[float] | None:
+        """Detection row of a vehicle-sized cluster of class `k` (0: the prior), or None if it fails the
+        extent / height filters (the height: its class's gate: a car's footprint 6 m tall is a mast)."""
         cfg = self.config
         if max(fit.extent_length, fit.extent_width) < cfg.min_extent_m:
             return None
         base = float(np.median(support))
         height = float(pts[:, 2].max()) - base
-        if not cfg.min_height_m <= height <= self._max_height_m:
+        if not cfg.min_height_m <= height <= self._max_height_m[k]:
             return None
+        prior_h = self._classes[k][2]
         dz = prior_h if height <= prior_h + cfg.size_tolerance_m else height
         n = pts.shape[0]
         score = n / (n + cfg.score_half_points)
