@@ -321,9 +321,11 @@ class ClusterLidarDetector:
         ]
         # The gates are stated for the prior: the largest class gets the same margin over its size
         # (exactly the settings without further classes). The height gate is each class's own.
-        longest, widest = max(c[0] for c in self._classes), max(c[1] for c in self._classes)
-        self._max_length_m = max(cfg.max_length_m, longest + cfg.max_length_m - self._prior_m[0])
-        self._max_width_m = max(cfg.max_width_m, widest + cfg.max_width_m - self._prior_m[1])
+        self._max_length_m, self._max_width_m = cfg.max_length_m, cfg.max_width_m
+        if larger:
+            longest, widest = max(c[0] for c in larger), max(c[1] for c in larger)
+            self._max_length_m = max(cfg.max_length_m, longest + cfg.max_length_m - self._prior_m[0])
+            self._max_width_m = max(cfg.max_width_m, widest + cfg.max_width_m - self._prior_m[1])
         self._max_height_m = [cfg.max_height_m] + [
             h + cfg.max_height_m - self._prior_m[2] for *_, h in larger
         ]
