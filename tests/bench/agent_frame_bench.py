@@ -12,6 +12,7 @@ The acceptance of issue 49: a full agent frame (lidar + cameras + fusion + track
 one core at the intersection.
 
     python -m tests.bench.agent_frame_bench                         # SCENE=intersection, agent1, 30 s
+    python -m tests.bench.agent_frame_bench --camera-every-n 1      # every camera detected every frame
     python -m tests.bench.agent_frame_bench --scene sand_table --agent agent3 --seconds 20
     python -m tests.bench.agent_frame_bench --sensors lidar_11 cam_11 cam_12   # a subset
 
@@ -90,7 +91,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     scene_path, mec_data = profile_mec_settings(args.scene)
     scene = Scene.load(scene_path)
     sensors = args.sensors or [s.id for s in scene.sensors_of(args.agent)]
-    mec = load_settings(MecSettings, None, **deep_merge(mec_data, ONE_THREAD))
+    overrides = deep_merge(ONE_THREAD, {"detectors": {"camera_every_n_with_lidar": args.camera_every_n}})
+    mec = load_settings(
+        MecSettings, None, **deep_merge(mec_data, overrides if args.camera_every_n else ONE_THREAD)
+    )
     log.info("rendering %s s of %s / %s (%s)", args.seconds + args.warmup_s, args.scene, args.agent, sensors)
     frames = render_frames(scene, scene_path, args.agent, sensors, args.seconds, args.warmup_s, args.seed)
     one_blas_thread()
@@ -123,7 +127,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "seed": args.seed,
         "seconds": args.seconds,
         "warmup_s": args.warmup_s,
-        "detectors": {"camera": mec.detectors.camera, "lidar": mec.detectors.lidar},
+        "detectors": {
+            "camera": mec.detectors.camera,
+            "lidar": mec.detectors.lidar,
+            "camera_every_n_with_lidar": mec.detectors.camera_every_n_with_lidar,
+        },
         "frame": pct(frame_s),
         "stages": {stage: pct(v) for stage, v in sorted(stages.items())},
     }
@@ -140,10 +148,17 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=30.0, help="simulated seconds timed")
     parser.add_argument("--warmup-s", type=float, default=5.0, help="simulated seconds run first, not timed")
     parser.add_argument("--seed", type=int, default=101, help="traffic seed (a tuning seed)")
+    parser.add_argument(
+        "--camera-every-n",
+        type=int,
+        help="run the camera detector on every n-th frame (1: every camera every frame, the worst case; "
+        "default: the profile's cadence)",
+    )
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
     result = run(args)
-    out = args.out or RESULTS / f"agent_frame_{args.scene}.json"
+    every = f"_every{args.camera_every_n}" if args.camera_every_n else ""
+    out = args.out or RESULTS / f"agent_frame_{args.scene}{every}.json"
     out.write_text(json.dumps(result, indent=2) + "\n")
     log.info("frame %s; written %s", result["frame"], out)
     for stage, row in result["stages"].items():
