@@ -19,7 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from shared.config import RmmdetSettings, deep_merge, load_settings, settings_config
 from shared.paths import DEFAULT_SCENE, REPO_ROOT
 from shared.scene.model import LEVEL_SEPARATION_M
-from shared.scene.scale import LENGTH, Acceleration, Length, PerLength, Speed
+from shared.scene.scale import ACCELERATION, LENGTH, Acceleration, Length, PerLength, Speed
 from shared.timebase import MAX_SIM_SPEED
 from shared.vehicle.config import PlanClientSettings
 
@@ -103,6 +103,13 @@ class TrafficSettings(_Model):
         description="destinations from the traffic's one generator (shared: the datasets' and evaluations' "
         "traffic) or from one generator per vehicle (per_vehicle: each vehicle's k-th trip is the same "
         "whatever the routing policy, so policies compare on the same trips)",
+    )
+    curve_lateral_accel_mps2: Annotated[float | None, ACCELERATION] = Field(
+        None,
+        gt=0,
+        description="drivers slow for bends: the speed ahead is held to sqrt(this / curvature), reached "
+        "by braking at the IDM's comfortable deceleration before the bend (curvature over the pursuit's "
+        "standstill look-ahead); None: bends are taken at the lane's speed (the sand table's model cars)",
     )
     idm: IdmParams = IdmParams()
     pursuit: PursuitParams = PursuitParams()

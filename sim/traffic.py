@@ -186,6 +186,7 @@ class TrafficSim:
         self._plan_ends: list[PlanEnd] = []  # since the last `take_plan_ends`
         self.distance_m = 0.0  # driven by all vehicles together
         self._seed = seed
+        self._curvatures: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # path id -> (s, 1/m)
         self._trip_rngs: dict[int, np.random.Generator] = {}
         self.vehicles: list[Vehicle] = []
         self._by_id: dict[str, Vehicle] = {}
@@ -539,6 +540,44 @@ class TrafficSim:
         limits = [self.scene.lanes[lane].speed_limit_mps for lane in lane_ids if lane is not None]
         return min([self.cfg.max_speed_mps, *limits])
 
+    def _curvature(self, path: Path) -> tuple[np.ndarray, np.ndarray]:
+        """(arc length, curvature 1/m) along `path`: the heading's change over a window of the
+        pursuit's standstill look-ahead, the scale at which a pursuing vehicle follows the path (a
+        polyline's corner, or a lane joining its connector, is no bend to it). Cached per path."""
+        cached = self._curvatures.get(path.id)
+        if cached is None:
+            heading = np.unwrap(path.heading)
+            half_m = self.cfg.pursuit.lookahead_min_m / 2
+            lo = np.clip(path.s - half_m, 0.0, path.length_m)
+            hi = np.clip(path.s + half_m, 0.0, path.length_m)
+            turned = np.abs(np.interp(hi, path.s, heading) - np.interp(lo, path.s, heading))
+            cached = (path.s, turned / np.maximum(hi - lo, 1e-9))
+            self._curvatures[path.id] = cached
+        return cached
+
+    def _curve_speed(self, v: Vehicle, paths: list[Path], lateral_mps2: float) -> float:
+        """The fastest speed now from which the vehicle can slow, at the IDM's comfortable deceleration,
+        to sqrt(lateral / curvature) at every point of its route ahead (within its braking distance
+        from its speed limit, capped at the car-following horizon)."""
+        decel = self.cfg.idm.comfort_decel_mps2
+        reach_m = min(self._speed_limit(v.path) ** 2 / (2 * decel), self.cfg.horizon_m)
+        best_sq = math.inf
+        offset = -v.s
+        for path in paths:
+            s, kappa = self._curvature(path)
+            lo = int(np.searchsorted(s, -offset))
+            hi = int(np.searchsorted(s, reach_m - offset, side="right"))
+            if hi > lo:
+                d = offset + s[lo:hi]
+                k = kappa[lo:hi]
+                bend = k > 0
+                if bend.any():
+                    best_sq = min(best_sq, float(np.min(lateral_mps2 / k[bend] + 2 * decel * d[bend])))
+            offset += path.length_m
+            if offset > reach_m:
+                break
+        return math.sqrt(best_sq)
+
     def _target_point(self, paths: list[Path], s: float, ahead_m: float) -> np.ndarray:
         remaining = s + ahead_m
         for path in paths:
@@ -556,6 +595,11 @@ class TrafficSim:
         paths = self._route_ahead(v)
         gap, lead_v = self._leader(v, paths, occ)
         accel = self._idm_accel(v, self._speed_limit(v.path), gap, lead_v)
+        if self.cfg.curve_lateral_accel_mps2 is not None:
+            # Not the IDM's desired speed: its free-road term lets a vehicle run ~30 % above a lowered
+            # v0 when braking; held to the braking profile itself, the bend is entered at its speed.
+            allowed = self._curve_speed(v, paths, self.cfg.curve_lateral_accel_mps2)
+            accel = min(accel, max((allowed - v.v) / dt, -self.cfg.idm.max_decel_mps2))
         v.v = max(0.0, v.v + accel * dt)
         if gap <= 0.0:
             v.v = 0.0
