@@ -17,7 +17,7 @@ from services.cli.app import (
     console,
     log_progress,
 )
-from shared.paths import DEFAULT_SCENE
+from shared.paths import DEFAULT_SCENE, REPO_ROOT
 from shared.scene.scene import Scene
 
 
@@ -374,6 +374,15 @@ def eval_fusion(
         typer.Option(help="results folder (default docs/eval/fusion[_tuning])"),
     ] = None,
     readme: Annotated[bool, typer.Option(help="rewrite the README's fusion table of the split")] = False,
+    scene_name: Annotated[
+        str | None,
+        typer.Option(
+            "--scene",
+            help="a profile scene (deploy/profiles/scene/<name>.yaml): its scene, MEC and sim settings as "
+            "`make up SCENE=<name>` runs them, its seeds from deploy/datasets/<name>.yaml; results in "
+            "docs/eval/<name>/",
+        ),
+    ] = None,
 ) -> None:
     """The MEC pipeline against simulation ground truth on held-out seeds: pose error, AOS, BEV IoU,
     heat maps (0.125 m grid), AP-BEV, precision / recall with false positives, MOTA / IDF1, pre- and
@@ -386,8 +395,22 @@ def eval_fusion(
     from studies.evaluation.run import run_fusion_study
 
     log_progress()
-    scene = Scene.load(DEFAULT_SCENE)
-    dataset = load_settings(DatasetSettings, DEFAULT_DATASET_CONFIG)
+    scene_path, dataset_file, base = DEFAULT_SCENE, DEFAULT_DATASET_CONFIG, Path("docs/eval")
+    mec_data: dict[str, Any] | None = None
+    sim_overrides: dict[str, Any] = {}
+    if scene_name is not None:
+        from shared.supervision.profiles import scene_profile
+
+        site = scene_profile(scene_name)
+        scene_path, mec_data = site.scene, site.settings["mec"]
+        # Lock-step runs have no coordinator: the vehicles route as the sim's own file says.
+        sim_overrides = site.overrides.get("sim", {})
+        sim_overrides = {**sim_overrides, "traffic": {**sim_overrides.get("traffic", {})}}
+        sim_overrides["traffic"].pop("route_policy", None)
+        dataset_file = REPO_ROOT / "deploy" / "datasets" / f"{scene_name}.yaml"
+        base = Path("docs/eval") / scene_name
+    scene = Scene.load(scene_path)
+    dataset = load_settings(DatasetSettings, dataset_file)
     agents = agents or sorted(scene.agents)
     unknown = [a for a in agents if a not in scene.agents]
     if unknown:
@@ -396,10 +419,25 @@ def eval_fusion(
         raise typer.BadParameter(f"--split must be one of {sorted(fe.SPLIT_LABELS)}")
     split_seeds = dataset.seeds.fusion_test if split == "test" else dataset.seeds.fusion_tuning
     seeds = seeds or list(split_seeds)
-    out = out or Path("docs/eval/fusion" if split == "test" else "docs/eval/fusion_tuning")
-    mec = load_settings(MecSettings, config or DEFAULT_MEC_CONFIG)
+    out = out or base / ("fusion" if split == "test" else "fusion_tuning")
+    if config is not None or mec_data is None:
+        mec = load_settings(MecSettings, config or DEFAULT_MEC_CONFIG)
+    else:
+        mec = load_settings(MecSettings, None, **mec_data)
     results = run_fusion_study(
-        scene, dataset, mec, agents, seeds, duration_s, warmup_s, workers, noise, out, split=split
+        scene,
+        dataset,
+        mec,
+        agents,
+        seeds,
+        duration_s,
+        warmup_s,
+        workers,
+        noise,
+        out,
+        split=split,
+        scene_path=scene_path,
+        sim_overrides=sim_overrides,
     )
     table = Table(title=f"fusion on seeds {seeds}, {results['all']['frames']} agent frames")  # type: ignore[index]
     for col in fe.TABLE_COLUMNS:
@@ -407,8 +445,14 @@ def eval_fusion(
     for row in fe.table_rows(results, agents):
         table.add_row(*row)
     if readme:
-        write_fusion_readme(results, split, out)
+        write_fusion_readme(results, split, out, scene_name)
     console.print(table)
+    for agent in agents:
+        static = results[agent]["static_false_tracks"]
+        console.print(
+            f"{agent}: static false tracks {static['runs']}, longest {static['max_s']:.1f} s, "
+            f"{static['over_limit']} over {fe.STATIC_TRACK_LIMIT_S:g} s"
+        )
     console.print(f"results: {out / 'results.json'}")
 
 
@@ -455,16 +499,29 @@ def eval_calibrate_scores(
     console.print(table)
 
 
-def write_fusion_readme(results: dict[str, Any], split: str, folder: Path) -> None:
+def write_fusion_readme(
+    results: dict[str, Any], split: str, folder: Path, scene_name: str | None = None
+) -> None:
     """The README sections of one fusion split's results (from `folder`): its table, under it the previous
-    models' figures when `previous_results.json` is there, and the noise experiment's line."""
+    models' figures when `previous_results.json` is there, and the noise experiment's line. Another
+    scene's (`scene_name`): its own sections, `eval-fusion-<scene>[-tuning]`, with the static false
+    tracks."""
     from shared.readme import replace_section
     from studies.evaluation import fusion as fe
     from studies.evaluation import kalman_noise
     from studies.evaluation.compare import PREVIOUS_FILE, previous_section
 
-    section = "eval-fusion" if split == "test" else "eval-fusion-tuning"
+    section = "eval-fusion" if scene_name is None else f"eval-fusion-{scene_name}"
+    section += "" if split == "test" else "-tuning"
     text = fe.markdown_table(results, results["agents"])
+    if scene_name is not None:
+        text += "\n\nStatic false tracks (confirmed tracks matching no vehicle, slower than "
+        text += f"{results['static_track_speed_mps']:.2g} m/s), per agent: " + "; ".join(
+            f"{a} {r['runs']} runs, longest {r['max_s']:.1f} s, {r['over_limit']} over "
+            f"{fe.STATIC_TRACK_LIMIT_S:g} s"
+            for a in results["agents"]
+            for r in [results[a]["static_false_tracks"]]
+        )
     previous = folder / PREVIOUS_FILE
     if previous.exists():
         text += "\n\n" + previous_section(json.loads(previous.read_text()), results, str(previous))

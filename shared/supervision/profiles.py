@@ -403,6 +403,34 @@ def render(
     return Rendered(profile, labels, programs, conf, files)
 
 
+@dataclass(frozen=True)
+class SceneProfile:
+    """What a scene's profile gives its services, for offline runs (benches, evaluations) that build
+    the cores themselves: the scene file, each service's overrides and its composed settings."""
+
+    scene: Path
+    overrides: dict[str, dict[str, Any]]
+    settings: dict[str, dict[str, Any]]
+
+
+def scene_profile(scene: str) -> SceneProfile:
+    """`make up SCENE=<scene>`'s scene file and settings (the other axes at their defaults)."""
+    profile, _ = compose(Choice(scene=scene))
+    path = repo_path(profile.scene or Path())
+    context: dict[str, Any] = {
+        "scene": shown(path),
+        "site": _Lazy(lambda: site_value(profile, path)),
+        "region_map": _Lazy(lambda: region_map_value(profile)),
+        "settings": {},
+        "supervisor_url": "",
+    }
+    overrides = {
+        service: fill_values(spec.overrides, context, f"settings.{service}.overrides")
+        for service, spec in profile.settings.items()
+    }
+    return SceneProfile(path, overrides, composed_settings(profile, context))
+
+
 def cli_args(choice: Choice) -> list[str]:
     args = ["--scene", choice.scene, "--sensors", choice.sensors, "--shards", choice.shards]
     if choice.site:

@@ -31,20 +31,22 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
 import shapely
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field
 from tqdm import tqdm
 
-from shared.config import with_overrides
+from shared.config import deep_merge, with_overrides
 from shared.datasets.layout import MIN_LIDAR_POINTS, min_visible_px
 from shared.detection.interface import CameraDetector, LidarDetector
 from shared.geometry.boxes import bev_iou_matrix
-from shared.metrics.fusion import FusionAccumulator
-from shared.metrics.tracking import TrackingAccumulator
+from shared.metrics.fusion import DEFAULT_CELL_M, DEFAULT_MATCH_DISTANCE_M, FusionAccumulator
+from shared.metrics.tracking import DEFAULT_TRACK_DISTANCE_M, TrackingAccumulator
 from shared.paths import DEFAULT_SCENE, REPO_ROOT
 from shared.perception import camera_only
 from shared.perception.confidence import ALONE, FUSED, ScoreCalibration, evidence_key
@@ -59,6 +61,7 @@ from shared.perception.pipeline import (
     lidar_measurement,
     merge_across_sensors,
 )
+from shared.scene.scale import Length, SiteScale, Speed, at_scale
 from shared.scene.scene import Scene
 from shared.timebase import NS_PER_S
 from shared.tracking.measurement import Measurement
@@ -82,6 +85,33 @@ SCOPE_MARGIN_M = 0.3
 # The same margin in height, for areas bounded in z (the viaduct): the ramps climb 0.4 m over 2 m, so
 # 0.3 m along a ramp is 0.06 m of height.
 SCOPE_MARGIN_Z_M = 0.06
+#: A confirmed track unmatched to any vehicle and slower than this is a static false track (the sand
+#: table's 0.05 m/s: a tenth of its top speed; scaled with the scene).
+STATIC_TRACK_SPEED_MPS = 0.05
+#: Static false tracks longer than this are counted (issue 49: none may last more than 1 s).
+STATIC_TRACK_LIMIT_S = 1.0
+PLOT_POSE_ERROR_MAX_M = 0.05  # colour scale of the pose-error heat map
+
+
+class EvalDistances(BaseModel):
+    """The evaluation's sizes: the sand table's values, scaled to the scene evaluated (`for_scene`), so
+    a gate means the same share of a car and of a lane at every site."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    match_distance_m: Length = Field(DEFAULT_MATCH_DISTANCE_M, gt=0, description="BEV centre gate")
+    track_distance_m: Length = Field(DEFAULT_TRACK_DISTANCE_M, gt=0, description="MOT centre gate")
+    cell_m: Length = Field(DEFAULT_CELL_M, gt=0, description="heat-map cell")
+    scope_margin_m: Length = Field(SCOPE_MARGIN_M, ge=0, description="ignore band outside the areas")
+    scope_margin_z_m: Length = Field(SCOPE_MARGIN_Z_M, ge=0, description="the same band in height")
+    static_track_speed_mps: Speed = Field(STATIC_TRACK_SPEED_MPS, gt=0, description="static below this")
+    plot_pose_error_max_m: Length = Field(PLOT_POSE_ERROR_MAX_M, gt=0, description="heat-map colour top")
+
+    @classmethod
+    def for_scene(cls, scene: Scene) -> EvalDistances:
+        return at_scale(cls(), SiteScale.of(scene.spec))
+
+
 #: A measurement counts as a true box at this BEV IoU with its matched vehicle (the AP-BEV@0.7 criterion).
 CALIBRATION_IOU = 0.7
 
@@ -229,6 +259,11 @@ class AgentEvaluation:
     # evidence key -> per frame (K, 2) [score, 1 if a true box (BEV IoU >= CALIBRATION_IOU) else 0] of
     # the measurements (pipeline output and single modalities): calibration and its check
     score_samples: dict[str, list[FloatArray]] = field(default_factory=dict)
+    distances: EvalDistances = field(default_factory=EvalDistances)
+    # Static false tracks of the tracked output: track id -> (first, last) stamp s of its current run
+    # unmatched and static; the length of every finished run.
+    static_runs: dict[int, tuple[float, float]] = field(default_factory=dict)
+    static_run_s: list[float] = field(default_factory=list)
 
     def samples(self, key: str) -> tuple[FloatArray, NDArray[np.bool_]]:
         """(scores, is a true box) of every measurement of evidence `key`."""
@@ -236,12 +271,35 @@ class AgentEvaluation:
         return rows[:, 0], rows[:, 1] > 0.5
 
     def acc(self, name: str) -> FusionAccumulator:
-        return self.fusion.setdefault(name, FusionAccumulator())
+        return self.fusion.setdefault(name, FusionAccumulator(self.distances.match_distance_m))
 
     def trk(self, name: str) -> TrackingAccumulator:
-        return self.tracking.setdefault(name, TrackingAccumulator())
+        return self.tracking.setdefault(name, TrackingAccumulator(self.distances.track_distance_m))
+
+    def static_tracks(self, stamp_s: float, static_unmatched: set[int]) -> None:
+        """One frame of the tracked output: the ids of its confirmed tracks that match no vehicle (nor
+        an ignore region) and move slower than `distances.static_track_speed_mps`."""
+        for track_id in list(self.static_runs):
+            if track_id not in static_unmatched:
+                first, last = self.static_runs.pop(track_id)
+                self.static_run_s.append(last - first)
+        for track_id in static_unmatched:
+            first, _ = self.static_runs.get(track_id, (stamp_s, stamp_s))
+            self.static_runs[track_id] = (first, stamp_s)
+
+    def static_track_summary(self) -> dict[str, float | int]:
+        """Static false tracks: the longest run (s, frame stamps first to last) and how many ran over
+        STATIC_TRACK_LIMIT_S, runs still open included."""
+        runs = self.static_run_s + [last - first for first, last in self.static_runs.values()]
+        return {
+            "runs": len(runs),
+            "max_s": max(runs, default=0.0),
+            "over_limit": sum(r > STATIC_TRACK_LIMIT_S for r in runs),
+        }
 
     def merge(self, other: AgentEvaluation) -> None:
+        if not self.frames and not self.fusion:
+            self.distances = other.distances  # an empty evaluation takes the scene of what it merges
         for name, acc in other.fusion.items():
             self.acc(name).merge(acc)
         for name, trk in other.tracking.items():
@@ -252,6 +310,8 @@ class AgentEvaluation:
         self.frames += other.frames
         for key, rows in other.score_samples.items():
             self.score_samples.setdefault(key, []).extend(rows)
+        # runs of different (agent, seed) evaluations never continue each other
+        self.static_run_s += other.static_run_s + [b - a for a, b in other.static_runs.values()]
 
 
 def single_modality_measurements(
@@ -311,7 +371,8 @@ def evaluate_run(
     the true scene; its lidar and radar frames `range_delay_s` old but stamped as new; every capture
     through `transform` before the MEC (e.g. its device's wire format and back); truth always from the
     untouched captures."""
-    ev = AgentEvaluation()
+    distances = EvalDistances.for_scene(scene)
+    ev = AgentEvaluation(distances=distances)
     vehicle_index: dict[str, int] = {}
     sensor_ids = [s.id for s in scene.sensors_of(agent_id)]
     core = MecCore(mec_scene or scene, agent_id, mec, cameras=cameras, lidar=lidar)
@@ -319,8 +380,8 @@ def evaluate_run(
     core.tick_hz = sim_settings.tick_hz  # the camera cadence of the live MEC (on sim ticks)
     pipeline = core.pipeline
     baseline_decoder = FrameDecoder()  # the images the MEC skips, for the camera-only baseline
-    single_trackers = {m: MultiObjectTracker(mec.tracker) for m in SINGLE_MODALITIES}
-    scope = AgentScope(scene, agent_id, SCOPE_MARGIN_M, SCOPE_MARGIN_Z_M)
+    single_trackers = {m: MultiObjectTracker(core.settings.tracker) for m in SINGLE_MODALITIES}  # at scale
+    scope = AgentScope(scene, agent_id, distances.scope_margin_m, distances.scope_margin_z_m)
     kwargs: dict[str, Any] = {"sensor_ids": sensor_ids, "labels": True}
     if conditions is not None:
         lockstep = conditions.lockstep(scene, sim_settings, **kwargs)
@@ -359,7 +420,17 @@ def evaluate_run(
             truth = observable(gt, tick.captures, scope)
             single_tracks = {m: t.confirmed() for m, t in single_trackers.items() if m in singles}
             ids = {v: vehicle_index.setdefault(v, len(vehicle_index)) for v in truth.boxes}
-            _score_frame(ev, scope, truth, ids, result, singles, single_tracks, pipeline.car_size_m)
+            _score_frame(
+                ev,
+                scope,
+                truth,
+                ids,
+                result,
+                singles,
+                single_tracks,
+                pipeline.car_size_m,
+                stamp_ns / NS_PER_S,
+            )
     ev.counts.update(core.counts())
     return ev
 
@@ -373,6 +444,7 @@ def _score_frame(
     singles: dict[str, list[Measurement]],
     single_tracks: dict[str, list[Track]],
     car_size_m: tuple[float, float, float],
+    stamp_s: float,
 ) -> None:
     ev.frames += 1
     gt_ids = list(truth.boxes)
@@ -421,8 +493,17 @@ def _score_frame(
             counted = np.ones(len(boxes), bool)
             counted[match.ignored] = False
             ids = [t for t, k in zip(track_ids, keep, strict=True) if k]
+            kept_ids = ids
             ids = [i for i, c in zip(ids, counted, strict=True) if c]
             ev.trk(name).update([gt_numbers[v] for v in gt_ids], gt[:, :2], ids, boxes[counted, :2])
+            if name == "tracked":
+                assert velocity is not None
+                unmatched = counted.copy()
+                unmatched[match.pred_index] = False
+                slow = np.hypot(*velocity[keep].T) < ev.distances.static_track_speed_mps
+                ev.static_tracks(
+                    stamp_s, {t for t, u, s in zip(kept_ids, unmatched, slow, strict=True) if u and s}
+                )
 
 
 def _record_scores(
@@ -478,6 +559,7 @@ def summarise(ev: AgentEvaluation) -> dict[str, Any]:
         for stage, v in ev.latencies_s.items()
     }
     out["counts"] = dict(ev.counts)
+    out["static_false_tracks"] = ev.static_track_summary()
     out["score_calibration"] = calibration_check(ev)
     return out
 
@@ -491,14 +573,15 @@ def timed(fn: Any, *args: Any, **kwargs: Any) -> tuple[Any, float]:
 
 
 def _run_worker(
-    job: tuple[str, int, float, float, str, str, str],
+    job: tuple[str, int, float, float, str, str, str, str],
 ) -> tuple[str, int, AgentEvaluation, float]:
     """One (agent, seed) run in a worker process (spawned: PyBullet and onnxruntime are per process),
     under the seed's conditions (density, sensor noise, lighting, colours) and a perturbation."""
-    agent, seed, duration_s, warmup_s, mec_json, variation_json, perturbation_json = job
+    agent, seed, duration_s, warmup_s, mec_json, variation_json, perturbation_json, scene_json = job
     from sim.config import load_sim_settings
 
-    scene = Scene.load(DEFAULT_SCENE)
+    site = json.loads(scene_json)  # the scene file and the sim settings' overrides (its profile's)
+    scene = Scene.load(Path(site["scene"]))
     mec = MecSettings.model_validate_json(mec_json)
     variation = Variation.model_validate_json(variation_json)
     perturbation = robustness.Perturbation(**json.loads(perturbation_json))
@@ -525,7 +608,11 @@ def _run_worker(
     ev = evaluate_run(
         scene,
         agent,
-        load_sim_settings(vehicles=conditions.vehicles, seed=seed),
+        load_sim_settings(
+            vehicles=conditions.vehicles,
+            seed=seed,
+            **deep_merge(site["sim_overrides"], {"scene": site["scene"]}),
+        ),
         mec,
         duration_s,
         warmup_s,
@@ -547,6 +634,8 @@ def evaluate(
     variation: Variation,
     perturbation: robustness.Perturbation = robustness.CLEAN,
     per_seed: dict[str, dict[str, dict[str, float | None]]] | None = None,
+    scene_path: Path = DEFAULT_SCENE,
+    sim_overrides: dict[str, Any] | None = None,
 ) -> dict[str, AgentEvaluation]:
     """Every (agent, seed) run under the seed's conditions drawn from `variation` (and `perturbation`),
     merged per agent and over all agents (key "all"); with `per_seed`, each run's `seed_row` is put
@@ -560,8 +649,21 @@ def evaluate(
     perturbation_json = json.dumps(
         dataclasses.asdict(perturbation)
     )  # any perturbation, not just the named ones
+    site = json.dumps({"scene": str(scene_path), "sim_overrides": sim_overrides or {}})
+    # Only what was set: a value dumped explicitly would be taken as written and never scaled to the
+    # scene (at the intersection every size stayed the sand table's: no lidar detection at all).
+    mec_json = mec.model_dump_json(exclude_unset=True)
     jobs = [
-        (a, s, duration_s, warmup_s, mec.model_dump_json(), variation.model_dump_json(), perturbation_json)
+        (
+            a,
+            s,
+            duration_s,
+            warmup_s,
+            mec_json,
+            variation.model_dump_json(),
+            perturbation_json,
+            site,
+        )
         for a in agents
         for s in seeds
     ]
@@ -663,19 +765,20 @@ def write_heat_maps(ev: AgentEvaluation, scene: Scene, out_dir: Any, name: str =
     """Pose error, AOS and BEV IoU heat maps (the paper's 0.125 m grid over the table) as PNG."""
     from pathlib import Path
 
-    from shared.metrics.fusion import DEFAULT_CELL_M, save_heat_map_png
+    from shared.metrics.fusion import save_heat_map_png
 
     acc = ev.fusion.get(name)
     if acc is None:
         return []
+    cell_m = ev.distances.cell_m
     t = scene.spec.table
     x0, y0 = t.origin_m
-    x_range = (x0, x0 + np.ceil(t.size_x_m / DEFAULT_CELL_M) * DEFAULT_CELL_M)
-    y_range = (y0, y0 + np.ceil(t.size_y_m / DEFAULT_CELL_M) * DEFAULT_CELL_M)
-    maps = acc.heat_maps(x_range, y_range, DEFAULT_CELL_M)
+    x_range = (x0, x0 + np.ceil(t.size_x_m / cell_m) * cell_m)
+    y_range = (y0, y0 + np.ceil(t.size_y_m / cell_m) * cell_m)
+    maps = acc.heat_maps(x_range, y_range, cell_m)
     written = []
     for key, title, vmin, vmax in (
-        ("pose_error_m", "pose error, m", 0.0, 0.05),
+        ("pose_error_m", "pose error, m", 0.0, ev.distances.plot_pose_error_max_m),
         ("aos", "AOS", 0.8, 1.0),
         ("bev_iou", "BEV IoU", 0.5, 1.0),
     ):

@@ -11,6 +11,7 @@ from typing import Any
 
 from shared.config import with_overrides
 from shared.machine import git_commit, machine_info
+from shared.paths import DEFAULT_SCENE
 from shared.perception.confidence import ScoreCalibration
 from shared.perception.config import MecSettings
 from shared.scene.scene import Scene
@@ -32,15 +33,29 @@ def run_fusion_study(
     noise: bool,
     out: Path,
     split: str = "",
+    scene_path: Path = DEFAULT_SCENE,
+    sim_overrides: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Evaluate `seeds` (the fusion split `split`, "" for chosen seeds) under each seed's conditions;
-    summarise per agent and for all; write `out/results.json` and plots; the results."""
+    """Evaluate `seeds` (the fusion split `split`, "" for chosen seeds) under each seed's conditions,
+    on `scene_path` with the sim settings' `sim_overrides`; summarise per agent and for all; write
+    `out/results.json` and plots; the results."""
     t0 = time.perf_counter()
     per_seed: dict[str, dict[str, dict[str, float | None]]] = {}
     evaluations = fe.evaluate(
-        agents, seeds, duration_s, warmup_s, mec, workers, dataset.variation, per_seed=per_seed
+        agents,
+        seeds,
+        duration_s,
+        warmup_s,
+        mec,
+        workers,
+        dataset.variation,
+        per_seed=per_seed,
+        scene_path=scene_path,
+        sim_overrides=sim_overrides,
     )
     results: dict[str, Any] = {
+        "scene": scene.spec.scene_id,
+        "static_track_speed_mps": fe.EvalDistances.for_scene(scene).static_track_speed_mps,
         "split": split,
         "agents": agents,
         "seeds": seeds,

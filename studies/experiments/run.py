@@ -54,11 +54,12 @@ def run_real_chain(
     (one onnxruntime thread per model each: the workers share the cores); their results and the
     pooled error measurements."""
     mec = with_overrides(mec, {"detectors": {"camera_threads": 1, "lidar_threads": 1}})
+    # Only what was set: a dumped default would come back explicit and no longer scale with the scene.
     dumps = (
-        exp.model_dump_json(),
-        sim.model_dump_json(),
-        coordinator.model_dump_json(),
-        mec.model_dump_json(),
+        exp.model_dump_json(exclude_unset=True),
+        sim.model_dump_json(exclude_unset=True),
+        coordinator.model_dump_json(exclude_unset=True),
+        mec.model_dump_json(exclude_unset=True),
     )
     jobs: list[RealJob] = sorted(((n, s, d, *dumps) for n, s, d in runs), key=lambda j: -j[0])
     results: list[RunResult] = []

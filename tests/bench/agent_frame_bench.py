@@ -38,7 +38,7 @@ from shared.perception.config import MecSettings
 from shared.perception.core import MecCore
 from shared.scene.scene import Scene
 from shared.service import one_blas_thread
-from shared.supervision.profiles import Choice, compose, composed_settings
+from shared.supervision.profiles import scene_profile
 from sim.config import load_sim_settings
 from sim.lockstep import LockstepSim
 from sim.sensors.rig import Capture
@@ -50,15 +50,6 @@ RESULTS = Path(__file__).resolve().parent / "results"
 MS_PER_S = 1e3
 BENCH_CORE = 0  # the CPU the timed part is pinned to
 ONE_THREAD = {"detectors": {"camera_threads": 1, "lidar_threads": 1}}
-
-
-def profile_mec_settings(scene_name: str) -> tuple[Path, dict[str, Any]]:
-    """The scene file and the MEC settings `make up SCENE=<scene_name>` gives its MECs."""
-    profile, _ = compose(Choice(scene=scene_name))
-    assert profile.scene is not None
-    context = {"scene": str(profile.scene), "site": "", "region_map": "", "settings": {}}
-    context["supervisor_url"] = ""
-    return profile.scene, composed_settings(profile, context)["mec"]
 
 
 def render_frames(
@@ -88,7 +79,8 @@ def pct(values: list[float]) -> dict[str, float]:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    scene_path, mec_data = profile_mec_settings(args.scene)
+    site = scene_profile(args.scene)
+    scene_path, mec_data = site.scene, site.settings["mec"]
     scene = Scene.load(scene_path)
     sensors = args.sensors or [s.id for s in scene.sensors_of(args.agent)]
     overrides = deep_merge(ONE_THREAD, {"detectors": {"camera_every_n_with_lidar": args.camera_every_n}})
