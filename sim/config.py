@@ -108,8 +108,9 @@ class TrafficSettings(_Model):
         None,
         gt=0,
         description="drivers slow for bends: the speed ahead is held to sqrt(this / curvature), reached "
-        "by braking at the IDM's comfortable deceleration before the bend (curvature over the pursuit's "
-        "standstill look-ahead); None: bends are taken at the lane's speed (the sand table's model cars)",
+        "by braking at the IDM's comfortable deceleration half a pursuit look-ahead before each point "
+        "(curvature over the pursuit's standstill look-ahead); None: bends are taken at the lane's speed "
+        "(the sand table's model cars)",
     )
     idm: IdmParams = IdmParams()
     pursuit: PursuitParams = PursuitParams()
