@@ -10,6 +10,8 @@ with no code change (issue 36; the paper's "any pair of 2D and 3D detectors as m
     classes: {2: car, 5: car, 7: car} # model class index -> the project's class; others dropped
     num_classes: 80                   # the model's class count (checked against its output shape)
     post: {score_threshold: 0.25, nms_iou: 0.6, pre_nms_top_k: 1000, max_detections: 300}
+    tiles: {image_width_px: 1920, image_height_px: 1200, whole_image: true,   # optional: large images
+            bands: [{y0_px: 150, y1_px: 566, scale: 0.5, min_overlap_px: 200}]}
 
 `load_card` validates a card (unknown fields, layouts, classes are errors); the detectors
 (`shared.detection.camera.card_detector`, `shared.detection.lidar.openpcdet`) check it against the ONNX
@@ -84,6 +86,50 @@ class YoloxGrid(_Card):
     strides: tuple[int, ...] = Field((8, 16, 32), description="the heads' strides, px, in output order")
 
 
+class TileBand(_Card):
+    """A horizontal band of the full image cut into overlapping tiles, each `scale` x its size in image
+    px to the network's input: the band's rows `y0_px`..`y1_px` (full-image px), split into as few
+    evenly spaced tiles as leave at least `min_overlap_px` (image px) between neighbours, across the
+    whole image width and the band's height. A car cut by a tile's inner edge is dropped there and
+    found whole in its neighbour, so the overlap should exceed the widest car the band shows."""
+
+    y0_px: int = Field(ge=0, description="first row of the band, full-image px")
+    y1_px: int = Field(gt=0, description="row after the band's last, full-image px")
+    scale: float = Field(1.0, gt=0, le=4, description="network-input px per image px in these tiles")
+    min_overlap_px: int = Field(128, ge=0, description="least overlap of neighbouring tiles, image px")
+
+    @model_validator(mode="after")
+    def _check(self) -> TileBand:
+        if self.y1_px <= self.y0_px:
+            raise ValueError(f"band rows {self.y0_px}..{self.y1_px}: y1_px must be > y0_px")
+        return self
+
+
+class CameraTiles(_Card):
+    """How a detector at its input size sees a large image (`shared.detection.camera.tiled`): tiles of
+    road bands at a finer scale (far, small cars) and optionally the whole image letterboxed (near, large
+    cars); detections go back to full-image px and are merged across tiles by NMS. Pixels are those of
+    an `image_width_px` x `image_height_px` image; another size scales the layout with it."""
+
+    image_width_px: int = Field(gt=0, description="the image size the layout is drawn for, px")
+    image_height_px: int = Field(gt=0)
+    bands: tuple[TileBand, ...] = Field((), description="tiled bands (none: the whole image only)")
+    whole_image: bool = Field(True, description="also run the whole image letterboxed (near, large cars)")
+    merge_iou: float = Field(0.5, gt=0, le=1, description="NMS IoU merging detections of different tiles")
+    edge_px: float = Field(
+        2.0, ge=0, description="a box within this of a tile edge inside the image is cut by it (dropped)"
+    )
+
+    @model_validator(mode="after")
+    def _check(self) -> CameraTiles:
+        if not self.bands and not self.whole_image:
+            raise ValueError("no tiles: give bands, whole_image or both")
+        for band in self.bands:
+            if band.y1_px > self.image_height_px:
+                raise ValueError(f"band rows ..{band.y1_px} beyond the image's {self.image_height_px}")
+        return self
+
+
 class CameraCard(_Card):
     kind: Literal["camera"]
     model: str = Field(description="ONNX file, relative to the card")
@@ -93,6 +139,9 @@ class CameraCard(_Card):
     classes: dict[int, str] = Field(description="model class index -> project class; others dropped")
     post: CameraPost = CameraPost()
     yolox: YoloxGrid | None = Field(None, description="layout yolox: the raw grid output to decode")
+    tiles: CameraTiles | None = Field(
+        None, description="large images in tiles (`shared.detection.camera.tiled`); none: letterboxed whole"
+    )
 
     @model_validator(mode="after")
     def _check(self) -> CameraCard:

@@ -1,8 +1,10 @@
 """Detectors by name or by model card, so services and tools swap them through configuration.
 
-Camera: `onnx` (the committed model in deploy/models/camera, through its card), `oracle` (noisy ground
-truth), or the path of any camera model card (`*.yaml`, `shared.detection.card`: a YOLO-family export,
-a site's own model). Lidar: `pointpillars` (deploy/models/lidar), `cluster` (classical), `oracle`
+Camera: `onnx` (the committed model in deploy/models/camera, through its card), `coco` (YOLOX-Nano
+trained on COCO, deploy/models/coco/yolox_nano, in tiles), `oracle` (noisy ground truth), or the path
+of any camera model card (`*.yaml`, `shared.detection.card`: a YOLO-family export, a site's own model;
+a card with `tiles` runs in tiles, `shared.detection.camera.tiled`).
+Lidar: `pointpillars` (deploy/models/lidar), `cluster` (classical), `oracle`
 (noisy ground truth), or the path of a lidar model card (an OpenPCDet PointPillars export).
 Learned models load from `models_dir` (default deploy/models) in `precision` fp32 (the export) or int8
 (its static quantization beside it, `training.quantize`; shared.detection.precision names the
@@ -26,10 +28,12 @@ if TYPE_CHECKING:
     from shared.detection.oracle import OracleLidarConfig
 
 MODELS_DIR = DEPLOY_DIR / "models"
-CAMERA_DETECTORS = ("onnx", "oracle")
+CAMERA_DETECTORS = ("onnx", "coco", "oracle")
 LIDAR_DETECTORS = ("pointpillars", "cluster", "background", "oracle")
 CAMERA_MODEL = Path("camera") / ONNX_FILE
 CAMERA_CARD = Path("camera") / CARD_FILE
+#: `coco`: YOLOX-Nano trained on COCO (deploy/models/coco/yolox_nano/SOURCE.md), tiled for 1920-px cameras.
+COCO_CARD = Path("coco") / "yolox_nano" / CARD_FILE
 LIDAR_MODEL = Path("lidar") / "pointpillars.onnx"
 LIDAR_CARD = Path("lidar") / "pointpillars.yaml"
 QUANTIZE_TOOLS = {
@@ -50,13 +54,20 @@ def learned_model(models_dir: Path, model: Path, precision: str) -> Path:
 def camera_detector(
     name: str, threads: int = 2, seed: int = 0, models_dir: Path = MODELS_DIR, precision: str = "fp32"
 ) -> CameraDetector:
-    if name == "onnx" or is_card(name):
+    if name in ("onnx", "coco") or is_card(name):
         from shared.detection.camera.onnx_detector import OnnxCameraDetector
+        from shared.detection.camera.tiled import TiledCameraDetector
+        from shared.detection.card import CameraCard, load_card_and_model
 
         if name == "onnx":
             learned_model(models_dir, CAMERA_MODEL, precision)  # names the tool that writes a missing one
-        card = models_dir / CAMERA_CARD if name == "onnx" else Path(name)
-        detector = OnnxCameraDetector.from_card(card, precision, intra_op_threads=threads)
+        card = {"onnx": models_dir / CAMERA_CARD, "coco": models_dir / COCO_CARD}.get(name, Path(name))
+        parsed, _ = load_card_and_model(card, CameraCard, precision)
+        detector: OnnxCameraDetector | TiledCameraDetector
+        if parsed.tiles is not None:  # a large image in tiles (shared.detection.camera.tiled)
+            detector = TiledCameraDetector.from_card(card, precision, intra_op_threads=threads)
+        else:
+            detector = OnnxCameraDetector.from_card(card, precision, intra_op_threads=threads)
         if name != "onnx":
             detector.name = f"{detector.name}:{name}"  # results tell the cards apart
         return detector
