@@ -17,7 +17,7 @@ from services.cli.app import (
     console,
     log_progress,
 )
-from shared.paths import DEFAULT_SCENE, REPO_ROOT
+from shared.paths import DEFAULT_SCENE
 from shared.scene.scene import Scene
 
 
@@ -383,34 +383,27 @@ def eval_fusion(
             "docs/eval/<name>/",
         ),
     ] = None,
+    lidar: Annotated[
+        str | None,
+        typer.Option(
+            help="the lidar detector instead of the settings' (pointpillars | cluster | background | ...): "
+            "the rest of the MEC as configured; results in <folder>_<lidar>, README section <name>-<lidar>",
+        ),
+    ] = None,
 ) -> None:
     """The MEC pipeline against simulation ground truth on held-out seeds: pose error, AOS, BEV IoU,
     heat maps (0.125 m grid), AP-BEV, precision / recall with false positives, MOTA / IDF1, pre- and
     post-fusion and per single modality; plus the Kalman noise experiment (radar noise variance 0,
     0.05, 0.1 m²: raw vs filtered RMSE)."""
     from shared.config import load_settings
-    from shared.perception.config import DEFAULT_MEC_CONFIG, MecSettings
-    from studies.dataset.config import DEFAULT_DATASET_CONFIG, DatasetSettings
+    from studies.dataset.config import DatasetSettings
     from studies.evaluation import fusion as fe
-    from studies.evaluation.run import run_fusion_study
+    from studies.evaluation.run import eval_site, run_fusion_study
 
     log_progress()
-    scene_path, dataset_file, base = DEFAULT_SCENE, DEFAULT_DATASET_CONFIG, Path("docs/eval")
-    mec_data: dict[str, Any] | None = None
-    sim_overrides: dict[str, Any] = {}
-    if scene_name is not None:
-        from shared.supervision.profiles import scene_profile
-
-        site = scene_profile(scene_name)
-        scene_path, mec_data = site.scene, site.settings["mec"]
-        # Lock-step runs have no coordinator: the vehicles route as the sim's own file says.
-        sim_overrides = site.overrides.get("sim", {})
-        sim_overrides = {**sim_overrides, "traffic": {**sim_overrides.get("traffic", {})}}
-        sim_overrides["traffic"].pop("route_policy", None)
-        dataset_file = REPO_ROOT / "deploy" / "datasets" / f"{scene_name}.yaml"
-        base = Path("docs/eval") / scene_name
-    scene = Scene.load(scene_path)
-    dataset = load_settings(DatasetSettings, dataset_file)
+    site = eval_site(scene_name)
+    scene = Scene.load(site.scene_path)
+    dataset = load_settings(DatasetSettings, site.dataset_file)
     agents = agents or sorted(scene.agents)
     unknown = [a for a in agents if a not in scene.agents]
     if unknown:
@@ -419,11 +412,13 @@ def eval_fusion(
         raise typer.BadParameter(f"--split must be one of {sorted(fe.SPLIT_LABELS)}")
     split_seeds = dataset.seeds.fusion_test if split == "test" else dataset.seeds.fusion_tuning
     seeds = seeds or list(split_seeds)
-    out = out or base / ("fusion" if split == "test" else "fusion_tuning")
-    if config is not None or mec_data is None:
-        mec = load_settings(MecSettings, config or DEFAULT_MEC_CONFIG)
-    else:
-        mec = load_settings(MecSettings, None, **mec_data)
+    folder = "fusion" if split == "test" else "fusion_tuning"
+    out = out or site.results_base / (folder if lidar is None else f"{folder}_{lidar}")
+    mec = site.mec(config, lidar)
+    if noise and scene_name is not None:
+        # The paper's Kalman noise experiment is the sand table's (its radar agent and variances).
+        console.print("the Kalman noise experiment runs on the sand table only: skipped")
+        noise = False
     results = run_fusion_study(
         scene,
         dataset,
@@ -436,8 +431,8 @@ def eval_fusion(
         noise,
         out,
         split=split,
-        scene_path=scene_path,
-        sim_overrides=sim_overrides,
+        scene_path=site.scene_path,
+        sim_overrides=site.sim_overrides,
     )
     table = Table(title=f"fusion on seeds {seeds}, {results['all']['frames']} agent frames")  # type: ignore[index]
     for col in fe.TABLE_COLUMNS:
@@ -445,14 +440,10 @@ def eval_fusion(
     for row in fe.table_rows(results, agents):
         table.add_row(*row)
     if readme:
-        write_fusion_readme(results, split, out, scene_name)
+        write_fusion_readme(results, split, out, scene_name, lidar)
     console.print(table)
-    for agent in agents:
-        static = results[agent]["static_false_tracks"]
-        console.print(
-            f"{agent}: static false tracks {static['runs']}, longest {static['max_s']:.1f} s, "
-            f"{static['over_limit']} over {fe.STATIC_TRACK_LIMIT_S:g} s"
-        )
+    if scene_name is not None:
+        console.print(fe.scene_notes(results))
     console.print(f"results: {out / 'results.json'}")
 
 
@@ -500,33 +491,32 @@ def eval_calibrate_scores(
 
 
 def write_fusion_readme(
-    results: dict[str, Any], split: str, folder: Path, scene_name: str | None = None
+    results: dict[str, Any],
+    split: str,
+    folder: Path,
+    scene_name: str | None = None,
+    lidar: str | None = None,
 ) -> None:
     """The README sections of one fusion split's results (from `folder`): its table, under it the previous
     models' figures when `previous_results.json` is there, and the noise experiment's line. Another
-    scene's (`scene_name`): its own sections, `eval-fusion-<scene>[-tuning]`, with the static false
-    tracks."""
+    scene's (`scene_name`): its own sections, `eval-fusion-<scene>[-<lidar>][-tuning]` (`-<lidar>`
+    with a lidar detector other than the settings'), with AP by range and the static false tracks."""
     from shared.readme import replace_section
     from studies.evaluation import fusion as fe
     from studies.evaluation import kalman_noise
     from studies.evaluation.compare import PREVIOUS_FILE, previous_section
 
     section = "eval-fusion" if scene_name is None else f"eval-fusion-{scene_name}"
+    section += "" if lidar is None else f"-{lidar}"
     section += "" if split == "test" else "-tuning"
     text = fe.markdown_table(results, results["agents"])
     if scene_name is not None:
-        text += "\n\nStatic false tracks (confirmed tracks matching no vehicle, slower than "
-        text += f"{results['static_track_speed_mps']:.2g} m/s), per agent: " + "; ".join(
-            f"{a} {r['runs']} runs, longest {r['max_s']:.1f} s, {r['over_limit']} over "
-            f"{fe.STATIC_TRACK_LIMIT_S:g} s"
-            for a in results["agents"]
-            for r in [results[a]["static_false_tracks"]]
-        )
+        text += "\n\n" + fe.scene_notes(results)
     previous = folder / PREVIOUS_FILE
     if previous.exists():
         text += "\n\n" + previous_section(json.loads(previous.read_text()), results, str(previous))
     replace_section(section, text)
-    if "kalman_noise" in results:
+    if "kalman_noise" in results and scene_name is None:
         text = kalman_noise.markdown(results["kalman_noise"], results["seeds"][0], results["duration_s"])
         replace_section("eval-fusion-kalman", text)
 

@@ -559,6 +559,40 @@ class FusionAccumulator:
         result = evaluate_kitti(self._kitti_frames, iou_thresholds=iou_thresholds, bands=(), kinds=("bev",))
         return {f"ap_bev_{t:g}": _float_or_none(result.ap("bev", float(t))) for t in iou_thresholds}
 
+    def ap_bev_by_range(
+        self,
+        origin_xy_m: tuple[float, float],
+        bands_m: Sequence[tuple[float, float]],
+        iou_threshold: float = AP_BEV_IOU_THRESHOLDS[0],
+    ) -> dict[str, dict[str, float | int | None]]:
+        """AP-BEV at `iou_threshold` per range band from a sensor at `origin_xy_m` (world frame,
+        metres), to tell far misses from near ones: every box shifted so the sensor is the origin, then
+        `evaluate_kitti`'s bands (a GT counts in the band of its centre's range, an unmatched prediction
+        is a FP in the band of its own).
+
+        Returns
+        -------
+        dict
+            band label (``"all"``, ``"[0, 27.3)"``, ...) -> ``{"ap", "num_gt", "num_tp", "num_fp"}``
+            (AP None for a band without GT).
+        """
+        shift = np.array([origin_xy_m[0], origin_xy_m[1]], np.float64)
+
+        def moved(boxes: FloatArray) -> FloatArray:
+            out = np.array(boxes, np.float64, copy=True)
+            if out.size:
+                out[:, [X, Y]] -= shift
+            return out
+
+        frames = [(moved(d), moved(g), moved(i)) for d, g, i in self._kitti_frames]
+        result = evaluate_kitti(frames, iou_thresholds=(iou_threshold,), bands=bands_m, kinds=("bev",))
+        out: dict[str, dict[str, float | int | None]] = {}
+        for band in result.bands:
+            res = result.results[("bev", float(iou_threshold), band)]
+            out[band] = {"ap": _float_or_none(res.ap), "num_gt": res.num_gt, "num_tp": res.num_tp}
+            out[band]["num_fp"] = res.num_fp
+        return out
+
     def heat_maps(
         self,
         x_range_m: tuple[float, float],

@@ -6,19 +6,64 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from shared.config import with_overrides
+from shared.config import load_settings, with_overrides
 from shared.machine import git_commit, machine_info
-from shared.paths import DEFAULT_SCENE
+from shared.paths import DEFAULT_SCENE, REPO_ROOT
 from shared.perception.confidence import ScoreCalibration
-from shared.perception.config import MecSettings
+from shared.perception.config import DEFAULT_MEC_CONFIG, MecSettings
 from shared.scene.scene import Scene
 from studies.dataset.conditions import SeedConditions
-from studies.dataset.config import DatasetSettings
+from studies.dataset.config import DEFAULT_DATASET_CONFIG, DatasetSettings
 from studies.evaluation import fusion as fe
 from studies.evaluation import kalman_noise, robustness
+
+
+@dataclass(frozen=True)
+class EvalSite:
+    """What a fusion evaluation runs on: the scene file, the MEC settings (`mec_data`: the profile's
+    composed settings, None for the MEC's own file), the sim settings' overrides, the seeds' file and
+    the results' folder."""
+
+    scene_path: Path
+    mec_data: dict[str, Any] | None
+    sim_overrides: dict[str, Any]
+    dataset_file: Path
+    results_base: Path
+
+    def mec(self, config: Path | None = None, lidar: str | None = None) -> MecSettings:
+        """The MEC settings: `config` if given, else the profile's (else the MEC's file); `lidar`
+        replaces the lidar detector, the rest as configured."""
+        if config is not None or self.mec_data is None:
+            mec = load_settings(MecSettings, config or DEFAULT_MEC_CONFIG)
+        else:
+            mec = load_settings(MecSettings, None, **self.mec_data)
+        return mec if lidar is None else with_overrides(mec, {"detectors": {"lidar": lidar}})
+
+
+def eval_site(scene_name: str | None = None) -> EvalSite:
+    """The sand table (None) or a profile scene (deploy/profiles/scene/<name>.yaml) as `make up
+    SCENE=<name>` composes it (shared/supervision/profiles.py), its seeds in deploy/datasets/<name>.yaml
+    and its results under docs/eval/<name>/."""
+    if scene_name is None:
+        return EvalSite(DEFAULT_SCENE, None, {}, DEFAULT_DATASET_CONFIG, Path("docs/eval"))
+    from shared.supervision.profiles import scene_profile
+
+    site = scene_profile(scene_name)
+    # Lock-step runs have no coordinator: the vehicles route as the sim's own file says.
+    sim_overrides = site.overrides.get("sim", {})
+    sim_overrides = {**sim_overrides, "traffic": {**sim_overrides.get("traffic", {})}}
+    sim_overrides["traffic"].pop("route_policy", None)
+    return EvalSite(
+        site.scene,
+        site.settings["mec"],
+        sim_overrides,
+        REPO_ROOT / "deploy" / "datasets" / f"{scene_name}.yaml",
+        Path("docs/eval") / scene_name,
+    )
 
 
 def run_fusion_study(

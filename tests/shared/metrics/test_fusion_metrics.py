@@ -305,3 +305,18 @@ def test_f1_and_velocity_error_of_matched_pairs() -> None:
     assert s["velocity_count"] == 1 and s["velocity_error_p50_mps"] == pytest.approx(0.5)
     with pytest.raises(ValueError, match="pred_velocity_mps"):
         acc.add_frame(preds, GT3, pred_velocity_mps=np.zeros((2, 2)), gt_velocity_mps=v_gt)
+
+
+def test_ap_by_range_measures_range_from_the_sensor_not_the_world_origin() -> None:
+    # A sensor at (100, 0): a car 1 m from it found exactly, a car 3 m from it missed. The bands are
+    # from the sensor, so the near band is perfect and the far one empty-handed; from the world origin
+    # both would fall in the last band.
+    acc = FusionAccumulator()
+    near = [101.0, 0.0, 0.1, 0.33, 0.22, 0.21, 0.0]
+    far = [103.0, 0.0, 0.1, 0.33, 0.22, 0.21, 0.0]
+    for _ in range(3):
+        acc.add_frame(np.array([near]), np.array([near, far]))
+    bands = acc.ap_bev_by_range((100.0, 0.0), [(0.0, 2.0), (2.0, 4.0), (4.0, float("inf"))])
+    assert bands["[0, 2)"]["ap"] == pytest.approx(1.0) and bands["[0, 2)"]["num_gt"] == 3
+    assert bands["[2, 4)"]["ap"] == pytest.approx(0.0) and bands["[2, 4)"]["num_gt"] == 3
+    assert bands["[4, inf)"]["ap"] is None and bands["all"]["num_gt"] == 6

@@ -3,14 +3,25 @@ and the static false tracks of issue 49."""
 
 from __future__ import annotations
 
-import pytest
+from collections import Counter
+from pathlib import Path
+from typing import Any
 
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from shared.config import load_settings
+from shared.metrics.detection import DEFAULT_DISTANCE_BANDS_M
 from shared.metrics.fusion import DEFAULT_CELL_M, DEFAULT_MATCH_DISTANCE_M
 from shared.metrics.tracking import DEFAULT_TRACK_DISTANCE_M
 from shared.perception.config import MecSettings
+from shared.perception.pipeline import AgentResult
 from shared.scene.scale import SiteScale
 from shared.scene.scene import Scene
 from shared.supervision.profiles import scene_profile
+from shared.tracking.track_table import Track, TrackState
+from studies.dataset.config import DatasetSettings
 from studies.evaluation import fusion as fe
 
 
@@ -63,3 +74,110 @@ def test_static_false_tracks_are_timed_from_first_to_last_frame() -> None:
     open_run.static_tracks(2.0, {1})  # still open at the end of its run: counted
     merged.merge(open_run)
     assert merged.static_track_summary()["over_limit"] == 2
+
+
+def test_the_range_bands_are_the_detector_evaluations_at_scale(table_scene: Scene, full_scene: Scene) -> None:
+    table, full = fe.EvalDistances.for_scene(table_scene), fe.EvalDistances.for_scene(full_scene)
+    assert table.range_bands_m() == list(DEFAULT_DISTANCE_BANDS_M)
+    scale = SiteScale.of(full_scene.spec).length
+    assert full.range_bands_m()[1] == pytest.approx((2.0 * scale, 4.0 * scale))
+    assert full.track_distance_m == pytest.approx(table.track_distance_m * scale)
+    assert full.scope_margin_m == pytest.approx(table.scope_margin_m * scale)
+
+
+def _track(
+    track_id: int, xy: tuple[float, float], v_mps: tuple[float, float], size_m: NDArray[np.float64]
+) -> Track:
+    return Track(
+        track_id=track_id,
+        state=TrackState.CONFIRMED,
+        x=np.array([*xy, *v_mps]),
+        P=np.eye(4),
+        z_m=0.75,
+        size_m=size_m,
+        yaw_rad=0.0,
+        heading_sign_known=True,
+        hits=10,
+        age_frames=10,
+        consecutive_misses=0,
+        modalities=frozenset({"lidar"}),
+        sensor_ids=("lidar_11",),
+        score=0.9,
+        existence_probability=0.9,
+        last_update_stamp_s=0.0,
+    )
+
+
+def test_a_planted_static_false_track_is_timed_and_counted(full_scene: Scene) -> None:
+    # At the intersection, 1.5 s of frames at 10 Hz: a car driving east and a car stopped at the
+    # crossing, each with its own track (the stopped car's is static but matched: no false track); a
+    # static track on an empty spot of the crossing (what a tree or a pole would leave), and a fast
+    # track that matches nothing (a false track, but not a static one).
+    d = fe.EvalDistances.for_scene(full_scene)
+    ev = fe.AgentEvaluation(distances=d, origin_xy_m=fe.sensor_origin_xy_m(full_scene, "agent1"))
+    scope = fe.AgentScope(full_scene, "agent1", d.scope_margin_m, d.scope_margin_z_m)
+    size = np.array([4.5, 1.8, 1.5])
+    speed = 10.0
+    stopped = np.array([5.0, 1.75, 0.75, *size, 0.0])
+    for k in range(16):
+        t = k * 0.1
+        car = np.array([-20.0 + speed * t, -1.75, 0.75, *size, 0.0])
+        truth = fe.FrameTruth(
+            {"car_0": car, "car_1": stopped},
+            [],
+            {"car_0": np.array([speed, 0.0]), "car_1": np.zeros(2)},
+            {"car_0": 500, "car_1": 800},
+        )
+        tracks = [
+            _track(1, (car[0], car[1]), (speed, 0.0), size),
+            _track(4, (stopped[0], stopped[1]), (0.0, 0.0), size),  # static and matched
+            _track(2, (15.0, 15.0), (0.1 * d.static_track_speed_mps, 0.0), size),  # static, unmatched
+            _track(3, (-15.0, 15.0), (speed, 0.0), size),  # unmatched but moving
+        ]
+        result = AgentResult(int(t * 1e9), tracks, [], np.zeros((0, 9)), {}, {}, Counter(), frozenset())
+        fe._score_frame(ev, scope, truth, {"car_0": 0, "car_1": 1}, result, {}, {}, (4.5, 1.8, 1.5), t)
+    static = ev.static_track_summary()
+    assert static["runs"] == 1 and static["max_s"] == pytest.approx(1.5)
+    assert static["over_limit"] == 1
+    summary = fe.summarise(ev)
+    assert summary["static_false_tracks"] == static
+    assert summary["tracked"]["tracking"]["fp"] == 2 * 16  # both unmatched tracks are false positives
+    near = summary["tracked"]["ap_bev_0.7_by_range"]
+    assert sum(b["num_gt"] for band, b in near.items() if band != "all") == 2 * 16
+
+
+def test_the_cli_evaluates_a_profile_scene(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    # `rmmdet eval fusion --scene intersection --lidar cluster`: the profile's scene, its seeds and its
+    # MEC settings with the lidar detector replaced, results in their own folder.
+    from typer.testing import CliRunner
+
+    from services.cli.main import app
+    from studies.evaluation import run
+
+    seen: dict[str, Any] = {}
+
+    def fake_study(
+        scene: Scene,
+        dataset: Any,
+        mec: MecSettings,
+        agents: list[str],
+        seeds: list[int],
+        *args: Any,
+        **kwargs: Any,
+    ) -> dict[str, Any]:
+        seen.update(scene=scene.spec.scene_id, mec=mec, seeds=seeds, out=args[4], **kwargs)
+        raise SystemExit(0)
+
+    monkeypatch.setattr(run, "run_fusion_study", fake_study)
+    result = CliRunner().invoke(
+        app, ["eval", "fusion", "--scene", "intersection", "--split", "tuning", "--lidar", "cluster"]
+    )
+    assert result.exit_code == 0, result.output
+    assert seen["scene"] == "intersection"
+    assert seen["mec"].detectors.lidar == "cluster"
+    site = scene_profile("intersection")
+    dataset = load_settings(DatasetSettings, site.scene.parents[1] / "datasets" / "intersection.yaml")
+    assert seen["seeds"] == list(dataset.seeds.fusion_tuning)
+    assert seen["out"] == Path("docs/eval/intersection/fusion_tuning_cluster")
+    assert seen["scene_path"] == site.scene
+    assert "route_policy" not in seen["sim_overrides"]["traffic"]

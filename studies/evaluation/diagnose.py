@@ -1,0 +1,245 @@
+"""Why the tracked output misses its bar: one (agent, seed) run of the fusion evaluation with every
+frame kept (`evaluate_run(trace=True)`), its errors sorted by cause.
+
+`python -m studies.evaluation.diagnose --scene intersection --seed 301 --duration-s 30 [--lidar cluster]`
+prints and writes (`--out`, JSON):
+
+- AP-BEV@0.7 by range band from the agent's range sensors (`ap_bev_0.7_by_range`);
+- matched pairs per vehicle class (classed by the ground truth's length: the scene's vehicle and its
+  `vehicle_classes`): the share at BEV IoU >= 0.7, the median centre error along and across the vehicle,
+  the median length / width error, the median yaw error, and the IoU each pair would have with only its
+  pose wrong (the true size at the track's pose) or only its size wrong (the track's size at the true
+  pose): which of the two costs the 0.7;
+- false positives (track frames matching no vehicle nor an ignore region) by what is near them: a
+  vehicle within two match gates (a duplicate or an offset track of a real car), a static object of the
+  scene within one gate (by its id: tree, pole, sign, building ...), or nothing;
+- misses by range band, by the vehicle's lidar points and by whether any track was within two gates
+  (an offset track: a pose error) or none (not detected);
+- the static false tracks over the limit, with where they stood and the nearest static object.
+
+The run is one process, on the seed's conditions as `rmmdet eval fusion` draws them, on the site as
+`eval_site` composes it (the profile's MEC settings and sim overrides).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from shared.config import deep_merge, load_settings
+from shared.geometry.boxes import bev_iou_matrix
+from shared.scene.scene import Scene
+from studies.dataset.conditions import SeedConditions
+from studies.dataset.config import DatasetSettings
+from studies.evaluation import fusion as fe
+from studies.evaluation.run import eval_site
+
+#: Lidar point buckets of the misses (lower edges): a vehicle is scored from MIN_LIDAR_POINTS or from a
+#: camera or radar sighting, so 0 means seen by a camera or the radar alone.
+POINT_BUCKETS = (0, 1, 50, 200, 1000)
+
+
+def _median(values: list[float]) -> float | None:
+    return float(np.median(values)) if values else None
+
+
+def _class_of(length_m: float, classes: dict[str, float]) -> str:
+    return min(classes, key=lambda c: abs(classes[c] - length_m))
+
+
+def _bucket(points: int) -> str:
+    lo = max(b for b in POINT_BUCKETS if points >= b)
+    higher = [b for b in POINT_BUCKETS if b > lo]
+    return f"{lo}-{higher[0] - 1}" if higher else f">={lo}"
+
+
+def _band(range_m: float, bands: list[tuple[float, float]]) -> str:
+    return next(f"[{lo:g}, {hi:g})" for lo, hi in bands if lo <= range_m < hi)
+
+
+def analyse(ev: fe.AgentEvaluation, scene: Scene) -> dict[str, Any]:
+    """The causes of the errors in `ev.trace` (an `evaluate_run(..., trace=True)`)."""
+    assert ev.trace is not None and ev.origin_xy_m is not None
+    gate_m = ev.distances.match_distance_m
+    bands = ev.distances.range_bands_m()
+    origin = np.asarray(ev.origin_xy_m)
+    spec = scene.spec
+    classes = {spec.vehicle.name: spec.vehicle.length_m} | {c.name: c.length_m for c in spec.vehicle_classes}
+    statics = [(o.id, np.asarray(o.position_m[:2]), max(o.size_m[:2]) / 2) for o in spec.static_objects]
+
+    def nearest_static(xy: np.ndarray) -> tuple[str, float]:
+        """The nearest static object's id (its kind: the id without its number) and the gap to its edge."""
+        gaps = [(float(np.hypot(*(xy - p)) - r), i) for i, p, r in statics]
+        gap, object_id = min(gaps) if gaps else (float("inf"), "-")
+        return object_id, gap
+
+    pairs: dict[str, dict[str, list[float]]] = {}
+    fp: Counter[str] = Counter()
+    fp_ids: dict[str, set[int]] = {}
+    misses: dict[str, Counter[str]] = {"range": Counter(), "lidar_points": Counter(), "near_track": Counter()}
+    misses_class: Counter[str] = Counter()
+    static_runs: dict[int, list[tuple[float, np.ndarray]]] = {}
+    finished_runs: list[list[tuple[float, np.ndarray]]] = []
+    for f in ev.trace:
+        ious = np.diagonal(bev_iou_matrix(f.tracks[f.pred_index], f.gt[f.gt_index]))
+        for p, g, iou in zip(f.pred_index, f.gt_index, ious, strict=True):
+            t, gt = f.tracks[p], f.gt[g]
+            c, s = np.cos(gt[6]), np.sin(gt[6])
+            dx, dy = t[:2] - gt[:2]
+            yaw_err = abs((t[6] - gt[6] + np.pi / 2) % np.pi - np.pi / 2)  # modulo pi, as AOS
+            pose_only = np.concatenate([t[:3], gt[3:6], t[6:]])[None]
+            size_only = np.concatenate([gt[:3], t[3:6], gt[6:]])[None]
+            row = pairs.setdefault(_class_of(gt[3], classes), {k: [] for k in PAIR_KEYS})
+            for key, value in (
+                ("iou", iou),
+                ("along_m", abs(dx * c + dy * s)),
+                ("across_m", abs(-dx * s + dy * c)),
+                ("length_err_m", t[3] - gt[3]),
+                ("width_err_m", t[4] - gt[4]),
+                ("yaw_err_deg", np.degrees(yaw_err)),
+                ("iou_pose_only", bev_iou_matrix(pose_only, gt[None])[0, 0]),
+                ("iou_size_only", bev_iou_matrix(size_only, gt[None])[0, 0]),
+            ):
+                row[key].append(float(value))
+        for p in f.false_positives:
+            xy = f.tracks[p, :2]
+            gaps = np.hypot(*(f.gt[:, :2] - xy).T) if len(f.gt) else np.zeros(0)
+            object_id, gap = nearest_static(xy)
+            if gaps.size and gaps.min() <= 2 * gate_m:
+                cause = "near a vehicle (duplicate or offset track)"
+            elif gap <= gate_m:
+                cause = f"static object: {object_id.split('_')[0]}"
+            else:
+                cause = "nothing near"
+            fp[cause] += 1
+            fp_ids.setdefault(cause, set()).add(f.track_ids[p])
+        for g in f.misses:
+            gt = f.gt[g]
+            misses["range"][_band(float(np.hypot(*(gt[:2] - origin))), bands)] += 1
+            misses["lidar_points"][_bucket(f.gt_lidar_points[g])] += 1
+            near = len(f.tracks) and np.hypot(*(f.tracks[:, :2] - gt[:2]).T).min() <= 2 * gate_m
+            misses["near_track"]["a track within 2 gates (offset)" if near else "no track near"] += 1
+            misses_class[_class_of(gt[3], classes)] += 1
+        slow = np.hypot(*f.velocities_mps.T) < ev.distances.static_track_speed_mps
+        static_now = {f.track_ids[p]: f.tracks[p, :2] for p in f.false_positives if slow[p]}
+        for track_id in [t for t in static_runs if t not in static_now]:
+            finished_runs.append(static_runs.pop(track_id))
+        for track_id, xy in static_now.items():
+            static_runs.setdefault(track_id, []).append((f.stamp_s, xy))
+    finished_runs += static_runs.values()
+    long_runs = []
+    for run in finished_runs:
+        length_s = run[-1][0] - run[0][0]
+        if length_s > fe.STATIC_TRACK_LIMIT_S:
+            xy = np.mean([xy for _, xy in run], axis=0)
+            object_id, gap = nearest_static(xy)
+            long_runs.append(
+                {
+                    "seconds": round(length_s, 2),
+                    "xy_m": [round(float(v), 2) for v in xy],
+                    "range_m": round(float(np.hypot(*(xy - origin))), 1),
+                    "nearest_static": object_id,
+                    "gap_m": round(gap, 2),
+                }
+            )
+    summary = fe.summarise(ev)
+    tracked = summary["tracked"]
+    return {
+        "ap_bev_0.7": tracked["ap_bev_0.7"],
+        "mota": tracked["tracking"]["mota"],
+        "idf1": tracked["tracking"]["idf1"],
+        "ap_bev_0.7_by_range": tracked["ap_bev_0.7_by_range"],
+        "matched_pairs_by_class": {
+            name: {
+                "n": len(row["iou"]),
+                "share_iou_ge_0.7": float(np.mean(np.asarray(row["iou"]) >= fe.CALIBRATION_IOU)),
+                "share_iou_ge_0.7_pose_only": float(np.mean(np.asarray(row["iou_pose_only"]) >= 0.7)),
+                "share_iou_ge_0.7_size_only": float(np.mean(np.asarray(row["iou_size_only"]) >= 0.7)),
+                **{f"median_{k}": _median(row[k]) for k in PAIR_KEYS if not k.startswith("iou")},
+            }
+            for name, row in sorted(pairs.items())
+        },
+        "false_positives": {
+            cause: {"track_frames": n, "tracks": len(fp_ids[cause])} for cause, n in fp.most_common()
+        },
+        "misses": {k: dict(v.most_common()) for k, v in misses.items()} | {"class": dict(misses_class)},
+        "static_false_tracks": summary["static_false_tracks"],
+        "static_false_tracks_over_limit": sorted(long_runs, key=lambda r: -r["seconds"]),
+    }
+
+
+PAIR_KEYS = (
+    "iou",
+    "along_m",
+    "across_m",
+    "length_err_m",
+    "width_err_m",
+    "yaw_err_deg",
+    "iou_pose_only",
+    "iou_size_only",
+)
+
+
+def diagnose(
+    scene_name: str | None,
+    agent: str,
+    seed: int,
+    duration_s: float,
+    warmup_s: float,
+    lidar: str | None = None,
+) -> dict[str, Any]:
+    """One (agent, seed) run of the fusion evaluation on `scene_name`'s site, analysed."""
+    from sim.config import load_sim_settings
+
+    site = eval_site(scene_name)
+    scene = Scene.load(site.scene_path)
+    dataset = load_settings(DatasetSettings, site.dataset_file)
+    conditions = SeedConditions.draw(dataset.variation, seed)
+    sim = load_sim_settings(
+        vehicles=conditions.vehicles,
+        seed=seed,
+        **deep_merge(site.sim_overrides, {"scene": str(site.scene_path)}),
+    )
+    mec = site.mec(lidar=lidar)
+    ev = fe.evaluate_run(scene, agent, sim, mec, duration_s, warmup_s, conditions=conditions, trace=True)
+    return {
+        "scene": scene.spec.scene_id,
+        "agent": agent,
+        "seed": seed,
+        "lidar": mec.detectors.lidar,
+        "conditions": conditions.as_dict(),
+        "duration_s": duration_s,
+        "warmup_s": warmup_s,
+        **analyse(ev, scene),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--scene", default=None, help="a profile scene (default: the sand table)")
+    parser.add_argument("--agent", default="agent1")
+    parser.add_argument("--seed", type=int, required=True)
+    parser.add_argument("--duration-s", type=float, default=30.0)
+    parser.add_argument("--warmup-s", type=float, default=5.0)
+    parser.add_argument("--lidar", default=None, help="the lidar detector instead of the settings'")
+    parser.add_argument("--out", type=Path, default=None, help="JSON file of the diagnosis")
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    report = diagnose(args.scene, args.agent, args.seed, args.duration_s, args.warmup_s, args.lidar)
+    text = json.dumps(report, indent=2, default=float)
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text + "\n")
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
