@@ -60,7 +60,7 @@ from scipy.optimize import linear_sum_assignment
 from shared.detection.interface import CAR_CLASS_ID
 from shared.geometry.boxes import bev_intersection_area_matrix, bev_iou_matrix
 from shared.geometry.grid import CellGrid, grid_shape
-from shared.metrics.detection import evaluate_kitti
+from shared.metrics.detection import ALL_BAND, band_label, evaluate_kitti
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -573,8 +573,8 @@ class FusionAccumulator:
         Returns
         -------
         dict
-            band label (``"all"``, ``"[0, 27.3)"``, ...) -> ``{"ap", "num_gt", "num_tp", "num_fp"}``
-            (AP None for a band without GT).
+            band (``"all"``, ``"[0, 27.3)"``, ...: edges to 3 significant digits) -> ``{"ap", "num_gt",
+            "num_tp", "num_fp"}`` (AP None for a band without GT).
         """
         shift = np.array([origin_xy_m[0], origin_xy_m[1]], np.float64)
 
@@ -587,10 +587,12 @@ class FusionAccumulator:
         frames = [(moved(d), moved(g), moved(i)) for d, g, i in self._kitti_frames]
         result = evaluate_kitti(frames, iou_thresholds=(iou_threshold,), bands=bands_m, kinds=("bev",))
         out: dict[str, dict[str, float | int | None]] = {}
-        for band in result.bands:
-            res = result.results[("bev", float(iou_threshold), band)]
-            out[band] = {"ap": _float_or_none(res.ap), "num_gt": res.num_gt, "num_tp": res.num_tp}
-            out[band]["num_fp"] = res.num_fp
+        for label, band in [(ALL_BAND, None), *((band_label(b), b) for b in bands_m)]:
+            res = result.results[("bev", float(iou_threshold), label)]
+            # labels to 3 significant digits: a scaled edge (27.2727 m) reads as 27.3
+            key = label if band is None else f"[{band[0]:.3g}, {band[1]:.3g})"
+            out[key] = {"ap": _float_or_none(res.ap), "num_gt": res.num_gt, "num_tp": res.num_tp}
+            out[key]["num_fp"] = res.num_fp
         return out
 
     def heat_maps(

@@ -49,6 +49,10 @@ def _median(values: list[float]) -> float | None:
     return float(np.median(values)) if values else None
 
 
+def _percentiles(values: list[float]) -> list[float] | None:
+    return [round(float(v), 1) for v in np.percentile(values, [10, 50, 90])] if values else None
+
+
 def _class_of(length_m: float, classes: dict[str, float]) -> str:
     return min(classes, key=lambda c: abs(classes[c] - length_m))
 
@@ -60,7 +64,7 @@ def _bucket(points: int) -> str:
 
 
 def _band(range_m: float, bands: list[tuple[float, float]]) -> str:
-    return next(f"[{lo:g}, {hi:g})" for lo, hi in bands if lo <= range_m < hi)
+    return next(f"[{lo:.3g}, {hi:.3g})" for lo, hi in bands if lo <= range_m < hi)
 
 
 def analyse(ev: fe.AgentEvaluation, scene: Scene) -> dict[str, Any]:
@@ -80,6 +84,8 @@ def analyse(ev: fe.AgentEvaluation, scene: Scene) -> dict[str, Any]:
         return object_id, gap
 
     pairs: dict[str, dict[str, list[float]]] = {}
+    pairs_by_range: dict[str, dict[str, list[float]]] = {}
+    miss_range_m: list[float] = []
     fp: Counter[str] = Counter()
     fp_ids: dict[str, set[int]] = {}
     misses: dict[str, Counter[str]] = {"range": Counter(), "lidar_points": Counter(), "near_track": Counter()}
@@ -95,6 +101,8 @@ def analyse(ev: fe.AgentEvaluation, scene: Scene) -> dict[str, Any]:
             yaw_err = abs((t[6] - gt[6] + np.pi / 2) % np.pi - np.pi / 2)  # modulo pi, as AOS
             pose_only = np.concatenate([t[:3], gt[3:6], t[6:]])[None]
             size_only = np.concatenate([gt[:3], t[3:6], gt[6:]])[None]
+            range_m = float(np.hypot(*(gt[:2] - origin)))
+            band = pairs_by_range.setdefault(_band(range_m, bands), {k: [] for k in PAIR_KEYS})
             row = pairs.setdefault(_class_of(gt[3], classes), {k: [] for k in PAIR_KEYS})
             for key, value in (
                 ("iou", iou),
@@ -107,6 +115,7 @@ def analyse(ev: fe.AgentEvaluation, scene: Scene) -> dict[str, Any]:
                 ("iou_size_only", bev_iou_matrix(size_only, gt[None])[0, 0]),
             ):
                 row[key].append(float(value))
+                band[key].append(float(value))
         for p in f.false_positives:
             xy = f.tracks[p, :2]
             gaps = np.hypot(*(f.gt[:, :2] - xy).T) if len(f.gt) else np.zeros(0)
@@ -121,7 +130,8 @@ def analyse(ev: fe.AgentEvaluation, scene: Scene) -> dict[str, Any]:
             fp_ids.setdefault(cause, set()).add(f.track_ids[p])
         for g in f.misses:
             gt = f.gt[g]
-            misses["range"][_band(float(np.hypot(*(gt[:2] - origin))), bands)] += 1
+            miss_range_m.append(float(np.hypot(*(gt[:2] - origin))))
+            misses["range"][_band(miss_range_m[-1], bands)] += 1
             misses["lidar_points"][_bucket(f.gt_lidar_points[g])] += 1
             near = len(f.tracks) and np.hypot(*(f.tracks[:, :2] - gt[:2]).T).min() <= 2 * gate_m
             misses["near_track"]["a track within 2 gates (offset)" if near else "no track near"] += 1
@@ -150,25 +160,30 @@ def analyse(ev: fe.AgentEvaluation, scene: Scene) -> dict[str, Any]:
             )
     summary = fe.summarise(ev)
     tracked = summary["tracked"]
+
+    def pair_summary(row: dict[str, list[float]]) -> dict[str, Any]:
+        return {
+            "n": len(row["iou"]),
+            "share_iou_ge_0.7": float(np.mean(np.asarray(row["iou"]) >= fe.CALIBRATION_IOU)),
+            "share_iou_ge_0.7_pose_only": float(np.mean(np.asarray(row["iou_pose_only"]) >= 0.7)),
+            "share_iou_ge_0.7_size_only": float(np.mean(np.asarray(row["iou_size_only"]) >= 0.7)),
+            **{f"median_{k}": _median(row[k]) for k in PAIR_KEYS if not k.startswith("iou")},
+            "p90_across_m": float(np.percentile(row["across_m"], 90)),
+            "p90_along_m": float(np.percentile(row["along_m"], 90)),
+        }
+
     return {
         "ap_bev_0.7": tracked["ap_bev_0.7"],
         "mota": tracked["tracking"]["mota"],
         "idf1": tracked["tracking"]["idf1"],
         "ap_bev_0.7_by_range": tracked["ap_bev_0.7_by_range"],
-        "matched_pairs_by_class": {
-            name: {
-                "n": len(row["iou"]),
-                "share_iou_ge_0.7": float(np.mean(np.asarray(row["iou"]) >= fe.CALIBRATION_IOU)),
-                "share_iou_ge_0.7_pose_only": float(np.mean(np.asarray(row["iou_pose_only"]) >= 0.7)),
-                "share_iou_ge_0.7_size_only": float(np.mean(np.asarray(row["iou_size_only"]) >= 0.7)),
-                **{f"median_{k}": _median(row[k]) for k in PAIR_KEYS if not k.startswith("iou")},
-            }
-            for name, row in sorted(pairs.items())
-        },
+        "matched_pairs_by_class": {name: pair_summary(row) for name, row in sorted(pairs.items())},
+        "matched_pairs_by_range": {name: pair_summary(row) for name, row in sorted(pairs_by_range.items())},
         "false_positives": {
             cause: {"track_frames": n, "tracks": len(fp_ids[cause])} for cause, n in fp.most_common()
         },
-        "misses": {k: dict(v.most_common()) for k, v in misses.items()} | {"class": dict(misses_class)},
+        "misses": {k: dict(v.most_common()) for k, v in misses.items()}
+        | {"class": dict(misses_class), "range_m_p10_p50_p90": _percentiles(miss_range_m)},
         "static_false_tracks": summary["static_false_tracks"],
         "static_false_tracks_over_limit": sorted(long_runs, key=lambda r: -r["seconds"]),
     }
