@@ -181,3 +181,40 @@ def test_the_cli_evaluates_a_profile_scene(monkeypatch: pytest.MonkeyPatch, tmp_
     assert seen["out"] == Path("docs/eval/intersection/fusion_tuning_cluster")
     assert seen["scene_path"] == site.scene
     assert "route_policy" not in seen["sim_overrides"]["traffic"]
+
+
+def test_the_diagnosis_names_the_planted_errors(full_scene: Scene) -> None:
+    # A static false track planted beside a street tree, a car's track shifted across the car by 0.5 m
+    # (an IoU below 0.7 from its pose alone), a second car never tracked: the diagnosis must say so.
+    from studies.evaluation.diagnose import analyse
+
+    d = fe.EvalDistances.for_scene(full_scene)
+    origin = fe.sensor_origin_xy_m(full_scene, "agent1")
+    ev = fe.AgentEvaluation(distances=d, origin_xy_m=origin, trace=[])
+    scope = fe.AgentScope(full_scene, "agent1", d.scope_margin_m, d.scope_margin_z_m)
+    tree = next(
+        o for o in full_scene.spec.static_objects if o.id.startswith("tree") and o.id.endswith("trunk")
+    )
+    size = np.array([4.5, 1.8, 1.5])
+    car = np.array([-10.0, -1.75, 0.75, *size, 0.0])
+    missed = np.array([1.75, 20.0, 0.75, *size, np.pi / 2])
+    for k in range(15):
+        truth = fe.FrameTruth(
+            {"car_0": car, "car_1": missed}, [], {"car_0": np.zeros(2), "car_1": np.zeros(2)}, {"car_0": 400}
+        )
+        tracks = [
+            _track(1, (car[0], car[1] + 0.5), (0.0, 0.0), size),
+            _track(2, (tree.position_m[0] + 1.0, tree.position_m[1]), (0.0, 0.0), size),
+        ]
+        result = AgentResult(int(k * 1e8), tracks, [], np.zeros((0, 9)), {}, {}, Counter(), frozenset())
+        fe._score_frame(ev, scope, truth, {"car_0": 0, "car_1": 1}, result, {}, {}, (4.5, 1.8, 1.5), k * 0.1)
+    report = analyse(ev, full_scene)
+    pairs = report["matched_pairs_by_class"]["car"]
+    assert pairs["n"] == 15 and pairs["share_iou_ge_0.7"] == 0.0
+    assert pairs["share_iou_ge_0.7_pose_only"] == 0.0 and pairs["share_iou_ge_0.7_size_only"] == 1.0
+    assert pairs["median_across_m"] == pytest.approx(0.5)
+    assert report["false_positives"] == {"static object: tree": {"track_frames": 15, "tracks": 1}}
+    assert report["misses"]["near_track"] == {"no track near": 15}
+    assert report["misses"]["lidar_points"] == {"0-0": 15}
+    [long_run] = report["static_false_tracks_over_limit"]
+    assert long_run["nearest_static"].startswith("tree") and long_run["seconds"] == pytest.approx(1.4)
