@@ -34,6 +34,7 @@ import numpy as np
 
 from shared.config import deep_merge, load_settings
 from shared.geometry.boxes import bev_iou_matrix
+from shared.geometry.transforms import matrix_from_pose, matrix_from_xyz_rpy
 from shared.scene.scene import Scene
 from studies.dataset.conditions import SeedConditions
 from studies.dataset.config import DatasetSettings
@@ -67,8 +68,8 @@ def _band(range_m: float, bands: list[tuple[float, float]]) -> str:
     return next(f"[{lo:.3g}, {hi:.3g})" for lo, hi in bands if lo <= range_m < hi)
 
 
-def analyse(ev: fe.AgentEvaluation, scene: Scene) -> dict[str, Any]:
-    """The causes of the errors in `ev.trace` (an `evaluate_run(..., trace=True)`)."""
+def analyse(ev: fe.AgentEvaluation, scene: Scene, agent_id: str) -> dict[str, Any]:
+    """The causes of the errors in `ev.trace` (an `evaluate_run(..., trace=True)` of `agent_id`)."""
     assert ev.trace is not None and ev.origin_xy_m is not None
     gate_m = ev.distances.match_distance_m
     bands = ev.distances.range_bands_m()
@@ -88,7 +89,24 @@ def analyse(ev: fe.AgentEvaluation, scene: Scene) -> dict[str, Any]:
     miss_range_m: list[float] = []
     fp: Counter[str] = Counter()
     fp_ids: dict[str, set[int]] = {}
-    misses: dict[str, Counter[str]] = {"range": Counter(), "lidar_points": Counter(), "near_track": Counter()}
+    misses: dict[str, Counter[str]] = {
+        "range": Counter(),
+        "lidar_points": Counter(),
+        "near_track": Counter(),
+        "side_of_lidar": Counter(),
+    }
+    # Which way the agent's (first) lidar faces: a tilted lidar looks down steeply in front of itself and
+    # barely behind, so what stands behind it near its pole is in no beam.
+    lidars = [x for x in scene.sensors_of(agent_id) if x.kind == "lidar"]
+    facing = None
+    if lidars:
+        pose = lidars[0].pose
+        if pose.rpy_rad is not None:
+            axes = matrix_from_xyz_rpy(pose.position_m, pose.rpy_rad)
+        else:
+            assert pose.quat_xyzw is not None  # a pose has one or the other (SensorPose)
+            axes = matrix_from_pose(pose.position_m, pose.quat_xyzw)
+        facing = axes[:2, 0] / np.linalg.norm(axes[:2, 0])  # its x axis on the ground
     misses_class: Counter[str] = Counter()
     static_runs: dict[int, list[tuple[float, np.ndarray]]] = {}
     finished_runs: list[list[tuple[float, np.ndarray]]] = []
@@ -133,6 +151,9 @@ def analyse(ev: fe.AgentEvaluation, scene: Scene) -> dict[str, Any]:
             miss_range_m.append(float(np.hypot(*(gt[:2] - origin))))
             misses["range"][_band(miss_range_m[-1], bands)] += 1
             misses["lidar_points"][_bucket(f.gt_lidar_points[g])] += 1
+            if facing is not None:
+                ahead = float(np.dot(gt[:2] - origin, facing)) >= 0
+                misses["side_of_lidar"]["in front" if ahead else "behind"] += 1
             near = len(f.tracks) and np.hypot(*(f.tracks[:, :2] - gt[:2]).T).min() <= 2 * gate_m
             misses["near_track"]["a track within 2 gates (offset)" if near else "no track near"] += 1
             misses_class[_class_of(gt[3], classes)] += 1
@@ -231,7 +252,7 @@ def diagnose(
         "conditions": conditions.as_dict(),
         "duration_s": duration_s,
         "warmup_s": warmup_s,
-        **analyse(ev, scene),
+        **analyse(ev, scene, agent),
     }
 
 

@@ -208,7 +208,7 @@ def test_the_diagnosis_names_the_planted_errors(full_scene: Scene) -> None:
         ]
         result = AgentResult(int(k * 1e8), tracks, [], np.zeros((0, 9)), {}, {}, Counter(), frozenset())
         fe._score_frame(ev, scope, truth, {"car_0": 0, "car_1": 1}, result, {}, {}, (4.5, 1.8, 1.5), k * 0.1)
-    report = analyse(ev, full_scene)
+    report = analyse(ev, full_scene, "agent1")
     pairs = report["matched_pairs_by_class"]["car"]
     assert pairs["n"] == 15 and pairs["share_iou_ge_0.7"] == 0.0
     assert pairs["share_iou_ge_0.7_pose_only"] == 0.0 and pairs["share_iou_ge_0.7_size_only"] == 1.0
@@ -216,5 +216,8 @@ def test_the_diagnosis_names_the_planted_errors(full_scene: Scene) -> None:
     assert report["false_positives"] == {"static object: tree": {"track_frames": 15, "tracks": 1}}
     assert report["misses"]["near_track"] == {"no track near": 15}
     assert report["misses"]["lidar_points"] == {"0-0": 15}
+    assert report["misses"]["side_of_lidar"] == {
+        "behind": 15
+    }  # north of the crossing, the pole faces south-west
     [long_run] = report["static_false_tracks_over_limit"]
     assert long_run["nearest_static"].startswith("tree") and long_run["seconds"] == pytest.approx(1.4)
