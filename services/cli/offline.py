@@ -556,6 +556,20 @@ def eval_compare(
     typer.echo(compare_tables(files[0], files[1], agents, output or ["tracked"]))
 
 
+def scene_fusion_results(root: Path) -> list[tuple[Path, str, str, str | None]]:
+    """Other scenes' fusion results under `root` (`rmmdet eval fusion --scene NAME [--lidar L]` writes
+    `<root>/NAME/fusion[_tuning][_L]/results.json`): (file, scene, split, lidar or None)."""
+    import re
+
+    found = []
+    for path in sorted(root.glob("*/fusion*/results.json")):
+        m = re.fullmatch(r"fusion(_tuning)?(?:_(\w+))?", path.parent.name)
+        if m is None or m.group(2) == "tuning":
+            continue
+        found.append((path, path.parent.parent.name, "tuning" if m.group(1) else "test", m.group(2)))
+    return found
+
+
 @eval_app.command("readme", short_help="README tables from the results files")
 def eval_readme(
     fusion: Annotated[Path, typer.Option(help="held-out fusion results")] = Path("docs/eval/fusion"),
@@ -572,7 +586,7 @@ def eval_readme(
     ),
 ) -> None:
     """Rewrite the README's evaluation and experiment sections from the results files as they are
-    (no re-run)."""
+    (no re-run), other scenes' fusion sections included (docs/eval/<scene>/fusion*/)."""
     from shared.readme import replace_section
     from studies.evaluation import robustness
     from studies.experiments.report import readme_section
@@ -585,6 +599,9 @@ def eval_readme(
         if path.exists():
             write_fusion_readme(json.loads(path.read_text()), split, folder)
             console.print(f"README <- {path}")
+    for path, scene_name, split, lidar in scene_fusion_results(fusion.parent):
+        write_fusion_readme(json.loads(path.read_text()), split, path.parent, scene_name, lidar)
+        console.print(f"README <- {path}")
     for folder, section in ((robustness_dir, "eval-robustness"), (robustness_radar, "eval-robustness-radar")):
         path = folder / "results.json"
         if path.exists():

@@ -221,3 +221,13 @@ def test_the_diagnosis_names_the_planted_errors(full_scene: Scene) -> None:
     }  # north of the crossing, the pole faces south-west
     [long_run] = report["static_false_tracks_over_limit"]
     assert long_run["nearest_static"].startswith("tree") and long_run["seconds"] == pytest.approx(1.4)
+
+
+def test_eval_readme_finds_every_scenes_fusion_results(tmp_path: Path) -> None:
+    from services.cli.offline import scene_fusion_results
+
+    for folder in ("fusion", "intersection/fusion", "intersection/fusion_tuning_cluster", "intersection/x"):
+        (tmp_path / folder).mkdir(parents=True)
+        (tmp_path / folder / "results.json").write_text("{}")
+    found = {(scene, split, lidar) for _, scene, split, lidar in scene_fusion_results(tmp_path)}
+    assert found == {("intersection", "test", None), ("intersection", "tuning", "cluster")}
