@@ -229,8 +229,10 @@ def diagnose(
     duration_s: float,
     warmup_s: float,
     lidar: str | None = None,
+    band_edges_m: tuple[float, ...] | None = None,
 ) -> dict[str, Any]:
-    """One (agent, seed) run of the fusion evaluation on `scene_name`'s site, analysed."""
+    """One (agent, seed) run of the fusion evaluation on `scene_name`'s site, analysed (by the range
+    bands with inner edges `band_edges_m`, default the evaluation's)."""
     from sim.config import load_sim_settings
 
     site = eval_site(scene_name)
@@ -244,6 +246,8 @@ def diagnose(
     )
     mec = site.mec(lidar=lidar)
     ev = fe.evaluate_run(scene, agent, sim, mec, duration_s, warmup_s, conditions=conditions, trace=True)
+    if band_edges_m is not None:
+        ev.distances = ev.distances.model_copy(update={"range_band_edges_m": band_edges_m})
     return {
         "scene": scene.spec.scene_id,
         "agent": agent,
@@ -267,9 +271,13 @@ def main() -> None:
     parser.add_argument("--warmup-s", type=float, default=5.0)
     parser.add_argument("--lidar", default=None, help="the lidar detector instead of the settings'")
     parser.add_argument("--out", type=Path, default=None, help="JSON file of the diagnosis")
+    parser.add_argument(
+        "--band-edges-m", type=float, nargs="+", default=None, help="inner edges of the range bands, m"
+    )
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
-    report = diagnose(args.scene, args.agent, args.seed, args.duration_s, args.warmup_s, args.lidar)
+    edges = None if args.band_edges_m is None else tuple(args.band_edges_m)
+    report = diagnose(args.scene, args.agent, args.seed, args.duration_s, args.warmup_s, args.lidar, edges)
     text = json.dumps(report, indent=2, default=float)
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
