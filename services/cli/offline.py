@@ -584,6 +584,10 @@ def eval_readme(
     detectors: Annotated[Path, typer.Option(help="detector results (rmmdet eval detectors --out)")] = Path(
         "deploy/models/metrics.json"
     ),
+    scene_name: Annotated[
+        str | None,
+        typer.Option("--scene", help="only this scene's fusion sections (docs/eval/<name>/fusion*/)"),
+    ] = None,
 ) -> None:
     """Rewrite the README's evaluation and experiment sections from the results files as they are
     (no re-run), other scenes' fusion sections included (docs/eval/<scene>/fusion*/)."""
@@ -591,6 +595,12 @@ def eval_readme(
     from studies.evaluation import robustness
     from studies.experiments.report import readme_section
 
+    if scene_name is not None:
+        for path, name, split, lidar in scene_fusion_results(fusion.parent):
+            if name == scene_name:
+                write_fusion_readme(json.loads(path.read_text()), split, path.parent, name, lidar)
+                console.print(f"README <- {path}")
+        return
     if detectors.exists():
         write_detector_readme(detectors)
         console.print(f"README <- {detectors}")
