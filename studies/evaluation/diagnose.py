@@ -34,6 +34,7 @@ import numpy as np
 
 from shared.config import deep_merge, load_settings
 from shared.geometry.boxes import bev_iou_matrix
+from shared.machine import git_commit
 from shared.geometry.transforms import matrix_from_pose, matrix_from_xyz_rpy
 from shared.scene.scene import Scene
 from studies.dataset.conditions import SeedConditions
@@ -250,6 +251,7 @@ def diagnose(
         ev.distances = ev.distances.model_copy(update={"range_band_edges_m": band_edges_m})
     return {
         "scene": scene.spec.scene_id,
+        "commit": git_commit(),
         "agent": agent,
         "seed": seed,
         "lidar": mec.detectors.lidar,
