@@ -34,8 +34,8 @@ import numpy as np
 
 from shared.config import deep_merge, load_settings
 from shared.geometry.boxes import bev_iou_matrix
-from shared.machine import git_commit
 from shared.geometry.transforms import matrix_from_pose, matrix_from_xyz_rpy
+from shared.machine import git_commit
 from shared.scene.scene import Scene
 from studies.dataset.conditions import SeedConditions
 from studies.dataset.config import DatasetSettings
