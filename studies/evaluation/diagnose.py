@@ -199,6 +199,12 @@ def analyse(ev: fe.AgentEvaluation, scene: Scene, agent_id: str) -> dict[str, An
         "mota": tracked["tracking"]["mota"],
         "idf1": tracked["tracking"]["idf1"],
         "ap_bev_0.7_by_range": tracked["ap_bev_0.7_by_range"],
+        # the same before tracking: what the tracker adds or costs, band by band
+        **{
+            f"{name}_ap_bev_0.7_by_range": ev.fusion[name].ap_bev_by_range(ev.origin_xy_m, bands)
+            for name in ("lidar", "fused")
+            if name in ev.fusion
+        },
         "matched_pairs_by_class": {name: pair_summary(row) for name, row in sorted(pairs.items())},
         "matched_pairs_by_range": {name: pair_summary(row) for name, row in sorted(pairs_by_range.items())},
         "false_positives": {
