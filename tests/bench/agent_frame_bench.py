@@ -30,8 +30,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from shared.config import deep_merge, load_settings
 from shared.machine import git_commit, machine_info
 from shared.perception.config import MecSettings
@@ -43,11 +41,11 @@ from sim.config import load_sim_settings
 from sim.lockstep import LockstepSim
 from sim.sensors.rig import Capture
 from studies.evaluation.fusion import feed_tick
+from tests.bench.latency import latency_ms
 
 log = logging.getLogger("agent_frame_bench")
 
 RESULTS = Path(__file__).resolve().parent / "results"
-MS_PER_S = 1e3
 BENCH_CORE = 0  # the CPU the timed part is pinned to
 ONE_THREAD = {"detectors": {"camera_threads": 1, "lidar_threads": 1}}
 
@@ -66,16 +64,6 @@ def render_frames(
                 gt = tick.ground_truth
                 frames.append((gt.header.stamp.ToNanoseconds(), gt.header.tick, tick.captures))
     return frames
-
-
-def pct(values: list[float]) -> dict[str, float]:
-    a = np.asarray(values, float) * MS_PER_S
-    return {
-        "n": int(a.size),
-        "p50_ms": round(float(np.percentile(a, 50)), 2),
-        "p95_ms": round(float(np.percentile(a, 95)), 2),
-        "max_ms": round(float(a.max()), 2),
-    }
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -124,8 +112,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "lidar": mec.detectors.lidar,
             "camera_every_n_with_lidar": mec.detectors.camera_every_n_with_lidar,
         },
-        "frame": pct(frame_s),
-        "stages": {stage: pct(v) for stage, v in sorted(stages.items())},
+        "frame": latency_ms(frame_s),
+        "stages": {stage: latency_ms(v) for stage, v in sorted(stages.items())},
     }
 
 

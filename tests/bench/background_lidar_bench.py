@@ -46,10 +46,12 @@ from shared.perception.pipeline import AgentPipeline
 from shared.scene.model import SceneSpec
 from shared.scene.scene import Scene
 from shared.service import one_blas_thread
+from shared.supervision.profiles import scene_profile
 from sim.config import load_sim_settings
 from sim.lockstep import LockstepSim
 from sim.sensors.lidar import LidarScan
-from tests.bench.agent_frame_bench import ONE_THREAD, profile_mec_settings
+from tests.bench.agent_frame_bench import ONE_THREAD
+from tests.bench.latency import latency_ms
 
 log = logging.getLogger("background_lidar_bench")
 
@@ -57,7 +59,6 @@ RESULTS = Path(__file__).resolve().parent / "results"
 SCENE = Path(__file__).resolve().parents[2] / "deploy" / "scenes" / "intersection.yaml"
 AGENT = "agent1"
 LIDAR = "lidar_11"
-MS_PER_S = 1e3
 BENCH_CORE = 0  # the CPU the timed part is pinned to
 # A 64-beam roadside lidar, every beam below the horizon (module docstring); range and noise stay the
 # intersection's RS-LiDAR-32's (0.4-120 m, 3 cm).
@@ -94,16 +95,6 @@ def render(scene: Scene, revolutions: int, seed: int) -> list[np.ndarray]:
     return clouds
 
 
-def pct(values_s: list[float]) -> dict[str, float]:
-    a = np.asarray(values_s, float) * MS_PER_S
-    return {
-        "n": int(a.size),
-        "p50_ms": round(float(np.percentile(a, 50)), 2),
-        "p95_ms": round(float(np.percentile(a, 95)), 2),
-        "max_ms": round(float(a.max()), 2),
-    }
-
-
 def run(args: argparse.Namespace) -> dict[str, Any]:
     scene = scene_64()
     log.info(
@@ -112,7 +103,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     clouds = render(scene, args.warmup_frames + args.frames, args.seed)
     one_blas_thread()
     os.sched_setaffinity(0, {BENCH_CORE})
-    _, profile = profile_mec_settings("intersection")  # as `make up SCENE=intersection` runs its MEC
+    profile = scene_profile("intersection").settings["mec"]  # as `make up SCENE=intersection` runs its MEC
     mec = load_settings(MecSettings, None, **deep_merge(profile, ONE_THREAD))
     pipeline = AgentPipeline(scene, AGENT, mec, sensor_ids=[LIDAR])
     background = pipeline.backgrounds[LIDAR]
@@ -157,8 +148,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "points_per_revolution_p50": int(np.median([len(c) for c in clouds])),
         "foreground_points_p50": int(np.median(foreground)),
         "boxes_p50": float(np.median(boxes)),
-        "lidar_path": pct(total_s),
-        "stages": {"background": pct(background_s), "detect": pct(detect_s)},
+        "lidar_path": latency_ms(total_s),
+        "stages": {"background": latency_ms(background_s), "detect": latency_ms(detect_s)},
     }
 
 
