@@ -5,7 +5,8 @@
 
 Every `--poll-s` it asks supervisord (XML-RPC on its socket) for its programs and every service for
 its health (each report carries its pid and its main loop's heartbeat age; a pid claimed by two
-replies, one of them forged, is not judged: counted and logged), lets
+replies, one of them forged, is not judged for a while: counted and logged; nor is a stall claimed
+longer than the process has been up, nor one not seen uncontested over several polls), lets
 `shared/supervision/watchdog.py` decide, and applies the decision through supervisord: a stalled
 program is killed (supervisord's autorestart starts it afresh), a crash-looping one is stopped for its
 backoff and started again after; a critical program (the router) is never held, and started again if
@@ -125,10 +126,13 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                     log.warning(
                         "health replies disagree about pids %s: not judged", sorted(supervised_conflicts)
                     )
-            for action in watchdog.observe(time.time(), progs, loop_age):
+            implausible = watchdog.implausible_claims
+            for action in watchdog.observe(time.time(), progs, loop_age, supervised_conflicts):
                 log.warning("%s %s: %s", action.kind, action.program, action.reason)
                 node.counters.inc(f"actions/{action.kind}")
                 apply(proxy, action)
+            if watchdog.implausible_claims > implausible:
+                node.counters.inc("health/implausible_claims", watchdog.implausible_claims - implausible)
             held = watchdog.held(time.time())
     return 0
 

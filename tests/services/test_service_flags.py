@@ -23,7 +23,7 @@ SERVICES = (
     "vehicle",
     "watchdog",
 )
-WITH_SETTINGS = ("sim", "mec", "coordinator")
+WITH_SETTINGS = ("sim", "sensor", "mec", "coordinator")
 WITH_SCENE = ("sim", "sensor", "mec", "coordinator", "viewer")
 COMMON = ("--instance", "--report-interval-s", "--config", "--connect", "--listen", "--cfg")
 

@@ -23,7 +23,8 @@ def test_a_stalled_loop_is_restarted_once_per_process() -> None:
     assert w.observe(10.0, [running("mec", 7, 1.0)], {7: 0.2}) == []
     assert w.observe(11.0, [running("mec", 7, 1.0)], {7: -1.0}) == []  # no loop yet: not judged
     assert w.observe(12.0, [running("mec", 7, 1.0)], {}) == []  # no report: not judged
-    (action,) = w.observe(13.0, [running("mec", 7, 1.0)], {7: 3.2})
+    assert w.observe(12.25, [running("mec", 7, 1.0)], {7: 2.45}) == []  # stalling, not yet 3 s
+    (action,) = w.observe(13.0, [running("mec", 7, 1.0)], {7: 3.2})  # seen stalling for 0.75 s
     assert (action.kind, action.program) == ("restart", "mec") and "3.2 s" in action.reason
     assert w.observe(13.5, [running("mec", 7, 1.0)], {7: 3.7}) == []  # still dying: not twice
     assert w.observe(15.0, [running("mec", 8, 14.0)], {8: 0.1}) == []  # its successor is fine
@@ -58,12 +59,20 @@ def test_restarts_of_a_hanging_program_count_as_starts() -> None:
     kinds = []
     for i, t in enumerate((1.0, 5.0, 10.0)):
         kinds += [a.kind for a in w.observe(t, [running("hang", i + 1, t)], {i + 1: 0.1})]
-        kinds += [a.kind for a in w.observe(t + 4.0, [running("hang", i + 1, t)], {i + 1: 4.0})]
+        kinds += [a.kind for a in w.observe(t + 3.0, [running("hang", i + 1, t)], {i + 1: 2.5})]
+        kinds += [a.kind for a in w.observe(t + 4.0, [running("hang", i + 1, t)], {i + 1: 3.5})]
     assert kinds == ["restart", "restart", "hold"]  # the third start is a crash loop: held, not judged
 
 
 @pytest.mark.parametrize(
-    "kwargs", [{"stall_after_s": 0}, {"crash_starts": 1}, {"backoff_s": 10, "backoff_max_s": 5}]
+    "kwargs",
+    [
+        {"stall_after_s": 0},
+        {"crash_starts": 1},
+        {"backoff_s": 10, "backoff_max_s": 5},
+        {"stall_confirm_s": 3.0},
+        {"conflict_memory_s": -1.0},
+    ],
 )
 def test_bad_configs_are_refused(kwargs: dict) -> None:
     with pytest.raises(ValueError):
@@ -104,6 +113,46 @@ def test_a_pid_claimed_by_two_health_replies_is_not_judged() -> None:
     ages, conflicting = unambiguous_loop_ages([(7, 0.1), (8, 0.2), (7, 999.0)])
     assert ages == {8: 0.2} and conflicting == {7}
     w = Watchdog()
-    assert w.observe(10.0, [running("coordinator", 7, 1.0)], ages) == []
-    ages, _ = unambiguous_loop_ages([(7, 5.0)])  # only its own reply: a real stall
-    assert [a.kind for a in w.observe(11.0, [running("coordinator", 7, 1.0)], ages)] == ["restart"]
+    assert w.observe(10.0, [running("coordinator", 7, 1.0)], ages, conflicting) == []
+    w = Watchdog()
+    for t, age in ((10.0, 2.5), (10.5, 3.0), (11.0, 3.5)):  # only its own reply: a real stall
+        ages, conflicting = unambiguous_loop_ages([(7, age)])
+        actions = w.observe(t, [running("coordinator", 7, 1.0)], ages, conflicting)
+    assert [a.kind for a in actions] == ["restart"]
+
+
+def test_a_forged_stall_is_not_acted_on_when_the_genuine_reply_misses_a_poll() -> None:
+    """What CI met (stop 56): the router, 1.6 s up and slow to answer, missed one poll, so the forged
+    reply (the router's pid, a loop stalled for 999 s) was the only one for its pid; the watchdog killed
+    the router. Now the claim is refused (longer than the process has been up) and counted, and a
+    plausible forged claim still needs several uncontested polls, none within a while of a conflict."""
+    router = [running("router", 7, 100.0)]
+    w = Watchdog()
+    ages, conflicting = unambiguous_loop_ages([(7, 999.0)])  # the genuine reply missed this poll
+    assert w.observe(101.6, router, ages, conflicting) == [] and w.implausible_claims == 1
+    # Up an hour; the forger claims a plausible 5 s; the genuine reply comes at every other poll.
+    w, t = Watchdog(), 3700.0
+    for k in range(40):
+        claims = [(7, 5.0 + 0.25 * k)] + ([(7, 0.1)] if k % 2 else [])
+        ages, conflicting = unambiguous_loop_ages(claims)
+        assert w.observe(t + 0.25 * k, router, ages, conflicting) == [], k
+    # ...and answers alone for a moment only, after it had been seen twice: still nothing.
+    ages, conflicting = unambiguous_loop_ages([(7, 20.0)])
+    for k in range(4):
+        assert w.observe(t + 10.0 + 0.25 * k, router, ages, conflicting) == []
+    # Once the conflicts are long past, an uncontested stall over several polls is a stall.
+    late = t + 10.0 + WatchdogConfig().conflict_memory_s
+    kinds = [a.kind for k in range(4) for a in w.observe(late + 0.25 * k, router, {7: 40.0 + 0.25 * k})]
+    assert kinds == ["restart"]
+
+
+def test_a_reused_pid_starts_with_no_suspicion() -> None:
+    w = Watchdog()
+    w.observe(10.0, [running("mec", 7, 1.0)], {}, {7})
+    w.observe(13.0, [running("mec", 8, 12.0)], {8: 0.1})  # pid 7 is gone (it ran 11 s: no crash)
+    kinds = [
+        a.kind
+        for k in range(5)
+        for a in w.observe(30.0 + 0.25 * k, [running("mec", 7, 25.0)], {7: 3.0 + 0.25 * k})
+    ]
+    assert kinds == ["restart"]
