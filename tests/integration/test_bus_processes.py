@@ -191,8 +191,10 @@ def test_client_started_before_the_router_connects_when_it_appears() -> None:
 
 
 def test_cli_health_and_topics_see_the_running_services(router: Router) -> None:
+    # Publishing until stopped (60 s at most): the three CLI calls below start a Python process each
+    # (~3 s apiece on a loaded 2-core host), and 400 messages (8 s) ran out before the last one.
     pub = spawn(
-        [*PEER, "pub", "--instance", "pub", "--count", "400", "--rate-hz", "50", *router.client_args()]
+        [*PEER, "pub", "--instance", "pub", "--count", "3000", "--rate-hz", "50", *router.client_args()]
     )
     sub = spawn([*PEER, "sub", "--instance", "sub", *router.client_args()])
     try:

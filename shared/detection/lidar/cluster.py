@@ -157,6 +157,13 @@ class ClusterLidarConfig(BaseModel):
     edge_band_m: Length = Field(0.02, gt=0.0, description="band at a rectangle edge for counting its points")
     edge_support_ratio: float = Field(2.0, ge=1.0, description="point ratio that marks the visible edge")
     size_tolerance_m: Length = Field(0.03, ge=0.0, description="measured sizes within this of the prior")
+    face_quantile: Ratio = Field(
+        0.5,
+        ge=0.5,
+        lt=1.0,
+        description="where in its edge band a visible face lies, toward the edge: 0.5 the median (a face "
+        "seen square); higher for a lidar looking down on roofs (shared/detection/lidar/box_fit.py)",
+    )
     # score
     score_half_points: float = Field(20.0, gt=0.0, description="points at which the score is 0.5")
 
@@ -316,6 +323,7 @@ class ClusterLidarDetector:
                 edge_band_m=cfg.edge_band_m,
                 edge_support_ratio=cfg.edge_support_ratio,
                 size_tolerance_m=cfg.size_tolerance_m,
+                face_quantile=cfg.face_quantile,
             )
             for length, width, _ in self._classes
         ]
