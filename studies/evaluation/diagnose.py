@@ -15,7 +15,9 @@ prints and writes (`--out`, JSON):
   scene within one gate (by its id: tree, pole, sign, building ...), or nothing;
 - misses by range band, by the vehicle's lidar points and by whether any track was within two gates
   (an offset track: a pose error) or none (not detected);
-- the static false tracks over the limit, with where they stood and the nearest static object.
+- the static false tracks over the limit, with where they stood and the nearest static object;
+- how many of each lidar's rings cross a roof of the scene's vehicle in each band, in front of the
+  lidar, beside it and behind it (`roof_rings`): what the sensor can give there at all.
 
 The run is one process, on the seed's conditions as `rmmdet eval fusion` draws them, on the site as
 `eval_site` composes it (the profile's MEC settings and sim overrides).
@@ -69,6 +71,54 @@ def _band(range_m: float, bands: list[tuple[float, float]]) -> str:
     return next(f"[{lo:.3g}, {hi:.3g})" for lo, hi in bands if lo <= range_m < hi)
 
 
+#: Headings from a lidar's facing (its x axis on the ground) at which `roof_rings` counts, deg.
+RING_HEADINGS_DEG = {"in front": 0.0, "beside": 90.0, "behind": 180.0}
+
+
+def _lidar_axes(pose: Any) -> np.ndarray:
+    """A lidar's 4 x 4 world pose from its scene pose (rpy or quaternion)."""
+    if pose.rpy_rad is not None:
+        return matrix_from_xyz_rpy(pose.position_m, pose.rpy_rad)
+    assert pose.quat_xyzw is not None  # a pose has one or the other (SensorPose)
+    return matrix_from_pose(pose.position_m, pose.quat_xyzw)
+
+
+def roof_rings(
+    scene: Scene, agent_id: str, bands: list[tuple[float, float]], roof_m: float
+) -> dict[str, dict[str, dict[str, int]]]:
+    """How many of each lidar's rings cross a roof `roof_m` above the ground within each range band, in
+    front of the lidar, beside it and behind it: a band crossed by one or two rings sees a car as one or
+    two lines of points, which no box fit places to 0.7 IoU. The ground is z = 0 of the world; ranges
+    on the ground from the pole, m."""
+    from shared.perception.background import RangeImage
+
+    out: dict[str, dict[str, dict[str, int]]] = {}
+    for spec in scene.sensors_of(agent_id, "lidar"):
+        if spec.lidar is None:
+            continue
+        pose = _lidar_axes(spec.pose)
+        facing = np.arctan2(pose[1, 0], pose[0, 0])
+        azimuths = np.radians(np.arange(0.0, 360.0, 0.5))
+        elevations = RangeImage.of(spec.lidar).elevations_rad
+        row: dict[str, dict[str, int]] = {}
+        for name, heading_deg in RING_HEADINGS_DEG.items():
+            # the lidar azimuth whose rays head that way on the ground (the lidar may be pitched)
+            level = pose[:3, :3] @ np.stack([np.cos(azimuths), np.sin(azimuths), np.zeros_like(azimuths)])
+            off = np.angle(np.exp(1j * (np.arctan2(level[1], level[0]) - facing - np.radians(heading_deg))))
+            a = azimuths[int(np.argmin(np.abs(off)))]
+            rays = pose[:3, :3] @ np.stack(
+                [np.cos(elevations) * np.cos(a), np.cos(elevations) * np.sin(a), np.sin(elevations)]
+            )
+            down = rays[2] < 0
+            t = (roof_m - pose[2, 3]) / rays[2, down]
+            ground_m = t * np.hypot(rays[0, down], rays[1, down])
+            row[name] = {_band(r, bands): 0 for r in (lo for lo, _ in bands)}
+            for r in ground_m[t > 0]:
+                row[name][_band(float(r), bands)] += 1
+        out[spec.id] = row
+    return out
+
+
 def analyse(ev: fe.AgentEvaluation, scene: Scene, agent_id: str) -> dict[str, Any]:
     """The causes of the errors in `ev.trace` (an `evaluate_run(..., trace=True)` of `agent_id`)."""
     assert ev.trace is not None and ev.origin_xy_m is not None
@@ -101,12 +151,7 @@ def analyse(ev: fe.AgentEvaluation, scene: Scene, agent_id: str) -> dict[str, An
     lidars = [x for x in scene.sensors_of(agent_id) if x.kind == "lidar"]
     facing = None
     if lidars:
-        pose = lidars[0].pose
-        if pose.rpy_rad is not None:
-            axes = matrix_from_xyz_rpy(pose.position_m, pose.rpy_rad)
-        else:
-            assert pose.quat_xyzw is not None  # a pose has one or the other (SensorPose)
-            axes = matrix_from_pose(pose.position_m, pose.quat_xyzw)
+        axes = _lidar_axes(lidars[0].pose)
         facing = axes[:2, 0] / np.linalg.norm(axes[:2, 0])  # its x axis on the ground
     misses_class: Counter[str] = Counter()
     static_runs: dict[int, list[tuple[float, np.ndarray]]] = {}
@@ -212,6 +257,8 @@ def analyse(ev: fe.AgentEvaluation, scene: Scene, agent_id: str) -> dict[str, An
         },
         "misses": {k: dict(v.most_common()) for k, v in misses.items()}
         | {"class": dict(misses_class), "range_m_p10_p50_p90": _percentiles(miss_range_m)},
+        # how densely the lidars sample a roof of the reference vehicle, band by band
+        "roof_rings_by_range": roof_rings(scene, agent_id, bands, scene.spec.vehicle.size_m[2]),
         "static_false_tracks": summary["static_false_tracks"],
         "static_false_tracks_over_limit": sorted(long_runs, key=lambda r: -r["seconds"]),
     }

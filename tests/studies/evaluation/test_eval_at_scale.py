@@ -231,3 +231,48 @@ def test_eval_readme_finds_every_scenes_fusion_results(tmp_path: Path) -> None:
         (tmp_path / folder / "results.json").write_text("{}")
     found = {(scene, split, lidar) for _, scene, split, lidar in scene_fusion_results(tmp_path)}
     assert found == {("intersection", "test", None), ("intersection", "tuning", "cluster")}
+
+
+def test_roof_rings_counts_the_rings_over_a_roof_in_each_band() -> None:
+    """A level two-ring lidar 8 m up (rings at -30 and -10 deg) over a 1.5 m roof: the rings meet it
+    6.5 / tan 30 = 11.3 m and 6.5 / tan 10 = 36.9 m out, every way; pitched down 0.2 rad, in front
+    6.5 / tan(30 + 11.46 deg) = 7.3 m and 6.5 / tan(21.46 deg) = 16.5 m, behind only the lower ring at
+    6.5 / tan(18.54 deg) = 19.4 m (the upper one points above the horizon)."""
+    from shared.config import read_yaml
+    from shared.scene.model import SceneSpec
+    from studies.evaluation.diagnose import roof_rings
+    from tests.conftest import FULL_SCALE_SCENE
+
+    data = read_yaml(FULL_SCALE_SCENE)
+    bands = [(0.0, 10.0), (10.0, 15.0), (15.0, 20.0), (20.0, 40.0), (40.0, float("inf"))]
+    counts = {}
+    for pitch in (0.0, 0.2):
+        for sensor in data["sensors"]:
+            if sensor["id"] == "lidar_11":
+                sensor["lidar"] = {
+                    **sensor["lidar"],
+                    "device": None,
+                    "channels": 2,
+                    "vertical_min_rad": np.radians(-30.0),
+                    "vertical_max_rad": np.radians(-10.0),
+                }
+                sensor["pose"] = {**sensor["pose"], "rpy_rad": [0.0, pitch, sensor["pose"]["rpy_rad"][2]]}
+        scene = Scene(SceneSpec.model_validate(data), source=FULL_SCALE_SCENE)
+        counts[pitch] = roof_rings(scene, "agent1", bands, 1.5)["lidar_11"]
+    level = {"[0, 10)": 0, "[10, 15)": 1, "[15, 20)": 0, "[20, 40)": 1, "[40, inf)": 0}
+    assert counts[0.0] == {"in front": level, "beside": level, "behind": level}
+    assert counts[0.2]["in front"] == {
+        "[0, 10)": 1,
+        "[10, 15)": 0,
+        "[15, 20)": 1,
+        "[20, 40)": 0,
+        "[40, inf)": 0,
+    }
+    assert counts[0.2]["behind"] == {
+        "[0, 10)": 0,
+        "[10, 15)": 0,
+        "[15, 20)": 1,
+        "[20, 40)": 0,
+        "[40, inf)": 0,
+    }
+    assert counts[0.2]["beside"] == level
