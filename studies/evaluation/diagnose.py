@@ -112,7 +112,7 @@ def roof_rings(
             down = rays[2] < 0
             t = (roof_m - pose[2, 3]) / rays[2, down]
             ground_m = t * np.hypot(rays[0, down], rays[1, down])
-            row[name] = {_band(r, bands): 0 for r in (lo for lo, _ in bands)}
+            row[name] = {_band(lo, bands): 0 for lo, _ in bands}
             for r in ground_m[t > 0]:
                 row[name][_band(float(r), bands)] += 1
         out[spec.id] = row
