@@ -13,6 +13,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 import yaml
@@ -33,6 +34,7 @@ GROUPS = ("agent1-lidars", "agent2-radars", "agent2-cameras")
 STARTUP_S = 40.0
 FRAMES = 6  # ticks compared per sensor
 LATENCY_S = 0.06  # the emulated radars and cameras deliver this long after each capture
+MAX_STAMP_ERROR_S = 0.5  # a receive-clock frame is looked for among the captures this close to its stamp
 
 
 @pytest.fixture
@@ -157,11 +159,27 @@ def same_within_resolution(kind: str, got: Any, direct: Any) -> bool:
     return bool(got.data == direct.message.data)
 
 
+def _content_difference(kind: str, got: Any, direct: Any) -> str:
+    """What differs between a frame and the simulator's capture of its own tick (a failure's message)."""
+    if kind == "camera":
+        a = cv2.imdecode(np.frombuffer(got.data, np.uint8), cv2.IMREAD_COLOR)
+        b = cv2.imdecode(np.frombuffer(direct.message.data, np.uint8), cv2.IMREAD_COLOR)
+        if a is None or b is None or a.shape != b.shape:
+            return f"JPEG {len(got.data)} B vs {len(direct.message.data)} B, not comparable"
+        rows, cols = np.nonzero(np.abs(a.astype(np.int16) - b.astype(np.int16)).max(axis=2) > 8)
+        if not len(rows):
+            return f"JPEG {len(got.data)} B vs {len(direct.message.data)} B, same picture within 8 levels"
+        box = (int(cols.min()), int(rows.min()), int(cols.max()), int(rows.max()))
+        return f"JPEG {len(got.data)} B vs {len(direct.message.data)} B, {len(rows)} px differ in {box}"
+    return f"{kind}: differs beyond the device's resolution"
+
+
 def test_wire_path_gives_the_simulators_message_back(wire_loop, wire_site: Path) -> None:
     """Device clock (lidar): every frame on its own capture's tick. Receive clock (radar, camera):
-    stamped on receipt less the latency, so a frame delayed past half a period by the host's jitter
-    takes the neighbouring capture: every one must be the simulator's message of its tick or of the
-    capture next to it (the share on their own is printed)."""
+    stamped on receipt less the latency, so a frame delayed past half a period takes a later capture's
+    tick (a loaded host has delayed frames by several periods): each must be the simulator's message
+    of a capture within MAX_STAMP_ERROR_S of its stamp. How many kept their own capture depends on the
+    host's load (a benchmark's question, not this test's): printed with the offsets, not asserted."""
     frames, truth = wire_loop
     site = SiteFile.load(wire_site)
     scene = site.simulated_scene(Scene.load(DEFAULT_SCENE))
@@ -171,32 +189,41 @@ def test_wire_path_gives_the_simulators_message_back(wire_loop, wire_site: Path)
         time.sleep(0.2)
     missing = {s.id: len(frames.get(s.id, [])) for s in specs if len(frames.get(s.id, [])) < FRAMES + 2}
     assert not missing, f"too few frames through the wire: {missing}"
+    time.sleep(MAX_STAMP_ERROR_S)  # the ground truth of the last frames' neighbours
     with SensorRig(scene, specs) as rig:
         for spec in specs:
-            compared, on_tick = 0, 0
             period = round(60 / spec.rate_hz)  # the sim's 60 Hz ticks between captures
+            reach = round(MAX_STAMP_ERROR_S * spec.rate_hz) if spec.kind != "lidar" else 0
+            # Nearest first: the usual frame is compared once.
+            offsets = sorted(range(-reach * period, (reach + 1) * period, period), key=abs)
+            found: list[int] = []
             for item in frames[spec.id][2:]:
                 tick = item.header.tick
                 assert tick > 0, f"{spec.id}: no tick under the sim"
-                gt = truth.get(tick)
-                if gt is None or truth.get(tick - period) is None or truth.get(tick + period) is None:
+                if any(truth.get(tick + dt) is None for dt in offsets):
                     continue
-                assert item.header.stamp.ToNanoseconds() == gt.header.stamp.ToNanoseconds()
-                matched = [
-                    dt
-                    for dt in (0, -period, period)
-                    if same_within_resolution(
-                        spec.kind, item.message, rig.capture(truth[tick + dt].message, specs=[spec])[0]
+                assert item.header.stamp.ToNanoseconds() == truth[tick].header.stamp.ToNanoseconds()
+                match = next(
+                    (
+                        dt
+                        for dt in offsets
+                        if same_within_resolution(
+                            spec.kind, item.message, rig.capture(truth[tick + dt].message, specs=[spec])[0]
+                        )
+                    ),
+                    None,
+                )
+                if match is None:
+                    own = rig.capture(truth[tick].message, specs=[spec])[0]
+                    pytest.fail(
+                        f"{spec.id} tick {tick}: not the simulator's message of any capture within "
+                        f"{MAX_STAMP_ERROR_S} s ({_content_difference(spec.kind, item.message, own)}; "
+                        f"earlier frames' offsets in ticks: {found})"
                     )
-                ]
-                assert matched, f"{spec.id} tick {tick}: not the simulator's message of it or a neighbour"
-                on_tick += matched[0] == 0
-                compared += 1
-                if compared >= FRAMES:
+                found.append(match)
+                if len(found) >= FRAMES:
                     break
-            assert compared >= FRAMES // 2, f"{spec.id}: {compared} frames compared"
+            assert len(found) >= FRAMES // 2, f"{spec.id}: {len(found)} frames compared"
             if spec.kind == "lidar":
-                assert on_tick == compared, f"{spec.id}: device-clock frames off their capture"
-            # How many receive-clock frames kept their own capture depends on the host's load (a
-            # benchmark's question, not this test's): reported, not asserted.
-            print(f"{spec.id}: {on_tick} of {compared} frames on their own capture")
+                assert found == [0] * len(found), f"{spec.id}: device-clock frames off their capture"
+            print(f"{spec.id}: {found.count(0)} of {len(found)} frames on their own capture; offsets {found}")
