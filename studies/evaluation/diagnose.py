@@ -17,7 +17,10 @@ prints and writes (`--out`, JSON):
   (an offset track: a pose error) or none (not detected);
 - the static false tracks over the limit, with where they stood and the nearest static object;
 - how many of each lidar's rings cross a roof of the scene's vehicle in each band, in front of the
-  lidar, beside it and behind it (`roof_rings`): what the sensor can give there at all.
+  lidar, beside it and behind it (`roof_rings`): what the sensor can give there at all; and over the
+  lanes of the agent's areas, the share of places where a vehicle's roof is crossed by at least 1, 2,
+  3, 4, 6 rings of each lidar and of the best one (`lane_ring_coverage`; `--rings-only` prints just
+  these two, without a run: to compare lidar mountings before asking for figures).
 
 The run is one process, on the seed's conditions as `rmmdet eval fusion` draws them, on the site as
 `eval_site` composes it (the profile's MEC settings and sim overrides).
@@ -117,6 +120,50 @@ def roof_rings(
                 row[name][_band(float(r), bands)] += 1
         out[spec.id] = row
     return out
+
+
+#: Ring counts `lane_ring_coverage` reports the share of lane points reaching.
+COVERAGE_RINGS = (1, 2, 3, 4, 6)
+
+
+def lane_ring_coverage(
+    scene: Scene, agent_id: str, vehicle_size_m: tuple[float, float, float]
+) -> dict[str, dict[str, float]]:
+    """For the lane centreline points in the agent's areas: how many rings of each of its lidars, and of
+    the best of them, cross the roof of a vehicle (length, width, height m) standing there lengthwise to
+    the lidar (its roof spans the vehicle's length along the ray's ground direction). Returned as the
+    share of points whose count reaches each of `COVERAGE_RINGS`, per lidar and for 'best'. A ring is a
+    cone of one elevation in the lidar's own (possibly pitched) frame, so the rings between the roof's
+    near and far ends' elevations cross it."""
+    from shared.perception.background import RangeImage
+
+    length_m, width_m, roof_m = vehicle_size_m
+    points = np.concatenate([scene.lane_centreline(lane_id) for lane_id in scene.lanes])
+    boxes = np.c_[
+        points[:, :2], points[:, 2] + roof_m / 2, np.tile([length_m, width_m, roof_m, 0.0], (len(points), 1))
+    ]
+    points = points[fe.AgentScope(scene, agent_id, 0.0).inside(boxes)]
+    counts: dict[str, np.ndarray] = {}
+    for spec in scene.sensors_of(agent_id, "lidar"):
+        if spec.lidar is None:
+            continue
+        pose = _lidar_axes(spec.pose)
+        rings = np.sort(RangeImage.of(spec.lidar).elevations_rad)
+        ray = points[:, :2] - pose[:2, 3]
+        ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+        ends = []
+        for sign in (-1.0, 1.0):
+            roof = np.c_[points[:, :2] + sign * length_m / 2 * ray, points[:, 2] + roof_m]
+            v = (roof - pose[:3, 3]) @ pose[:3, :3]  # in the lidar's frame
+            ends.append(np.arcsin(v[:, 2] / np.linalg.norm(v, axis=1)))
+        low, high = np.minimum(*ends), np.maximum(*ends)
+        counts[spec.id] = np.searchsorted(rings, high) - np.searchsorted(rings, low)
+    if counts:
+        counts["best"] = np.max(np.stack(list(counts.values())), axis=0)
+    return {
+        name: {f">= {k}": round(float(np.mean(n >= k)), 3) if len(n) else 0.0 for k in COVERAGE_RINGS}
+        for name, n in counts.items()
+    }
 
 
 def analyse(ev: fe.AgentEvaluation, scene: Scene, agent_id: str) -> dict[str, Any]:
@@ -259,6 +306,7 @@ def analyse(ev: fe.AgentEvaluation, scene: Scene, agent_id: str) -> dict[str, An
         | {"class": dict(misses_class), "range_m_p10_p50_p90": _percentiles(miss_range_m)},
         # how densely the lidars sample a roof of the reference vehicle, band by band
         "roof_rings_by_range": roof_rings(scene, agent_id, bands, scene.spec.vehicle.size_m[2]),
+        "lane_ring_coverage": lane_ring_coverage(scene, agent_id, scene.spec.vehicle.size_m),
         "static_false_tracks": summary["static_false_tracks"],
         "static_false_tracks_over_limit": sorted(long_runs, key=lambda r: -r["seconds"]),
     }
@@ -315,13 +363,28 @@ def diagnose(
     }
 
 
+def rings_report(scene_name: str | None, agent: str, band_edges_m: list[float] | None) -> dict[str, Any]:
+    """`roof_rings` and `lane_ring_coverage` of `scene_name`'s site for the reference vehicle, no run."""
+    scene = Scene.load(eval_site(scene_name).scene_path)
+    distances = fe.EvalDistances.for_scene(scene)
+    if band_edges_m is not None:
+        distances = distances.model_copy(update={"range_band_edges_m": tuple(band_edges_m)})
+    bands = distances.range_bands_m()
+    size = scene.spec.vehicle.size_m
+    return {
+        "scene": scene.spec.scene_id,
+        "roof_rings_by_range": roof_rings(scene, agent, bands, size[2]),
+        "lane_ring_coverage": lane_ring_coverage(scene, agent, size),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--scene", default=None, help="a profile scene (default: the sand table)")
     parser.add_argument("--agent", default="agent1")
-    parser.add_argument("--seed", type=int, required=True)
+    parser.add_argument("--seed", type=int, default=None, help="sim seed (required but with --rings-only)")
     parser.add_argument("--duration-s", type=float, default=30.0)
     parser.add_argument("--warmup-s", type=float, default=5.0)
     parser.add_argument("--lidar", default=None, help="the lidar detector instead of the settings'")
@@ -329,8 +392,16 @@ def main() -> None:
     parser.add_argument(
         "--band-edges-m", type=float, nargs="+", default=None, help="inner edges of the range bands, m"
     )
+    parser.add_argument(
+        "--rings-only", action="store_true", help="only the lidars' ring counts over a roof (no run)"
+    )
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
+    if args.rings_only:
+        print(json.dumps(rings_report(args.scene, args.agent, args.band_edges_m), indent=2))
+        return
+    if args.seed is None:
+        parser.error("--seed is required for a run")
     edges = None if args.band_edges_m is None else tuple(args.band_edges_m)
     report = diagnose(args.scene, args.agent, args.seed, args.duration_s, args.warmup_s, args.lidar, edges)
     text = json.dumps(report, indent=2, default=float)

@@ -276,3 +276,38 @@ def test_roof_rings_counts_the_rings_over_a_roof_in_each_band() -> None:
         "[40, inf)": 0,
     }
     assert counts[0.2]["beside"] == level
+
+
+def test_lane_ring_coverage_counts_rings_over_a_roof_at_each_lane_point() -> None:
+    """A level two-ring lidar 8 m up (rings at -30 and -10 deg) meets a 1.5 m roof 11.26 m and 36.86 m
+    out on the ground: a 4.5 m car whose centre is within 2.25 m of either distance has that ring over
+    its roof. The share of the crossing's lane points with >= 1 and >= 2 rings, from the distances."""
+    from shared.config import read_yaml
+    from shared.scene.model import SceneSpec
+    from studies.evaluation.diagnose import lane_ring_coverage
+    from tests.conftest import FULL_SCALE_SCENE
+
+    data = read_yaml(FULL_SCALE_SCENE)
+    data["sensors"] = [s for s in data["sensors"] if s["kind"] != "lidar" or s["id"] == "lidar_11"]
+    lidar = next(s for s in data["sensors"] if s["id"] == "lidar_11")
+    lidar["lidar"] = {
+        **lidar["lidar"],
+        "device": None,
+        "channels": 2,
+        "vertical_min_rad": np.radians(-30.0),
+        "vertical_max_rad": np.radians(-10.0),
+    }
+    lidar["pose"] = {**lidar["pose"], "rpy_rad": [0.0, 0.0, lidar["pose"]["rpy_rad"][2]]}
+    scene = Scene(SceneSpec.model_validate(data), source=FULL_SCALE_SCENE)
+    got = lane_ring_coverage(scene, "agent1", (4.5, 1.8, 1.5))
+
+    points = np.concatenate([scene.lane_centreline(lane) for lane in scene.lanes])
+    points = points[(np.abs(points[:, 0]) < 30) & (np.abs(points[:, 1]) < 30)]  # the crossing's area
+    ground_m = np.hypot(points[:, 0] - 9.0, points[:, 1] - 9.0)
+    rings = sum(np.abs(ground_m - 6.5 / np.tan(np.radians(a))) < 2.25 for a in (30.0, 10.0))
+    assert set(got) == {"lidar_11", "best"}
+    assert got["best"] == got["lidar_11"]
+    assert got["lidar_11"][">= 1"] == pytest.approx(np.mean(rings >= 1), abs=0.002)
+    assert got["lidar_11"][">= 2"] == pytest.approx(np.mean(rings >= 2), abs=0.002)
+    assert 0.1 < got["lidar_11"][">= 1"] < 0.9  # neither trivially empty nor full
+    assert got["lidar_11"][">= 3"] == 0.0
