@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 import shapely
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from shared.geometry import _validate as check
 from shared.geometry._validate import FloatArray
@@ -76,6 +76,21 @@ def _rotated_rectangles(params: FloatArray) -> FloatArray:
     x = cos * local[:, :, 0] - sin * local[:, :, 1] + params[:, None, 0]
     y = sin * local[:, :, 0] + cos * local[:, :, 1] + params[:, None, 1]
     return np.stack([x, y], axis=2)
+
+
+def in_bev_boxes(xy: ArrayLike, boxes: ArrayLike, growth: float = 0.0) -> NDArray[np.bool_]:
+    """(N,) True where a point `xy` (N, 2) lies in the bird's-eye view of any of `boxes` ((M, 5) BEV or
+    (M, 7) 3D, m and rad), each grown by the fraction `growth` of its own length and width (0.1: a
+    4.5 x 1.8 m car's rectangle 4.95 x 1.98 m). Boundary points are inside, non-finite ones outside."""
+    pts = np.asarray(xy, float).reshape(-1, 2)
+    params = _bev_params(boxes, "boxes")
+    inside = np.zeros(len(pts), bool)
+    for x, y, dx, dy, yaw in params:
+        c, s = np.cos(yaw), np.sin(yaw)
+        rel = pts - (x, y)
+        along, across = rel[:, 0] * c + rel[:, 1] * s, -rel[:, 0] * s + rel[:, 1] * c
+        inside |= (np.abs(along) <= dx * (1 + growth) / 2) & (np.abs(across) <= dy * (1 + growth) / 2)
+    return inside
 
 
 def box3d_corners(boxes: ArrayLike) -> FloatArray:

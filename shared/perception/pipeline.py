@@ -32,8 +32,9 @@ from shared.datasets.layout import agent_origin_m
 from shared.detection.interface import CameraDetector, DetectorInputError, LidarDetector
 from shared.detection.lidar.cluster import ClusterLidarDetector
 from shared.detection.registry import camera_detector, lidar_detector
+from shared.geometry.boxes import in_bev_boxes
 from shared.perception import camera_only, lidar_camera, radar_camera
-from shared.perception.background import AgentGround, RangeBackground, RangeImage, saved_background
+from shared.perception.background import AgentGround, RangeImage, site_background
 from shared.perception.confidence import FUSED, ScoreCalibration
 from shared.perception.config import MecSettings
 from shared.perception.lidar_preprocess import agent_frame_transforms, merge_clouds, preprocess
@@ -162,9 +163,7 @@ class AgentPipeline:
                 self.lidar_detector.warm_up()
         # The background detector: each lidar's static scene removed from its own cloud, before merging.
         self.backgrounds = {
-            s.id: RangeBackground(
-                RangeImage.of(s.lidar), det.background, saved_background(det.background, scene.scene_id, s.id)
-            )
+            s.id: site_background(RangeImage.of(s.lidar), det.background, scene.scene_id, s.id)
             for s in specs
             if s.lidar is not None and det.lidar == "background"
         }
@@ -257,13 +256,23 @@ class AgentPipeline:
         for c, img, d in zip(cameras, images, self.camera_detector.detect(images), strict=True):  # type: ignore[union-attr]
             self._2d_cache[c] = (img, np.asarray(d[d[:, 4] >= min_score], float))
 
+    def _point_sensors(self, ids: list[str], clouds: dict[str, np.ndarray]) -> NDArray[np.int64]:
+        """For the merged cloud of `ids` (scan after scan): each point's lidar as the cluster detector
+        numbers them (its `sensor_xy_m`, the agent frame: matched by position)."""
+        assert isinstance(self.lidar_detector, ClusterLidarDetector)
+        sensors = np.asarray(self.lidar_detector.config.sensor_xy_m, float).reshape(-1, 2)
+        index = [int(np.argmin(np.linalg.norm(sensors - self.lidar_T[c][:2, 3], axis=1))) for c in ids]
+        return np.repeat(np.asarray(index, np.int64), [len(clouds[c]) for c in ids])
+
     def detect_3d(self, clouds: dict[str, np.ndarray]) -> FloatArray:
         """(M, 9) world-frame boxes `[x, y, z, dx, dy, dz, yaw, score, class]` of the agent's lidars."""
         ids = [c for c in self.lidar_ids if c in clouds]
         if not ids or self.lidar_detector is None:
             return np.zeros((0, 9))
+        full, fronts = clouds, {}
         if self.backgrounds:
-            clouds = {c: clouds[c][self.backgrounds[c].foreground(clouds[c][:, :3])] for c in ids}
+            fronts = {c: self.backgrounds[c].foreground(clouds[c][:, :3], learn=False) for c in ids}
+            clouds = {c: clouds[c][fronts[c]] for c in ids}
             if isinstance(self.lidar_detector, ClusterLidarDetector):
                 self.lidar_detector.ground = self.ground.update(self.backgrounds, self.lidar_T)
         merged = merge_clouds([(self.lidar_T[c], clouds[c]) for c in ids])
@@ -271,8 +280,18 @@ class AgentPipeline:
             pre = preprocess(merged, self.cfg.preprocess)
             self.last_reduction = pre.reduction_fraction
             merged = pre.points
+        elif isinstance(self.lidar_detector, ClusterLidarDetector) and len(ids) > 1:
+            self.lidar_detector.point_sensor = self._point_sensors(ids, clouds)
         boxes = np.asarray(self.lidar_detector.detect(merged), float)
         boxes = boxes[boxes[:, 7] >= self.cfg.detectors.lidar_min_score]
+        for c, front in fronts.items():  # learned now: a detected vehicle hides the background
+            hidden = np.zeros(len(front), bool)
+            if len(boxes) and front.any():
+                agent_xy = merge_clouds([(self.lidar_T[c], clouds[c])])[:, :2]
+                hidden[front] = in_bev_boxes(
+                    agent_xy, boxes[:, :7], self.cfg.detectors.background.vehicle_growth
+                )
+            self.backgrounds[c].learn(full[c][:, :3], hidden)
         boxes[:, :3] += self.origin_m
         return boxes
 

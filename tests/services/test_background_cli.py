@@ -131,3 +131,27 @@ def test_a_scene_without_the_agent_is_refused(tmp_path: Path) -> None:
         ],
     )
     assert result.exit_code == 2 and "no lidar of ['agent9']" in result.output
+
+
+@pytest.mark.parametrize("damage", ["another layout", "not a model"])
+def test_a_saved_model_that_does_not_fit_is_refused_and_the_lidar_learns_online(
+    site: Scene, tmp_path: Path, damage: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A site whose lidar was changed after its background was saved (or whose file is damaged): the MEC
+    starts, names the refused file and learns that lidar's background online."""
+    saved = model_path(tmp_path, site.scene_id, LIDAR)
+    saved.parent.mkdir(parents=True)
+    if damage == "another layout":
+        layout = RangeImage.of(site.sensor(LIDAR).lidar)  # type: ignore[arg-type]
+        half = RangeImage(
+            layout.elevations_rad[::2], layout.azimuth_bins, layout.min_range_m, layout.max_range_m
+        )
+        RangeBackground(half, BackgroundConfig()).save(saved)
+        assert saved.is_file()
+    else:
+        saved.write_bytes(b"PK\x03\x04 not a model")
+    mec = MecSettings(detectors={"lidar": "background", "background": {"models_dir": tmp_path}})
+    with caplog.at_level("WARNING", logger="shared.perception.background"):
+        started = AgentPipeline(site, "agent1", mec, sensor_ids=[LIDAR]).backgrounds[LIDAR]
+    assert started.refused_model == saved and not started.ready and started.frames == 0
+    assert any(str(saved) in r.getMessage() and "learning online" in r.getMessage() for r in caplog.records)

@@ -146,6 +146,14 @@ class ClusterLidarConfig(BaseModel):
         "the prior's margin over its size",
     )
     min_extent_m: Length = Field(0.08, ge=0.0, description="longest BEV side must reach this (rejects poles)")
+    overhead_gap_m: Length = Field(
+        0.055,
+        gt=0.0,
+        description="a cluster taller than its vehicle class's height gate, whose points leave a vertical "
+        "gap this large, is a vehicle under an overhead structure (a signal head, a mast arm, a crown): "
+        "the points above the lowest such gap are dropped (0.75 m at the intersection: a signal head "
+        "hangs 3.1 m over a car's roof, a crown 1 m)",
+    )
     max_length_m: Length = Field(0.45, gt=0.0, description="longest BEV side of a vehicle cluster")
     max_width_m: Length = Field(0.32, gt=0.0, description="shorter BEV side of a vehicle cluster")
     min_height_m: Length = Field(0.05, ge=0.0, description="cluster top above its support surface, at least")
@@ -305,6 +313,13 @@ class ClusterLidarDetector:
         # The ground in the agent frame, when known from the data (the MEC fits it to the background
         # model's static points, `shared.perception.background.AgentGround`); None: the table at table_z_m.
         self.ground: Plane | None = None
+        # Which lidar each point of the next cloud came from (an index into `sensor_xy_m`), when the
+        # agent has several: set by the MEC before each `detect`, which takes it and clears it. A
+        # cluster's visible faces and its points' linking radii are then those of the lidar that saw
+        # them: a car beside one pole, under that lidar's lowest ring, may be seen only by the lidar
+        # across the crossing. None (or a length that does not match the cloud): each point's nearest.
+        self.point_sensor: IntArray | None = None
+        self._src: IntArray | None = None
         self._prior_m: tuple[float, float, float] = config.vehicle_size_m
         cfg = self.config
         self._sensors = np.asarray(cfg.sensor_xy_m, dtype=np.float64).reshape(-1, 2)
@@ -358,35 +373,50 @@ class ClusterLidarDetector:
         """
         check_points(points)
         cfg = self.config
+        src, self.point_sensor = self.point_sensor, None
+        if src is not None and (len(src) != len(points) or np.any((src < 0) | (src >= len(self._sensors)))):
+            src = None
         xyz = np.asarray(points[:, :3], dtype=np.float64)
         ground_z = self._ground_z(xyz[:, :2])
+        self._src = src
         keep = self._in_range(xyz, ground_z) & above_table(xyz, ground_z, cfg.ground_tolerance_m)
         xyz, ground_z = xyz[keep], ground_z[keep]
+        self._src = None if src is None else np.asarray(src, np.int64)[keep]
         if xyz.shape[0] == 0:
+            self._src = None
             return empty_lidar_detections()
 
         def leaf(idx: IntArray, support_m: FloatArray) -> list[float] | Literal[Verdict.SEARCH] | None:
             if idx.size < cfg.min_points:
                 return None
-            sensor, _ = nearest_sensor(xyz[idx, :2].mean(axis=0, keepdims=True), self._sensors)
+            if self._src is None:
+                sensor, _ = nearest_sensor(xyz[idx, :2].mean(axis=0, keepdims=True), self._sensors)
+            else:  # the lidar that gave most of its points
+                sensor = self._sensors[np.bincount(self._src[idx]).argmax()][None]
             fit = fit_vehicle_box(xyz[idx, :2], sensor[0], self._fits[0])
             if fit.extent_length > self._max_length_m or fit.extent_width > self._max_width_m:
                 return SEARCH
             k = self._class_of(fit)
             if k is None:  # no vehicle class is that wide or long (a tree's crown, a wall)
                 return None
+            under = self._under_overhead(idx, xyz[idx, 2] - support_m[idx], self._max_height_m[k])
+            if under.size < idx.size:  # fitted again without the overhead structure's points
+                return leaf(under, support_m)
             if k > 0:  # larger than the prior: boxed with the class it fits
                 fit = fit_vehicle_box(xyz[idx, :2], sensor[0], self._fits[k])
             return self._box_row(xyz[idx], support_m[idx], fit, k)
 
-        peeled = peel_slabs(
-            xyz,
-            self._cluster(xyz, np.arange(xyz.shape[0])),
-            cfg.surfaces,
-            leaf=leaf,
-            recluster=lambda idx: self._cluster(xyz, idx),
-            base_z_m=ground_z,
-        )
+        try:
+            peeled = peel_slabs(
+                xyz,
+                self._cluster(xyz, np.arange(xyz.shape[0])),
+                cfg.surfaces,
+                leaf=leaf,
+                recluster=lambda idx: self._cluster(xyz, idx),
+                base_z_m=ground_z,
+            )
+        finally:
+            self._src = None  # this cloud's only
         rows = [row for row in peeled.leaves if row is not None]
         if not rows:
             return empty_lidar_detections()
@@ -401,7 +431,7 @@ class ClusterLidarDetector:
 
     def _in_range(self, xyz: FloatArray, ground_z: FloatArray) -> NDArray[np.bool_]:
         cfg = self.config
-        _, r = nearest_sensor(xyz[:, :2], self._sensors)
+        _, r = self._sensor_of(xyz[:, :2], self._src)
         # Heights in the agent frame on the table (z_min_m / z_max_m as given), above the ground's plane
         # where one was fitted.
         z = xyz[:, 2] if self.ground is None else xyz[:, 2] - ground_z
@@ -425,9 +455,12 @@ class ClusterLidarDetector:
     def _link(self, xyz: FloatArray, idx: IntArray, factor: float) -> list[IntArray]:
         """Connected components (global indices) of the points ``idx`` at `factor` times the radii."""
         cfg = self.config
+        if idx.size == 0:  # a slab peeled off every point of a cluster: nothing left to link
+            return []
         xy = xyz[idx, :2]
+        src = None if self._src is None else self._src[idx]
         if not cfg.cluster_grid:
-            return [idx[c] for c in bev_clusters(xy, *self._radii(xy, factor))]
+            return [idx[c] for c in bev_clusters(xy, *self._radii(xy, factor, src))]
         # One node per BEV cell (its mean point). Two points of one cell or of two cells that touch are at
         # most 2 sqrt(2) cells = 0.71 eps_min apart, within every point's radius: linked point by point
         # too, and so are their cells' means.
@@ -437,23 +470,49 @@ class ClusterLidarDetector:
         means = np.column_stack(
             [np.bincount(point_cell, xy[:, k], minlength=cells.size) / count for k in range(2)]
         )
+        cell_src = None
+        if src is not None:  # a cell's lidar: the one that gave most of its points
+            votes = np.bincount(
+                point_cell * len(self._sensors) + src, minlength=cells.size * len(self._sensors)
+            )
+            cell_src = votes.reshape(cells.size, len(self._sensors)).argmax(axis=1)
         label = np.empty(cells.size, np.int64)
-        for k, members in enumerate(bev_clusters(means, *self._radii(means, factor))):
+        for k, members in enumerate(bev_clusters(means, *self._radii(means, factor, cell_src))):
             label[members] = k
         point_label = label[point_cell]
         order = np.argsort(point_label, kind="stable")  # ascending indices within a cluster
         return [idx[c] for c in np.split(order, np.flatnonzero(np.diff(point_label[order])) + 1)]
 
-    def _radii(self, xy: FloatArray, factor: float = 1.0) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Nearest lidar (N, 2) and the linking radii across and along its line of sight (N,) each, m,
-        times `factor`."""
+    def _sensor_of(self, xy: FloatArray, src: IntArray | None) -> tuple[FloatArray, FloatArray]:
+        """Each point's lidar (N, 2) and BEV distance to it (N,), m: `src`'s, else the nearest."""
+        if src is None:
+            return nearest_sensor(xy, self._sensors)
+        origin = self._sensors[src]
+        return origin, np.linalg.norm(xy - origin, axis=1)
+
+    def _radii(
+        self, xy: FloatArray, factor: float = 1.0, src: IntArray | None = None
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Each point's lidar (`src`, else the nearest) (N, 2) and the linking radii across and along its
+        line of sight (N,) each, m, times `factor`."""
         cfg = self.config
-        origin, r = nearest_sensor(xy, self._sensors)
+        origin, r = self._sensor_of(xy, src)
         tangential = np.clip(cfg.cluster_eps_per_m * r, cfg.cluster_eps_min_m, cfg.cluster_eps_max_m)
         radial = np.clip(cfg.cluster_radial_eps_per_m2 * r**2, tangential, cfg.cluster_radial_eps_max_m)
         if factor == 1.0:
             return origin, tangential, radial
         return origin, tangential * factor, radial * factor
+
+    def _under_overhead(self, idx: IntArray, height_m: FloatArray, gate_m: float) -> IntArray:
+        """The points `idx` (heights `height_m` above their support) below the lowest vertical gap of
+        `overhead_gap_m` when they reach above the height gate `gate_m` (all of them otherwise)."""
+        if height_m.size == 0 or float(height_m.max()) <= gate_m:
+            return idx
+        z = np.sort(height_m)
+        gaps = np.flatnonzero(np.diff(z) > self.config.overhead_gap_m)
+        if gaps.size == 0:
+            return idx
+        return idx[height_m <= z[gaps[0]]]
 
     def _class_of(self, fit: FittedBox) -> int | None:
         """Index into the classes (0: the prior) of the smallest whose length and width hold the fitted

@@ -217,3 +217,17 @@ def test_box2d_centres_known_answer_and_extra_columns() -> None:
     np.testing.assert_allclose(box2d_centres(boxes), [[2.0, 1.0], [11.0, 25.0]])
     np.testing.assert_allclose(box2d_centres([1.0, 1.0, 3.0, 5.0]), [[2.0, 3.0]])
     assert box2d_centres(np.zeros((0, 4))).shape == (0, 2)
+
+
+def test_in_bev_boxes_takes_each_box_rotated_and_grown() -> None:
+    from shared.geometry.boxes import in_bev_boxes
+
+    # a 4 x 2 m box at (10, 0) turned 90 deg (4 m along y), a 2 x 2 m one at (0, 0); z and height unused
+    boxes = np.array([[10.0, 0.0, 5.0, 4.0, 2.0, 1.5, np.pi / 2], [0.0, 0.0, 0.0, 2.0, 2.0, 1.0, 0.0]])
+    xy = np.array(
+        [[10.0, 1.9], [10.9, 0.0], [11.1, 0.0], [10.0, 2.1], [1.0, 1.0], [1.05, 0.0], [np.nan, 0.0]]
+    )
+    assert in_bev_boxes(xy, boxes).tolist() == [True, True, False, False, True, False, False]
+    # grown by 10 %: 4.4 x 2.2 m and 2.2 x 2.2 m
+    assert in_bev_boxes(xy, boxes, growth=0.1).tolist() == [True, True, True, True, True, True, False]
+    assert not in_bev_boxes(xy, np.zeros((0, 7))).any()

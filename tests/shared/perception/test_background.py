@@ -125,6 +125,27 @@ def test_a_parked_car_that_leaves_is_forgotten_within_seconds() -> None:
     assert car_share(model, rng, learn=False) == 1.0  # a new car on that spot is a vehicle again
 
 
+def test_a_detected_vehicle_hides_the_background_and_never_joins_it() -> None:
+    """A stop line where one queued car follows another for 10 min: learned as returns at the rays'
+    background (`learn(xyz, hidden)`, the pipeline's detected vehicles), the cars stay foreground and
+    the ground under them stays background when the queue clears; learned as they are, they join the
+    background within the first minute."""
+    hidden_model, rng = learned()
+    plain_model, _ = learned()
+    plain_share = []
+    for _ in range(6000):
+        r, car = with_car(static_ranges(rng))
+        keep = np.isfinite(r)
+        xyz = points(r)
+        front = hidden_model.foreground(xyz, learn=False)
+        assert front[car[keep]].all()
+        hidden_model.learn(xyz, hidden=front & car[keep])
+        if len(plain_share) < 600:
+            plain_share.append(float(plain_model.foreground(xyz)[car[keep]].mean()))
+    assert min(plain_share[:100]) == 1.0 and plain_share[-1] < 0.05  # joined the background within 60 s
+    assert not hidden_model.foreground(points(static_ranges(rng)), learn=False).any()  # the ground is back
+
+
 def test_a_saved_model_starts_ready_and_refuses_another_layout(tmp_path: Path) -> None:
     model, rng = learned()
     path = tmp_path / "agent1_lidar.npz"

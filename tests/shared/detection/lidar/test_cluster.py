@@ -356,3 +356,44 @@ def test_a_car_queued_1m_behind_a_truck_is_split_and_each_boxed_with_its_class()
     np.testing.assert_allclose(by_x[:, 0], [car_x, truck_x], atol=0.3)
     np.testing.assert_allclose(by_x[0, 3:6], car, atol=0.05)
     np.testing.assert_allclose(by_x[1, 3:6], truck, atol=0.3)
+
+
+def test_a_car_under_an_overhead_structure_is_boxed_without_it() -> None:
+    """A signal head hanging over a car (its top 0.42 m up, above the car's 0.30 m height gate, 0.17 m
+    over the roof): the cluster's points above the gap are the structure's; the car is boxed as it is
+    without the head."""
+    car = TABLE_CARS[:1]
+    head = np.array([[car[0, 0], car[0, 1], 0.40, 0.05, 0.05, 0.04, 0.0]])
+    cloud = scan(HIGH_DENSE, np.vstack([car, head]), np.random.default_rng(4))
+    assert (cloud[:, 2] > 0.35).sum() > 3  # the head is seen
+    dets = detector().detect(cloud)
+    alone = detector().detect(scan(HIGH_DENSE, car, np.random.default_rng(4)))
+    assert dets.shape == alone.shape == (1, 9)
+    np.testing.assert_allclose(dets, alone, atol=0.01)  # as the car without the head over it
+    assert detector(overhead_gap_m=1.0).detect(cloud).shape[0] == 0  # without: too tall for a car
+
+
+def test_points_from_one_lidar_are_boxed_from_that_lidar() -> None:
+    """Two lidars: a car nearer the first, seen (here) only by the second. Told where each point came
+    from, the detector boxes it exactly as a detector with the second lidar alone; not told (or told
+    with a length that does not match), from each cluster's nearest lidar. Told once: the next cloud
+    is not."""
+    near, far = (0.9, 0.9), (-1.5, -1.5)
+    car = np.array([[1.2, 0.4, H / 2, L, W, H, 0.4]])
+    cloud = scan(Lidar(position=(*far, 0.62), samples=720), car, np.random.default_rng(5))
+    alone = detector(sensor_xy_m=(far,)).detect(cloud)
+    both = detector(sensor_xy_m=(near, far))
+    both.point_sensor = np.ones(len(cloud), np.int64)
+    np.testing.assert_array_equal(both.detect(cloud), alone)
+    assert both.point_sensor is None
+    nearest = detector(sensor_xy_m=(near, far)).detect(cloud)
+    both.point_sensor = np.ones(len(cloud) - 1, np.int64)  # not this cloud's: ignored
+    np.testing.assert_array_equal(both.detect(cloud), nearest)
+
+
+@pytest.mark.parametrize("grid", [True, False])
+def test_no_points_left_after_a_slab_make_no_cluster(grid: bool) -> None:
+    """A slab peeled off all of a cluster's points leaves nothing to recluster: no cluster, not an
+    empty one (whose extent raised `zero-size array` in the intersection's tuning evaluation)."""
+    xyz = np.array([[1.0, 0.0, 0.1], [1.1, 0.0, 0.1]])
+    assert detector(cluster_grid=grid)._cluster(xyz, np.zeros(0, np.int64)) == []
