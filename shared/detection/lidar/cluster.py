@@ -505,11 +505,14 @@ class ClusterLidarDetector:
 
     def _under_overhead(self, idx: IntArray, height_m: FloatArray, gate_m: float) -> IntArray:
         """The points `idx` (heights `height_m` above their support) below the lowest vertical gap of
-        `overhead_gap_m` when they reach above the height gate `gate_m` (all of them otherwise)."""
-        if height_m.size == 0 or float(height_m.max()) <= gate_m:
-            return idx
+        `overhead_gap_m` when they reach above the height gate `gate_m` and start within that gap of
+        their support, as a vehicle does (all of them otherwise: a tree's crown, 2.5 m up, is not cut
+        into a car-sized piece)."""
+        gap_m = self.config.overhead_gap_m
+        if height_m.size == 0 or float(height_m.max()) <= gate_m or float(height_m.min()) > gap_m:
+            return idx  # short enough, or standing on nothing (a tree's crown): the gates decide
         z = np.sort(height_m)
-        gaps = np.flatnonzero(np.diff(z) > self.config.overhead_gap_m)
+        gaps = np.flatnonzero(np.diff(z) > gap_m)
         if gaps.size == 0:
             return idx
         return idx[height_m <= z[gaps[0]]]
