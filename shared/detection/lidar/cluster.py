@@ -378,13 +378,11 @@ class ClusterLidarDetector:
             src = None
         xyz = np.asarray(points[:, :3], dtype=np.float64)
         ground_z = self._ground_z(xyz[:, :2])
-        self._src = src
-        keep = self._in_range(xyz, ground_z) & above_table(xyz, ground_z, cfg.ground_tolerance_m)
+        keep = self._in_range(xyz, ground_z, src) & above_table(xyz, ground_z, cfg.ground_tolerance_m)
         xyz, ground_z = xyz[keep], ground_z[keep]
-        self._src = None if src is None else np.asarray(src, np.int64)[keep]
         if xyz.shape[0] == 0:
-            self._src = None
             return empty_lidar_detections()
+        self._src = None if src is None else np.asarray(src, np.int64)[keep]
 
         def leaf(idx: IntArray, support_m: FloatArray) -> list[float] | Literal[Verdict.SEARCH] | None:
             if idx.size < cfg.min_points:
@@ -429,9 +427,9 @@ class ClusterLidarDetector:
             return np.full(xy.shape[0], self.config.table_z_m)
         return self.ground.height_at(xy)
 
-    def _in_range(self, xyz: FloatArray, ground_z: FloatArray) -> NDArray[np.bool_]:
+    def _in_range(self, xyz: FloatArray, ground_z: FloatArray, src: IntArray | None) -> NDArray[np.bool_]:
         cfg = self.config
-        _, r = self._sensor_of(xyz[:, :2], self._src)
+        _, r = self._sensor_of(xyz[:, :2], src)
         # Heights in the agent frame on the table (z_min_m / z_max_m as given), above the ground's plane
         # where one was fitted.
         z = xyz[:, 2] if self.ground is None else xyz[:, 2] - ground_z
