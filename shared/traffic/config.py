@@ -127,11 +127,26 @@ class PlannerConfig(_Section):
 
 
 class DeliveryConfig(_Section):
-    ack_timeout_s: float = Field(0.5, gt=0, description="resend a pushed plan not acknowledged by then")
+    ack_timeout_s: float = Field(
+        0.5, gt=0, description="resend a pushed plan not acknowledged this long after its first send"
+    )
+    ack_timeout_max_s: float = Field(
+        4.0, gt=0, description="the wait after each later send doubles up to this (exponential backoff)"
+    )
     max_sends: int = Field(5, ge=1, description="a pushed plan is sent at most this many times")
     vehicle_idle_s: float = Field(
         300.0, gt=0, description="a vehicle without a request or acknowledgement for this long is forgotten"
     )
+
+    def ack_wait_s(self, sends: int) -> float:
+        """How long after its `sends`-th send (1 = the first) a pushed plan waits for its acknowledgement.
+
+        Doubling: over Zenoh's reliable channel a resend only helps across a reconnect, while TCP's own
+        retransmissions back off from 200 ms, doubling, so a burst of loss delays an acknowledgement by
+        seconds (stop 58's fresh clone: 20 % loss each way, one plan of 29 acknowledged after the fixed
+        5 x 0.5 s and counted given up). The defaults give up 11.5 s after the first send, past the 10 s
+        lease after which Zenoh itself declares the link dead and the vehicle's requests take over."""
+        return min(self.ack_timeout_s * 2.0 ** max(0, sends - 1), self.ack_timeout_max_s)
 
 
 class ServiceConfig(_Section):

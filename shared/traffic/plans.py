@@ -2,7 +2,8 @@
 vehicle side's decision on a received plan.
 
 Plans are must-deliver: each vehicle's plans carry strictly increasing versions; a pushed plan is resent
-until acknowledged (at most `max_sends` times); the vehicle applies a plan only if it is newer than the
+until acknowledged (at most `max_sends` times, each wait twice the last up to a ceiling:
+`DeliveryConfig.ack_wait_s`); the vehicle applies a plan only if it is newer than the
 one it follows, so a repeated or reordered plan changes nothing (idempotent) and is acknowledged as
 DUPLICATE or REJECTED_STALE. Times are monotonic seconds.
 """
@@ -152,12 +153,12 @@ class PlanBook:
         return True
 
     def due(self, now_s: float) -> list[IssuedPlan]:
-        """Pushed plans to (re)send now: never sent, or unacknowledged past the ack timeout."""
+        """Pushed plans to (re)send now: never sent, or unacknowledged past the wait after their last send."""
         out = []
         for plan in self._latest.values():
             if not plan.pushed or plan.ack is not None:
                 continue
-            if plan.sends == 0 or now_s - plan.last_send_s >= self.cfg.ack_timeout_s:
+            if plan.sends == 0 or now_s - plan.last_send_s >= self.cfg.ack_wait_s(plan.sends):
                 if plan.sends >= self.cfg.max_sends:
                     plan.ack = Ack.REJECTED_STALE  # give up; the vehicle asks again at its next junction
                     self.unacknowledged_dropped += 1

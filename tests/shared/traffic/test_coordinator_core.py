@@ -3,6 +3,8 @@ their delivery, acknowledgements, and the loop's cadence (`tick`)."""
 
 from __future__ import annotations
 
+import numpy as np
+
 import pytest
 from rmmdet.v1.common_pb2 import ErrorCode
 from rmmdet.v1.planning_pb2 import RouteAck, RouteRequest
@@ -196,10 +198,12 @@ def test_pushed_plan_given_up_after_max_sends(scene: Scene, cars: dict[str, Agen
     feed(core, cars, 1.0)
     core.update_map(1.0)
     assert core.replan(1.0, WALL0_NS) == 1
-    timeout_s = core.settings.delivery.ack_timeout_s
-    sends = sum(len(core.due(1.0 + k * timeout_s)) for k in range(core.settings.delivery.max_sends + 2))
-    assert sends == core.settings.delivery.max_sends and core.plans_given_up == 1
-    assert core.active_plans(10.0) == 0
+    delivery = core.settings.delivery
+    sent_at = [t for t in np.arange(1.0, 30.0, 0.05) for _ in core.due(float(t))]
+    waits = np.diff(sent_at)
+    assert len(sent_at) == delivery.max_sends and core.plans_given_up == 1
+    assert np.allclose(waits, [delivery.ack_wait_s(k) for k in range(1, delivery.max_sends)], atol=0.051)
+    assert core.active_plans(30.0) == 0
 
 
 def test_ended_plans_are_not_replanned(scene: Scene, cars: dict[str, AgentCars]) -> None:

@@ -65,24 +65,31 @@ def test_on_ack_only_for_the_latest_plan(book: PlanBook) -> None:
     assert new.ack is Ack.DUPLICATE
 
 
-def test_due_sends_resends_and_gives_up(book: PlanBook) -> None:
+def test_due_sends_resends_with_backoff_and_gives_up(book: PlanBook) -> None:
     plan = book.issue("v1", ROUTE, 0.0, pushed=True, wall_ns=WALL_NS)
     assert book.due(0.0) == [plan]  # never sent: due at once
     book.sent(plan, 0.0)
     assert (plan.sends, plan.last_send_s) == (1, 0.0)
-    assert book.due(0.3) == []  # within the ack timeout
+    assert book.due(0.3) == []  # within the ack timeout (0.5 s)
     assert book.due(0.6) == [plan]
     book.sent(plan, 0.6)
-    assert book.due(1.2) == [plan]
-    book.sent(plan, 1.2)
+    assert book.due(1.5) == []  # the second wait is twice the first: 1 s
+    assert book.due(1.6) == [plan]
+    book.sent(plan, 1.6)
     assert plan.sends == 3
-    assert book.due(1.5) == []
+    assert book.due(3.5) == []  # the third: 2 s
     assert book.unacknowledged_dropped == 0
-    assert book.due(1.8) == []  # max_sends reached: given up, counted once
+    assert book.due(3.6) == []  # max_sends reached: given up, counted once
     assert book.unacknowledged_dropped == 1
     assert plan.ack is Ack.REJECTED_STALE
     assert book.due(10.0) == []
     assert book.unacknowledged_dropped == 1
+
+
+def test_the_wait_doubles_up_to_its_ceiling() -> None:
+    cfg = DeliveryConfig(ack_timeout_s=0.5, ack_timeout_max_s=4.0, max_sends=5)
+    assert [cfg.ack_wait_s(k) for k in range(1, 7)] == [0.5, 1.0, 2.0, 4.0, 4.0, 4.0]
+    assert sum(cfg.ack_wait_s(k) for k in range(1, 6)) == 11.5  # given up past Zenoh's 10 s lease
 
 
 def test_acknowledged_and_request_reply_plans_are_never_due(book: PlanBook) -> None:
