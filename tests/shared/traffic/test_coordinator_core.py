@@ -4,7 +4,6 @@ their delivery, acknowledgements, and the loop's cadence (`tick`)."""
 from __future__ import annotations
 
 import numpy as np
-
 import pytest
 from rmmdet.v1.common_pb2 import ErrorCode
 from rmmdet.v1.planning_pb2 import RouteAck, RouteRequest
