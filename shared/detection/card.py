@@ -96,7 +96,9 @@ class TileBand(_Card):
     y0_px: int = Field(ge=0, description="first row of the band, full-image px")
     y1_px: int = Field(gt=0, description="row after the band's last, full-image px")
     scale: float = Field(1.0, gt=0, le=4, description="network-input px per image px in these tiles")
-    min_overlap_px: int = Field(128, ge=0, description="least overlap of neighbouring tiles, image px")
+    min_overlap_px: int = Field(
+        128, ge=0, description="least overlap of neighbouring tiles, image px (strips have none)"
+    )
 
     @model_validator(mode="after")
     def _check(self) -> TileBand:
@@ -115,6 +117,18 @@ class CameraTiles(_Card):
     image_height_px: int = Field(gt=0)
     bands: tuple[TileBand, ...] = Field((), description="tiled bands (none: the whole image only)")
     whole_image: bool = Field(True, description="also run the whole image letterboxed (near, large cars)")
+    strips: bool = Field(
+        False,
+        description="each band in one network run, the image's full width at the band's scale (no tiles, "
+        "no overlap); needs a model whose input height and width are free (e.g. 1536 x 288 for a band)",
+    )
+    whole_image_scale: float | None = Field(
+        None,
+        gt=0,
+        le=1,
+        description="with strips: the whole image at this scale, at its own aspect (none: letterboxed "
+        "into the card's input)",
+    )
     merge_iou: float = Field(0.5, gt=0, le=1, description="NMS IoU merging detections of different tiles")
     edge_px: float = Field(
         2.0, ge=0, description="a box within this of a tile edge inside the image is cut by it (dropped)"
@@ -124,6 +138,8 @@ class CameraTiles(_Card):
     def _check(self) -> CameraTiles:
         if not self.bands and not self.whole_image:
             raise ValueError("no tiles: give bands, whole_image or both")
+        if self.whole_image_scale is not None and not (self.strips and self.whole_image):
+            raise ValueError("whole_image_scale is for a card with strips and whole_image")
         for band in self.bands:
             if band.y1_px > self.image_height_px:
                 raise ValueError(f"band rows ..{band.y1_px} beyond the image's {self.image_height_px}")

@@ -41,6 +41,18 @@ def yolox_cells(card: CameraCard) -> int:
     return sum((card.input.height // s) * (card.input.width // s) for s in strides)
 
 
+#: A free-size input's height and width are multiples of this: the coarsest stride of the YOLO families'
+#: heads (their grids must tile the input exactly).
+SIZE_MULTIPLE_PX = 32
+
+
+def size_multiple(card: CameraCard) -> int:
+    """What a free-size input's height and width must be multiples of, px."""
+    if card.layout == "yolox" and card.yolox is not None:
+        return max(card.yolox.strides)
+    return SIZE_MULTIPLE_PX
+
+
 def xywh_to_xyxy(xywh: np.ndarray) -> np.ndarray:
     """(..., 4) centre x, centre y, width, height -> (..., 4) x0, y0, x1, y1."""
     half = xywh[..., 2:4] / 2

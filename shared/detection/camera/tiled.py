@@ -14,6 +14,12 @@ are merged across tiles by NMS per class (`cv2.dnn.NMSBoxes`, `geometry.nms`).
 
 Tile windows are in full-image pixels (`tile_windows`); an image of another size than the layout's
 scales the layout with it.
+
+A model whose input height and width are free (`OnnxCameraDetector.any_size`) can run a card with
+`tiles.strips`: each band in one call at the image's full width and the band's scale, and the whole
+image at `whole_image_scale` (`strip_windows`; network sizes rounded up to the coarsest stride). No
+overlap is spent and a wide input runs faster per pixel than square tiles (figures: the COCO card's
+comment, tests/bench/camera_tiled_bench.py).
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ import numpy as np
 
 from shared.config import ConfigError
 from shared.detection.camera.geometry import nms
+from shared.detection.camera.layouts import size_multiple
 from shared.detection.camera.onnx_detector import DEFAULT_THREADS, OnnxCameraDetector
 from shared.detection.card import CameraCard, CameraTiles, load_card_and_model
 from shared.detection.interface import (
@@ -49,6 +56,7 @@ class Tile:
     x1: int
     y1: int
     inner: tuple[bool, bool, bool, bool]
+    size: tuple[int, int] | None = None  # the network's input (width, height) px; None: the card's
 
     def crop(self, image: np.ndarray) -> np.ndarray:
         return image[self.y0 : self.y1, self.x0 : self.x1]
@@ -106,6 +114,32 @@ def tile_windows(tiles: CameraTiles, width: int, height: int, input_w: int, inpu
     return out
 
 
+def _round_up(value: float, multiple: int) -> int:
+    return max(multiple, math.ceil(value / multiple - 1e-9) * multiple)
+
+
+def strip_windows(tiles: CameraTiles, width: int, height: int, multiple: int) -> list[Tile]:
+    """The strips of a `width` x `height` image for a network taking any input size (`tiles.strips`):
+    each band whole, the image's full width at the band's scale (network px rounded up to `multiple`),
+    then the whole image (at `whole_image_scale`, else None: letterboxed to the card's input)."""
+    sx, sy = width / tiles.image_width_px, height / tiles.image_height_px
+    out = []
+    for band in tiles.bands:
+        y0, y1 = round(band.y0_px * sy), min(height, round(band.y1_px * sy))
+        size = (
+            _round_up(width * band.scale / sx, multiple),
+            _round_up((y1 - y0) * band.scale / sy, multiple),
+        )
+        out.append(Tile(0, y0, width, y1, (False, y0 > 0, False, y1 < height), size))
+    if tiles.whole_image:
+        s = tiles.whole_image_scale
+        whole = (
+            None if s is None else (_round_up(width * s / sx, multiple), _round_up(height * s / sy, multiple))
+        )
+        out.append(Tile(0, 0, width, height, (False, False, False, False), whole))
+    return out
+
+
 def merge(dets: np.ndarray, iou: float, max_detections: int) -> np.ndarray:
     """Detections of several tiles (n, 6) full-image px -> NMS per class at `iou`, best score first."""
     if len(dets) == 0:
@@ -125,6 +159,8 @@ class TiledCameraDetector:
     name = "onnx-camera-tiled"
 
     def __init__(self, detector: OnnxCameraDetector, tiles: CameraTiles) -> None:
+        if tiles.strips and not detector.any_size:
+            raise ConfigError("the card's tiles are strips, but its model's input size is fixed")
         self.detector = detector
         self.tiles = tiles
         self._windows: dict[tuple[int, int], list[Tile]] = {}
@@ -147,7 +183,11 @@ class TiledCameraDetector:
         key = (width, height)
         if key not in self._windows:
             inp = self.card.input
-            self._windows[key] = tile_windows(self.tiles, width, height, inp.width, inp.height)
+            self._windows[key] = (
+                strip_windows(self.tiles, width, height, size_multiple(self.card))
+                if self.tiles.strips
+                else tile_windows(self.tiles, width, height, inp.width, inp.height)
+            )
         return self._windows[key]
 
     def warm_up(self, max_batch: int) -> None:
@@ -164,10 +204,15 @@ class TiledCameraDetector:
         if len(images) == 0:
             raise DetectorInputError("no images: expected a list of at least one (H, W, 3) uint8 RGB image")
         per_image = [self.windows(img.shape[1], img.shape[0]) for img in images]
-        crops = [t.crop(img) for img, tiles in zip(images, per_image, strict=True) for t in tiles]
-        found = iter(self.detector.detect(crops))
-        out = []
+        jobs = [(t, t.crop(img)) for img, tiles in zip(images, per_image, strict=True) for t in tiles]
+        found: list[np.ndarray] = [empty_camera_detections()] * len(jobs)
+        for size in dict.fromkeys(t.size for t, _ in jobs):  # one batch per network input size
+            at = [i for i, (t, _) in enumerate(jobs) if t.size == size]
+            for i, dets in zip(at, self.detector.detect([jobs[i][1] for i in at], size), strict=True):
+                found[i] = dets
+        out, k = [], 0
         for tiles in per_image:
-            kept = [t.to_image(t.uncut(next(found), self.tiles.edge_px)) for t in tiles]
+            kept = [t.to_image(t.uncut(found[k + j], self.tiles.edge_px)) for j, t in enumerate(tiles)]
+            k += len(tiles)
             out.append(merge(np.concatenate(kept), self.tiles.merge_iou, self.card.post.max_detections))
         return out

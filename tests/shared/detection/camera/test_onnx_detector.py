@@ -183,3 +183,51 @@ def test_warm_up_runs_every_batch_size_without_memory_patterns(tmp_path: Path) -
     detector.session = Recording()  # type: ignore[assignment]
     detector.warm_up(3)
     assert sizes == [3, 2, 1]
+
+
+# --- free-size graphs and the input tensor --------------------------------------------------------------
+
+
+def test_a_free_size_graph_runs_at_the_size_asked_and_maps_boxes_back(tmp_path: Path) -> None:
+    """The constant model with symbolic height and width: asked to run a 256 x 128 image at 128 x 64
+    (scale 0.5), its input-px cells come back doubled; a fixed-size graph refuses another size."""
+    path = constant_model(tmp_path, SMALL, KNOWN_CELLS)
+    model = onnx.load(str(path))
+    dims = model.graph.input[0].type.tensor_type.shape.dim
+    dims[1].dim_param, dims[2].dim_param = "height", "width"
+    onnx.save(model, str(path))
+    free = OnnxCameraDetector(path, intra_op_threads=1)
+    assert free.any_size
+    out = free.detect([np.zeros((128, 256, 3), np.uint8)], size=(128, 64))
+    np.testing.assert_allclose(out[0], [[16, 8, 48, 40, 0.9, 0]], rtol=1e-5)
+    assert free.card_at((128, 64)).input.width == 128 and free.card.input.width == 64  # the card kept
+    (tmp_path / "fixed").mkdir()
+    fixed = OnnxCameraDetector(constant_model(tmp_path / "fixed", SMALL, KNOWN_CELLS), intra_op_threads=1)
+    assert not fixed.any_size
+    with pytest.raises(ValueError, match="fixed at 64 x 48"):
+        fixed.detect([np.zeros((128, 256, 3), np.uint8)], size=(128, 64))
+
+
+@pytest.mark.parametrize(
+    ("colour", "scale", "mean", "std"),
+    [
+        ("bgr", 1.0, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)),
+        ("rgb", 1 / 255, (0.485, 0.456, 0.406), (0.2, 0.3, 0.4)),
+    ],
+)
+def test_the_input_tensor_is_the_cards_formula(colour: str, scale: float, mean: tuple, std: tuple) -> None:
+    """tensor() against the card's formula written plainly: channel order, NCHW, x scale, - mean, / std."""
+    card = SMALL.card()
+    inp = {"tensor": "nchw_float32", "colour": colour, "scale": scale, "mean": mean, "std": std}
+    card = card.model_copy(update={"input": card.input.model_copy(update=inp)})
+    det = OnnxCameraDetector.__new__(OnnxCameraDetector)
+    det.card = card
+    det._mean = np.asarray(mean, np.float32).reshape(1, 3, 1, 1)
+    det._std = np.asarray(std, np.float32).reshape(1, 3, 1, 1)
+    det._normalise = colour == "rgb"
+    batch = np.random.default_rng(1).integers(0, 256, (2, 48, 64, 3), np.uint8)
+    ordered = batch[..., ::-1] if colour == "bgr" else batch
+    want = (ordered.transpose(0, 3, 1, 2).astype(np.float32) * np.float32(scale) - det._mean) / det._std
+    got = det.tensor(batch)
+    assert got.shape == (2, 3, 48, 64) and got.dtype == np.float32 and got.flags.c_contiguous
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6)

@@ -1,6 +1,7 @@
 """The COCO card (YOLOX-Nano, deploy/models/coco/yolox_nano) and the tiled camera detector: the card
 loads and fits its graph with COCO car, bus, truck mapped to car; tile windows cover the image with the
-card's overlap; boxes go back to full-image pixels; a car on a tile border is kept once."""
+card's overlap; strips run each band whole at its scale (a free-size graph, re-derived here from the
+vendored one); boxes go back to full-image pixels; a car on a tile border is kept once."""
 
 from __future__ import annotations
 
@@ -11,7 +12,8 @@ import numpy as np
 import pytest
 
 from shared.config import ConfigError
-from shared.detection.camera.tiled import Tile, TiledCameraDetector, merge, tile_windows
+from shared.detection.camera.onnx_detector import OnnxCameraDetector
+from shared.detection.camera.tiled import Tile, TiledCameraDetector, merge, strip_windows, tile_windows
 from shared.detection.card import CameraCard, CameraTiles, load_card
 from shared.detection.registry import COCO_CARD, MODELS_DIR, camera_detector
 
@@ -24,6 +26,20 @@ def test_vendored_model_is_the_recorded_file() -> None:
     assert hashlib.sha256(model.read_bytes()).hexdigest() == SHA256
     assert (CARD.parent / "LICENSE").read_text().startswith(" " * 33 + "Apache License")
     assert SHA256 in (CARD.parent / "SOURCE.md").read_text()
+
+
+def test_the_any_size_model_is_the_vendored_one_with_free_sizes() -> None:
+    """model_any_size.onnx is what training.camera.any_size makes of the vendored file: the same nodes
+    and weights, only the declared input height and width and the output rows left free."""
+    onnx = pytest.importorskip("onnx")
+    from training.camera.any_size import any_size_path, free_input_size
+
+    original = onnx.load(str(CARD.parent / "model.onnx"))
+    shipped = any_size_path(CARD.parent / "model.onnx")
+    assert free_input_size(original).SerializeToString() == shipped.read_bytes()
+    freed = onnx.load(str(shipped))
+    assert freed.graph.node == original.graph.node and freed.graph.initializer == original.graph.initializer
+    assert [d.dim_param for d in freed.graph.input[0].type.tensor_type.shape.dim[2:]] == ["height", "width"]
 
 
 def test_card_maps_coco_vehicles_to_car_and_fits_the_graph() -> None:
@@ -47,9 +63,9 @@ def test_a_card_with_the_wrong_class_count_stops_at_load(tmp_path) -> None:
     text = (
         CARD.read_text()
         .replace("num_classes: 80", "num_classes: 20")
-        .replace("model: model.onnx", "model: x.onnx")
+        .replace("model: model_any_size.onnx", "model: x.onnx")
     )
-    (tmp_path / "x.onnx").write_bytes((CARD.parent / "model.onnx").read_bytes())
+    (tmp_path / "x.onnx").write_bytes((CARD.parent / "model_any_size.onnx").read_bytes())
     (tmp_path / "bad.yaml").write_text(text)
     with pytest.raises(ConfigError, match="does not fit layout yolox"):
         camera_detector(str(tmp_path / "bad.yaml"), threads=1)
@@ -115,3 +131,35 @@ def test_box_on_a_tile_border_is_kept_once() -> None:
     # Without dropping the cut box, it survives NMS beside the whole one (IoU 40x80 / 120x80 = 0.33).
     both = merge(np.concatenate([left.to_image(cut), right.to_image(whole)]), 0.5, 300)
     assert len(both) == 2
+
+
+def strips(**kw: object) -> CameraTiles:
+    return CameraTiles(
+        image_width_px=1920,
+        image_height_px=1200,
+        strips=True,
+        bands=[{"y0_px": 150, "y1_px": 470, "scale": 0.7}],
+        **kw,
+    )
+
+
+def test_strips_run_each_band_whole_at_its_scale() -> None:
+    """A band of rows 150..470 at 0.7: one window of the full width, network 1344 x 224 (1920 x 0.7 =
+    1344, 320 x 0.7 = 224: multiples of 32); the whole image at 0.25: 480 x 320 (300 rounded up)."""
+    band, whole = strip_windows(strips(whole_image_scale=0.25), 1920, 1200, 32)
+    assert (band.x0, band.y0, band.x1, band.y1, band.size) == (0, 150, 1920, 470, (1344, 224))
+    assert band.inner == (False, True, False, True)  # cut by its top and bottom only
+    assert (whole.x0, whole.y0, whole.x1, whole.y1, whole.size) == (0, 0, 1920, 1200, (480, 320))
+    # A half-size image: the same network sizes (the layout scales with the image).
+    half = strip_windows(strips(whole_image_scale=0.25), 960, 600, 32)
+    assert [(t.y0, t.y1, t.size) for t in half] == [(75, 235, (1344, 224)), (0, 600, (480, 320))]
+    # Without whole_image_scale the whole image goes letterboxed to the card's input (size None).
+    assert strip_windows(strips(), 1920, 1200, 32)[-1].size is None
+
+
+def test_strips_need_a_free_size_model_and_whole_image_scale_needs_strips() -> None:
+    fixed = OnnxCameraDetector(CARD.parent / "model.onnx", load_card(CARD), intra_op_threads=1)  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="input size is fixed"):
+        TiledCameraDetector(fixed, strips())
+    with pytest.raises(ValueError, match="whole_image_scale"):
+        CameraTiles(image_width_px=1920, image_height_px=1200, whole_image_scale=0.25)
