@@ -269,10 +269,9 @@ class AgentPipeline:
         ids = [c for c in self.lidar_ids if c in clouds]
         if not ids or self.lidar_detector is None:
             return np.zeros((0, 9))
-        full, fronts = clouds, {}
-        if self.backgrounds:
-            fronts = {c: self.backgrounds[c].foreground(clouds[c][:, :3], learn=False) for c in ids}
-            clouds = {c: clouds[c][fronts[c]] for c in ids}
+        seen = {c: self.backgrounds[c].classify(clouds[c][:, :3]) for c in ids if self.backgrounds}
+        if seen:
+            clouds = {c: clouds[c][seen[c].front] for c in ids}
             if isinstance(self.lidar_detector, ClusterLidarDetector):
                 self.lidar_detector.ground = self.ground.update(self.backgrounds, self.lidar_T)
         merged = merge_clouds([(self.lidar_T[c], clouds[c]) for c in ids])
@@ -284,14 +283,15 @@ class AgentPipeline:
             self.lidar_detector.point_sensor = self._point_sensors(ids, clouds)
         boxes = np.asarray(self.lidar_detector.detect(merged), float)
         boxes = boxes[boxes[:, 7] >= self.cfg.detectors.lidar_min_score]
-        for c, front in fronts.items():  # learned now: a detected vehicle hides the background
+        for c, revolution in seen.items():  # learned now: a detected vehicle hides the background
+            front = revolution.front
             hidden = np.zeros(len(front), bool)
             if len(boxes) and front.any():
                 agent_xy = merge_clouds([(self.lidar_T[c], clouds[c])])[:, :2]
                 hidden[front] = in_bev_boxes(
                     agent_xy, boxes[:, :7], self.cfg.detectors.background.vehicle_growth
                 )
-            self.backgrounds[c].learn(full[c][:, :3], hidden)
+            self.backgrounds[c].learn(revolution, hidden)
         boxes[:, :3] += self.origin_m
         return boxes
 

@@ -41,6 +41,7 @@ import numpy as np
 
 from shared.config import deep_merge, load_settings, read_yaml
 from shared.machine import git_commit, machine_info
+from shared.perception.background import Revolution
 from shared.perception.config import MecSettings
 from shared.perception.pipeline import AgentPipeline
 from shared.scene.model import SceneSpec
@@ -109,26 +110,26 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     mec = load_settings(MecSettings, None, **deep_merge(deep_merge(profile, ONE_THREAD), online))
     pipeline = AgentPipeline(scene, AGENT, mec, sensor_ids=[LIDAR])
     background = pipeline.backgrounds[LIDAR]
-    classify, learn = background.foreground, background.learn
+    classify, learn_model = background.classify, background.learn
     background_s: list[float] = []
     foreground: list[int] = []
 
-    def timed_foreground(xyz: np.ndarray, learn_frame: bool = True) -> np.ndarray:
-        """The model's own `foreground`, timed (the bench's view into `detect_3d`)."""
+    def timed_classify(xyz: np.ndarray) -> Revolution:
+        """The model's own `classify`, timed (the bench's view into `detect_3d`)."""
         t0 = time.perf_counter()
-        front = classify(xyz, learn_frame)
+        seen = classify(xyz)
         background_s.append(time.perf_counter() - t0)
-        foreground.append(int(front.sum()))
-        return front
+        foreground.append(int(seen.front.sum()))
+        return seen
 
-    def timed_learn(xyz: np.ndarray, hidden: np.ndarray | None = None) -> None:
+    def timed_learn(seen: Revolution, hidden: np.ndarray | None = None) -> None:
         """Its `learn` after detection, timed into the same revolution's background time."""
         t0 = time.perf_counter()
-        learn(xyz, hidden)
+        learn_model(seen, hidden)
         background_s[-1] += time.perf_counter() - t0
 
-    background.foreground = timed_foreground  # type: ignore[method-assign,assignment]
-    background.learn = timed_learn  # type: ignore[method-assign]
+    background.classify = timed_classify  # type: ignore[method-assign]
+    background.learn = timed_learn  # type: ignore[method-assign,assignment]
     total_s, boxes = [], []
     for cloud in clouds:
         t0 = time.perf_counter()
