@@ -22,11 +22,12 @@ import pytest
 from pydantic import BaseModel, Field
 
 from shared.config import with_overrides
+from shared.detection.lidar.pointpillars.config import PointPillarsConfig
 from shared.detection.oracle import OracleCameraDetector, OracleLidarDetector
 from shared.paths import REPO_ROOT
 from shared.perception.config import MecSettings
 from shared.perception.core import MecCore
-from shared.scene.scale import Scales, SiteScale, scaled_fields, scales_of
+from shared.scene.scale import Scales, SiteScale, at_scale, scaled_fields, scales_of
 from shared.scene.scene import Scene
 from shared.traffic.config import CoordinatorSettings
 from sim.config import SimSettings
@@ -134,12 +135,26 @@ def test_the_table_is_the_reference_and_the_intersection_is_real_size(
 # --- every unit field declares how it scales ------------------------------------------------------
 
 
-CONFIG_ROOTS: tuple[type[BaseModel], ...] = (MecSettings, CoordinatorSettings, SimSettings)
+# PointPillarsConfig: a trained model's is explicit; the defaults a model to be trained starts from scale.
+CONFIG_ROOTS: tuple[type[BaseModel], ...] = (
+    MecSettings,
+    CoordinatorSettings,
+    SimSettings,
+    PointPillarsConfig,
+)
 
 
 @pytest.mark.parametrize("root", CONFIG_ROOTS, ids=lambda r: r.__name__)
 def test_every_size_setting_says_how_it_scales(root: type[BaseModel]) -> None:
     assert undeclared_unit_fields(root) == []
+
+
+def test_pointpillars_to_be_trained_at_real_size_keeps_no_table_length(full_scene: Scene) -> None:
+    table = PointPillarsConfig()
+    full = at_scale(table, SiteScale.of(full_scene.spec))
+    assert table_sized(full, table) == []
+    checked = PointPillarsConfig.model_validate(full.model_dump())  # the scaled grid is a valid grid
+    assert (checked.grid.nx, checked.train_grid().nx) == (table.grid.nx, table.train_grid().nx)
 
 
 def test_an_undeclared_size_setting_is_found() -> None:

@@ -117,17 +117,31 @@ def dataset_generate(
     ] = None,
     workers: Annotated[int, typer.Option(help="seeds generated in parallel (processes)")] = 1,
     progress: Annotated[bool, typer.Option(help="progress bar")] = True,
+    scene: Annotated[
+        str | None,
+        typer.Option(
+            help="a profile scene (deploy/profiles/scene/NAME.yaml): its scene file and sim settings, "
+            "its seeds (deploy/datasets/NAME.yaml) unless --config; default the sand table"
+        ),
+    ] = None,
 ) -> None:
     """Run the sim lock-step over the configured seeds and write camera images (YOLO, VOC) and lidar
     frames (KITTI, OpenPCDet) with ground-truth labels; resumable (finished seeds are skipped)."""
-    from shared.config import ConfigError, load_settings
-    from studies.dataset.config import DEFAULT_DATASET_CONFIG, DatasetSettings
+    from shared.config import ConfigError, deep_merge, load_settings
+    from shared.supervision.profiles import shown
+    from studies.dataset.config import DatasetSettings
     from studies.dataset.generate import generate
+    from studies.evaluation.run import eval_site
 
     log_progress()
     try:
-        cfg = load_settings(DatasetSettings, config or DEFAULT_DATASET_CONFIG)
-    except ConfigError as err:
+        site = eval_site(scene)
+        overrides = {}
+        if scene is not None:  # the profile's scene file and sim settings, as the fusion evaluation's
+            scene_file = {"scene": shown(site.scene_path)}
+            overrides = {"sim_overrides": deep_merge(site.sim_overrides, scene_file)}
+        cfg = load_settings(DatasetSettings, config or site.dataset_file, **overrides)
+    except (ConfigError, ValueError, FileNotFoundError) as err:
         console.print(f"[red]{err}[/]")
         raise typer.Exit(2) from None
     summary = generate(cfg, out, workers=workers, progress=progress)
@@ -218,14 +232,35 @@ def train_lidar_cmd(
     ] = None,
     epochs: Annotated[int | None, typer.Option(help="at most this many epochs")] = None,
     quantize: Annotated[bool, typer.Option(help="also write the int8 model")] = True,
+    scene: Annotated[
+        Path | None,
+        typer.Option(
+            help="scene YAML the lengths left at their defaults are sized for (grid, pillars, targets, "
+            "window); default the scene a generated dataset was drawn in, else the sand table"
+        ),
+    ] = None,
 ) -> None:
     """Train PointPillars on a dataset, export it to ONNX with its model card, quantize it to int8 and score
     both on the validation split (metrics.json beside the model)."""
+    from pydantic import ValidationError
+
     from shared.config import with_overrides
+    from shared.datasets.layout import DatasetLayout
     from shared.detection.lidar.pointpillars.config import PointPillarsConfig
+    from shared.scene.scale import SiteScale, at_scale
+    from studies.dataset.generate import dataset_scene
     from training.site import LIDAR_CARD, train_lidar
 
-    cfg = PointPillarsConfig.load(config) if config else PointPillarsConfig()
+    layout = DatasetLayout(data)
+    site = Scene.load(scene) if scene else dataset_scene(layout) if layout.manifest.exists() else None
+    where = f" sized for scene {site.scene_id}" if site is not None else ""
+    try:
+        cfg = PointPillarsConfig.load(config) if config else PointPillarsConfig()
+        if site is not None:  # a round trip through validation: the scaled grid is checked like a file's
+            cfg = PointPillarsConfig.model_validate(at_scale(cfg, SiteScale.of(site.spec)).model_dump())
+    except ValidationError as err:
+        console.print(f"[red]PointPillars settings{where}: {err}[/]")
+        raise typer.Exit(2) from None
     if epochs is not None:
         cfg = with_overrides(cfg, {"train": {"epochs": epochs}})
     source = data_source(fmt, vehicle_class, ignore_class, val_fraction)

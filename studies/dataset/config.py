@@ -9,6 +9,7 @@ camera_sample_hz x 13 cameras; lidar frames = seeds x duration_s x lidar_sample_
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -72,6 +73,11 @@ class DatasetSettings(RmmdetSettings):
 
     sim_settings: Path = Field(
         DEFAULT_SIM_CONFIG, description="base sim settings (scene, tick rate, traffic)"
+    )
+    sim_overrides: dict[str, Any] = Field(
+        default_factory=dict,
+        description="deep-merged over `sim_settings` (a profile scene's: its scene file and sim overrides, "
+        "as `rmmdet dataset generate --scene NAME` fills them in)",
     )
     seeds: SplitSeeds = SplitSeeds()
     warmup_s: float = Field(5.0, ge=0, description="simulated seconds before sampling (traffic spreads out)")

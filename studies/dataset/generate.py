@@ -34,7 +34,7 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from rmmdet.v1.sim_pb2 import GroundTruth
 from tqdm import tqdm
 
-from shared.config import ConfigError, load_settings
+from shared.config import ConfigError, deep_merge, load_settings
 from shared.datasets import kitti, openpcdet, voc, yolo
 from shared.datasets.layout import (
     CLASS_NAME,
@@ -203,7 +203,9 @@ class SeedWriter:
 def generate_seed(cfg: DatasetSettings, layout: DatasetLayout, split: str, seed: int) -> SeedResult:
     """Run one seed and write its frames; returns what was written."""
     conditions = SeedConditions.draw(cfg.variation, seed)
-    sim_settings = load_sim_settings(_resolve(cfg.sim_settings), conditions.vehicles, seed=seed)
+    sim_settings = load_sim_settings(
+        _resolve(cfg.sim_settings), conditions.vehicles, **deep_merge(cfg.sim_overrides, {"seed": seed})
+    )
     scene = Scene.load(sim_settings.scene)
     cameras = [s.id for s in scene.sensors_of(kind="camera")] if cfg.camera_sample_hz > 0 else []
     lidars = [s.id for s in scene.sensors_of(kind="lidar")] if cfg.lidar_sample_hz > 0 else []
@@ -252,7 +254,8 @@ def _work(job: tuple[DatasetSettings, Path, str, int]) -> SeedResult:
 def dataset_scene(layout: DatasetLayout) -> Scene:
     """The scene a generated dataset was drawn in: its manifest's sim settings' scene."""
     settings = json.loads(layout.manifest.read_text())["settings"]
-    return Scene.load(load_sim_settings(_resolve(Path(settings["sim_settings"]))).scene)
+    sim = load_sim_settings(_resolve(Path(settings["sim_settings"])), **settings.get("sim_overrides", {}))
+    return Scene.load(sim.scene)
 
 
 def finish(cfg: DatasetSettings, layout: DatasetLayout) -> dict[str, Any]:

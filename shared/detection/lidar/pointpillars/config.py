@@ -5,7 +5,10 @@ so pillarisation, decoding and the network always agree. Units: metres, radians,
 
 Defaults are sized for the 1:18 sand table (vehicles 0.33 x 0.22 x 0.21 m, agents see them within about
 4 m): a 160 x 160 grid of 0.05 m pillars over x, y in [-4, 4) m, a head at stride 2 (0.1 m cells) that
-regresses the sub-cell centre offset. See the package docstring for the measurements behind them.
+regresses the sub-cell centre offset. See the package docstring for the measurements behind them. The
+lengths are `Length` settings (shared/scene/scale.py): `at_scale` sizes the defaults for another scene
+(the same 160 x 160 grid, its pillars and window the scene's car lengths), which is how a model to be
+trained at another site starts (`rmmdet train lidar --scene`). A trained model's config is explicit.
 """
 
 from __future__ import annotations
@@ -13,8 +16,11 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from typing import Annotated
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from shared.scene.scale import LENGTH, Length
 
 # The backbone has two stride-2 stages; the neck brings both to stride 2, so the grid must divide by 4.
 GRID_DIVISOR = 4
@@ -28,13 +34,13 @@ class _Model(BaseModel):
 class GridConfig(_Model):
     """Point-cloud range and pillar grid (agent frame: x east, y north, z up, z = 0 the table)."""
 
-    x_min_m: float = Field(-4.0, description="grid range x start (inclusive), metres")
-    x_max_m: float = Field(4.0, description="grid range x end (exclusive), metres")
-    y_min_m: float = Field(-4.0, description="grid range y start (inclusive), metres")
-    y_max_m: float = Field(4.0, description="grid range y end (exclusive), metres")
-    z_min_m: float = Field(-0.05, description="points below this height are dropped, metres")
-    z_max_m: float = Field(0.8, description="points at or above this height are dropped, metres")
-    pillar_size_m: float = Field(0.05, gt=0, description="square pillar edge (x and y), metres")
+    x_min_m: Length = Field(-4.0, description="grid range x start (inclusive), metres")
+    x_max_m: Length = Field(4.0, description="grid range x end (exclusive), metres")
+    y_min_m: Length = Field(-4.0, description="grid range y start (inclusive), metres")
+    y_max_m: Length = Field(4.0, description="grid range y end (exclusive), metres")
+    z_min_m: Length = Field(-0.05, description="points below this height are dropped, metres")
+    z_max_m: Length = Field(0.8, description="points at or above this height are dropped, metres")
+    pillar_size_m: Length = Field(0.05, gt=0, description="square pillar edge (x and y), metres")
     max_points_per_pillar: int = Field(
         20, ge=1, description="points kept per pillar (the first ones in input order); the rest are dropped"
     )
@@ -94,19 +100,19 @@ class NetConfig(_Model):
 class HeadConfig(_Model):
     """Centre heatmap and regression targets (CenterPoint-style, one class)."""
 
-    heatmap_sigma_m: float = Field(
+    heatmap_sigma_m: Length = Field(
         0.06, gt=0, description="std of the Gaussian drawn around each centre on the heatmap, metres"
     )
-    regression_radius_m: float = Field(
+    regression_radius_m: Length = Field(
         0.11,
         ge=0,
         description="head cells whose centre lies within this distance of a box centre regress that box "
         "(>= one cell so the peak cell always has a target), metres",
     )
-    ignore_radius_m: float = Field(
+    ignore_radius_m: Length = Field(
         0.2, ge=0, description="heatmap loss is masked within this distance of an ignore box centre, metres"
     )
-    mean_size_m: tuple[float, float, float] | None = Field(
+    mean_size_m: Annotated[tuple[float, float, float] | None, LENGTH] = Field(
         None,
         description="reference (dx, dy, dz), m; sizes are regressed as log(size / this). None: the median "
         "size of the training labels, fixed when training starts (a trained model keeps its own in its "
@@ -155,7 +161,7 @@ class AugmentConfig(_Model):
     )
     scale_min: float = Field(0.98, gt=0, description="uniform global scaling lower bound")
     scale_max: float = Field(1.02, gt=0, description="uniform global scaling upper bound")
-    translation_std_m: float = Field(0.05, ge=0, description="std of a global x, y shift, metres")
+    translation_std_m: Length = Field(0.05, ge=0, description="std of a global x, y shift, metres")
 
 
 class TrainConfig(_Model):
@@ -187,7 +193,7 @@ class TrainConfig(_Model):
         description="torch CPU threads (on the shared 2-core dev machine, 2 OpenMP threads ran a step "
         "8x slower than 1 when another job held a core)",
     )
-    crop_size_m: float = Field(
+    crop_size_m: Length = Field(
         4.0,
         ge=0,
         description="train on square windows of this edge (a multiple of 4 pillars; 0 = the whole grid), "
