@@ -421,8 +421,9 @@ def eval_fusion(
     lidar: Annotated[
         str | None,
         typer.Option(
-            help="the lidar detector instead of the settings' (pointpillars | cluster | background | ...): "
-            "the rest of the MEC as configured; results in <folder>_<lidar>, README section <name>-<lidar>",
+            help="the lidar detector instead of the settings' (pointpillars | cluster | background | ... | "
+            "a model card's path): the rest of the MEC as configured; results in <folder>_<lidar>, README "
+            "section <name>-<lidar> (a card: its file name without the suffix)",
         ),
     ] = None,
 ) -> None:
@@ -431,6 +432,7 @@ def eval_fusion(
     post-fusion and per single modality; plus the Kalman noise experiment (radar noise variance 0,
     0.05, 0.1 m²: raw vs filtered RMSE)."""
     from shared.config import load_settings
+    from shared.detection.card import is_card
     from studies.dataset.config import DatasetSettings
     from studies.evaluation import fusion as fe
     from studies.evaluation.run import eval_site, run_fusion_study
@@ -448,7 +450,8 @@ def eval_fusion(
     split_seeds = dataset.seeds.fusion_test if split == "test" else dataset.seeds.fusion_tuning
     seeds = seeds or list(split_seeds)
     folder = "fusion" if split == "test" else "fusion_tuning"
-    out = out or site.results_base / (folder if lidar is None else f"{folder}_{lidar}")
+    label = None if lidar is None else Path(lidar).stem if is_card(lidar) else lidar
+    out = out or site.results_base / (folder if label is None else f"{folder}_{label}")
     mec = site.mec(config, lidar)
     if noise and scene_name is not None:
         # The paper's Kalman noise experiment is the sand table's (its radar agent and variances).
@@ -475,7 +478,7 @@ def eval_fusion(
     for row in fe.table_rows(results, agents):
         table.add_row(*row)
     if readme:
-        write_fusion_readme(results, split, out, scene_name, lidar)
+        write_fusion_readme(results, split, out, scene_name, label)
     console.print(table)
     if scene_name is not None:
         console.print(fe.scene_notes(results))
@@ -848,7 +851,7 @@ def experiments_flow(
     planner on perceived maps, over fleet sizes and seeds (mean ± 95 % CI); heat maps. The perceived
     maps come from an oracle whose error model is first fitted on real-chain runs; real-chain runs on
     the grid's seeds are then compared with the oracle's."""
-    from shared.config import load_settings, with_overrides
+    from shared.config import ConfigError, load_settings, with_overrides
     from shared.perception.config import DEFAULT_MEC_CONFIG, MecSettings
     from studies.experiments.config import load_flow_settings
     from studies.experiments.run import run_flow_study
@@ -868,7 +871,11 @@ def experiments_flow(
         update["full_perception"] = {"enabled": full}
     if fit is not None:
         update["oracle_fit"] = {"enabled": fit}
-    exp = with_overrides(load_flow_settings(config), update)
+    try:
+        exp = with_overrides(load_flow_settings(config), update)
+    except ConfigError as err:  # e.g. one --seed: the intervals need two
+        console.print(f"[red]{err}[/]")
+        raise typer.Exit(2) from None
     results, summary = run_flow_study(exp, load_settings(MecSettings, DEFAULT_MEC_CONFIG), out)
     if readme:
         from shared.readme import replace_section
