@@ -107,7 +107,7 @@ def train_lidar(
     import torch
 
     from shared.detection.lidar.pointpillars.onnx_detector import OnnxPointPillars
-    from training.pointpillars.data import read_split, with_mean_size
+    from training.pointpillars.data import grid_labels, read_split, with_mean_size
     from training.pointpillars.evaluation import accuracy
     from training.pointpillars.export import export_onnx
     from training.pointpillars.quantize import KEEP_FLOAT, OP_TYPES
@@ -140,7 +140,8 @@ def train_lidar(
     for precision in ("fp32", "int8") if quantize else ("fp32",):
         detector = OnnxPointPillars(model_file(fp32, precision))
         dets = [detector.detect(f.points) for f in val_frames]
-        scores[precision] = accuracy(dets, [(f.boxes, f.ignore) for f in val_frames]) if val_frames else None
+        labels = grid_labels(val_frames, config.grid)
+        scores[precision] = accuracy(dets, labels) if val_frames else None
     metrics = {
         "kind": "lidar",
         "data": str(data),

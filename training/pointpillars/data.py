@@ -105,6 +105,14 @@ def rotate_scale_shift(frame: Frame, angle: float, scale: float, shift_xy: np.nd
     return replace(frame, points=pts, boxes=out[0], ignore=out[1])
 
 
+def grid_labels(frames: list[Frame], grid: GridConfig) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each frame's (labels, ignore boxes) for scoring a model with `grid`: labels centred outside it are
+    ignored, as a model is scored over its range (a real-size site's dataset labels the cars on a ring
+    road beyond the grid that covers the agent's areas)."""
+    x_range, y_range = (grid.x_min_m, grid.x_max_m), (grid.y_min_m, grid.y_max_m)
+    return [split_by_range(f.boxes, f.ignore, x_range, y_range) for f in frames]
+
+
 def split_by_range(
     boxes: np.ndarray, ignore: np.ndarray, x_range: tuple[float, float], y_range: tuple[float, float]
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -1,7 +1,8 @@
 """Accuracy of PointPillars detections (numpy only): KITTI R40 AP from shared.metrics.detection plus the
 centre error of the matches, for training-time validation and the benchmark.
 
-All labels count (as `rmmdet eval detectors` counts them); the meta files' ignore boxes are DontCare.
+All labels given count (`rmmdet eval detectors` gives every label); the meta files' ignore boxes are
+DontCare. Training's validation gives the labels within the model's grid (`data.grid_labels`).
 """
 
 from __future__ import annotations

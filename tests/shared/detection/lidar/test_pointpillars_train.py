@@ -7,7 +7,7 @@ import torch
 
 from shared.detection.lidar.pointpillars.config import PointPillarsConfig
 from shared.geometry.boxes import box3d_corners
-from training.pointpillars.data import Frame, PillarDataset, augment, mirror_x, mirror_y
+from training.pointpillars.data import Frame, PillarDataset, augment, grid_labels, mirror_x, mirror_y
 from training.pointpillars.train import train
 
 TRAIN_FRAMES = 16
@@ -61,3 +61,15 @@ def test_training_windows_have_the_crop_grid(tiny_config: PointPillarsConfig, sy
     assert data.grid.nx == data.grid.ny == 16
     assert item["heatmap"].shape == (8, 8)
     assert item["coords"].max() < 16 * 16
+
+
+def test_validation_scores_the_labels_within_the_grid_only() -> None:
+    grid = PointPillarsConfig().grid  # x, y in [-4, 4)
+    inside = [1.0, -2.0, 0.1, 0.33, 0.22, 0.21, 0.0]
+    beyond = [4.5, 0.0, 0.1, 0.33, 0.22, 0.21, 0.0]  # on a ring road past the grid
+    edge = [4.0, 0.0, 0.1, 0.33, 0.22, 0.21, 0.0]  # the grid's end is exclusive
+    given = np.zeros((1, 7))
+    frame = Frame("f", np.zeros((0, 4), np.float32), np.array([inside, beyond, edge]), given)
+    ((labels, ignore),) = grid_labels([frame], grid)
+    assert labels.tolist() == [inside]
+    assert ignore.tolist() == [given[0].tolist(), beyond, edge]
