@@ -15,6 +15,7 @@ one core at the intersection.
     python -m tests.bench.agent_frame_bench --camera-every-n 1      # every camera detected every frame
     python -m tests.bench.agent_frame_bench --scene sand_table --agent agent3 --seconds 20
     python -m tests.bench.agent_frame_bench --sensors lidar_11 cam_11 cam_12   # a subset
+    python -m tests.bench.agent_frame_bench --lidar deploy/models/lidar/intersection/pointpillars.yaml
 
 Writes tests/bench/results/agent_frame_<scene>.json (or --out).
 """
@@ -71,10 +72,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     scene_path, mec_data = site.scene, site.settings["mec"]
     scene = Scene.load(scene_path)
     sensors = args.sensors or [s.id for s in scene.sensors_of(args.agent)]
-    overrides = deep_merge(ONE_THREAD, {"detectors": {"camera_every_n_with_lidar": args.camera_every_n}})
-    mec = load_settings(
-        MecSettings, None, **deep_merge(mec_data, overrides if args.camera_every_n else ONE_THREAD)
-    )
+    overrides = ONE_THREAD
+    if args.camera_every_n:
+        overrides = deep_merge(overrides, {"detectors": {"camera_every_n_with_lidar": args.camera_every_n}})
+    if args.lidar:
+        overrides = deep_merge(overrides, {"detectors": {"lidar": args.lidar}})
+    mec = load_settings(MecSettings, None, **deep_merge(mec_data, overrides))
     log.info("rendering %s s of %s / %s (%s)", args.seconds + args.warmup_s, args.scene, args.agent, sensors)
     frames = render_frames(scene, scene_path, args.agent, sensors, args.seconds, args.warmup_s, args.seed)
     one_blas_thread()
@@ -134,11 +137,17 @@ def main() -> None:
         help="run the camera detector on every n-th frame (1: every camera every frame, the worst case; "
         "default: the profile's cadence)",
     )
+    parser.add_argument(
+        "--lidar",
+        help="the lidar detector instead of the profile's (a name or a model card's path; the results "
+        "file is named by the card's file stem)",
+    )
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
     result = run(args)
     every = f"_every{args.camera_every_n}" if args.camera_every_n else ""
-    out = args.out or RESULTS / f"agent_frame_{args.scene}{every}.json"
+    lidar = f"_{Path(args.lidar).stem}" if args.lidar else ""
+    out = args.out or RESULTS / f"agent_frame_{args.scene}{every}{lidar}.json"
     out.write_text(json.dumps(result, indent=2) + "\n")
     log.info("frame %s; written %s", result["frame"], out)
     for stage, row in result["stages"].items():
