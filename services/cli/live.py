@@ -147,12 +147,21 @@ def health(
     ctx: typer.Context,
     service: Annotated[str | None, typer.Option(help="only this service")] = None,
     timeout: Annotated[float, typer.Option(help="query timeout, seconds")] = 2.0,
-    scene: Annotated[Path, typer.Option(help="scene YAML: which services the loop needs")] = DEFAULT_SCENE,
+    scene: Annotated[
+        Path | None,
+        typer.Option(
+            help="scene YAML: which services the loop needs (default: the scene `make up` started, "
+            "else the sand table)"
+        ),
+    ] = None,
     answering: Annotated[
         bool, typer.Option("--answering", help="judge only the services that run (a partial system)")
     ] = False,
 ) -> None:
     """Every service's health; exit 0 exactly when the closed loop does its job (shared/supervision)."""
+    from shared.supervision.profiles import running_scene
+
+    scene = scene or running_scene() or DEFAULT_SCENE
     with connect(ctx) as session:
         verdict = probe(session, None if answering else Scene.load(scene), timeout, service)
     table = Table(title="service health")

@@ -403,6 +403,16 @@ def render(
     return Rendered(profile, labels, programs, conf, files)
 
 
+def running_scene(out_dir: Path = DEFAULT_OUT) -> Path | None:
+    """The scene of the profile `make up` last rendered under `out_dir` (its profile.yaml), None if
+    there is none or it cannot be read: what `rmmdet health` judges the loop against by default."""
+    try:
+        scene = yaml.safe_load((out_dir / "profile.yaml").read_text()).get("scene")
+    except (OSError, yaml.YAMLError, AttributeError):
+        return None
+    return repo_path(scene) if isinstance(scene, str) and scene else None
+
+
 @dataclass(frozen=True)
 class SceneProfile:
     """What a scene's profile gives its services, for offline runs (benches, evaluations) that build

@@ -319,3 +319,13 @@ def test_supervisord_reads_the_committed_conf_with_the_rendered_programs(tmp_pat
     assert profiles.SUPERVISOR_SOCKET == RUN_DIR / "supervisor.sock"  # the same place in the checkout
     assert rendered.conf == tmp_path / ".run" / "profile" / profiles.PROGRAMS_CONF
     assert profiles.DEFAULT_OUT == RUN_DIR / "profile"
+
+
+def test_health_judges_the_scene_make_up_started(tmp_path: Path, clean_env: pytest.MonkeyPatch) -> None:
+    assert profiles.running_scene(tmp_path) is None  # nothing started: the caller's default
+    render(Choice(scene="intersection"), tmp_path)
+    assert profiles.running_scene(tmp_path) == REPO_ROOT / "deploy" / "scenes" / "intersection.yaml"
+    render(Choice(), tmp_path)  # a later make up replaces it
+    assert profiles.running_scene(tmp_path) == REPO_ROOT / SCENE
+    (tmp_path / "profile.yaml").write_text("[not, a, mapping")
+    assert profiles.running_scene(tmp_path) is None
