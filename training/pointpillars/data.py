@@ -113,6 +113,14 @@ def grid_labels(frames: list[Frame], grid: GridConfig) -> list[tuple[np.ndarray,
     return [split_by_range(f.boxes, f.ignore, x_range, y_range) for f in frames]
 
 
+def grid_bands(grid: GridConfig) -> tuple[tuple[float, float], ...]:
+    """Distance bands (m from the agent origin) for scoring a model with `grid`: out to half its reach,
+    to its reach, beyond (corners); the reach is the grid's shortest half-extent. The sand table's grid
+    (+-4 m) gives the detector evaluation's bands, shared.metrics.detection.DEFAULT_DISTANCE_BANDS_M."""
+    reach = min(-grid.x_min_m, grid.x_max_m, -grid.y_min_m, grid.y_max_m)
+    return ((0.0, reach / 2), (reach / 2, reach), (reach, float("inf")))
+
+
 def split_by_range(
     boxes: np.ndarray, ignore: np.ndarray, x_range: tuple[float, float], y_range: tuple[float, float]
 ) -> tuple[np.ndarray, np.ndarray]:

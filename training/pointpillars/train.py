@@ -38,7 +38,15 @@ from shared.detection.lidar.pointpillars.coding import (
     rotated_nms,
 )
 from shared.detection.lidar.pointpillars.config import PointPillarsConfig, TrainConfig
-from training.pointpillars.data import Frame, PillarDataset, collate, grid_labels, read_split, with_mean_size
+from training.pointpillars.data import (
+    Frame,
+    PillarDataset,
+    collate,
+    grid_bands,
+    grid_labels,
+    read_split,
+    with_mean_size,
+)
 from training.pointpillars.evaluation import accuracy
 from training.pointpillars.net import PointPillarsNet, count_parameters, peak_scores
 
@@ -142,7 +150,7 @@ def evaluate(
         np.column_stack([d, np.full(len(d), CAR_CLASS_ID, d.dtype)])
         for d in predict(model, frames, config, device)
     ]
-    return accuracy(dets, grid_labels(frames, config.grid))
+    return accuracy(dets, grid_labels(frames, config.grid), grid_bands(config.grid))
 
 
 # --- training -----------------------------------------------------------------------------------

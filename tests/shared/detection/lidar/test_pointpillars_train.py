@@ -7,7 +7,15 @@ import torch
 
 from shared.detection.lidar.pointpillars.config import PointPillarsConfig
 from shared.geometry.boxes import box3d_corners
-from training.pointpillars.data import Frame, PillarDataset, augment, grid_labels, mirror_x, mirror_y
+from training.pointpillars.data import (
+    Frame,
+    PillarDataset,
+    augment,
+    grid_bands,
+    grid_labels,
+    mirror_x,
+    mirror_y,
+)
 from training.pointpillars.train import train
 
 TRAIN_FRAMES = 16
@@ -73,3 +81,12 @@ def test_validation_scores_the_labels_within_the_grid_only() -> None:
     ((labels, ignore),) = grid_labels([frame], grid)
     assert labels.tolist() == [inside]
     assert ignore.tolist() == [given[0].tolist(), beyond, edge]
+
+
+def test_validation_bands_follow_the_grid() -> None:
+    from shared.detection.lidar.pointpillars.config import GridConfig
+    from shared.metrics.detection import DEFAULT_DISTANCE_BANDS_M
+
+    assert grid_bands(PointPillarsConfig().grid) == DEFAULT_DISTANCE_BANDS_M  # the table's +-4 m
+    site = GridConfig(x_min_m=-32.0, x_max_m=32.0, y_min_m=-40.0, y_max_m=40.0, pillar_size_m=0.4)
+    assert grid_bands(site) == ((0.0, 16.0), (16.0, 32.0), (32.0, float("inf")))
