@@ -71,7 +71,13 @@ def run_grid(
     exp: FlowExperimentSettings, sim: SimSettings, coordinator: CoordinatorSettings
 ) -> list[RunResult]:
     """Every (policy, fleet size, seed) run; processes in parallel (spawned, one per run)."""
-    dumps = (exp.model_dump_json(), sim.model_dump_json(), coordinator.model_dump_json())
+    # Only what was set: a dumped default would come back explicit and no longer scale with the scene
+    # (as the real-chain runs' workers get theirs, run.py).
+    dumps = (
+        exp.model_dump_json(exclude_unset=True),
+        sim.model_dump_json(exclude_unset=True),
+        coordinator.model_dump_json(exclude_unset=True),
+    )
     # Longest first, so the pool does not end on one big run.
     jobs = sorted(
         ((p, n, s, *dumps) for n in exp.vehicle_counts for p in exp.policies for s in exp.seeds),

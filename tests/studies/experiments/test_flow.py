@@ -249,3 +249,19 @@ def test_paired_differences_match_trips_and_pair_by_seed() -> None:
     assert paired["trips_per_hour"]["mean"] == pytest.approx(10.0)
     assert paired["trips_per_hour"]["ci95"] == pytest.approx(0.0)
     assert "shortest" not in report.paired_differences(runs)["20"]  # no row for the baseline itself
+
+
+def test_the_grid_hands_its_workers_only_the_settings_that_were_set(monkeypatch: pytest.MonkeyPatch) -> None:
+    # A dumped default comes back explicit in the worker and no longer scales with the scene: at the
+    # sand table the same numbers, on a real-size scene the table's.
+    from shared.traffic.config import load_coordinator_settings
+    from studies.experiments.config import load_flow_settings
+
+    jobs: list[tuple[str, ...]] = []
+    monkeypatch.setattr(report, "run_jobs", lambda _fn, given, _workers: jobs.extend(given) or [])
+    exp = load_flow_settings()
+    report.run_grid(exp, load_sim_settings(exp.sim_config), load_coordinator_settings(exp.coordinator_config))
+    _policy, _vehicles, _seed, _exp_json, sim_json, coord_json = jobs[0]
+    coordinator = CoordinatorSettings.model_validate_json(coord_json)
+    assert "dedup_gate_m" not in coordinator.maps.model_fields_set  # the base file leaves it to the scene
+    assert '"horizon_m"' not in sim_json
