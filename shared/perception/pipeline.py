@@ -178,6 +178,11 @@ class AgentPipeline:
         path = settings.score_calibration
         self.calibration = ScoreCalibration.load(path) if path is not None else ScoreCalibration()
         self.counts: Counter[str] = Counter()
+        # A saved background that could not be used (the lidar learns online): counted, so the health
+        # report's rejections show it as well as the start-up log line.
+        self.counts.update(
+            "rejected/background_model" for b in self.backgrounds.values() if b.refused_model is not None
+        )
         self.last_reduction = float("nan")
         self._lidar_frames = 0  # frames processed with a lidar live (camera cadence without ticks)
         # The sim's tick rate where frames come from a sim (set by the driver): the camera cadence is

@@ -152,6 +152,8 @@ def test_a_saved_model_that_does_not_fit_is_refused_and_the_lidar_learns_online(
         saved.write_bytes(b"PK\x03\x04 not a model")
     mec = MecSettings(detectors={"lidar": "background", "background": {"models_dir": tmp_path}})
     with caplog.at_level("WARNING", logger="shared.perception.background"):
-        started = AgentPipeline(site, "agent1", mec, sensor_ids=[LIDAR]).backgrounds[LIDAR]
+        pipeline = AgentPipeline(site, "agent1", mec, sensor_ids=[LIDAR])
+    started = pipeline.backgrounds[LIDAR]
     assert started.refused_model == saved and not started.ready and started.frames == 0
+    assert pipeline.counts["rejected/background_model"] == 1  # in the health report's rejections
     assert any(str(saved) in r.getMessage() and "learning online" in r.getMessage() for r in caplog.records)
