@@ -107,8 +107,7 @@ def train_lidar(
     import torch
 
     from shared.detection.lidar.pointpillars.onnx_detector import OnnxPointPillars
-    from training.pointpillars.data import grid_bands, grid_labels, read_split, with_mean_size
-    from training.pointpillars.evaluation import accuracy
+    from training.pointpillars.data import grid_accuracy, read_split, with_mean_size
     from training.pointpillars.export import export_onnx
     from training.pointpillars.quantize import KEEP_FLOAT, OP_TYPES
     from training.pointpillars.train import train
@@ -140,8 +139,7 @@ def train_lidar(
     for precision in ("fp32", "int8") if quantize else ("fp32",):
         detector = OnnxPointPillars(model_file(fp32, precision))
         dets = [detector.detect(f.points) for f in val_frames]
-        labels = grid_labels(val_frames, config.grid)
-        scores[precision] = accuracy(dets, labels, grid_bands(config.grid)) if val_frames else None
+        scores[precision] = grid_accuracy(dets, val_frames, config.grid) if val_frames else None
     metrics = {
         "kind": "lidar",
         "data": str(data),

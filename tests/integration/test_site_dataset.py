@@ -21,8 +21,7 @@ from shared.detection.registry import lidar_detector
 from shared.paths import REPO_ROOT
 from shared.scene.scale import SiteScale
 from studies.dataset.generate import dataset_scene
-from training.pointpillars.data import grid_labels, read_split
-from training.pointpillars.evaluation import accuracy
+from training.pointpillars.data import grid_accuracy, read_split
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(600)]
 
@@ -124,5 +123,5 @@ def test_the_shipped_intersection_model_finds_the_cars_in_its_grid(dataset: Data
     config = PointPillarsConfig.load(SHIPPED_CARD.with_suffix(".json"))
     detector = lidar_detector(str(SHIPPED_CARD), threads=1, precision="fp32")
     frames = read_split(dataset.root, "train") + read_split(dataset.root, "val")
-    scores = accuracy([detector.detect(f.points) for f in frames], grid_labels(frames, config.grid))
+    scores = grid_accuracy([detector.detect(f.points) for f in frames], frames, config.grid)
     assert scores["labels"] >= 8 and scores["bev_ap_07"] >= 0.9, scores

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -20,6 +21,7 @@ from shared.datasets.sources import DEFAULT_SOURCE, DataSource, lidar_items
 from shared.detection.lidar.pointpillars.coding import BOX_COLUMNS, encode_targets
 from shared.detection.lidar.pointpillars.config import AugmentConfig, GridConfig, PointPillarsConfig
 from shared.detection.lidar.pointpillars.pillars import flat_coords, pillarize
+from training.pointpillars.evaluation import accuracy
 
 YAW = 6
 QUARTER_TURN = np.pi / 2
@@ -103,6 +105,13 @@ def rotate_scale_shift(frame: Frame, angle: float, scale: float, shift_xy: np.nd
         b[:, YAW] = (b[:, YAW] + angle + np.pi) % (2 * np.pi) - np.pi
         out.append(b)
     return replace(frame, points=pts, boxes=out[0], ignore=out[1])
+
+
+def grid_accuracy(detections: list[np.ndarray], frames: list[Frame], grid: GridConfig) -> dict[str, Any]:
+    """`evaluation.accuracy` of a model with `grid` over `frames`: the labels within its grid
+    (`grid_labels`), by the bands of its reach (`grid_bands`). Training's validation, the trained
+    model's scores."""
+    return accuracy(detections, grid_labels(frames, grid), grid_bands(grid))
 
 
 def grid_labels(frames: list[Frame], grid: GridConfig) -> list[tuple[np.ndarray, np.ndarray]]:

@@ -42,12 +42,10 @@ from training.pointpillars.data import (
     Frame,
     PillarDataset,
     collate,
-    grid_bands,
-    grid_labels,
+    grid_accuracy,
     read_split,
     with_mean_size,
 )
-from training.pointpillars.evaluation import accuracy
 from training.pointpillars.net import PointPillarsNet, count_parameters, peak_scores
 
 log = logging.getLogger("pointpillars.train")
@@ -150,7 +148,7 @@ def evaluate(
         np.column_stack([d, np.full(len(d), CAR_CLASS_ID, d.dtype)])
         for d in predict(model, frames, config, device)
     ]
-    return accuracy(dets, grid_labels(frames, config.grid), grid_bands(config.grid))
+    return grid_accuracy(dets, frames, config.grid)
 
 
 # --- training -----------------------------------------------------------------------------------
