@@ -34,6 +34,21 @@ from shared.detection.precision import model_file
 CARD_SUFFIXES = (".yaml", ".yml")
 #: Camera output layouts (`shared.detection.camera.layouts`).
 CAMERA_LAYOUTS = ("rmmdet", "yolov8", "yolov5", "yolox")
+Placement = Literal["top_left", "centre"]
+Rounding = Literal["floor", "nearest"]
+#: Each camera layout's family pre-processing: where the resized image sits in the input and how its
+#: size is rounded (`shared.detection.camera.geometry.resized_size`), read from each family's published
+#: code: YOLOX `yolox/data/data_augment.py` `preproc` (top-left, `int(w * r)`: truncated); YOLOv5
+#: `utils/augmentations.py` `letterbox` and Ultralytics `ultralytics/data/augment.py` `LetterBox`
+#: (centred, `int(round(w * r))`, padding `round(d / 2 - 0.1)` before the image, which for a whole
+#: number of pixels d is d // 2); the project's own models (top-left, rounded). A card's `input` may say
+#: otherwise (an export with its own pre-processing); unset, it takes its layout's.
+LAYOUT_LETTERBOX: dict[str, tuple[Placement, Rounding]] = {
+    "rmmdet": ("top_left", "nearest"),
+    "yolov8": ("centre", "nearest"),
+    "yolov5": ("centre", "nearest"),
+    "yolox": ("top_left", "floor"),
+}
 #: Lidar output layouts: the project's centre-heatmap PointPillars, OpenPCDet's anchor head.
 LIDAR_LAYOUTS = ("rmmdet_pointpillars", "openpcdet_anchor")
 
@@ -55,8 +70,15 @@ class CameraInput(_Card):
     scale: float = Field(1.0, gt=0, description="pixel values are multiplied by this (1/255: to [0, 1])")
     mean: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="subtracted after scaling")
     std: tuple[float, float, float] = Field((1.0, 1.0, 1.0), description="divided by after the mean")
-    letterbox: Literal["top_left", "centre"] = Field(
-        "top_left", description="where the resized image sits in the input (the rest is padding)"
+    letterbox: Placement = Field(
+        "top_left",
+        description="where the resized image sits in the input (the rest is padding); unset in a card: "
+        "its layout family's (LAYOUT_LETTERBOX)",
+    )
+    resize_rounding: Rounding = Field(
+        "nearest",
+        description="the resized image's size in input px: floor (YOLOX truncates) or nearest "
+        "(Ultralytics, YOLOv5, the project); unset in a card: its layout family's (LAYOUT_LETTERBOX)",
     )
     pad_value: int = Field(114, ge=0, le=255, description="grey level of the padding")
     interpolation: Literal["linear", "area"] = Field("linear", description="downscaling filter")
@@ -158,6 +180,18 @@ class CameraCard(_Card):
     tiles: CameraTiles | None = Field(
         None, description="large images in tiles (`shared.detection.camera.tiled`); none: letterboxed whole"
     )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _family_letterbox(cls, data: object) -> object:
+        """An input's placement and rounding, where the card leaves them out, from its layout family."""
+        if not isinstance(data, dict) or not isinstance(data.get("input"), dict):
+            return data
+        family = LAYOUT_LETTERBOX.get(data.get("layout"))  # type: ignore[arg-type]
+        if family is None:
+            return data  # an unknown layout: its own validation says so
+        placement, rounding = family
+        return {**data, "input": {"letterbox": placement, "resize_rounding": rounding, **data["input"]}}
 
     @model_validator(mode="after")
     def _check(self) -> CameraCard:

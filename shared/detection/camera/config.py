@@ -14,7 +14,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from shared.detection.card import CameraCard, CameraInput, CameraPost
+from shared.detection.card import LAYOUT_LETTERBOX, CameraCard, CameraInput, CameraPost, Rounding
 from shared.detection.interface import CLASS_NAMES
 
 CONFIG_FILE = "config.json"
@@ -39,6 +39,11 @@ class InputConfig(_Model):
         "linear",
         description="downscaling filter: linear (0.2 ms for 640x480 -> 448x336) or area (antialiased, 1 ms)",
     )
+
+    @property
+    def resize_rounding(self) -> Rounding:
+        """The project's models round the resized size (its card says so: layout rmmdet)."""
+        return LAYOUT_LETTERBOX["rmmdet"][1]
 
 
 class NetConfig(_Model):
@@ -184,7 +189,8 @@ class CameraDetectorConfig(_Model):
                 height=self.input.height,
                 tensor="nhwc_uint8",
                 colour="rgb",
-                letterbox="top_left",
+                letterbox=LAYOUT_LETTERBOX["rmmdet"][0],
+                resize_rounding=self.input.resize_rounding,
                 pad_value=self.input.pad_value,
                 interpolation=self.input.interpolation,
             ),

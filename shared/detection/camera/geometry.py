@@ -15,6 +15,7 @@ original-image pixels.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -41,6 +42,8 @@ class LetterboxInput(Protocol):
     def pad_value(self) -> int: ...
     @property
     def interpolation(self) -> str: ...
+    @property
+    def resize_rounding(self) -> str: ...
 
 
 @dataclass(frozen=True)
@@ -82,8 +85,11 @@ def letterbox_for(width: int, height: int, cfg: LetterboxInput, centre: bool = F
 
 
 def resized_size(width: int, height: int, scale: float, cfg: LetterboxInput) -> tuple[int, int]:
-    """The image's size in the input, px."""
-    return min(cfg.width, max(1, round(width * scale))), min(cfg.height, max(1, round(height * scale)))
+    """The image's size in the input, px: `width * scale` truncated (`floor`: YOLOX) or rounded
+    (`nearest`: Ultralytics, YOLOv5, the project's models), as the input's family does; at least 1 px.
+    A pixel of difference shifts every resampled row below it (the interpolation grid is the size's)."""
+    snap = math.floor if cfg.resize_rounding == "floor" else round
+    return min(cfg.width, max(1, snap(width * scale))), min(cfg.height, max(1, snap(height * scale)))
 
 
 def letterbox_image(
