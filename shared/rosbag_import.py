@@ -49,7 +49,7 @@ from shared.bus.streams import SENSOR_STREAM, get_stream, sensor_group_source
 from shared.devices import robosense
 from shared.devices.robosense import MODELS
 from shared.devices.sources import lidar_frame_message
-from shared.perception.decode import point_cloud_message
+from shared.perception.decode import point_cloud_message, unit_intensity
 from shared.scene.scene import Scene
 from shared.timebase import NS_PER_S
 
@@ -69,7 +69,6 @@ KIND_OF_TYPE = {
     RADAR_TYPE: "radar",
     **dict.fromkeys(PACKET_TYPES, "lidar"),
 }
-INTENSITY_FULL_SCALE = 255.0  # a PointCloud2 intensity beyond 1 is taken as 0..255
 
 
 class BagImportError(Exception):
@@ -130,10 +129,7 @@ def pointcloud2_points(msg: Any) -> tuple[np.ndarray, np.ndarray]:
     xyz = np.column_stack([points["x"], points["y"], points["z"]]).astype(np.float64)
     intensity = points["intensity"].astype(np.float64) if "intensity" in names else np.zeros(len(points))
     keep = np.isfinite(xyz).all(axis=1)
-    xyz, intensity = xyz[keep], np.nan_to_num(intensity[keep])
-    if intensity.size and intensity.max() > 1.0:
-        intensity = intensity / INTENSITY_FULL_SCALE
-    return xyz, np.clip(intensity, 0.0, 1.0)
+    return xyz[keep], unit_intensity(intensity[keep])
 
 
 def image_data(msg: Any, msgtype: str) -> tuple[str, bytes]:

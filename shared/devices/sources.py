@@ -41,13 +41,12 @@ from rmmdet.v1.sensors_pb2 import RadarScan, RadarTarget
 from shared.devices import ars408, robosense, serial_urls
 from shared.devices.mjpeg import TIMESTAMP_HEADER, MjpegStream, StreamError
 from shared.devices.site import Ars408Radar, RobosenseLidar, SiteFile, StreamCamera, VelodyneLidar
-from shared.perception.decode import point_cloud_message
+from shared.perception.decode import INTENSITY_FULL_SCALE, point_cloud_message
 from shared.scene.model import SensorSpec
 from shared.timebase import NS_PER_S
 
 log = logging.getLogger(__name__)
 
-INTENSITY_FULL_SCALE = 255.0  # Robosense reflectivity byte -> the [0, 1] intensity lidars publish
 # A stalled stream (connection open, nothing coming) is reopened after this; a closed one at once. Long
 # enough for a camera asked for one frame in ten under a slow sim (the device service judges silence
 # on the clock of record; this only decides when to reconnect).

@@ -34,6 +34,18 @@ MAX_IMAGE_PIXELS = 4096 * 4096  # refused unread where the camera's own size is 
 FINEST_AZIMUTH_SAMPLES = 3600  # rays per revolution of the finest supported lidar grid (0.1 deg)
 
 
+INTENSITY_FULL_SCALE = 255.0  # a lidar's intensity byte (0..255) -> the [0, 1] intensity lidars publish
+
+
+def unit_intensity(values: np.ndarray) -> np.ndarray:
+    """(N,) intensities as lidars publish them, in [0, 1] (float64): taken as they are when none exceeds
+    1, else as bytes of 0..255 (a device's reflectivity); beyond 255 clipped, non-finite as 0."""
+    out = np.nan_to_num(np.asarray(values, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    if out.size and out.max() > 1.0:
+        out = out / INTENSITY_FULL_SCALE
+    return np.clip(out, 0.0, 1.0)
+
+
 def point_cloud_message(
     points_m: np.ndarray, intensity: np.ndarray, frame_id: str, stamp_ns: int
 ) -> PointCloud:
