@@ -82,12 +82,15 @@ class RoadsideSensor:
 @dataclass(frozen=True)
 class RoadsideLabel:
     """One labelled object of one frame: the dataset's cuboid as labelled (its full pose: a box labelled
-    in a tilted lidar's frame stays tilted in the site frame) and, for scoring, its upright form."""
+    in a tilted lidar's frame stays tilted in the site frame) and, for scoring, its upright form; or an
+    object labelled in images only (no cuboid: Rope3D's rows with a 2D box and a zero 3D box)."""
 
     object_id: str  # the dataset's (a track id where the dataset tracks objects)
     category: str  # the dataset's class name, as written
-    T_site_from_box: FloatArray  # (4, 4): the box's centre and axes (x along its length)
-    size_m: FloatArray  # (3,) length, width, height
+    T_site_from_box: (
+        FloatArray | None
+    )  # (4, 4): the box's centre and axes (x along its length); None: 2D only
+    size_m: FloatArray | None  # (3,) length, width, height; None: 2D only
     num_points: int | None = None  # the dataset's own count of lidar points in the box
     boxes_px: dict[str, tuple[float, float, float, float]] = field(default_factory=dict)  # camera id -> 2D
     occlusion: str | None = None
@@ -97,16 +100,26 @@ class RoadsideLabel:
         return project_label(self.category)
 
     @property
+    def has_box(self) -> bool:
+        return self.T_site_from_box is not None and self.size_m is not None
+
+    @property
     def box_m(self) -> FloatArray:
         """(7,) x y z l w h yaw: the centre, the size, the heading of the length axis seen from above."""
-        T = self.T_site_from_box
-        return np.array([*T[:3, 3], *self.size_m, math.atan2(T[1, 0], T[0, 0])])
+        T, size = self.T_site_from_box, self.size_m
+        if T is None or size is None:
+            raise ValueError(f"label {self.object_id} is labelled in images only: no box")
+        return np.array([*T[:3, 3], *size, math.atan2(T[1, 0], T[0, 0])])
 
     def contains(self, xyz_m: FloatArray) -> NDArray[np.bool_]:
-        """Which (N, 3) site-frame points lie in the box as labelled (faces included)."""
-        T = self.T_site_from_box
-        local = (np.asarray(xyz_m, np.float64) - T[:3, 3]) @ T[:3, :3]
-        return np.all(np.abs(local) <= self.size_m / 2, axis=1)
+        """Which (N, 3) site-frame points lie in the box as labelled (faces included); none for a
+        label in images only."""
+        T, size = self.T_site_from_box, self.size_m
+        xyz = np.asarray(xyz_m, np.float64)
+        if T is None or size is None:
+            return np.zeros(len(xyz), bool)
+        local = (xyz - T[:3, 3]) @ T[:3, :3]
+        return np.all(np.abs(local) <= size / 2, axis=1)
 
 
 @dataclass(frozen=True)

@@ -126,7 +126,8 @@ def level_to_ground(dataset: RoadsideDataset, plane: Plane) -> RoadsideDataset:
     for frame in dataset.frames:
         labels = []
         for label in frame.labels:
-            labels.append(dataclasses.replace(label, T_site_from_box=T @ label.T_site_from_box))
+            box = label.T_site_from_box
+            labels.append(dataclasses.replace(label, T_site_from_box=None if box is None else T @ box))
         frames.append(dataclasses.replace(frame, labels=tuple(labels)))
     return dataclasses.replace(dataset, sensors=sensors, frames=tuple(frames))
 
