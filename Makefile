@@ -12,7 +12,7 @@ SUPERVISOR_CONF := deploy/local/supervisord.conf
 RUN_DIR := .run
 PYTEST_ARGS ?=
 
-.PHONY: help install proto pki up down status logs view-web screenshots docs test test-unit test-integration test-fault bench soak models eval eval-fusion eval-robustness experiments experiments-city lint typecheck fmt clean
+.PHONY: help install proto pki up down status logs view-web screenshots docs test test-unit test-integration test-fault bench soak models eval eval-fusion eval-real eval-robustness experiments experiments-city lint typecheck fmt clean
 
 help: ## list targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-18s %s\n", $$1, $$2}'
@@ -155,6 +155,10 @@ eval-fusion: install ## calibrated scores fitted on the tuning seeds, then MEC f
 	$(BIN)/rmmdet eval calibrate-scores --workers 2
 	$(BIN)/rmmdet eval fusion --split tuning --no-noise --workers 2 --readme
 	$(BIN)/rmmdet eval fusion --split test --workers 2 --readme
+
+eval-real: install ## the MEC on the vendored real roadside frames (TUMTraf A9, Rope3D) vs their labels (~1 min) -> docs/eval/real, docs/real-data.md; another dataset: rmmdet eval real --format F --data DIR
+	$(BIN)/rmmdet eval real --format openlabel --data tests/fixtures/real/tumtraf_a9 --readme
+	$(BIN)/rmmdet eval real --format rope3d --data tests/fixtures/real/rope3d --readme
 
 eval-robustness: install ## fusion accuracy under 2x noise, 100 ms delay, extrinsic error, 32 vehicles vs clean (~30 min) -> docs/eval/robustness
 	$(BIN)/rmmdet eval robustness --workers 2 --readme

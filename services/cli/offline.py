@@ -485,6 +485,60 @@ def eval_fusion(
     console.print(f"results: {out / 'results.json'}")
 
 
+@eval_app.command("real", short_help="the MEC on a public roadside dataset's labelled frames")
+def eval_real(
+    fmt: Annotated[
+        str, typer.Option("--format", help="the dataset's format: openlabel (TUMTraf / A9) | rope3d")
+    ],
+    data: Annotated[
+        Path, typer.Option(help="the dataset folder (its own layout, or the files in one folder)")
+    ],
+    camera: Annotated[
+        str, typer.Option(help="camera detector: coco (the COCO YOLOX card) | onnx | a model card's path")
+    ] = "coco",
+    lidar: Annotated[
+        str, typer.Option(help="lidar detector: cluster | pointpillars | a model card's path")
+    ] = "cluster",
+    out: Annotated[
+        Path | None, typer.Option(help="results folder (default docs/eval/real/<data folder>)")
+    ] = None,
+    readme: Annotated[
+        bool,
+        typer.Option(
+            help="rewrite the docs' section of this dataset (docs/real-data.md, eval-real-<folder>)"
+        ),
+    ] = False,
+) -> None:
+    """The production MEC core over a public roadside dataset's frames in order, with the settings of the
+    project's real-size profile, scored against the dataset's labels: per output (lidar, camera-only,
+    fused, tracked on sequences) precision, recall and centre error, BEV and 3D AP at IoU 0.5 and 0.25 by
+    range, recall by lidar points; 2D AP@0.5 per camera; labels that disagree with the sensors counted,
+    not scored; time per frame."""
+    from shared.config import ConfigError
+    from shared.readme import replace_section
+    from studies.evaluation import real
+    from studies.evaluation.run import eval_site
+
+    log_progress()
+    if fmt not in real.FORMATS:
+        console.print(f"[red]--format {fmt}: one of {', '.join(real.FORMATS)}[/]")
+        raise typer.Exit(2)
+    mec = real.with_detectors(eval_site(real.REAL_SIZE_PROFILE).mec(), camera, lidar)
+    try:
+        results = real.run_study(fmt, data, mec, {"camera": camera, "lidar": lidar})
+    except (ConfigError, FileNotFoundError) as err:
+        console.print(f"[red]{err}[/]")
+        raise typer.Exit(2) from None
+    out = out or Path("docs/eval/real") / data.name
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
+    text = real.markdown(results)
+    (out / "summary.md").write_text(text + "\n")
+    console.print(text)
+    if readme:
+        replace_section(f"eval-real-{data.name}", text)
+
+
 @eval_app.command("calibrate-scores", short_help="fit the calibrated confidence per evidence")
 def eval_calibrate_scores(
     seeds: Annotated[
