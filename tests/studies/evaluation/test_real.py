@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -37,6 +38,7 @@ def test_every_output_is_scored_against_the_labels(tumtraf_results: dict) -> Non
     assert lidar["pose_error_p50_m"] < 0.6
     assert set(lidar["ap"]) == {"bev@0.5", "bev@0.25", "3d@0.5", "3d@0.25"}
     assert sum(v["num_gt"] for v in lidar["recall_by_points"].values()) == 16
+    assert 0 < lidar["fp_recurring"] <= lidar["fp"]  # static structure boxed in both frames
     # the fused output never recalls less than its best single branch
     recalls = {s: site["stages"][s]["recall"] for s in ("lidar", "camera", "fused")}
     assert recalls["fused"] >= max(recalls["lidar"], recalls["camera"])
@@ -81,3 +83,12 @@ def test_the_cli_writes_results_and_the_docs_section(tmp_path: Path, monkeypatch
 def test_wrong_input_is_refused_in_one_line(tmp_path: Path, args: list[str], message: str) -> None:
     result = CliRunner().invoke(app, ["eval", "real", *args, "--out", str(tmp_path)])
     assert result.exit_code == 2 and message in " ".join(result.output.split()), result.output
+
+
+def test_false_boxes_are_told_apart_by_where_they_stand() -> None:
+    """Known answer: a box at the same place in the other frame recurs; one floating 3 m up is elevated."""
+    car = [10.0, 0.0, 0.75, 4.5, 1.8, 1.5, 0.0]
+    sign = [30.0, 5.0, 3.5, 4.0, 0.5, 1.0, 0.0]  # its bottom 3 m up
+    frames = [np.array([car, sign]), np.array([[10.5, 0.2, 0.75, 4.5, 1.8, 1.5, 0.0]]), np.zeros((0, 7))]
+    assert real.false_box_kinds(frames, gate_m=1.0) == {"fp_recurring": 2, "fp_elevated": 1}
+    assert real.false_box_kinds(frames, gate_m=0.1) == {"fp_recurring": 0, "fp_elevated": 1}
