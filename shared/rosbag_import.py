@@ -49,11 +49,10 @@ from shared.bus.streams import SENSOR_STREAM, get_stream, sensor_group_source
 from shared.devices import robosense
 from shared.devices.robosense import MODELS
 from shared.devices.sources import lidar_frame_message
-from shared.perception.decode import point_cloud_message, unit_intensity
+from shared.perception.decode import encoded_format, point_cloud_message, unit_intensity
 from shared.scene.scene import Scene
 from shared.timebase import NS_PER_S
 
-JPEG_MAGIC, PNG_MAGIC = b"\xff\xd8", b"\x89PNG\r\n\x1a\n"
 POINTFIELD_DTYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
@@ -137,10 +136,9 @@ def image_data(msg: Any, msgtype: str) -> tuple[str, bytes]:
     kept byte for byte, anything else encoded as PNG (lossless: the MEC sees the bag's pixels)."""
     if msgtype.endswith("CompressedImage"):
         data = bytes(msg.data)
-        if data.startswith(JPEG_MAGIC):
-            return "jpeg", data
-        if data.startswith(PNG_MAGIC):
-            return "png", data
+        fmt = encoded_format(data)
+        if fmt is not None:
+            return fmt, data
         decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
         if decoded is None:
             raise ValueError(f"CompressedImage of format {msg.format!r} does not decode")

@@ -34,6 +34,19 @@ MAX_IMAGE_PIXELS = 4096 * 4096  # refused unread where the camera's own size is 
 FINEST_AZIMUTH_SAMPLES = 3600  # rays per revolution of the finest supported lidar grid (0.1 deg)
 
 
+JPEG_MAGIC, PNG_MAGIC = b"\xff\xd8", b"\x89PNG\r\n\x1a\n"  # the files' first bytes (JFIF / Exif SOI; PNG)
+
+
+def encoded_format(data: bytes) -> str | None:
+    """`jpeg` or `png` by an image file's first bytes, whatever its name or header says; None for
+    anything else."""
+    if data.startswith(JPEG_MAGIC):
+        return "jpeg"
+    if data.startswith(PNG_MAGIC):
+        return "png"
+    return None
+
+
 INTENSITY_FULL_SCALE = 255.0  # a lidar's intensity byte (0..255) -> the [0, 1] intensity lidars publish
 
 

@@ -42,13 +42,19 @@ import numpy as np
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 
 from shared.config import with_overrides
-from shared.datasets.roadside.model import RoadsideDataset, RoadsideFormatError, RoadsideFrame, RoadsideLabel
+from shared.datasets.roadside.model import (
+    FRAME_PERIOD_NS,
+    SENSOR_RATE_HZ,
+    RoadsideDataset,
+    RoadsideFormatError,
+    RoadsideFrame,
+    RoadsideLabel,
+)
 from shared.datasets.roadside.openlabel import read_openlabel
 from shared.datasets.roadside.pcd import read_pcd
 from shared.datasets.roadside.rope3d import read_rope3d
 from shared.datasets.roadside.site import (
     AGENT_ID,
-    SENSOR_RATE_HZ,
     fit_site_ground,
     frame_messages,
     level_to_ground,
@@ -90,7 +96,6 @@ POINT_BANDS = ((MIN_LIDAR_POINTS, 50), (50, 100), (100, 10**9))  # labelled-box 
 TARGET_RECALL = 0.90
 TARGET_PRECISION = 0.80
 TARGET_CENTRE_P95_M = 0.5
-FRAME_PERIOD_NS = round(NS_PER_S / SENSOR_RATE_HZ)
 STEP_AFTER_S = 1.0  # a frame missing a sensor is released by the join's deadline: step this much later
 ELEVATED_M = 1.0  # a box's bottom this far above the ground is no vehicle on the road (false_box_kinds)
 

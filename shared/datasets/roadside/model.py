@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from shared.config import ConfigError
+from shared.timebase import NS_PER_S
 
 FloatArray = np.ndarray
 
@@ -37,6 +38,10 @@ VEHICLE_CATEGORIES = frozenset(
 TRUCK_CATEGORIES = frozenset({"truck", "trailer", "bus"})
 
 SensorKind = Literal["lidar", "camera"]
+#: TUMTraf's, DAIR-V2X's and Rope3D's sensors all run at 10 Hz: a frame period apart is "not the same
+#: instant" (`rmmdet eval real` sets such pairs aside), and frames without stamps are spaced by it.
+SENSOR_RATE_HZ = 10.0
+FRAME_PERIOD_NS = round(NS_PER_S / SENSOR_RATE_HZ)
 _ID_INVALID = re.compile(r"[^a-z0-9_\-]+")
 
 

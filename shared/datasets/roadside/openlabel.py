@@ -48,10 +48,10 @@ from shared.datasets.roadside.model import (
     sensor_id,
 )
 from shared.geometry.transforms import invert_transform
+from shared.timebase import NS_PER_S
 
 CameraPose = Literal["parent_to_camera", "camera_in_parent"]
 LABEL_GLOB = "*.json"
-NS_PER_S = 1_000_000_000
 _STAMPED_NAME = re.compile(r"^(\d{9,11})_(\d{1,9})_")
 
 

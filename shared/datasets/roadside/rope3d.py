@@ -25,6 +25,7 @@ import numpy as np
 import PIL.Image
 
 from shared.datasets.roadside.model import (
+    FRAME_PERIOD_NS,
     RoadsideDataset,
     RoadsideFormatError,
     RoadsideFrame,
@@ -33,7 +34,6 @@ from shared.datasets.roadside.model import (
 )
 
 CAMERA_ID = "camera"
-FRAME_PERIOD_NS = 100_000_000  # 10 Hz
 KITTI_FIELDS = 15  # a 16th (score) is a detection file's, ignored here
 FOLDERS = ("image_2", "calib", "denorm", "label_2")
 

@@ -28,6 +28,7 @@ from google.protobuf.message import Message
 from scipy.spatial.transform import Rotation
 
 from shared.datasets.roadside.model import (
+    SENSOR_RATE_HZ,
     RoadsideDataset,
     RoadsideFormatError,
     RoadsideFrame,
@@ -38,7 +39,7 @@ from shared.datasets.roadside.pcd import PointCloudData, read_pcd
 from shared.detection.lidar.ground import Plane, fit_horizontal_plane
 from shared.geometry.transforms import T_OPTICAL_FROM_BODY, pose_from_matrix
 from shared.paths import REPO_ROOT
-from shared.perception.decode import point_cloud_message, unit_intensity
+from shared.perception.decode import encoded_format, point_cloud_message, unit_intensity
 from shared.scene.model import (
     AgentSpec,
     AreaSpec,
@@ -53,7 +54,6 @@ from shared.scene.scene import Scene
 
 REFERENCE_SCENE = REPO_ROOT / "deploy" / "scenes" / "intersection.yaml"
 AGENT_ID = "agent1"
-SENSOR_RATE_HZ = 10.0  # TUMTraf, DAIR-V2X and Rope3D's sensors all run at 10 Hz
 GROUND_TOLERANCE_M = 0.15  # inliers of the ground plane (a road's crown and ruts, the lidar's noise)
 GROUND_MAX_TILT_RAD = 0.1  # steeper planes are walls or embankments, not the road
 GROUND_ITERATIONS = 1000
@@ -64,17 +64,14 @@ GROUND_FRAMES = 3  # lidar frames pooled for the fit (a parked car's roof cannot
 INTENSITY_FIELDS = ("intensity", "reflectivity", "i")  # a PCD's intensity, by the names devices write
 RING_FIELDS = ("ring", "channel", "laser_id")
 RANGE_MARGIN = 1.05  # a scene lidar's max range: the farthest return seen, 5 % more
-PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-JPEG_MAGIC = b"\xff\xd8\xff"
 
 
 def image_format(data: bytes, path: Path) -> str:
     """`jpeg` or `png` by the file's bytes, whatever its name says (Rope3D's `.jpg` files are PNGs)."""
-    if data.startswith(PNG_MAGIC):
-        return "png"
-    if data.startswith(JPEG_MAGIC):
-        return "jpeg"
-    raise RoadsideFormatError(f"{path}: neither a JPEG nor a PNG image")
+    fmt = encoded_format(data)
+    if fmt is None:
+        raise RoadsideFormatError(f"{path}: neither a JPEG nor a PNG image")
+    return fmt
 
 
 def lidar_points(cloud: PointCloudData) -> tuple[np.ndarray, np.ndarray]:

@@ -10,7 +10,7 @@ from shared.datasets.roadside import site
 from shared.datasets.roadside.model import RoadsideDataset, RoadsideFormatError
 from shared.datasets.roadside.pcd import read_pcd
 from shared.geometry.transforms import camera_optical_from_world, matrix_from_pose
-from shared.perception.decode import FrameDecoder, point_cloud_to_array
+from shared.perception.decode import PNG_MAGIC, FrameDecoder, point_cloud_to_array
 from shared.scene.scene import Scene
 
 
@@ -86,7 +86,7 @@ def test_frames_become_the_messages_a_mec_decodes(levelled: RoadsideDataset) -> 
 
 def test_an_image_is_told_by_its_bytes_not_its_name(tmp_path) -> None:
     png = tmp_path / "a.jpg"
-    png.write_bytes(site.PNG_MAGIC + b"rest")
+    png.write_bytes(PNG_MAGIC + b"rest")
     assert site.image_format(png.read_bytes(), png) == "png"
     with pytest.raises(RoadsideFormatError, match="neither a JPEG nor a PNG"):
         site.image_format(b"GIF89a", png)
