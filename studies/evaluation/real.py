@@ -70,6 +70,7 @@ from shared.metrics.fusion import FusionAccumulator
 from shared.perception.config import MecSettings
 from shared.perception.core import MecCore
 from shared.perception.decode import FrameDecoder
+from shared.readme import GENERATED
 from shared.scene.scene import Scene
 from shared.timebase import NS_PER_S
 from studies.evaluation.fusion import EvalDistances, measurement_box, single_modality_measurements, track_box
@@ -419,7 +420,7 @@ def run_study(fmt: str, data: Path, mec: MecSettings, detectors: dict[str, str |
         "detectors": detectors,
         "mec_profile": REAL_SIZE_PROFILE,
         "sites": [evaluate_site(site, mec) for site in sites],
-        "commit": git_commit(),
+        "commit": git_commit(ignore=GENERATED),  # the results and pages it writes are not changes
         "machine": machine_info(),
     }
 
