@@ -488,7 +488,11 @@ def eval_fusion(
 @eval_app.command("real", short_help="the MEC on a public roadside dataset's labelled frames")
 def eval_real(
     fmt: Annotated[
-        str, typer.Option("--format", help="the dataset's format: openlabel (TUMTraf / A9) | rope3d")
+        str,
+        typer.Option(
+            "--format",
+            help="the dataset's format: openlabel (TUMTraf / A9) | dair (DAIR-V2X infrastructure) | rope3d",
+        ),
     ],
     data: Annotated[
         Path, typer.Option(help="the dataset folder (its own layout, or the files in one folder)")

@@ -1,10 +1,10 @@
 """`rmmdet eval real`: the production MEC over a public roadside dataset's frames, scored against the
 dataset's own labels (issue 50).
 
-Each site a reader gives (shared/datasets/roadside: OpenLABEL / TUMTraf, Rope3D) is levelled onto its
-ground and written as a scene from its calibration (`site.site_scene`); the MEC runs with the settings
-of the project's real-size profile (`intersection`, as `make up SCENE=intersection` runs a site of that
-scale), the detectors asked for in place of the profile's. Every frame's files go into a `MecCore` as
+Each site a reader gives (shared/datasets/roadside: OpenLABEL / TUMTraf, DAIR-V2X, Rope3D) is levelled
+onto its ground and written as a scene from its calibration (`site.site_scene`); the MEC runs with the
+settings of the project's real-size profile (`intersection`, as `make up SCENE=intersection` runs a site
+of that scale), the detectors asked for in place of the profile's. Every frame's files go into a `MecCore` as
 the messages its sensors would send, one tick per frame; a fresh core per frame where the frames are
 independent instants (the vendored samples: two TUMTraf frames 5 s apart, one Rope3D image), one core
 over a sequence (then the tracks are scored too).
@@ -42,6 +42,7 @@ import numpy as np
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 
 from shared.config import with_overrides
+from shared.datasets.roadside.dair import read_dair
 from shared.datasets.roadside.model import (
     FRAME_PERIOD_NS,
     SENSOR_RATE_HZ,
@@ -77,7 +78,7 @@ from studies.evaluation.fusion import EvalDistances, measurement_box, single_mod
 
 FloatArray = np.ndarray
 
-FORMATS = ("openlabel", "rope3d")
+FORMATS = ("openlabel", "dair", "rope3d")
 #: The project's real-size profile: its MEC settings are those a site of real size runs.
 REAL_SIZE_PROFILE = "intersection"
 #: Detectors of real frames by default: the COCO-trained camera card (the project's own camera model
@@ -401,11 +402,13 @@ def with_detectors(mec: MecSettings, camera: str | None, lidar: str | None) -> M
 
 
 def read_sites(fmt: str, data: Path) -> list[RoadsideDataset]:
-    """The dataset folder's sites in the format named, ground levelled (OpenLABEL: the plane its lidar
-    sees; Rope3D: the plane it states)."""
+    """The dataset folder's sites in the format named, ground levelled (OpenLABEL, DAIR-V2X: the plane
+    their lidar sees; Rope3D: the plane it states)."""
     if fmt == "openlabel":
         dataset = read_openlabel(data)
         return [level_to_ground(dataset, fit_site_ground(dataset))]
+    if fmt == "dair":
+        return [level_to_ground(site, fit_site_ground(site)) for site in read_dair(data)]
     if fmt == "rope3d":
         return read_rope3d(data)
     raise RoadsideFormatError(f"format {fmt!r}: one of {FORMATS}")

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
+import PIL.Image
 from numpy.typing import NDArray
 
 from shared.config import ConfigError
@@ -152,3 +153,12 @@ class RoadsideDataset:
 
     def sensor(self, sid: str) -> RoadsideSensor:
         return self.sensors[sid]
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) px of an image file, from its header (no decoding)."""
+    try:
+        with PIL.Image.open(path) as im:
+            return im.size
+    except (OSError, PIL.UnidentifiedImageError) as err:
+        raise RoadsideFormatError(f"{path}: not an image ({err})") from None

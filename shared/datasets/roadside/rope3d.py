@@ -22,7 +22,6 @@ import math
 from pathlib import Path
 
 import numpy as np
-import PIL.Image
 
 from shared.datasets.roadside.model import (
     FRAME_PERIOD_NS,
@@ -31,6 +30,7 @@ from shared.datasets.roadside.model import (
     RoadsideFrame,
     RoadsideLabel,
     RoadsideSensor,
+    image_size,
 )
 
 CAMERA_ID = "camera"
@@ -135,7 +135,7 @@ def _site(root: Path, members: list[tuple[str, np.ndarray, np.ndarray]]) -> Road
         raise RoadsideFormatError(f"{root / 'calib' / first}.txt: P2 is not K [I | 0] (a rectified camera)")
     T_site_from_cam = ground_frame(plane)
     images = {name: _image(root, name) for name, _, _ in members}
-    sizes = {_image_size(path) for path in images.values() if path is not None}
+    sizes = {image_size(path) for path in images.values() if path is not None}
     if len(sizes) > 1:
         raise RoadsideFormatError(f"{root}: one camera's images in sizes {sorted(sizes)}")
     width, height = sizes.pop() if sizes else (None, None)
@@ -176,11 +176,3 @@ def _site(root: Path, members: list[tuple[str, np.ndarray, np.ndarray]]) -> Road
 def _image(root: Path, name: str) -> Path | None:
     found = sorted((root / "image_2").glob(f"{name}.*"))
     return found[0] if found else None
-
-
-def _image_size(path: Path) -> tuple[int, int]:
-    try:
-        with PIL.Image.open(path) as im:
-            return im.size
-    except (OSError, PIL.UnidentifiedImageError) as err:
-        raise RoadsideFormatError(f"{path}: not an image ({err})") from None

@@ -75,7 +75,7 @@ def test_the_cli_writes_results_and_the_docs_section(tmp_path: Path, monkeypatch
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["--format", "kitti", "--data", str(ROPE3D)], "--format kitti: one of openlabel, rope3d"),
+        (["--format", "kitti", "--data", str(ROPE3D)], "--format kitti: one of openlabel, dair, rope3d"),
         (["--format", "rope3d", "--data", str(TUMTRAF)], "not a Rope3D folder"),
         (["--format", "openlabel", "--data", str(ROPE3D / "calib")], "no OpenLABEL"),
     ],
@@ -92,3 +92,18 @@ def test_false_boxes_are_told_apart_by_where_they_stand() -> None:
     frames = [np.array([car, sign]), np.array([[10.5, 0.2, 0.75, 4.5, 1.8, 1.5, 0.0]]), np.zeros((0, 7))]
     assert real.false_box_kinds(frames, gate_m=1.0) == {"fp_recurring": 2, "fp_elevated": 1}
     assert real.false_box_kinds(frames, gate_m=0.1) == {"fp_recurring": 0, "fp_elevated": 1}
+
+
+def test_a_dair_layout_runs_through_the_same_study(tumtraf_results: dict, tmp_path: Path) -> None:
+    """The first TUMTraf frame written in DAIR-V2X-I's layout (test_dair.write_dair) scores as TUMTraf's
+    own first frame does: the same lidar boxes found among the same labelled vehicles."""
+    from shared.datasets.roadside.openlabel import read_openlabel
+    from tests.shared.datasets.roadside.test_dair import write_dair
+
+    root = write_dair(read_openlabel(TUMTRAF), tmp_path / "single-infrastructure-side")
+    mec = real.with_detectors(
+        eval_site(real.REAL_SIZE_PROFILE).mec(), real.DEFAULT_CAMERA, real.DEFAULT_LIDAR
+    )
+    (site,) = real.run_study("dair", root, mec, {"camera": "coco", "lidar": "cluster"})["sites"]
+    lidar = site["stages"]["lidar"]
+    assert site["frames"] == 1 and lidar["num_gt"] == 8 and lidar["tp"] >= 6
