@@ -68,6 +68,7 @@ from shared.geometry.transforms import camera_optical_from_world, matrix_from_po
 from shared.machine import git_commit, machine_info
 from shared.metrics.detection import evaluate_coco, evaluate_kitti
 from shared.metrics.fusion import FusionAccumulator
+from shared.metrics.tracking import TrackingAccumulator
 from shared.perception.config import MecSettings
 from shared.perception.core import MecCore
 from shared.perception.decode import FrameDecoder
@@ -109,6 +110,7 @@ class FrameTruthReal:
     gt: FloatArray
     ignore: FloatArray
     points: list[int]
+    ids: list[str]  # the dataset's object ids of the counted boxes (track ids in a sequence)
 
 
 @dataclass
@@ -122,6 +124,8 @@ class SiteEvaluation:
     false_boxes: dict[str, list[FloatArray]] = field(default_factory=dict)  # stage -> per frame (F, 7)
     counts: Counter[str] = field(default_factory=Counter)
     frame_ms: list[float] = field(default_factory=list)
+    tracking: TrackingAccumulator | None = None  # sequences: the published tracks against the labels' ids
+    object_numbers: dict[str, int] = field(default_factory=dict)
     latencies_s: dict[str, list[float]] = field(default_factory=dict)
 
 
@@ -160,7 +164,7 @@ def frame_truth(
     has_lidar = bool(frame.clouds)
     xyz = lidar_points_site(dataset, frame) if has_lidar else np.zeros((0, 3))
     cameras = [s for s in dataset.sensors.values() if s.kind == "camera"]
-    gt, ignore, points = [], [], []
+    gt, ignore, points, ids = [], [], [], []
     for label in frame.labels:
         if not label.has_box:
             continue  # labelled in images only: 2D scoring only
@@ -179,10 +183,11 @@ def frame_truth(
         if counted:
             gt.append(box)
             points.append(n)
+            ids.append(label.object_id)
         else:
             ignore.append(box)
     as_array = lambda rows: np.array(rows).reshape(-1, 7)  # noqa: E731
-    return FrameTruthReal(as_array(gt), as_array(ignore), points)
+    return FrameTruthReal(as_array(gt), as_array(ignore), points, ids)
 
 
 def _shift(boxes: FloatArray, origin_xy: FloatArray) -> FloatArray:
@@ -243,6 +248,7 @@ def evaluate_site(
         singles = single_modality_measurements(result, pipeline, out.inputs, images)
         truth = frame_truth(dataset, scene, frame, ev.counts)
         stage_boxes: dict[str, tuple[FloatArray, FloatArray]] = {}
+        track_ids: list[int] = []
         if pipeline.lidar_ids:
             lb = result.lidar_boxes_world.reshape(-1, 9)
             stage_boxes["lidar"] = (lb[:, :7], lb[:, 7])
@@ -253,6 +259,7 @@ def evaluate_site(
             tracks = result.tracks
             boxes = np.array([track_box(t, pipeline.car_size_m)[0] for t in tracks]).reshape(-1, 7)
             stage_boxes["tracked"] = (boxes, np.array([t.existence_probability for t in tracks]))
+            track_ids = [t.track_id for t in tracks]
         for stage, (boxes, scores) in stage_boxes.items():
             match = ev.accs[stage].add_frame(boxes, truth.gt, scores=scores, gt_ignore=truth.ignore)
             dets = np.column_stack([boxes, scores, np.zeros(len(boxes))]).reshape(-1, 9)
@@ -263,6 +270,15 @@ def evaluate_site(
             found[match.gt_index] = True
             ev.recall_points.setdefault(stage, []).extend(zip(truth.points, found.tolist(), strict=True))
             ev.false_boxes.setdefault(stage, []).append(boxes[match.false_positives].reshape(-1, 7))
+            if stage == "tracked":
+                # Tracks on ignore regions (a vehicle with few points, another class) are not scored.
+                counted = np.ones(len(boxes), bool)
+                counted[match.ignored] = False
+                if ev.tracking is None:
+                    ev.tracking = TrackingAccumulator(distances.track_distance_m)
+                gt_numbers = [ev.object_numbers.setdefault(i, len(ev.object_numbers)) for i in truth.ids]
+                kept = [t for t, c in zip(track_ids, counted, strict=True) if c]
+                ev.tracking.update(gt_numbers, truth.gt[:, :2], kept, boxes[counted, :2])
         _score_2d(ev, dataset, scene, frame, result.camera_boxes, pipeline, images)
     ev.counts.update(core.counts() if core is not None else {})
     return summarise(dataset, scene, ev)
@@ -375,6 +391,7 @@ def summarise(dataset: RoadsideDataset, scene: Scene, ev: SiteEvaluation) -> dic
         "match_distance_m": EvalDistances.for_scene(scene).match_distance_m,
         "stages": stages,
         "camera_2d": camera_2d,
+        "tracking": ev.tracking.summary() if ev.tracking is not None else None,
         "frame_ms": {
             "p50": float(np.percentile(ms, 50)),
             "p95": float(np.percentile(ms, 95)),
@@ -498,6 +515,13 @@ def markdown(results: dict[str, Any]) -> str:
             )
         if "lidar" in site["stages"]:
             lines.append("- " + target_line(site["stages"]["lidar"]))
+        if site.get("tracking"):
+            t = site["tracking"]
+            lines.append(
+                f"- tracking (the published tracks against the labels' ids): MOTA {_f(t['mota'])}, IDF1 "
+                f"{_f(t['idf1'])}, {t['id_switches']} identity switches (HOTA is not computed: motmetrics "
+                "has none)"
+            )
         cams = ", ".join(
             f"`{c}` {_f(v['ap50'])} ({v['num_gt']} vehicles, {v['frames']} frames)"
             for c, v in site["camera_2d"].items()
