@@ -28,6 +28,7 @@ from shared.detection.interface import CAR_CLASS_ID, empty_camera_detections
 
 DET_COLUMNS = 5  # x0, y0, x1, y1, score
 SCORE_COL = 4
+ULTRALYTICS_PAD_BIAS = 0.1  # Ultralytics' LetterBox / scale_boxes: round(d / 2 - 0.1), the odd pixel after
 INTERPOLATION = {"linear": cv2.INTER_LINEAR, "area": cv2.INTER_AREA}
 
 
@@ -55,6 +56,13 @@ class Letterbox:
     height: int
     left: int = 0  # padding before the image, input px (centred letterbox)
     top: int = 0
+    # The padding boxes lose on their way back to the original image, input px: the placement's, but
+    # for a centred (Ultralytics) letterbox Ultralytics' own `scale_boxes`, which computes it from the
+    # scale, round((W - w * scale) / 2 - 0.1): a pixel more than was placed when the resized size
+    # rounded up (1090 rows into 416 at 0.2189: 238.65 -> 239 rows, 88 placed above, 89 taken off).
+    # A card reproduces its family's pipeline, so its boxes go back as that family's do.
+    unpad_left: int | None = None
+    unpad_top: int | None = None
 
     def to_input(self, boxes: np.ndarray) -> np.ndarray:
         """(n, 4) `[x0, y0, x1, y1]` original px -> input px (float32)."""
@@ -66,8 +74,8 @@ class Letterbox:
     def to_original(self, boxes: np.ndarray) -> np.ndarray:
         """(n, 4) input px -> original px, clipped to the image (float32)."""
         out = np.array(boxes, np.float32).reshape(-1, 4)
-        out[:, 0::2] -= self.left
-        out[:, 1::2] -= self.top
+        out[:, 0::2] -= self.left if self.unpad_left is None else self.unpad_left
+        out[:, 1::2] -= self.top if self.unpad_top is None else self.unpad_top
         out /= np.float32(self.scale)
         out[:, 0::2] = np.clip(out[:, 0::2], 0.0, self.width)
         out[:, 1::2] = np.clip(out[:, 1::2], 0.0, self.height)
@@ -81,7 +89,15 @@ def letterbox_for(width: int, height: int, cfg: LetterboxInput, centre: bool = F
     if not centre:
         return Letterbox(scale, width, height)
     new_w, new_h = resized_size(width, height, scale, cfg)
-    return Letterbox(scale, width, height, (cfg.width - new_w) // 2, (cfg.height - new_h) // 2)
+    return Letterbox(
+        scale,
+        width,
+        height,
+        (cfg.width - new_w) // 2,
+        (cfg.height - new_h) // 2,
+        round((cfg.width - width * scale) / 2 - ULTRALYTICS_PAD_BIAS),
+        round((cfg.height - height * scale) / 2 - ULTRALYTICS_PAD_BIAS),
+    )
 
 
 def resized_size(width: int, height: int, scale: float, cfg: LetterboxInput) -> tuple[int, int]:

@@ -171,3 +171,57 @@ def test_the_cards_detections_are_yoloxs(
         j = unmatched.pop(int(err.argmin()))
         assert abs(got[j, 4] - row[4]) <= SCORE_TOLERANCE, (name, got[j], row)
     assert not unmatched, f"{name}: the card finds more than YOLOX: {got[unmatched]}"
+
+
+def ultralytics_letterbox(
+    image: np.ndarray, size: tuple[int, int]
+) -> tuple[np.ndarray, float, tuple[int, int]]:
+    """Ultralytics' `LetterBox` at a fixed input (auto off, centred; its rules, written here): size
+    rounded, bilinear, the padding split `round(d / 2 -+ 0.1)`, grey 114. Returns the image, the gain
+    and the (left, top) padding `scale_boxes` takes off again."""
+    h_in, w_in = size
+    h, w = image.shape[:2]
+    r = min(h_in / h, w_in / w)
+    new_w, new_h = round(w * r), round(h * r)
+    dw, dh = (w_in - new_w) / 2, (h_in - new_h) / 2
+    if (w, h) != (new_w, new_h):
+        image = cv2.resize(image, (new_w, new_h), interpolation=cv2.INTER_LINEAR)
+    top, bottom = round(dh - 0.1), round(dh + 0.1)
+    left, right = round(dw - 0.1), round(dw + 0.1)
+    out = cv2.copyMakeBorder(image, top, bottom, left, right, cv2.BORDER_CONSTANT, value=(114, 114, 114))
+    # scale_boxes' own padding, from the gain alone
+    pad = (round((w_in - w * r) / 2 - 0.1), round((h_in - h * r) / 2 - 0.1))
+    return out, r, pad
+
+
+@pytest.mark.parametrize("layout", ["yolov8", "yolov5"])
+@pytest.mark.parametrize("size", [(640, 640), (384, 640), (416, 416)])
+@pytest.mark.parametrize(("name", "bgr"), real_images(), ids=lambda v: v if isinstance(v, str) else "")
+def test_an_ultralytics_card_letterboxes_as_ultralytics(
+    layout: str, size: tuple[int, int], name: str, bgr: np.ndarray
+) -> None:
+    """A YOLOv5 / YOLOv8 card that leaves the letterbox to its family places the image as Ultralytics'
+    LetterBox does, pixel for pixel, and maps boxes back as its `scale_boxes` does: the same gain and the
+    padding computed from it, which on the crop (238.65 rows, rounded up) is a pixel more than the 88
+    placed above the image."""
+    card = CameraCard.model_validate(
+        {
+            "kind": "camera",
+            "model": "m.onnx",
+            "layout": layout,
+            "input": {"width": size[1], "height": size[0], "tensor": "nchw_float32"},
+            "num_classes": 80,
+            "classes": {2: "car"},
+        }
+    )
+    assert (card.input.letterbox, card.input.resize_rounding) == ("centre", "nearest")
+    want, gain, pad = ultralytics_letterbox(bgr, size)
+    got = np.empty((*size, 3), np.uint8)
+    box = letterbox_image(bgr, card.input, got, centre=True)
+    np.testing.assert_array_equal(got, want)
+    assert box.scale == gain
+    boxes = np.array([[100.0, 120.0, 180.0, 200.0]])
+    want_back = np.clip(
+        (boxes - [pad[0], pad[1], pad[0], pad[1]]) / gain, 0, [bgr.shape[1], bgr.shape[0]] * 2
+    )
+    np.testing.assert_allclose(box.to_original(boxes), want_back, atol=1e-3)
