@@ -41,7 +41,7 @@ from typing import Any, cast
 import numpy as np
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 
-from shared.config import with_overrides
+from shared.config import ConfigError, with_overrides
 from shared.datasets.roadside.dair import read_dair
 from shared.datasets.roadside.model import (
     FRAME_PERIOD_NS,
@@ -432,8 +432,20 @@ def read_sites(fmt: str, data: Path) -> list[RoadsideDataset]:
 
 
 def run_study(fmt: str, data: Path, mec: MecSettings, detectors: dict[str, str | None]) -> dict[str, Any]:
-    """Every site of the dataset folder evaluated; the results with the command's provenance."""
+    """Every site of the dataset folder evaluated; the results with the command's provenance. The
+    background detector learns each lidar's static scene from a sequence of its frames (its first
+    `warmup_frames` call nothing foreground): independent frames are refused for it (ConfigError)."""
     sites = read_sites(fmt, data)
+    background = mec.detectors.background
+    for site in sites:
+        if mec.detectors.lidar == "background" and (
+            not site.sequence or len(site.frames) <= background.warmup_frames
+        ):
+            raise ConfigError(
+                f"{site.name}: the background detector learns each lidar's static scene over a sequence of "
+                f"more than {background.warmup_frames} frames; these {len(site.frames)} frames are "
+                f"{'a sequence' if site.sequence else 'independent'}: use --lidar cluster or a model card"
+            )
     return {
         "format": fmt,
         "data": str(data),

@@ -78,6 +78,10 @@ def test_the_cli_writes_results_and_the_docs_section(tmp_path: Path, monkeypatch
         (["--format", "kitti", "--data", str(ROPE3D)], "--format kitti: one of openlabel, dair, rope3d"),
         (["--format", "rope3d", "--data", str(TUMTRAF)], "not a Rope3D folder"),
         (["--format", "openlabel", "--data", str(ROPE3D / "calib")], "no OpenLABEL"),
+        (
+            ["--format", "openlabel", "--data", str(TUMTRAF), "--lidar", "background"],
+            "these 2 frames are independent",
+        ),
     ],
 )
 def test_wrong_input_is_refused_in_one_line(tmp_path: Path, args: list[str], message: str) -> None:
