@@ -178,7 +178,7 @@ def site_scene(dataset: RoadsideDataset, reference: Scene | None = None) -> Scen
     sensors as far as the lidars reach; car classes and design speed of the real-size `reference`."""
     ref = (reference or Scene.load(REFERENCE_SCENE)).spec
     ref_camera = next(s.camera for s in ref.sensors if s.camera is not None)
-    sensors, reach_m = [], 0.0
+    sensors, lidar_reach_m = [], []
     first = dataset.frames[0] if dataset.frames else None
     for s in dataset.sensors.values():
         if s.kind == "lidar":
@@ -186,7 +186,7 @@ def site_scene(dataset: RoadsideDataset, reference: Scene | None = None) -> Scen
             if cloud is None:
                 raise RoadsideFormatError(f"{dataset.root}: no cloud of {s.name} in the first frame")
             layout = LidarLayout.of(read_pcd(cloud))
-            reach_m = max(reach_m, layout.max_range_m)
+            lidar_reach_m.append(layout.max_range_m)
             model = LidarModel(
                 channels=layout.channels,
                 horizontal_samples=layout.horizontal_samples,
@@ -207,9 +207,10 @@ def site_scene(dataset: RoadsideDataset, reference: Scene | None = None) -> Scen
                 near_m=ref_camera.near_m,
                 far_m=ref_camera.far_m,
             )
-            reach_m = max(reach_m, ref_camera.far_m if reach_m == 0 else 0.0)
             sensors.append(_sensor(s, s.T_site_from_sensor @ T_OPTICAL_FROM_BODY, camera=camera))
     centre = np.mean([s.T_site_from_sensor[:2, 3] for s in dataset.sensors.values()], axis=0)
+    # as far as the lidars reach; a camera-only site as far as the reference cameras render
+    reach_m = max(lidar_reach_m) if lidar_reach_m else ref_camera.far_m
     x0, y0 = float(centre[0] - reach_m), float(centre[1] - reach_m)
     square = [[x0, y0], [x0 + 2 * reach_m, y0], [x0 + 2 * reach_m, y0 + 2 * reach_m], [x0, y0 + 2 * reach_m]]
     return SceneSpec(
