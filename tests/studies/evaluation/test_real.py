@@ -128,3 +128,12 @@ def test_a_sequence_scores_its_tracks() -> None:
     assert out["tracking"] is not None and set(out["tracking"]) >= {"mota", "idf1", "id_switches"}
     assert "MOTA" in real.markdown({"data": "x", "format": "openlabel", "detectors": {}, "mec_profile": "p",
                                     "commit": "c", "sites": [out]})  # fmt: skip
+
+
+def test_recall_at_a_precision_reads_the_score_ranked_curve() -> None:
+    """Known answer: TP 0.9, FP 0.8, TP 0.7, TP 0.6, FP 0.5 of 5 vehicles: at precision >= 0.75 the best
+    threshold keeps the first four (3 of 4 true): recall 3/5; at >= 0.9 only the first: 1/5."""
+    scored = [(0.9, 1), (0.8, 0), (0.7, 1), (0.6, 1), (0.5, 0), (0.95, 2)]  # the 0.95 box is ignored
+    assert real.recall_at_precision(scored, 5, 0.75) == pytest.approx(0.6)
+    assert real.recall_at_precision(scored, 5, 0.9) == pytest.approx(0.2)
+    assert real.recall_at_precision([], 5, 0.8) == 0.0 and real.recall_at_precision(scored, 0, 0.8) is None
