@@ -16,9 +16,11 @@ on the vendored TUMTraf frames, tests/fixtures/real/tumtraf_a9):
 - `streams`: cameras with `intrinsics_pinhole` (`camera_matrix_3x4`, `width_px`, `height_px`,
   `distortion_coeffs` when present).
 - `frames`: per frame `frame_properties` (`timestamp` s, `point_cloud_file_name`, `image_file_names`)
-  and `objects` (uuid -> `object_data`: `type`, `cuboid` {val: x y z qx qy qz qw l w h, or x y z
-  rx ry rz l w h with Euler angles; `attributes`: `num` num_points, `text` occlusion_level}, `bbox`
-  {val: cx cy w h, `coordinate_system` the camera}).
+  and `objects` (uuid -> `object_data`: `type` (TUMTraf; the standard keeps it in the file's top-level
+  `objects`, read there too), `cuboid` (one, or a list: the first) {val: x y z qx qy qz qw l w h, or x y
+  z rx ry rz l w h with Euler angles; `coordinate_system`, the lidar's (the default) or the site's;
+  `attributes`: `num` num_points, `text` occlusion_level}, `bbox` {val: cx cy w h, `coordinate_system`
+  the camera}).
 The labelled lidar: the sensor coordinate system whose name the point cloud file name carries. The site
 frame: that lidar's parent where it is a `local_cs` (TUMTraf's ground-level `s110_base`), else the
 lidar's own. Files are found by name anywhere under the dataset folder (TUMTraf's `point_clouds/<lidar>`,
@@ -155,7 +157,7 @@ def read_openlabel(root: Path, camera_pose: CameraPose = "parent_to_camera") -> 
             if not np.allclose(known.T_site_from_sensor, s.T_site_from_sensor, atol=1e-6):
                 raise RoadsideFormatError(f"{path}: {s.name}'s calibration differs from an earlier file's")
         for fid, frame in sorted((doc.get("frames") or {}).items(), key=lambda kv: int(kv[0])):
-            frames.append(_frame(frame, fid, path, file_sensors, files, site))
+            frames.append(_frame(frame, fid, path, file_sensors, files, site, doc.get("objects") or {}))
     if len(site_frames) > 1:
         raise RoadsideFormatError(f"{root}: label files in different site frames {sorted(site_frames)}")
     frames.sort(key=lambda f: f.stamp_ns)
@@ -237,7 +239,10 @@ def _frame(
     sensors: dict[str, RoadsideSensor],
     files: _Files,
     site: str,
+    objects: dict[str, Any],
 ) -> RoadsideFrame:
+    """One frame's files and labels. `objects`: the file's top-level objects, where the standard keeps an
+    object's type (TUMTraf repeats it in each frame's `object_data`)."""
     props = frame.get("frame_properties") or {}
     stamp = props.get("timestamp")
     if not isinstance(stamp, (int, float)) or not math.isfinite(stamp):
@@ -272,10 +277,16 @@ def _frame(
         if not cuboids:
             continue  # an object labelled in images only
         cub = cuboids[0]
-        category = data.get("type") or obj.get("type")
+        category = data.get("type") or obj.get("type") or (objects.get(uid) or {}).get("type")
         if not isinstance(category, str):
             raise RoadsideFormatError(f"{path}: object {uid} has no type")
         T_box, size = _cuboid_box(cub.get("val"), path, uid)
+        frame_of_box = cub.get("coordinate_system") or lidar.name
+        if frame_of_box not in (lidar.name, site):
+            raise RoadsideFormatError(
+                f"{path}: object {uid}'s cuboid is in {frame_of_box!r}; read are the lidar's and the site's"
+            )
+        in_site = T_site_from_lidar @ T_box if frame_of_box == lidar.name else T_box
         attributes = cub.get("attributes") or {}
         num = _attribute(attributes, "num", "num_points")
         boxes_px = {}
@@ -290,7 +301,7 @@ def _frame(
             RoadsideLabel(
                 object_id=str(uid),
                 category=category,
-                T_site_from_box=T_site_from_lidar @ T_box,
+                T_site_from_box=in_site,
                 size_m=size,
                 num_points=int(num) if isinstance(num, (int, float)) else None,
                 boxes_px=boxes_px,

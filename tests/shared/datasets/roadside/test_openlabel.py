@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from shared.datasets.roadside.model import RoadsideDataset, RoadsideFormatError
 from shared.datasets.roadside.openlabel import read_openlabel
@@ -167,3 +168,45 @@ def test_a_file_that_is_not_openlabel_is_refused(tmp_path: Path) -> None:
         read_openlabel(tmp_path)
     with pytest.raises(RoadsideFormatError, match="no OpenLABEL"):
         read_openlabel(tmp_path / "empty")
+
+
+def test_the_standards_layout_reads_as_tumtrafs(tmp_path: Path, tumtraf: RoadsideDataset) -> None:
+    """ASAM OpenLABEL keeps an object's type in the file's top-level `objects` and a frame's cuboids as
+    a list, each naming its coordinate system (as the specification's own cuboid example does): the
+    first TUMTraf frame rewritten so reads the same labels; a cuboid in the site frame too."""
+    lidar_pose = tumtraf.sensors[LIDAR].T_site_from_sensor
+
+    def standard(doc: dict) -> None:
+        frame = next(iter(doc["frames"].values()))
+        doc["objects"] = {}
+        for n, (uid, obj) in enumerate(frame["objects"].items()):
+            data = obj["object_data"]
+            doc["objects"][uid] = {"name": data.pop("name"), "type": data.pop("type")}
+            cuboid = {**data["cuboid"], "coordinate_system": LIDAR}
+            if n == 0:  # this one in the site frame: the same box, expressed there
+                box = np.eye(4)
+                box[:3, :3] = Rotation.from_quat(cuboid["val"][3:7]).as_matrix()
+                box[:3, 3] = cuboid["val"][:3]
+                site = lidar_pose @ box
+                quat = Rotation.from_matrix(site[:3, :3]).as_quat()
+                cuboid = {
+                    **cuboid,
+                    "coordinate_system": "s110_base",
+                    "val": [*site[:3, 3], *quat, *cuboid["val"][7:]],
+                }
+            data["cuboid"] = [cuboid]
+
+    root = _copy_with(tmp_path, standard)
+    got = read_openlabel(root).frames[0].labels
+    want = tumtraf.frames[0].labels
+    assert [lab.category for lab in got] == [lab.category for lab in want]
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_allclose(a.T_site_from_box, b.T_site_from_box, atol=1e-9)
+
+    def elsewhere(doc: dict) -> None:
+        _first_object(doc)["cuboid"]["coordinate_system"] = "s110_camera_basler_south1_8mm"
+
+    other = tmp_path / "other"
+    other.mkdir()
+    with pytest.raises(RoadsideFormatError, match="read are the lidar's and the site's"):
+        read_openlabel(_copy_with(other, elsewhere))
