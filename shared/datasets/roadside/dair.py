@@ -41,6 +41,7 @@ from shared.datasets.roadside.model import (
     RoadsideLabel,
     RoadsideSensor,
     image_size,
+    malformed_is_format_error,
 )
 
 LIDAR_ID = "lidar"
@@ -154,9 +155,11 @@ def read_dair(root: Path) -> list[RoadsideDataset]:
     for entry in entries:
         if not isinstance(entry, dict):
             raise RoadsideFormatError(f"{info}: a frame entry is not an object")
-        K, dist, T = _calibration(root, entry, info)
+        with malformed_is_format_error(info):
+            K, dist, T = _calibration(root, entry, info)
         groups.setdefault(np.concatenate([K.ravel(), T.ravel()]).tobytes(), []).append((entry, K, dist, T))
-    return [_site(root, info, members) for members in groups.values()]
+    with malformed_is_format_error(info):
+        return [_site(root, info, members) for members in groups.values()]
 
 
 def _site(

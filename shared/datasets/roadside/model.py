@@ -12,8 +12,10 @@ Frames:
 
 from __future__ import annotations
 
+import contextlib
 import math
 import re
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -162,3 +164,16 @@ def image_size(path: Path) -> tuple[int, int]:
             return im.size
     except (OSError, PIL.UnidentifiedImageError) as err:
         raise RoadsideFormatError(f"{path}: not an image ({err})") from None
+
+
+@contextlib.contextmanager
+def malformed_is_format_error(path: Path) -> Iterator[None]:
+    """Inside, a structure that is not what the format says (a list where an object belongs, a number
+    where a name does: the KeyError, TypeError, ValueError, AttributeError or IndexError of reading it)
+    becomes a RoadsideFormatError naming the file, never a crash of the caller."""
+    try:
+        yield
+    except RoadsideFormatError:
+        raise
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError) as err:
+        raise RoadsideFormatError(f"{path}: malformed ({type(err).__name__}: {err})") from None

@@ -47,6 +47,7 @@ from shared.datasets.roadside.model import (
     RoadsideFrame,
     RoadsideLabel,
     RoadsideSensor,
+    malformed_is_format_error,
     sensor_id,
 )
 from shared.geometry.transforms import invert_transform
@@ -150,14 +151,17 @@ def read_openlabel(root: Path, camera_pose: CameraPose = "parent_to_camera") -> 
             doc = json.loads(path.read_text())["openlabel"]
         except (json.JSONDecodeError, KeyError, TypeError, UnicodeDecodeError) as err:
             raise RoadsideFormatError(f"{path}: not an OpenLABEL file ({err})") from None
-        site, file_sensors = _sensors(doc, path, camera_pose)
-        site_frames.add(site)
-        for s in file_sensors.values():
-            known = sensors.setdefault(s.id, s)
-            if not np.allclose(known.T_site_from_sensor, s.T_site_from_sensor, atol=1e-6):
-                raise RoadsideFormatError(f"{path}: {s.name}'s calibration differs from an earlier file's")
-        for fid, frame in sorted((doc.get("frames") or {}).items(), key=lambda kv: int(kv[0])):
-            frames.append(_frame(frame, fid, path, file_sensors, files, site, doc.get("objects") or {}))
+        with malformed_is_format_error(path):
+            site, file_sensors = _sensors(doc, path, camera_pose)
+            site_frames.add(site)
+            for s in file_sensors.values():
+                known = sensors.setdefault(s.id, s)
+                if not np.allclose(known.T_site_from_sensor, s.T_site_from_sensor, atol=1e-6):
+                    raise RoadsideFormatError(
+                        f"{path}: {s.name}'s calibration differs from an earlier file's"
+                    )
+            for fid, frame in sorted((doc.get("frames") or {}).items(), key=lambda kv: int(kv[0])):
+                frames.append(_frame(frame, fid, path, file_sensors, files, site, doc.get("objects") or {}))
     if len(site_frames) > 1:
         raise RoadsideFormatError(f"{root}: label files in different site frames {sorted(site_frames)}")
     frames.sort(key=lambda f: f.stamp_ns)

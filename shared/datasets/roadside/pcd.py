@@ -67,7 +67,10 @@ def read_pcd(path: Path) -> PointCloudData:
     header = read_header(path)
     if not {"x", "y", "z"} <= set(header.fields):
         raise RoadsideFormatError(f"{path}: fields {header.fields} lack x, y or z")
-    cloud = o3d.t.io.read_point_cloud(path)
+    try:
+        cloud = o3d.t.io.read_point_cloud(path)
+    except RuntimeError as err:  # open3d raises for a header it parses but cannot map (a size per type)
+        raise RoadsideFormatError(f"{path}: open3d cannot read it ({str(err).strip()[-120:]})") from None
     if "positions" not in cloud.point:
         raise RoadsideFormatError(f"{path}: open3d read no points (header says {header.points})")
     xyz = cloud.point.positions.numpy().astype(np.float64)

@@ -31,6 +31,7 @@ from shared.datasets.roadside.model import (
     RoadsideLabel,
     RoadsideSensor,
     image_size,
+    malformed_is_format_error,
 )
 
 CAMERA_ID = "camera"
@@ -125,7 +126,8 @@ def read_rope3d(root: Path) -> list[RoadsideDataset]:
         P = _numbers(root / "calib" / f"{name}.txt", 12, "P2:").reshape(3, 4)
         plane = _numbers(root / "denorm" / f"{name}.txt", 4)
         groups.setdefault(np.concatenate([P.ravel(), plane]).tobytes(), []).append((name, P, plane))
-    return [_site(root, members) for members in groups.values()]
+    with malformed_is_format_error(root):
+        return [_site(root, members) for members in groups.values()]
 
 
 def _site(root: Path, members: list[tuple[str, np.ndarray, np.ndarray]]) -> RoadsideDataset:
