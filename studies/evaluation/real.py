@@ -332,6 +332,19 @@ def _band_recall(rows: list[tuple[int, bool]], bands: Sequence[tuple[int, int]])
     return out
 
 
+def yaw_errors_deg(acc: FusionAccumulator) -> dict[str, float | None]:
+    """p50 / p95 of the matched boxes' heading error, degrees, modulo 180 (a lidar box's heading is
+    known modulo pi): from each pair's pi-invariant orientation similarity (1 + cos 2d) / 2."""
+    terms = acc.aos_terms
+    if terms.size == 0:
+        return {"yaw_error_p50_deg": None, "yaw_error_p95_deg": None}
+    err = np.degrees(np.arccos(np.clip(2 * terms - 1, -1.0, 1.0)) / 2)
+    return {
+        "yaw_error_p50_deg": float(np.percentile(err, 50)),
+        "yaw_error_p95_deg": float(np.percentile(err, 95)),
+    }
+
+
 def recall_at_precision(scored: list[tuple[float, int]], num_gt: int, precision: float) -> float | None:
     """The most of the `num_gt` vehicles any score threshold finds while its precision stays at or above
     `precision` (centre-gate matches, ignored boxes left out); None without vehicles."""
@@ -389,6 +402,7 @@ def summarise(dataset: RoadsideDataset, scene: Scene, ev: SiteEvaluation) -> dic
             "recall_by_points": _band_recall(ev.recall_points[stage], POINT_BANDS),
             **false_box_kinds(ev.false_boxes[stage], acc.max_distance_m),
             "recall_at_target_precision": recall_at_precision(ev.scored[stage], acc.num_gt, TARGET_PRECISION),
+            **yaw_errors_deg(acc),
         }
     camera_2d = {}
     for cam, frames in ev.coco.items():
@@ -518,15 +532,16 @@ def markdown(results: dict[str, Any]) -> str:
             f"vehicles with >= {site['min_lidar_points']} lidar points in their box (a camera-only site: "
             f"every labelled vehicle its camera sees); centre gate {site['match_distance_m']:.2f} m.",
             "",
-            "| Output | Vehicles | Boxes | Precision | Recall | Centre error p50 / p95 | BEV AP@0.5 "
-            "| BEV AP@0.25 | 3D AP@0.5 |",
-            "|---|---|---|---|---|---|---|---|---|",
+            "| Output | Vehicles | Boxes | Precision | Recall | Centre error p50 / p95 | Yaw error p50 / p95 "
+            "(mod 180°) | BEV AP@0.5 | BEV AP@0.25 | 3D AP@0.5 |",
+            "|---|---|---|---|---|---|---|---|---|---|",
         ]
         for stage, s in site["stages"].items():
             ap = {k: v["all"]["ap"] for k, v in s["ap"].items()}
             lines.append(
                 f"| {stage} | {s['num_gt']} | {s['num_pred']} | {_f(s['precision'])} | {_f(s['recall'])} | "
                 f"{_f(s['pose_error_p50_m'], '.2f')} / {_f(s['pose_error_p95_m'], '.2f')} m | "
+                f"{_f(s['yaw_error_p50_deg'], '.1f')} / {_f(s['yaw_error_p95_deg'], '.1f')}° | "
                 f"{_f(ap['bev@0.5'])} | {_f(ap['bev@0.25'])} | {_f(ap['3d@0.5'])} |"
             )
         lines.append("")

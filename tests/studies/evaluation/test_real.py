@@ -137,3 +137,16 @@ def test_recall_at_a_precision_reads_the_score_ranked_curve() -> None:
     assert real.recall_at_precision(scored, 5, 0.75) == pytest.approx(0.6)
     assert real.recall_at_precision(scored, 5, 0.9) == pytest.approx(0.2)
     assert real.recall_at_precision([], 5, 0.8) == 0.0 and real.recall_at_precision(scored, 0, 0.8) is None
+
+
+def test_yaw_errors_read_the_orientation_similarity() -> None:
+    """Known answer: boxes 10 and 170 degrees off a vehicle's heading are both 10 degrees off modulo 180."""
+    from shared.metrics.fusion import FusionAccumulator
+
+    acc = FusionAccumulator(5.0)
+    gt = np.array([[0.0, 0.0, 0.75, 4.5, 1.8, 1.5, 0.0], [20.0, 0.0, 0.75, 4.5, 1.8, 1.5, 0.0]])
+    pred = gt.copy()
+    pred[:, 6] = np.radians([10.0, 170.0])
+    acc.add_frame(pred, gt)
+    got = real.yaw_errors_deg(acc)
+    assert got["yaw_error_p50_deg"] == pytest.approx(10.0) and got["yaw_error_p95_deg"] == pytest.approx(10.0)
