@@ -248,21 +248,26 @@ def evaluate_site(
         }
         singles = single_modality_measurements(result, pipeline, out.inputs, images)
         truth = frame_truth(dataset, scene, frame, ev.counts)
-        stage_boxes: dict[str, tuple[FloatArray, FloatArray]] = {}
+        # stage -> (boxes (N, 7), scores (N,), yaw known (N,): a camera-only object off any lane has none)
+        stage_boxes: dict[str, tuple[FloatArray, FloatArray, FloatArray]] = {}
         track_ids: list[int] = []
         if pipeline.lidar_ids:
             lb = result.lidar_boxes_world.reshape(-1, 9)
-            stage_boxes["lidar"] = (lb[:, :7], lb[:, 7])
+            stage_boxes["lidar"] = (lb[:, :7], lb[:, 7], np.ones(len(lb), bool))
         if "camera" in singles:
             stage_boxes["camera"] = _measurement_boxes(singles["camera"], pipeline.car_size_m)
         stage_boxes["fused"] = _measurement_boxes(result.measurements, pipeline.car_size_m)
         if dataset.sequence:
             tracks = result.tracks
-            boxes = np.array([track_box(t, pipeline.car_size_m)[0] for t in tracks]).reshape(-1, 7)
-            stage_boxes["tracked"] = (boxes, np.array([t.existence_probability for t in tracks]))
+            rows = [track_box(t, pipeline.car_size_m) for t in tracks]
+            boxes = np.array([b for b, _ in rows]).reshape(-1, 7)
+            yaw_ok = np.array([ok for _, ok in rows], bool)
+            stage_boxes["tracked"] = (boxes, np.array([t.existence_probability for t in tracks]), yaw_ok)
             track_ids = [t.track_id for t in tracks]
-        for stage, (boxes, scores) in stage_boxes.items():
-            match = ev.accs[stage].add_frame(boxes, truth.gt, scores=scores, gt_ignore=truth.ignore)
+        for stage, (boxes, scores, yaw_ok) in stage_boxes.items():
+            match = ev.accs[stage].add_frame(
+                boxes, truth.gt, yaw_valid=yaw_ok, scores=scores, gt_ignore=truth.ignore
+            )
             dets = np.column_stack([boxes, scores, np.zeros(len(boxes))]).reshape(-1, 9)
             ev.kitti.setdefault(stage, []).append(
                 (_shift(dets, origin), _shift(truth.gt, origin), _shift(truth.ignore, origin))
@@ -291,9 +296,13 @@ def evaluate_site(
 
 def _measurement_boxes(
     rows: Sequence[Any], car_size_m: tuple[float, float, float]
-) -> tuple[FloatArray, FloatArray]:
-    boxes = np.array([measurement_box(m, car_size_m)[0] for m in rows]).reshape(-1, 7)
-    return boxes, np.array([m.score for m in rows], np.float64)
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    boxes = [measurement_box(m, car_size_m) for m in rows]
+    return (
+        np.array([b for b, _ in boxes]).reshape(-1, 7),
+        np.array([m.score for m in rows], np.float64),
+        np.array([ok for _, ok in boxes], bool),
+    )
 
 
 def _score_2d(
