@@ -344,7 +344,7 @@ def _band_recall(rows: list[tuple[int, bool]], bands: Sequence[tuple[int, int]])
 def yaw_errors_deg(acc: FusionAccumulator) -> dict[str, float | None]:
     """p50 / p95 of the matched boxes' heading error, degrees, modulo 180 (a lidar box's heading is
     known modulo pi): from each pair's pi-invariant orientation similarity (1 + cos 2d) / 2."""
-    terms = acc.aos_terms
+    terms = acc.aos_terms[np.isfinite(acc.aos_terms)]  # NaN: a box without a heading
     if terms.size == 0:
         return {"yaw_error_p50_deg": None, "yaw_error_p95_deg": None}
     err = np.degrees(np.arccos(np.clip(2 * terms - 1, -1.0, 1.0)) / 2)

@@ -150,3 +150,6 @@ def test_yaw_errors_read_the_orientation_similarity() -> None:
     acc.add_frame(pred, gt)
     got = real.yaw_errors_deg(acc)
     assert got["yaw_error_p50_deg"] == pytest.approx(10.0) and got["yaw_error_p95_deg"] == pytest.approx(10.0)
+    headless = FusionAccumulator(5.0)
+    headless.add_frame(pred, gt, yaw_valid=[False, False])  # a camera-only object off any lane
+    assert real.yaw_errors_deg(headless) == {"yaw_error_p50_deg": None, "yaw_error_p95_deg": None}
