@@ -49,8 +49,9 @@ LAYOUT_LETTERBOX: dict[str, tuple[Placement, Rounding]] = {
     "yolov5": ("centre", "nearest"),
     "yolox": ("top_left", "floor"),
 }
-#: Lidar output layouts: the project's centre-heatmap PointPillars, OpenPCDet's anchor head.
-LIDAR_LAYOUTS = ("rmmdet_pointpillars", "openpcdet_anchor")
+#: Lidar output layouts: the project's centre-heatmap PointPillars, OpenPCDet's anchor head and its
+#: CenterHead (CenterPoint).
+LIDAR_LAYOUTS = ("rmmdet_pointpillars", "openpcdet_anchor", "openpcdet_center")
 
 
 class _Card(BaseModel):
@@ -249,27 +250,76 @@ class OpenPCDetHead(_Card):
     outputs: tuple[str, str, str] = Field(("cls_preds", "box_preds", "dir_cls_preds"))
 
 
+class CenterTask(_Card):
+    """One of CenterHead's separate heads (a task): the model classes of its heatmap's channels, in
+    order, and the names of its five output maps (NCHW)."""
+
+    classes: tuple[int, ...] = Field(min_length=1, description="model class index of each heatmap channel")
+    heatmap: str = Field(description="(1, classes, H, W) logits (`hm`)")
+    center: str = Field(description="(1, 2, H, W) x, y offset within the cell, cells")
+    center_z: str = Field(description="(1, 1, H, W) box centre height, m")
+    dim: str = Field(description="(1, 3, H, W) log of dx, dy, dz")
+    rot: str = Field(description="(1, 2, H, W) cos, sin of the heading")
+
+    @property
+    def outputs(self) -> tuple[str, str, str, str, str]:
+        return (self.heatmap, self.center, self.center_z, self.dim, self.rot)
+
+
+class OpenPCDetCenterHead(_Card):
+    """OpenPCDet's CenterHead (CenterPoint) as exported: per task a heatmap and the box maps, decoded as
+    its `centernet_utils.decode_bbox_from_heatmap` does; NMS per task as its post-processing does."""
+
+    tasks: tuple[CenterTask, ...] = Field(min_length=1)
+    feature_map_stride: int = Field(gt=0, description="pillars per feature-map cell (its FEATURE_MAP_STRIDE)")
+    max_objects: int = Field(500, gt=0, description="cells kept per task before the threshold (its K)")
+    post_center_limit_range_m: tuple[float, float, float, float, float, float] | None = Field(
+        None, description="boxes centred outside this x, y, z range are dropped (its POST_CENTER_LIMIT_RANGE)"
+    )
+    point_features: Literal["xyzi", "augmented"] = Field("xyzi", description="as OpenPCDetHead's")
+    inputs: tuple[str, str, str] = Field(("voxels", "voxel_num_points", "voxel_coords"))
+
+
 class LidarCard(_Card):
     kind: Literal["lidar"]
     model: str
-    layout: Literal["rmmdet_pointpillars", "openpcdet_anchor"]
+    layout: Literal["rmmdet_pointpillars", "openpcdet_anchor", "openpcdet_center"]
     classes: dict[int, str]
     num_classes: int = Field(1, gt=0)
-    grid: PillarGrid | None = Field(None, description="layout openpcdet_anchor")
+    grid: PillarGrid | None = Field(None, description="layouts openpcdet_anchor and openpcdet_center")
     head: OpenPCDetHead | None = Field(None, description="layout openpcdet_anchor")
-    post: LidarPost | None = Field(None, description="layout openpcdet_anchor (default: LidarPost())")
+    center: OpenPCDetCenterHead | None = Field(None, description="layout openpcdet_center")
+    post: LidarPost | None = Field(None, description="OpenPCDet layouts (default: LidarPost())")
 
     @model_validator(mode="after")
     def _check(self) -> LidarCard:
         _check_classes(self.classes, self.num_classes)
         if self.layout == "openpcdet_anchor":
-            if self.grid is None or self.head is None:
-                raise ValueError("layout openpcdet_anchor needs `grid` and `head`")
+            if self.grid is None or self.head is None or self.center is not None:
+                raise ValueError("layout openpcdet_anchor needs `grid` and `head` (no `center`)")
             if len(self.head.anchors) != self.num_classes:
                 raise ValueError(f"{len(self.head.anchors)} anchor classes for {self.num_classes} classes")
-        elif self.grid is not None or self.head is not None or self.post is not None:
+        elif self.layout == "openpcdet_center":
+            if self.grid is None or self.center is None or self.head is not None:
+                raise ValueError("layout openpcdet_center needs `grid` and `center` (no `head`)")
+            scored = sorted(c for task in self.center.tasks for c in task.classes)
+            if scored != list(range(self.num_classes)):
+                raise ValueError(
+                    f"the tasks' heatmaps score classes {scored}: each of the {self.num_classes} classes once"
+                )
+        elif (
+            self.grid is not None or self.head is not None or self.center is not None or self.post is not None
+        ):
             raise ValueError("layout rmmdet_pointpillars reads its grid, head and post from the model's JSON")
         return self
+
+    @property
+    def pillar_input(self) -> OpenPCDetHead | OpenPCDetCenterHead:
+        """The OpenPCDet head whose pillar input (point features, input names) the graph takes."""
+        head = self.head if self.head is not None else self.center
+        if head is None:
+            raise ValueError(f"layout {self.layout} takes no OpenPCDet pillars")
+        return head
 
     @property
     def post_or_default(self) -> LidarPost:

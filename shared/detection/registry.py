@@ -124,7 +124,8 @@ def lidar_detector(
 
 def lidar_from_card(card_path: Path, precision: str = "fp32", threads: int = 1) -> LidarDetector:
     """The lidar detector a card describes: the project's PointPillars (its grid and head from the JSON
-    beside the model) or an OpenPCDet anchor-head export (`shared.detection.lidar.openpcdet`)."""
+    beside the model), an OpenPCDet anchor-head export (`shared.detection.lidar.openpcdet`) or an
+    OpenPCDet CenterPoint export (`shared.detection.lidar.openpcdet_center`)."""
     from shared.detection.card import LidarCard, load_card_and_model
 
     card, path = load_card_and_model(card_path, LidarCard, precision)
@@ -132,6 +133,10 @@ def lidar_from_card(card_path: Path, precision: str = "fp32", threads: int = 1) 
         from shared.detection.lidar.pointpillars.onnx_detector import OnnxPointPillars
 
         return OnnxPointPillars(path, threads=threads)
+    if card.layout == "openpcdet_center":
+        from shared.detection.lidar.openpcdet_center import OpenPCDetCenterPoint
+
+        return OpenPCDetCenterPoint(path, card, threads=threads)
     from shared.detection.lidar.openpcdet import OpenPCDetPointPillars
 
     return OpenPCDetPointPillars(path, card, threads=threads)

@@ -108,7 +108,7 @@ def voxelize(points: np.ndarray, card: LidarCard) -> tuple[np.ndarray, np.ndarra
     """(N, 4) points -> pillars (P, M, F) float32, counts (P,), coordinates (P, 4) `(0, 0, row, col)`.
     Points outside the range are dropped; each pillar keeps its first M points in cloud order; at most
     `max_voxels` pillars, in order of their first point. F = 4, or 10 for `point_features: augmented`."""
-    assert card.grid is not None and card.head is not None
+    assert card.grid is not None
     g = card.grid
     r, v = g.point_cloud_range_m, g.voxel_size_m
     rows, cols = grid_shape(card)
@@ -136,7 +136,7 @@ def voxelize(points: np.ndarray, card: LidarCard) -> tuple[np.ndarray, np.ndarra
     flat_kept = uniq[by_first]
     coords = np.zeros((len(by_first), 4), np.int64)
     coords[:, 2], coords[:, 3] = flat_kept // cols, flat_kept % cols
-    if card.head.point_features == "augmented":
+    if card.pillar_input.point_features == "augmented":
         voxels = augment(voxels, num, coords, card)
     return voxels, num, coords
 
