@@ -91,7 +91,9 @@ def _calibration(
         t = np.array(extr["translation"], np.float64).reshape(3)
     except (KeyError, TypeError, ValueError):
         raise RoadsideFormatError(f"{l2c_path}: no 3 x 3 rotation and 3 x 1 translation") from None
-    if not (np.isfinite(R).all() and np.isfinite(t).all()) or np.abs(R @ R.T - np.eye(3)).max() > 1e-3:
+    if not (np.isfinite(R).all() and np.isfinite(t).all()) or np.abs(R).max() > 1.001:
+        raise RoadsideFormatError(f"{l2c_path}: the rotation is not a rotation")
+    if np.abs(R @ R.T - np.eye(3)).max() > 1e-3:
         raise RoadsideFormatError(f"{l2c_path}: the rotation is not a rotation")
     U, _, Vt = np.linalg.svd(R)
     T = np.eye(4)

@@ -77,6 +77,8 @@ def _pose(cs_name: str, pose: dict[str, Any], path: Path) -> np.ndarray:
 def _rigid(T: np.ndarray, what: str, path: Path, tol: float = 1e-4) -> np.ndarray:
     """T with its rotation re-orthonormalised (files carry 6-8 digits); an error if it is no rotation."""
     R = T[:3, :3]
+    if np.abs(R).max() > 1 + tol:  # a rotation's entries are cosines (and squaring a huge one overflows)
+        raise RoadsideFormatError(f"{path}: {what} is not a rigid transform")
     if np.abs(R @ R.T - np.eye(3)).max() > tol or np.linalg.det(R) < 0 or np.any(T[3] != (0, 0, 0, 1)):
         raise RoadsideFormatError(f"{path}: {what} is not a rigid transform")
     U, _, Vt = np.linalg.svd(R)
