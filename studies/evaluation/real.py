@@ -13,7 +13,7 @@ Scored stages (all BEV boxes in the site frame, z up):
 - `lidar`: the lidar detector's boxes; `camera`: camera-only objects on the ground (the baseline the
   simulator's study has); `fused`: the measurements the fusion step hands the tracker; `tracked`:
   the published tracks (sequences only).
-- Truth: labelled vehicles (`VEHICLE_CATEGORIES`) with at least `MIN_LIDAR_POINTS` lidar points in their
+- Truth: labelled vehicles (`VEHICLE_CATEGORIES`) with at least `SCORED_MIN_POINTS` lidar points in their
   box as labelled (counted here from the frame's cloud); with fewer, and every other labelled object, an
   ignore region (neither missed nor a false positive). A site without a lidar counts every labelled
   vehicle its cameras see.
@@ -88,14 +88,14 @@ REAL_SIZE_PROFILE = "intersection"
 DEFAULT_CAMERA = "coco"
 DEFAULT_LIDAR = "cluster"
 STAGES = ("lidar", "camera", "fused", "tracked")
-#: A labelled vehicle is scored with at least this many lidar points in its box (the issue's bar: the
-#: simulator's observability limit, shared.datasets.layout.MIN_LIDAR_POINTS = 5, counts glimpses a
-#: real detector is not expected to box).
-MIN_LIDAR_POINTS = 20
+#: A labelled vehicle is scored with at least this many lidar points in its box (the issue's bar; the
+#: simulator's observability limit, shared.datasets.layout.MIN_LIDAR_POINTS, is a glimpse's few points,
+#: which a real detector is not expected to box).
+SCORED_MIN_POINTS = 20
 AP_IOU_THRESHOLDS = (0.5, 0.25)  # 0.25: lidar-only boxes at range (the issue's)
 RANGE_BANDS_M = ((0.0, 30.0), (30.0, 60.0), (60.0, float("inf")))  # a real crossing's near / mid / far
-POINT_BANDS = ((MIN_LIDAR_POINTS, 50), (50, 100), (100, 10**9))  # labelled-box lidar points
-#: Issue 50's acceptance for lidar vehicles with >= MIN_LIDAR_POINTS points.
+POINT_BANDS = ((SCORED_MIN_POINTS, 50), (50, 100), (100, 10**9))  # labelled-box lidar points
+#: Issue 50's acceptance for lidar vehicles with >= SCORED_MIN_POINTS points.
 TARGET_RECALL = 0.90
 TARGET_PRECISION = 0.80
 TARGET_CENTRE_P95_M = 0.5
@@ -180,7 +180,7 @@ def frame_truth(
             counts["disagree/no_points"] += 1
         if n == 0 and not seen_by_camera:
             counts["disagree/out_of_view"] += 1
-        counted = n >= MIN_LIDAR_POINTS if has_lidar else seen_by_camera
+        counted = n >= SCORED_MIN_POINTS if has_lidar else seen_by_camera
         if counted:
             gt.append(box)
             points.append(n)
@@ -429,7 +429,7 @@ def summarise(dataset: RoadsideDataset, scene: Scene, ev: SiteEvaluation) -> dic
         "frames": len(dataset.frames),
         "sequence": dataset.sequence,
         "sensors": {s.id: s.kind for s in dataset.sensors.values()},
-        "min_lidar_points": MIN_LIDAR_POINTS,
+        "min_lidar_points": SCORED_MIN_POINTS,
         "match_distance_m": EvalDistances.for_scene(scene).match_distance_m,
         "stages": stages,
         "camera_2d": camera_2d,
