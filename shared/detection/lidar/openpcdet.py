@@ -177,15 +177,12 @@ class OpenPCDetPointPillars:
     def detect(self, points: np.ndarray) -> np.ndarray:
         """`points` (N, 4) x, y, z, intensity, metres, in the frame the model was trained in -> (M, 9)
         `[x, y, z, dx, dy, dz, yaw, score, class_id]`, best first."""
-        check_points(points)
-        voxels, num, coords = voxelize(points, self.card)
-        if len(num) == 0:
-            return empty_lidar_detections()
         head = self.card.head
         assert head is not None
-        feeds = dict(zip(head.inputs, (voxels, num, coords), strict=True))
-        feeds = {k: v.astype(self.input_types[k]) for k, v in feeds.items()}
-        cls_map, box_map, dir_map = self.session.run(list(head.outputs), feeds)
+        maps = run_pillars(self.session, self.card, self.input_types, list(head.outputs), points)
+        if maps is None:
+            return empty_lidar_detections()
+        cls_map, box_map, dir_map = maps
         return self.postprocess(cls_map, box_map, dir_map)
 
     def anchors(self, rows: int, cols: int) -> np.ndarray:
@@ -228,15 +225,35 @@ def _project_index(card: LidarCard, model_class: int) -> int:
     return CLASS_NAMES.index(name) if name is not None else -1
 
 
-def check_graph(session: ort.InferenceSession, card: LidarCard, path: Path) -> dict[str, type]:
-    """The card against the graph: its input and output names exist, the point features and pillar
-    size fit, and each output's last axis is anchors x (classes, 7, direction bins); returns the numpy
-    dtype of each input. ConfigError naming what does not fit."""
-    head, grid = card.head, card.grid
-    assert head is not None and grid is not None
+def run_pillars(
+    session: ort.InferenceSession,
+    card: LidarCard,
+    input_types: dict[str, type],
+    output_names: list[str],
+    points: np.ndarray,
+) -> list[np.ndarray] | None:
+    """(N, 4) points -> the card's pillars -> the graph's `output_names`; None when no point falls in
+    the grid (OpenPCDet's anchor and center exports take the same pillars)."""
+    check_points(points)
+    voxels, num, coords = voxelize(points, card)
+    if len(num) == 0:
+        return None
+    feeds = dict(zip(card.pillar_input.inputs, (voxels, num, coords), strict=True))
+    feeds = {k: v.astype(input_types[k]) for k, v in feeds.items()}
+    return list(session.run(output_names, feeds))
+
+
+def check_pillar_graph(
+    session: ort.InferenceSession, card: LidarCard, path: Path, output_names: list[str]
+) -> tuple[dict[str, type], dict[str, ort.NodeArg]]:
+    """The card's pillar input against the graph: the input and `output_names` exist, the point
+    features and pillar size fit; returns the numpy dtype of each input and the graph's outputs by
+    name. ConfigError naming what does not fit."""
+    head, grid = card.pillar_input, card.grid
+    assert grid is not None
     inputs = {i.name: i for i in session.get_inputs()}
     outputs = {o.name: o for o in session.get_outputs()}
-    missing = [n for n in head.inputs if n not in inputs] + [n for n in head.outputs if n not in outputs]
+    missing = [n for n in head.inputs if n not in inputs] + [n for n in output_names if n not in outputs]
     if missing:
         raise ConfigError(
             f"{path}: the card names {missing}; the graph has {sorted(inputs)} in, {sorted(outputs)} out"
@@ -248,6 +265,22 @@ def check_graph(session: ort.InferenceSession, card: LidarCard, path: Path) -> d
         isinstance(g, int) and w is not None and g != w for g, w in zip(voxels, want, strict=True)
     ):
         raise ConfigError(f"{path}: input {head.inputs[0]} {voxels} does not fit the card's pillars {want}")
+    types: dict[str, type] = {}
+    for name in head.inputs:
+        kind = inputs[name].type
+        if kind not in NUMPY_OF_ONNX:
+            raise ConfigError(f"{path}: input {name} of type {kind}: expected float32, int32 or int64")
+        types[name] = NUMPY_OF_ONNX[kind]
+    return types, outputs
+
+
+def check_graph(session: ort.InferenceSession, card: LidarCard, path: Path) -> dict[str, type]:
+    """The card against the graph: the pillars (`check_pillar_graph`), and each output's last axis is
+    anchors x (classes, 7, direction bins); returns the numpy dtype of each input. ConfigError naming
+    what does not fit."""
+    head = card.head
+    assert head is not None
+    types, outputs = check_pillar_graph(session, card, path, list(head.outputs))
     a = anchors_per_cell(card)
     for name, per_anchor in zip(head.outputs, (card.num_classes, BOX_CODE, head.num_dir_bins), strict=True):
         shape = outputs[name].shape
@@ -256,10 +289,4 @@ def check_graph(session: ort.InferenceSession, card: LidarCard, path: Path) -> d
                 f"{path}: output {name} {shape} does not fit {a} anchors x {per_anchor} (the card's anchors, "
                 f"{card.num_classes} classes, {head.num_dir_bins} direction bins)"
             )
-    types: dict[str, type] = {}
-    for name in head.inputs:
-        kind = inputs[name].type
-        if kind not in NUMPY_OF_ONNX:
-            raise ConfigError(f"{path}: input {name} of type {kind}: expected float32, int32 or int64")
-        types[name] = NUMPY_OF_ONNX[kind]
     return types

@@ -29,8 +29,8 @@ import onnxruntime as ort
 
 from shared.config import ConfigError
 from shared.detection.card import CenterTask, LidarCard
-from shared.detection.interface import CLASS_NAMES, LIDAR_COLUMNS, check_points, empty_lidar_detections
-from shared.detection.lidar.openpcdet import AUGMENTED_FEATURES, NUMPY_OF_ONNX, POINT_COLUMNS, voxelize
+from shared.detection.interface import CLASS_NAMES, LIDAR_COLUMNS, empty_lidar_detections
+from shared.detection.lidar.openpcdet import check_pillar_graph, run_pillars
 from shared.detection.lidar.pointpillars.coding import rotated_nms
 from shared.detection.lidar.pointpillars.onnx_detector import make_session
 
@@ -85,16 +85,8 @@ class OpenPCDetCenterPoint:
     def detect(self, points: np.ndarray) -> np.ndarray:
         """`points` (N, 4) x, y, z, intensity, metres, in the frame the model was trained in -> (M, 9)
         `[x, y, z, dx, dy, dz, yaw, score, class_id]`, best first."""
-        check_points(points)
-        voxels, num, coords = voxelize(points, self.card)
-        if len(num) == 0:
-            return empty_lidar_detections()
-        center = self.card.center
-        assert center is not None
-        feeds = dict(zip(center.inputs, (voxels, num, coords), strict=True))
-        feeds = {k: v.astype(self.input_types[k]) for k, v in feeds.items()}
-        maps = self.session.run(self.outputs, feeds)
-        return self.postprocess(maps)
+        maps = run_pillars(self.session, self.card, self.input_types, self.outputs, points)
+        return empty_lidar_detections() if maps is None else self.postprocess(maps)
 
     def postprocess(self, maps: list[np.ndarray]) -> np.ndarray:
         """Every task's five maps, in the card's order -> (M, 9) boxes of the project's classes."""
@@ -117,35 +109,15 @@ class OpenPCDetCenterPoint:
 
 
 def check_graph(session: ort.InferenceSession, card: LidarCard, path: Path) -> dict[str, type]:
-    """The card against the graph: input and output names exist, the pillars fit, each task's heatmap
-    has its classes' channels and its box maps 2, 1, 3, 2; returns the numpy dtype of each input.
+    """The card against the graph: the pillars (`openpcdet.check_pillar_graph`), each task's heatmap
+    with its classes' channels and its box maps with 2, 1, 3, 2; returns the numpy dtype of each input.
     ConfigError naming what does not fit."""
-    center, grid = card.center, card.grid
-    assert center is not None and grid is not None
-    inputs = {i.name: i for i in session.get_inputs()}
-    outputs = {o.name: o for o in session.get_outputs()}
-    wanted_out = [name for task in center.tasks for name in task.outputs]
-    missing = [n for n in center.inputs if n not in inputs] + [n for n in wanted_out if n not in outputs]
-    if missing:
-        raise ConfigError(
-            f"{path}: the card names {missing}; the graph has {sorted(inputs)} in, {sorted(outputs)} out"
-        )
-    features = AUGMENTED_FEATURES if center.point_features == "augmented" else POINT_COLUMNS
-    voxels = inputs[center.inputs[0]].shape
-    want = [None, grid.max_points_per_voxel, features]
-    if len(voxels) != 3 or any(
-        isinstance(g, int) and w is not None and g != w for g, w in zip(voxels, want, strict=True)
-    ):
-        raise ConfigError(f"{path}: input {center.inputs[0]} {voxels} does not fit the card's pillars {want}")
+    center = card.center
+    assert center is not None
+    types, outputs = check_pillar_graph(session, card, path, [n for t in center.tasks for n in t.outputs])
     for task in center.tasks:
         for name, channels in zip(task.outputs, (len(task.classes), *BOX_MAP_CHANNELS), strict=True):
             shape = outputs[name].shape
             if len(shape) != 4 or (isinstance(shape[1], int) and shape[1] != channels):
                 raise ConfigError(f"{path}: output {name} {shape} should have {channels} channels (NCHW)")
-    types: dict[str, type] = {}
-    for name in center.inputs:
-        kind = inputs[name].type
-        if kind not in NUMPY_OF_ONNX:
-            raise ConfigError(f"{path}: input {name} of type {kind}: expected float32, int32 or int64")
-        types[name] = NUMPY_OF_ONNX[kind]
     return types
