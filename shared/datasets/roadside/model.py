@@ -169,11 +169,12 @@ def image_size(path: Path) -> tuple[int, int]:
 @contextlib.contextmanager
 def malformed_is_format_error(path: Path) -> Iterator[None]:
     """Inside, a structure that is not what the format says (a list where an object belongs, a number
-    where a name does: the KeyError, TypeError, ValueError, AttributeError or IndexError of reading it)
+    where a name does: the KeyError, TypeError, ValueError, AttributeError, IndexError or ArithmeticError
+    (an infinite count) of reading it)
     becomes a RoadsideFormatError naming the file, never a crash of the caller."""
     try:
         yield
     except RoadsideFormatError:
         raise
-    except (KeyError, TypeError, ValueError, AttributeError, IndexError) as err:
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError, ArithmeticError) as err:
         raise RoadsideFormatError(f"{path}: malformed ({type(err).__name__}: {err})") from None

@@ -66,12 +66,18 @@ def _pose(cs_name: str, pose: dict[str, Any], path: Path) -> np.ndarray:
         return m.reshape(4, 4)
     if "quaternion" in pose and "translation" in pose:
         q, t = np.asarray(pose["quaternion"], np.float64), np.asarray(pose["translation"], np.float64)
-        if q.shape != (4,) or t.shape != (3,) or np.linalg.norm(q) < 1e-9:
+        if q.shape != (4,) or t.shape != (3,) or not _unit_scale(q):
             raise RoadsideFormatError(f"{path}: {cs_name} quaternion / translation malformed")
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = Rotation.from_quat(q).as_matrix(), t
         return T
     raise RoadsideFormatError(f"{path}: {cs_name} pose_wrt_parent has neither matrix4x4 nor quaternion")
+
+
+def _unit_scale(q: np.ndarray) -> bool:
+    """Whether a quaternion as written can be normalised: finite, not zero, no entry beyond any a file
+    of a unit quaternion carries (the norm of a 1e308 entry overflows)."""
+    return bool(np.isfinite(q).all() and 1e-9 < np.abs(q).max() < 1e6)
 
 
 def _rigid(T: np.ndarray, what: str, path: Path, tol: float = 1e-4) -> np.ndarray:
@@ -113,8 +119,8 @@ def _cuboid_box(val: list[float], path: Path, uid: str) -> tuple[np.ndarray, np.
     if not np.isfinite(v).all() or np.any(size <= 0):
         raise RoadsideFormatError(f"{path}: object {uid} cuboid has a non-finite value or a size <= 0")
     if v.size == 10:
-        if np.linalg.norm(v[3:7]) < 1e-9:
-            raise RoadsideFormatError(f"{path}: object {uid} cuboid has a zero quaternion")
+        if not _unit_scale(v[3:7]):
+            raise RoadsideFormatError(f"{path}: object {uid} cuboid has a zero or unbounded quaternion")
         rot = Rotation.from_quat(v[3:7]).as_matrix()
     else:
         rot = Rotation.from_euler("xyz", v[3:6]).as_matrix()  # OpenLABEL's Euler cuboid: rx, ry, rz

@@ -69,7 +69,9 @@ def read_pcd(path: Path) -> PointCloudData:
         raise RoadsideFormatError(f"{path}: fields {header.fields} lack x, y or z")
     try:
         cloud = o3d.t.io.read_point_cloud(path)
-    except RuntimeError as err:  # open3d raises for a header it parses but cannot map (a size per type)
+    except (RuntimeError, ValueError) as err:
+        # open3d raises for a header it parses but cannot map (RuntimeError: a size per type) and for
+        # bytes its text parser cannot decode (UnicodeDecodeError); both found by fuzzing
         raise RoadsideFormatError(f"{path}: open3d cannot read it ({str(err).strip()[-120:]})") from None
     if "positions" not in cloud.point:
         raise RoadsideFormatError(f"{path}: open3d read no points (header says {header.points})")

@@ -61,6 +61,8 @@ def _numbers(path: Path, count: int, prefix: str = "") -> np.ndarray:
 def ground_frame(plane: np.ndarray) -> np.ndarray:
     """T_site_from_camera of a ground plane `a b c d` in the camera's optical frame (see the module)."""
     n, d = plane[:3], plane[3]
+    if np.abs(n).max() > 1e6:  # a plane's normal as written is near unit length
+        raise RoadsideFormatError(f"ground plane {plane}: its normal is not a direction")
     norm = float(np.linalg.norm(n))
     if norm < 1e-9:
         raise RoadsideFormatError(f"ground plane {plane}: zero normal")
