@@ -137,7 +137,10 @@ def test_names_as_the_world_writes_them(tmp_path: Path) -> None:
     [
         (lambda d: _first_object(d)["cuboid"].update(val=[1, 2, 3]), "3 values, not 9 or 10"),
         (lambda d: _first_object(d)["cuboid"].update(val=[0] * 6 + [1, 4, -1, 1.5]), "size <= 0"),
-        (lambda d: _first_object(d)["cuboid"].update(val=[0] * 7 + [4, 2, 1.5]), "zero or unbounded quaternion"),
+        (
+            lambda d: _first_object(d)["cuboid"].update(val=[0] * 7 + [4, 2, 1.5]),
+            "zero or unbounded quaternion",
+        ),
         (lambda d: _first_object(d)["cuboid"].update(val="12"), "not a list of numbers"),
         (lambda d: _first_object(d)["cuboid"].update(val=[1, "x"] + [0] * 8), "not a list of numbers"),
         (lambda d: _first_object(d).pop("type"), "has no type"),
