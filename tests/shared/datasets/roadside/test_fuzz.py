@@ -31,6 +31,12 @@ LABEL = sorted((TUMTRAF / "labels_point_clouds").rglob("*.json"))[0]
 CLOUD = sorted((TUMTRAF / "point_clouds").rglob("*.pcd"))[0]
 EXAMPLES = int(os.environ.get("FUZZ_EXAMPLES", "150"))
 DERANDOMIZE = "FUZZ_EXAMPLES" not in os.environ  # fixed inputs in make test, random in a wider search
+FUZZ = settings(
+    max_examples=EXAMPLES,
+    deadline=None,
+    derandomize=DERANDOMIZE,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],  # fixtures' files rewritten per input
+)
 ODD_VALUES = st.one_of(
     st.none(),
     st.booleans(),
@@ -75,12 +81,7 @@ def openlabel_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return root
 
 
-@settings(
-    max_examples=EXAMPLES,
-    deadline=None,
-    derandomize=DERANDOMIZE,
-    suppress_health_check=[HealthCheck.function_scoped_fixture],
-)
+@FUZZ
 @given(index=st.integers(0, len(PATHS) - 1), value=ODD_VALUES)
 def test_an_openlabel_file_with_any_value_replaced(openlabel_root: Path, index: int, value: Any) -> None:
     (openlabel_root / LABEL.name).write_text(json.dumps(replaced(DOC, PATHS[index], value)))
@@ -88,12 +89,7 @@ def test_an_openlabel_file_with_any_value_replaced(openlabel_root: Path, index: 
         read_openlabel(openlabel_root)
 
 
-@settings(
-    max_examples=EXAMPLES,
-    deadline=None,
-    derandomize=DERANDOMIZE,
-    suppress_health_check=[HealthCheck.function_scoped_fixture],
-)
+@FUZZ
 @given(cut=st.integers(0, 4000), junk=st.binary(max_size=64), at=st.integers(0, 3000))
 def test_a_pcd_file_cut_or_corrupted(tmp_path: Path, cut: int, junk: bytes, at: int) -> None:
     data = CLOUD.read_bytes()[:4000]  # the header and the first points (ASCII)
@@ -112,12 +108,7 @@ def rope3d_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return root
 
 
-@settings(
-    max_examples=EXAMPLES,
-    deadline=None,
-    derandomize=DERANDOMIZE,
-    suppress_health_check=[HealthCheck.function_scoped_fixture],
-)
+@FUZZ
 @given(
     folder=st.sampled_from(["calib", "denorm", "label_2"]), line=st.integers(0, 50), text=st.text(max_size=40)
 )
@@ -146,12 +137,7 @@ def dair_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_dair(read_openlabel(TUMTRAF), tmp_path_factory.mktemp("dair") / "side")
 
 
-@settings(
-    max_examples=EXAMPLES,
-    deadline=None,
-    derandomize=DERANDOMIZE,
-    suppress_health_check=[HealthCheck.function_scoped_fixture],
-)
+@FUZZ
 @given(which=st.sampled_from(DAIR_FILES), pick=st.integers(0, 10**6), value=ODD_VALUES)
 def test_a_dair_file_with_any_value_replaced(dair_root: Path, which: str, pick: int, value: Any) -> None:
     path = dair_root / which
