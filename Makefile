@@ -22,6 +22,9 @@ $(INSTALLED): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --disable-pip-version-check --upgrade pip
 	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e '.[dev,train]'
+	@# TrackEval (HOTA) declares opencv-python, whose cv2 would overwrite opencv-python-headless's:
+	@# installed alone; numpy, scipy and tabulate, all it imports, come with the project (pyproject.toml).
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check --no-deps trackeval==1.3.0
 	@# System packages pip cannot provide: libusb-1.0 (open3d's wheel links it); for the tests, Debian's
 	@# chromium (the dashboard test's browser), nftables and iproute2 (the multi-host tests' network
 	@# namespaces and cut links). Installed with apt when root, else named and the install stops.

@@ -1,8 +1,9 @@
-"""CLEAR-MOT and identity metrics (MOTA, MOTP, IDF1, ID switches) for tracked objects, via motmetrics.
+"""CLEAR-MOT, identity and HOTA metrics (MOTA, MOTP, IDF1, ID switches; HOTA, DetA, AssA) for tracked
+objects, via motmetrics and TrackEval.
 
 `TrackingAccumulator` feeds one frame at a time (GT ids and positions, track ids and positions) to
-``motmetrics.MOTAccumulator`` and reads its metrics back as JSON-ready numbers. Positions are BEV
-centres ``(x, y)`` in the world frame, metres.
+``motmetrics.MOTAccumulator``, keeps the frame for TrackEval's HOTA, and reads both back as JSON-ready
+numbers. Positions are BEV centres ``(x, y)`` in the world frame, metres.
 
 Distances
 ---------
@@ -23,6 +24,14 @@ one-to-one GT <-> track assignment. An ID switch is a GT matched to a different 
 match. motmetrics keeps a GT <-> track match from the previous frame as long as the pair stays inside
 the gate, even if another pair is closer.
 
+HOTA (TrackEval 1.3.0, `trackeval.metrics.HOTA`; Luiten et al., IJCV 2021) scores a GT / track pair
+by a similarity in [0, 1] and averages over the thresholds 0.05, 0.10, ..., 0.95 on it. TrackEval's
+benchmarks use box IoU; here the similarity is the centre distance's, ``max(0, 1 - d / max_distance_m)``
+(1 at the same centre, 0 at the gate), so the same gate bounds every metric, and HOTA at threshold
+``a`` counts a pair as found within ``(1 - a) * max_distance_m``. ``hota``, ``det_a``, ``ass_a``,
+``loc_a`` are the means over the thresholds (TrackEval's summary values); ``hota_at_gate`` is HOTA at
+the lowest threshold (0.05: pairs within 95 % of the gate).
+
 Compatibility note: with pandas >= 2 / NumPy 2, motmetrics 1.4.0's ``distances.iou_matrix``
 (``np.asfarray``) and ``MOTAccumulator.merge_event_dataframes`` (``DataFrame.append``) are broken; this
 module uses neither (distances are computed here; sequences are summarised per accumulator, and
@@ -35,6 +44,7 @@ import math
 
 import motmetrics as mm
 import numpy as np
+import trackeval
 from numpy.typing import ArrayLike, NDArray
 
 from shared.metrics.fusion import DEFAULT_MATCH_DISTANCE_M
@@ -118,12 +128,16 @@ class TrackingAccumulator:
         # auto_id: frames are numbered 0, 1, ... in update order.
         self._acc = mm.MOTAccumulator(auto_id=True)
         self._merged: list[mm.MOTAccumulator] = []  # other sequences (`merge`)
+        # HOTA's input, one list of frames (gt ids, track ids, similarity) per sequence.
+        self._hota_frames: list[tuple[IntArray, IntArray, FloatArray]] = []
+        self._hota_merged: list[list[tuple[IntArray, IntArray, FloatArray]]] = []
 
     def merge(self, other: TrackingAccumulator) -> None:
         """Add another sequence (its ids are its own: a track id in both never links them)."""
         if other.max_distance_m != self.max_distance_m:
             raise ValueError("cannot merge accumulators with different gates")
         self._merged += [other._acc, *other._merged]
+        self._hota_merged += [other._hota_frames, *other._hota_merged]
         self.num_frames += other.num_frames
 
     def update(self, gt_ids: ArrayLike, gt_xy: ArrayLike, track_ids: ArrayLike, track_xy: ArrayLike) -> None:
@@ -150,6 +164,7 @@ class TrackingAccumulator:
         objs = _xy(gt_xy, oids.size, "gt_xy")
         hyps = _xy(track_xy, hids.size, "track_xy")
         dist = np.hypot(objs[:, None, 0] - hyps[None, :, 0], objs[:, None, 1] - hyps[None, :, 1])
+        self._hota_frames.append((oids, hids, np.clip(1.0 - dist / self.max_distance_m, 0.0, 1.0)))
         dist[dist > self.max_distance_m] = np.nan  # motmetrics: NaN = pair not allowed
         self._acc.update(oids.tolist(), hids.tolist(), dist)
         self.num_frames += 1
@@ -169,7 +184,8 @@ class TrackingAccumulator:
             (float, None when undefined, e.g. no GT or no match); ``id_switches``, ``fp``, ``misses``,
             ``num_gt`` (GT objects summed over frames), ``num_predictions``, ``num_matches``,
             ``num_unique_objects``, ``mostly_tracked``, ``mostly_lost``, ``fragmentations``,
-            ``num_frames`` (int).
+            ``num_frames`` (int); ``hota``, ``det_a``, ``ass_a``, ``loc_a``, ``hota_at_gate`` (float,
+            None when no frame holds a GT object or a track).
         """
         names = [*_FLOAT_METRICS.values(), *_COUNT_METRICS.values()]
         accs = [self._acc, *self._merged]
@@ -193,4 +209,36 @@ class TrackingAccumulator:
         pooled = np.concatenate(distances) if distances else np.zeros(0)
         out["motp_m"] = float(pooled.mean()) if pooled.size else None
         out["num_frames"] = self.num_frames
+        out.update(self._hota())
         return out
+
+    def _hota(self) -> dict[str, float | None]:
+        """TrackEval's HOTA over every sequence (one sequence's ids never link to another's)."""
+        metric = trackeval.metrics.HOTA()
+        sequences = [self._hota_frames, *self._hota_merged]
+        results = {str(i): metric.eval_sequence(_trackeval_sequence(f)) for i, f in enumerate(sequences)}
+        res = results["0"] if len(results) == 1 else metric.combine_sequences(results)
+        if not int(res["HOTA_TP"][0] + res["HOTA_FN"][0] + res["HOTA_FP"][0]):
+            return dict.fromkeys(("hota", "det_a", "ass_a", "loc_a", "hota_at_gate"))
+        return {
+            "hota": float(np.mean(res["HOTA"])),
+            "det_a": float(np.mean(res["DetA"])),
+            "ass_a": float(np.mean(res["AssA"])),
+            "loc_a": float(np.mean(res["LocA"])),
+            "hota_at_gate": float(res["HOTA"][0]),
+        }
+
+
+def _trackeval_sequence(frames: list[tuple[IntArray, IntArray, FloatArray]]) -> dict[str, object]:
+    """One sequence in TrackEval's layout: ids renumbered 0..n-1 (it indexes arrays by id)."""
+    gt_all = np.unique(np.concatenate([f[0] for f in frames])) if frames else np.zeros(0, np.int64)
+    tr_all = np.unique(np.concatenate([f[1] for f in frames])) if frames else np.zeros(0, np.int64)
+    return {
+        "num_gt_ids": int(gt_all.size),
+        "num_tracker_ids": int(tr_all.size),
+        "num_gt_dets": int(sum(f[0].size for f in frames)),
+        "num_tracker_dets": int(sum(f[1].size for f in frames)),
+        "gt_ids": [np.searchsorted(gt_all, f[0]) for f in frames],
+        "tracker_ids": [np.searchsorted(tr_all, f[1]) for f in frames],
+        "similarity_scores": [f[2] for f in frames],
+    }

@@ -12,7 +12,7 @@ over a sequence (then the tracks are scored too).
 Scored stages (all BEV boxes in the site frame, z up):
 - `lidar`: the lidar detector's boxes; `camera`: camera-only objects on the ground (the baseline the
   simulator's study has); `fused`: the measurements the fusion step hands the tracker; `tracked`:
-  the published tracks (sequences only).
+  the published tracks (sequences only: MOTA / IDF1 by motmetrics, HOTA by TrackEval).
 - Truth: labelled vehicles (`VEHICLE_CATEGORIES`) with at least `SCORED_MIN_POINTS` lidar points in their
   box as labelled (counted here from the frame's cloud); with fewer, and every other labelled object, an
   ignore region (neither missed nor a false positive). A site without a lidar counts every labelled
@@ -576,8 +576,8 @@ def markdown(results: dict[str, Any]) -> str:
             t = site["tracking"]
             lines.append(
                 f"- tracking (the published tracks against the labels' ids): MOTA {_f(t['mota'])}, IDF1 "
-                f"{_f(t['idf1'])}, {t['id_switches']} identity switches (HOTA is not computed: motmetrics "
-                "has none)"
+                f"{_f(t['idf1'])}, HOTA {_f(t['hota'])} (DetA {_f(t['det_a'])}, AssA {_f(t['ass_a'])}; "
+                f"similarity 1 - centre distance / gate), {t['id_switches']} identity switches"
             )
         cams = ", ".join(
             f"`{c}` {_f(v['ap50'])} ({v['num_gt']} vehicles, {v['frames']} frames)"

@@ -116,3 +116,66 @@ def test_motp_pools_every_matched_pair_even_with_a_matchless_sequence() -> None:
     a.merge(c)
     assert a.summary()["motp_m"] == pytest.approx((0.01 + 0.03 + 0.02) / 3)
     assert TrackingAccumulator().summary()["motp_m"] is None
+
+
+# HOTA (TrackEval): known answers worked by hand from its definition (Luiten et al. 2021, eqs. 2-9),
+# similarity 1 - d / gate, averaged over the 19 thresholds 0.05 .. 0.95.
+HOTA_THRESHOLDS = 19
+
+
+def test_hota_of_perfect_tracks_is_one() -> None:
+    acc = TrackingAccumulator(max_distance_m=1.0)
+    for _ in range(3):
+        acc.update([1, 2], [[0.0, 0.0], [5.0, 0.0]], [7, 8], [[0.0, 0.0], [5.0, 0.0]])
+    s = acc.summary()
+    assert s["hota"] == pytest.approx(1.0)
+    assert s["det_a"] == pytest.approx(1.0) and s["ass_a"] == pytest.approx(1.0)
+
+
+def test_hota_of_one_switch_halfway_is_root_half() -> None:
+    # One object, 4 frames, found exactly; track 7 for two frames, then track 9: every detection is a
+    # TP (DetA 1), each TP's association IoU is 2 / (4 + 2 - 2) = 0.5 (AssA 0.5), HOTA = sqrt(0.5).
+    acc = TrackingAccumulator(max_distance_m=1.0)
+    for tid in (7, 7, 9, 9):
+        acc.update([1], [[3.0, 4.0]], [tid], [[3.0, 4.0]])
+    s = acc.summary()
+    assert s["det_a"] == pytest.approx(1.0)
+    assert s["ass_a"] == pytest.approx(0.5)
+    assert s["hota"] == pytest.approx(0.5**0.5)
+
+
+def test_hota_counts_a_false_track_in_det_a() -> None:
+    # Every frame: the object found exactly plus one false track: DetA = TP / (TP + FN + FP) = 1 / 2.
+    acc = TrackingAccumulator(max_distance_m=1.0)
+    for _ in range(2):
+        acc.update([1], [[0.0, 0.0]], [7, 8], [[0.0, 0.0], [20.0, 0.0]])
+    s = acc.summary()
+    assert s["det_a"] == pytest.approx(0.5) and s["ass_a"] == pytest.approx(1.0)
+    assert s["hota"] == pytest.approx(0.5**0.5)
+
+
+def test_hota_localisation_half_the_gate_is_found_at_half_the_thresholds() -> None:
+    # d = 0.5 gate: similarity 0.5, a match at the 10 thresholds 0.05 .. 0.50, none at the 9 above.
+    acc = TrackingAccumulator(max_distance_m=2.0)
+    acc.update([1], [[0.0, 0.0]], [7], [[1.0, 0.0]])
+    s = acc.summary()
+    assert s["hota"] == pytest.approx(10 / HOTA_THRESHOLDS)
+    assert s["hota_at_gate"] == pytest.approx(1.0)
+
+
+def test_hota_beyond_the_gate_finds_nothing_and_empty_is_none() -> None:
+    acc = TrackingAccumulator(max_distance_m=1.0)
+    acc.update([1], [[0.0, 0.0]], [7], [[1.5, 0.0]])
+    assert acc.summary()["hota"] == pytest.approx(0.0)
+    empty = TrackingAccumulator()
+    empty.update([], [], [], [])
+    assert empty.summary()["hota"] is None
+
+
+def test_hota_of_merged_sequences_never_links_their_ids() -> None:
+    # The same ids in two sequences: each is perfect on its own, so the pooled HOTA is 1, not a switch.
+    a, b = TrackingAccumulator(max_distance_m=1.0), TrackingAccumulator(max_distance_m=1.0)
+    a.update([1], [[0.0, 0.0]], [7], [[0.0, 0.0]])
+    b.update([1], [[9.0, 0.0]], [7], [[9.0, 0.0]])
+    a.merge(b)
+    assert a.summary()["hota"] == pytest.approx(1.0)

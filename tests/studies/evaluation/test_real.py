@@ -125,7 +125,7 @@ def test_a_sequence_scores_its_tracks() -> None:
     )
     out = real.evaluate_site(dataclasses.replace(site, sequence=True), mec)
     assert "tracked" in out["stages"] and out["stages"]["tracked"]["num_gt"] == 16
-    assert out["tracking"] is not None and set(out["tracking"]) >= {"mota", "idf1", "id_switches"}
+    assert out["tracking"] is not None and set(out["tracking"]) >= {"mota", "idf1", "hota", "id_switches"}
     assert "MOTA" in real.markdown({"data": "x", "format": "openlabel", "detectors": {}, "mec_profile": "p",
                                     "commit": "c", "sites": [out]})  # fmt: skip
 
