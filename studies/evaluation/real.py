@@ -19,7 +19,8 @@ Scored stages (all BEV boxes in the site frame, z up):
   vehicle its cameras see.
 - Per stage: precision, recall and centre error at the operating point (centre gate
   `EvalDistances.match_distance_m` at the site's scale), KITTI R40 BEV and 3D AP at IoU 0.5 and 0.25 by
-  range band from the site's first lidar (else camera), recall by range band and by point count.
+  range band from the site's first lidar (else camera), recall by range band (the same bands) and by
+  point count.
 - `camera_2d`: each camera's 2D detections against the labels' 2D boxes (the dataset's, else the labelled
   cuboid projected and clipped), COCO AP@0.5; non-vehicles and vehicles seen in no lidar point as
   ignore regions are not used here: every labelled vehicle in the image counts.
@@ -94,7 +95,7 @@ STAGES = ("lidar", "camera", "fused", "tracked")
 SCORED_MIN_POINTS = 20
 AP_IOU_THRESHOLDS = (0.5, 0.25)  # 0.25: lidar-only boxes at range (the issue's)
 RANGE_BANDS_M = ((0.0, 30.0), (30.0, 60.0), (60.0, float("inf")))  # a real crossing's near / mid / far
-POINT_BANDS = ((SCORED_MIN_POINTS, 50), (50, 100), (100, 10**9))  # labelled-box lidar points
+POINT_BANDS = ((SCORED_MIN_POINTS, 50.0), (50.0, 100.0), (100.0, float("inf")))  # labelled-box lidar points
 #: Issue 50's acceptance for lidar vehicles with >= SCORED_MIN_POINTS points.
 TARGET_RECALL = 0.90
 TARGET_PRECISION = 0.80
@@ -121,6 +122,7 @@ class SiteEvaluation:
     kitti: dict[str, list[tuple[FloatArray, FloatArray, FloatArray]]] = field(default_factory=dict)
     coco: dict[str, list[tuple[FloatArray, FloatArray, FloatArray]]] = field(default_factory=dict)
     recall_points: dict[str, list[tuple[int, bool]]] = field(default_factory=dict)  # stage -> (pts, found)
+    recall_range: dict[str, list[tuple[float, bool]]] = field(default_factory=dict)  # stage -> (m, found)
     false_boxes: dict[str, list[FloatArray]] = field(default_factory=dict)  # stage -> per frame (F, 7)
     scored: dict[str, list[tuple[float, int]]] = field(default_factory=dict)  # stage -> (score, MatchLabel)
     counts: Counter[str] = field(default_factory=Counter)
@@ -275,6 +277,8 @@ def evaluate_site(
             found = np.zeros(len(truth.gt), bool)
             found[match.gt_index] = True
             ev.recall_points.setdefault(stage, []).extend(zip(truth.points, found.tolist(), strict=True))
+            ranges_m = np.hypot(*(truth.gt[:, :2] - origin).T).tolist() if len(truth.gt) else []
+            ev.recall_range.setdefault(stage, []).extend(zip(ranges_m, found.tolist(), strict=True))
             ev.false_boxes.setdefault(stage, []).append(boxes[match.false_positives].reshape(-1, 7))
             labels = np.full(len(boxes), int(MatchLabel.IGNORED))
             labels[match.pred_index] = MatchLabel.TP
@@ -332,11 +336,14 @@ def _score_2d(
         )
 
 
-def _band_recall(rows: list[tuple[int, bool]], bands: Sequence[tuple[int, int]]) -> dict[str, dict[str, Any]]:
+def _band_recall(
+    rows: Sequence[tuple[float, bool]], bands: Sequence[tuple[float, float]]
+) -> dict[str, dict[str, Any]]:
+    """Recall per band of a value (points in the box, range in metres): ``{"[lo, hi)": {num_gt, recall}}``."""
     out = {}
     for lo, hi in bands:
         sel = [f for n, f in rows if lo <= n < hi]
-        key = f"[{lo}, {hi})" if hi < 10**9 else f">= {lo}"
+        key = f"[{lo:g}, {hi:g})"
         out[key] = {"num_gt": len(sel), "recall": (sum(sel) / len(sel)) if sel else None}
     return out
 
@@ -409,6 +416,7 @@ def summarise(dataset: RoadsideDataset, scene: Scene, ev: SiteEvaluation) -> dic
             **acc.summary(with_ap=False),
             "ap": ap,
             "recall_by_points": _band_recall(ev.recall_points[stage], POINT_BANDS),
+            "recall_by_range": _band_recall(ev.recall_range[stage], RANGE_BANDS_M),
             **false_box_kinds(ev.false_boxes[stage], acc.max_distance_m),
             "recall_at_target_precision": recall_at_precision(ev.scored[stage], acc.num_gt, TARGET_PRECISION),
             **yaw_errors_deg(acc),
@@ -560,13 +568,19 @@ def markdown(results: dict[str, Any]) -> str:
                 for k, v in s["recall_by_points"].items()
                 if v["num_gt"]
             )
+            recall_by_range = ", ".join(
+                f"{k} m {_f(v['recall'], '.2f')} of {v['num_gt']}"
+                for k, v in s["recall_by_range"].items()
+                if v["num_gt"]
+            )
             by_range = ", ".join(
                 f"{k} m {_f(v['ap'], '.2f')} ({v['num_gt']})"
                 for k, v in s["ap"]["bev@0.25"].items()
                 if k != "all" and v["num_gt"]
             )
             lines.append(
-                f"- {stage}: recall by points {by_points or '-'}; BEV AP@0.25 by range {by_range or '-'}; "
+                f"- {stage}: recall by points {by_points or '-'}; recall by range {recall_by_range or '-'}; "
+                f"BEV AP@0.25 by range {by_range or '-'}; "
                 f"of its {s['fp']} false boxes {s['fp_recurring']} recur at the same place in another frame, "
                 f"{s['fp_elevated']} float over {ELEVATED_M:g} m above the ground"
             )

@@ -41,6 +41,7 @@ from shared.datasets.roadside.model import (
     RoadsideLabel,
     RoadsideSensor,
     image_size,
+    is_sequence,
     malformed_is_format_error,
 )
 
@@ -144,7 +145,7 @@ def _stamp(entry: dict[str, Any], key: str, fallback: int, info: Path) -> int:
 
 def read_dair(root: Path) -> list[RoadsideDataset]:
     """Every frame `root/data_info.json` lists, one dataset per distinct calibration; frames with
-    stamps in time order (a sequence when consecutive stamps are a frame period apart), else in the
+    stamps in time order (a sequence when consecutive stamps are close: `model.is_sequence`), else in the
     file's order spaced by one frame period."""
     root = Path(root)
     info = root / INFO_FILE
@@ -197,12 +198,8 @@ def _site(
             )
         )
     frames.sort(key=lambda f: f.stamp_ns)
-    steps = np.diff([f.stamp_ns for f in frames])
-    sequence = (
-        len(frames) > 1
-        and bool(np.all(steps <= 2 * FRAME_PERIOD_NS))
-        and any("pointcloud_timestamp" in e for e, *_ in members)
-    )
+    stamped = any("pointcloud_timestamp" in e for e, *_ in members)  # else stamps are only the order
+    sequence = stamped and is_sequence([f.stamp_ns for f in frames])
     camera = RoadsideSensor(
         CAMERA_ID,
         "camera",

@@ -13,9 +13,10 @@ Frames:
 from __future__ import annotations
 
 import contextlib
+import itertools
 import math
 import re
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -45,6 +46,18 @@ SensorKind = Literal["lidar", "camera"]
 #: instant" (`rmmdet eval real` sets such pairs aside), and frames without stamps are spaced by it.
 SENSOR_RATE_HZ = 10.0
 FRAME_PERIOD_NS = round(NS_PER_S / SENSOR_RATE_HZ)
+#: Frames are one sequence (one tracker over them, tracks scored) when consecutive stamps are at most
+#: this far apart: a recorded sequence drops a frame or two (TUMTraf R02's label files are 200-300 ms
+#: apart in places), which a tracker coasts over; independent samples are seconds apart.
+MAX_SEQUENCE_GAP_NS = 3 * FRAME_PERIOD_NS
+
+
+def is_sequence(stamps_ns: Sequence[int]) -> bool:
+    """Whether frames stamped `stamps_ns` (in time order, ns) are consecutive instants of one sequence."""
+    steps = [b - a for a, b in itertools.pairwise(stamps_ns)]
+    return bool(steps) and all(0 < step <= MAX_SEQUENCE_GAP_NS for step in steps)
+
+
 _ID_INVALID = re.compile(r"[^a-z0-9_\-]+")
 
 

@@ -47,6 +47,7 @@ from shared.datasets.roadside.model import (
     RoadsideFrame,
     RoadsideLabel,
     RoadsideSensor,
+    is_sequence,
     malformed_is_format_error,
     sensor_id,
 )
@@ -144,7 +145,9 @@ class _Files:
 
 def read_openlabel(root: Path, camera_pose: CameraPose = "parent_to_camera") -> RoadsideDataset:
     """Every OpenLABEL label file under `root/labels_point_clouds` (else under `root`), frames in time
-    order. RoadsideFormatError names the file and what does not read."""
+    order, a sequence when their stamps are close (`model.is_sequence`: TUMTraf's releases are 10 Hz
+    sequences; the vendored frames 5 s apart are not). RoadsideFormatError names the file and what does
+    not read."""
     root = Path(root)
     label_dir = root / "labels_point_clouds" if (root / "labels_point_clouds").is_dir() else root
     label_files = sorted(label_dir.rglob(LABEL_GLOB))
@@ -181,7 +184,7 @@ def read_openlabel(root: Path, camera_pose: CameraPose = "parent_to_camera") -> 
         site_frame=site_frames.pop(),
         sensors=sensors,
         frames=tuple(frames),
-        sequence=False,
+        sequence=is_sequence([f.stamp_ns for f in frames]),
     )
 
 

@@ -38,6 +38,13 @@ def test_every_output_is_scored_against_the_labels(tumtraf_results: dict) -> Non
     assert lidar["pose_error_p50_m"] < 0.6
     assert set(lidar["ap"]) == {"bev@0.5", "bev@0.25", "3d@0.5", "3d@0.25"}
     assert sum(v["num_gt"] for v in lidar["recall_by_points"].values()) == 16
+    # recall by range: the KITTI AP's bands, every vehicle in one, the bands' recalls pool to the recall
+    by_range = lidar["recall_by_range"]
+    assert {k: v["num_gt"] for k, v in by_range.items()} == {
+        k: v["num_gt"] for k, v in lidar["ap"]["bev@0.5"].items() if k != "all"
+    }
+    found = sum(v["recall"] * v["num_gt"] for v in by_range.values() if v["num_gt"])
+    assert found == pytest.approx(lidar["recall"] * 16)
     assert 0 < lidar["fp_recurring"] <= lidar["fp"]  # static structure boxed in both frames
     # the fused output never recalls less than its best single branch
     recalls = {s: site["stages"][s]["recall"] for s in ("lidar", "camera", "fused")}

@@ -213,3 +213,21 @@ def test_the_standards_layout_reads_as_tumtrafs(tmp_path: Path, tumtraf: Roadsid
     other.mkdir()
     with pytest.raises(RoadsideFormatError, match="read are the lidar's and the site's"):
         read_openlabel(_copy_with(other, elsewhere))
+
+
+def test_frames_a_frame_period_apart_are_a_sequence(tmp_path: Path, tumtraf: RoadsideDataset) -> None:
+    """The vendored frames, 5.4 s apart, are independent samples; the same two frames restamped 200 ms
+    apart (a dropped frame between them, as in TUMTraf's sequences) are one sequence. A frame's instant
+    is its cloud's name (TUMTraf's `<s>_<ns>_<lidar>.pcd`), else the label's timestamp."""
+    assert not tumtraf.sequence
+    labels = sorted((TUMTRAF / "labels_point_clouds").rglob("*.json"))
+    for k, src in enumerate(labels):
+        doc = json.loads(src.read_text())
+        (frame,) = doc["openlabel"]["frames"].values()
+        props = frame["frame_properties"]
+        cloud = next((TUMTRAF / "point_clouds").rglob(props["point_cloud_file_name"]))
+        props["point_cloud_file_name"] = f"1646667310_{253239541 + k * 200_000_000}_{LIDAR}.pcd"
+        (tmp_path / props["point_cloud_file_name"]).symlink_to(cloud)
+        (tmp_path / src.name).write_text(json.dumps(doc))
+    site = read_openlabel(tmp_path)
+    assert np.diff([f.stamp_ns for f in site.frames]).tolist() == [200_000_000] and site.sequence

@@ -90,3 +90,13 @@ def test_an_image_is_told_by_its_bytes_not_its_name(tmp_path) -> None:
     assert site.image_format(png.read_bytes(), png) == "png"
     with pytest.raises(RoadsideFormatError, match="neither a JPEG nor a PNG"):
         site.image_format(b"GIF89a", png)
+
+
+def test_is_sequence_known_answers() -> None:
+    from shared.datasets.roadside.model import FRAME_PERIOD_NS as T
+    from shared.datasets.roadside.model import is_sequence
+
+    assert is_sequence([0, T, 2 * T, 5 * T])  # up to two dropped frames
+    assert not is_sequence([0, T, 5 * T])  # three dropped: a new sequence
+    assert not is_sequence([0]) and not is_sequence([])  # one frame tracks nothing
+    assert not is_sequence([0, 0, T])  # two files of one instant are not consecutive frames
