@@ -29,6 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from shared.config import ConfigError, read_yaml
 from shared.devices.robosense import MODELS
+from shared.devices.velodyne import DEVICES as VELODYNE_DEVICES
 from shared.paths import REPO_ROOT
 from shared.scene.model import LidarModel, PoseSpec
 from shared.scene.scene import Scene
@@ -59,15 +60,19 @@ class RobosenseLidar(_Strict):
 
 
 class VelodyneLidar(_Strict):
-    """A Velodyne unit, decoded by the `velodyne-decoder` package with its bundled calibration."""
+    """A Velodyne unit, decoded by the `velodyne-decoder` package (shared/devices/velodyne.py) with the
+    unit's own calibration file where given, else the package's bundled one for the model."""
 
-    device: Literal["vlp16", "vlp32c"]
+    device: Literal["vlp16", "vlp32c", "hdl32e"]
     bind: str = Field("0.0.0.0", description="address the adapter listens on")
     data_port: int = Field(2368, gt=0, lt=65536)
     clock: Clock = "receive"  # device: the packets' microseconds past the hour on the host's hour
     latency_s: float = Field(0.0, ge=0, le=1)
     min_range_m: float = Field(0.1, ge=0)
     max_range_m: float = Field(200.0, gt=0)
+    calibration_file: Path | None = Field(
+        None, description="the unit's own calibration (the ROS velodyne driver's YAML)"
+    )
 
 
 class Ars408Radar(_Strict):
@@ -98,7 +103,9 @@ class StreamCamera(_Strict):
         return self
 
 
-DeviceSpec = Annotated[RobosenseLidar | Ars408Radar | StreamCamera, Field(discriminator="device")]
+DeviceSpec = Annotated[
+    RobosenseLidar | VelodyneLidar | Ars408Radar | StreamCamera, Field(discriminator="device")
+]
 
 
 class CameraIntrinsics(_Strict):
@@ -118,7 +125,12 @@ class SensorCalibration(_Strict):
     note: str = ""
 
 
-KIND_OF_DEVICE = {"rs16": "lidar", "rs32": "lidar", "ars408": "radar", "stream": "camera"}
+KIND_OF_DEVICE = {
+    **dict.fromkeys(MODELS, "lidar"),
+    **dict.fromkeys(VELODYNE_DEVICES, "lidar"),
+    "ars408": "radar",
+    "stream": "camera",
+}
 
 
 class SiteFile(_Strict):

@@ -38,7 +38,7 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from google.protobuf.message import Message
 from rmmdet.v1.sensors_pb2 import RadarScan, RadarTarget
 
-from shared.devices import ars408, robosense, serial_urls
+from shared.devices import ars408, robosense, serial_urls, velodyne
 from shared.devices.mjpeg import TIMESTAMP_HEADER, MjpegStream, StreamError
 from shared.devices.site import Ars408Radar, RobosenseLidar, SiteFile, StreamCamera, VelodyneLidar
 from shared.perception.decode import INTENSITY_FULL_SCALE, point_cloud_message
@@ -212,22 +212,15 @@ class LidarSource(_Source):
 
 
 class VelodyneSource(_Source):
-    """A Velodyne unit on its data port, decoded by `velodyne-decoder`'s StreamDecoder (a scan per
-    revolution, cut at its default angle; stamped with its first packet)."""
-
-    HOUR_NS = 3_600_000_000_000
+    """A Velodyne unit on its data port, decoded by `velodyne.VelodyneStream` (velodyne-decoder: a scan
+    per revolution, cut at its default angle; stamped with its first packet)."""
 
     def __init__(self, sensor_id: str, spec: VelodyneLidar, emit: OutputFn) -> None:
         super().__init__(sensor_id, emit)
-        import velodyne_decoder as vd  # compiled decoder: imported where a Velodyne is used
-
         self.spec = spec
-        model = {"vlp16": vd.Model.VLP16, "vlp32c": vd.Model.VLP32C}[spec.device]
-        config = vd.Config(
-            model=model, min_range=spec.min_range_m, max_range=spec.max_range_m, timestamp_first_packet=True
+        self.stream = velodyne.VelodyneStream(
+            spec.device, spec.min_range_m, spec.max_range_m, spec.calibration_file
         )
-        self.decoder = vd.StreamDecoder(config)
-        self.packet_size = vd.PACKET_SIZE
         self.sock = _udp_socket(spec.bind, spec.data_port)
 
     def close(self) -> None:
@@ -235,44 +228,12 @@ class VelodyneSource(_Source):
         self.sock.close()
 
     def on_packet(self, data: bytes, recv_ns: int) -> None:
-        if len(data) != self.packet_size:
-            self.count("rejected/packet/bad_length")
+        scan = self.stream.on_packet(data, recv_ns)
+        if scan is None:
             return
-        try:
-            result = self.decoder.decode(recv_ns / NS_PER_S, data)
-        except (RuntimeError, ValueError) as exc:
-            self.count("rejected/packet/undecodable")
-            log.debug("%s: %s", self.sensor_id, exc)
-            return
-        self.count("packets")
-        if result is None:
-            return
-        stamps, points = result
-        if points is None or len(points) == 0:
-            self.count("scans/empty")
-            return
-        if self.spec.clock == "device":
-            stamp_ns, wall = self.on_host_hour(round(stamps.device * NS_PER_S), recv_ns), False
-        else:
-            stamp_ns, wall = round(stamps.host * NS_PER_S), True
-        pts = np.asarray(points, np.float32)
-        self._frame_out(
-            Output(
-                self.sensor_id,
-                point_cloud_message(pts[:, :3], pts[:, 3] / INTENSITY_FULL_SCALE, self.sensor_id, stamp_ns),
-                stamp_ns,
-                wall,
-            )
-        )
-
-    @classmethod
-    def on_host_hour(cls, device_ns: int, host_ns: int) -> int:
-        """A time within the hour (what a Velodyne packet carries, unless it is given absolute time)
-        on the host's hour: the one that puts it nearest the host's time."""
-        if device_ns >= cls.HOUR_NS:
-            return device_ns  # already absolute
-        base = host_ns - host_ns % cls.HOUR_NS + device_ns
-        return min((base - cls.HOUR_NS, base, base + cls.HOUR_NS), key=lambda t: abs(t - host_ns))
+        stamp_ns, wall = (scan.device_ns, False) if self.spec.clock == "device" else (scan.host_ns, True)
+        message = velodyne_scan_message(scan, self.sensor_id, stamp_ns)
+        self._frame_out(Output(self.sensor_id, message, stamp_ns, wall))
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -281,8 +242,18 @@ class VelodyneSource(_Source):
                 while (got := _recv_stamped(self.sock)) is not None:
                     self.on_packet(*got)
 
+    def counters_snapshot(self) -> dict[str, int]:
+        return super().counters_snapshot() | dict(self.stream.counters)
+
     def status(self) -> str:
         return ""
+
+
+def velodyne_scan_message(scan: velodyne.Scan, sensor_id: str, stamp_ns: int) -> Any:
+    """foxglove.PointCloud of a Velodyne scan (intensity 0-255 scaled to [0, 1])."""
+    pts = scan.points
+    intensity = pts[:, velodyne.INTENSITY] / INTENSITY_FULL_SCALE
+    return point_cloud_message(pts[:, :3], intensity, sensor_id, stamp_ns)
 
 
 # --- radar ------------------------------------------------------------------------------------------

@@ -10,13 +10,14 @@ import struct
 import numpy as np
 import pytest
 
+from shared.devices import velodyne
 from shared.devices.site import VelodyneLidar
 from shared.devices.sources import Output, VelodyneSource
+from shared.devices.velodyne import HOUR_NS
 from shared.perception.decode import point_cloud_to_array
 from sim.emulators.velodyne import PACKET_LEN, VLP16_ELEVATION_DEG, vlp16_packet
 from tests.helpers import free_port
 
-HOUR_NS = 3_600_000_000_000
 T0_NS = 1_790_000_000 * 1_000_000_000
 
 
@@ -82,9 +83,9 @@ def test_returns_come_back_where_the_packets_put_them(source) -> None:
 
 def test_device_time_is_put_on_the_hosts_hour() -> None:
     hour = 5 * HOUR_NS
-    assert VelodyneSource.on_host_hour(10_000_000, hour + 20_000_000) == hour + 10_000_000
+    assert velodyne.on_host_hour(10_000_000, hour + 20_000_000) == hour + 10_000_000
     # just after the hour turned on the host, a packet from just before it: the previous hour
-    assert VelodyneSource.on_host_hour(HOUR_NS - 5_000_000, hour + 1_000_000) == hour - 5_000_000
+    assert velodyne.on_host_hour(HOUR_NS - 5_000_000, hour + 1_000_000) == hour - 5_000_000
 
 
 def test_bad_packets_are_counted(source) -> None:

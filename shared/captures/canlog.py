@@ -1,0 +1,162 @@
+"""CAN logs (candump -L `.log`, Vector ASC `.asc` and BLF `.blf`) -> CAN frames, through python-can's
+LogReader classes (CanutilsLogReader, ASCReader, BLFReader).
+
+What those readers leave to their user is done here:
+- a text log's line that does not parse stops python-can's reader for good (a ValueError out of its
+  generator); the line is counted (`rejected/line`, the first one's number kept) and reading resumes
+  after it (an ASC file's header lines are given again, since they say how to read the rest);
+- a text log whose last line has no line end was cut in the middle of it: that line is counted as
+  `truncated`, not read (a part of a frame's bytes would read as a shorter frame);
+- a BLF file shorter than its header says (a recording stopped mid-write) reads to its last whole
+  object without complaint; it is counted as `truncated` (the header's and the file's sizes);
+- error frames and remote frames are counted and passed on as such (the ARS 408 list assembler
+  counts error frames; a remote frame carries no data).
+A file that is none of these formats, or whose header does not read, is a `CaptureFormatError`.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import re
+import struct
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import can
+
+from shared.captures.errors import CaptureFormatError
+
+log = logging.getLogger(__name__)
+
+SUFFIXES = (".log", ".asc", ".blf")
+_ASC_DATA_LINE = re.compile(r"^\s*\d+(\.\d+)?\s")  # an ASC event line starts with its time
+# What python-can's readers raise on a line or object they cannot parse.
+_PARSE_ERRORS = (ValueError, IndexError, KeyError, struct.error, TypeError, can.CanError)
+
+
+@dataclass(frozen=True, slots=True)
+class CanFrame:
+    """One frame of a log."""
+
+    index: int  # counted from 0 over the frames read
+    line: int | None  # the text log's line number (1-based); None in a BLF file
+    stamp_s: float  # the log's time (the logging host's clock)
+    channel: str  # the log's channel name as written ("can0", "1", ...); "" when it gives none
+    can_id: int
+    is_extended: bool
+    data: bytes
+    is_error: bool = False
+    is_remote: bool = False
+
+
+def is_can_log(path: Path) -> bool:
+    return Path(path).suffix.lower() in SUFFIXES
+
+
+class _Lines(io.StringIO):
+    """A text log as python-can reads it, counting the lines handed out."""
+
+    def __init__(self, text: str) -> None:
+        super().__init__(text)
+        self.taken = 0
+
+    def __next__(self) -> str:  # type: ignore[override]  # typeshed types IOBase's as bytes
+        line = super().__next__()
+        self.taken += 1
+        return line
+
+
+class CanLogReader:
+    """The frames of a CAN log in file order; bad lines and a cut-off end counted in `counts`."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        self.suffix = self.path.suffix.lower()
+        if self.suffix not in SUFFIXES:
+            raise CaptureFormatError(f"{self.path}: not a CAN log ({', '.join(SUFFIXES)})")
+        self.counts: Counter[str] = Counter()
+        self.first_bad_line: int | None = None
+        self.frames = 0
+
+    def __iter__(self) -> Iterator[CanFrame]:
+        if self.suffix == ".blf":
+            yield from self._blf()
+        else:
+            yield from self._text()
+
+    def _frame(self, msg: Any, line: int | None) -> CanFrame:
+        frame = CanFrame(
+            index=self.frames,
+            line=line,
+            stamp_s=float(msg.timestamp),
+            channel="" if msg.channel is None else str(msg.channel),
+            can_id=int(msg.arbitration_id),
+            is_extended=bool(msg.is_extended_id),
+            data=bytes(msg.data or b""),
+            is_error=bool(msg.is_error_frame),
+            is_remote=bool(msg.is_remote_frame),
+        )
+        self.frames += 1
+        if frame.is_error:
+            self.counts["error_frames"] += 1
+        elif frame.is_remote:
+            self.counts["remote_frames"] += 1
+        return frame
+
+    def _text(self) -> Iterator[CanFrame]:
+        try:
+            lines = self.path.read_text(errors="replace").splitlines(keepends=True)
+        except OSError as exc:
+            raise CaptureFormatError(f"{self.path}: {exc}") from None
+        if lines and not lines[-1].endswith("\n"):  # written up to the middle of a line: cut short
+            self.counts["truncated"] += 1
+            log.warning("%s: its last line (%d) is cut short; not read", self.path, len(lines))
+            lines.pop()
+        reader_cls = can.ASCReader if self.suffix == ".asc" else can.CanutilsLogReader
+        header: list[str] = []
+        if self.suffix == ".asc":
+            first = next((i for i, t in enumerate(lines) if _ASC_DATA_LINE.match(t)), len(lines))
+            header, lines = lines[:first], lines[first:]
+        start = 0  # the first data line this pass reads (0-based, within `lines`)
+        while start < len(lines):
+            text = _Lines("".join(header + lines[start:]))
+            try:
+                for msg in reader_cls(text):
+                    yield self._frame(msg, start + text.taken)  # the line just read, 1-based
+                return
+            except _PARSE_ERRORS as exc:
+                bad = start + max(text.taken - len(header), 1) - 1  # the line the reader stopped on
+                self.counts["rejected/line"] += 1
+                line_no = len(header) + bad + 1
+                if self.first_bad_line is None:
+                    self.first_bad_line = line_no
+                    log.warning(
+                        "%s: line %d does not read (%s); later ones are counted", self.path, line_no, exc
+                    )
+                start = bad + 1
+
+    def _blf(self) -> Iterator[CanFrame]:
+        try:
+            reader = can.BLFReader(str(self.path))
+        except (*_PARSE_ERRORS, OSError) as exc:
+            raise CaptureFormatError(f"{self.path}: not a BLF file ({type(exc).__name__}: {exc})") from None
+        size = self.path.stat().st_size
+        try:
+            for msg in reader:
+                yield self._frame(msg, None)
+        except _PARSE_ERRORS as exc:
+            self.counts["rejected/blf_object"] += 1
+            log.warning("%s: stopped at an object that does not read (%s)", self.path, exc)
+        if reader.file_size and size < reader.file_size:
+            self.counts["truncated"] += 1
+            log.warning(
+                "%s: %d bytes of the %d its header says: cut short after %d frames",
+                self.path,
+                size,
+                reader.file_size,
+                self.frames,
+            )
