@@ -68,14 +68,24 @@ def export(
         console.print(f"[yellow]{recording} is cut off: exported what was complete before the cut[/]")
 
 
-@app.command("import", short_help="ROS 1 / ROS 2 bags into a recording", rich_help_panel=RECORDINGS)
+@app.command(
+    "import", short_help="bags, pcap captures and CAN logs into a recording", rich_help_panel=RECORDINGS
+)
 def import_cmd(
-    bags: Annotated[
-        list[Path], typer.Argument(help="ROS 1 .bag files or ROS 2 bag folders (sqlite3 or mcap)")
+    inputs: Annotated[
+        list[Path],
+        typer.Argument(
+            help="ROS 1 .bag files, ROS 2 bag folders (sqlite3 or mcap), pcap / pcapng captures, CAN logs "
+            "(candump -L .log, Vector .asc / .blf); several make one recording"
+        ),
     ],
     out: Annotated[Path, typer.Option(help="the recording to write (MCAP; rmmdet replay plays it)")],
     map_file: Annotated[
-        Path | None, typer.Option("--map", help="topics: {<topic>: <sensor id> | {sensor, device: rs16}}")
+        Path | None,
+        typer.Option(
+            "--map",
+            help="topics: / units: / radars: -> scene sensors (docs/recordings.md); bags without it: by name",
+        ),
     ] = None,
     msg: Annotated[Path | None, typer.Option(help="<pkg>/msg/<Name>.msg definitions of custom types")] = None,
     rebase: Annotated[
@@ -83,25 +93,30 @@ def import_cmd(
     ] = False,
     scene: Annotated[Path, typer.Option(help="scene YAML: its sensors")] = DEFAULT_SCENE,
 ) -> None:
-    """Offline: ROS bags into the project's recording, each topic bound to one of the scene's sensors."""
+    """Offline: recordings the devices' own tools wrote into the project's recording, each recorded
+    source bound to one of the scene's sensors."""
     import time
 
-    from shared.rosbag_import import BagImportError, import_bags, load_mapping
+    from shared.captures.errors import CaptureError
+    from shared.captures.importer import import_files
+    from shared.captures.mapping import load_mapping
 
     loaded = Scene.load(scene)
     try:
-        report = import_bags(
-            bags, out, loaded, load_mapping(map_file, loaded), msg, time.time_ns() if rebase else None
+        report = import_files(
+            inputs, out, loaded, load_mapping(map_file, loaded), msg, time.time_ns() if rebase else None
         )
-    except BagImportError as err:
+    except CaptureError as err:
         console.print(f"[red]{err}[/]")
         raise typer.Exit(2) from None
-    for topic, sensor in sorted(report.mapped.items()):
-        console.print(f"mapped  {topic} -> {sensor} ({report.messages.get(sensor, 0)} messages)")
-    for topic, why in sorted(report.skipped.items()):
-        console.print(f"skipped {topic}: {why}")
-    for sensor, counts in sorted(report.packet_counters.items()):
-        console.print(f"packets of {sensor}: {counts}")  # the decoder's counts: rejected packets by reason
+    for source, sensor in sorted(report.mapped.items()):
+        console.print(f"mapped  {source} -> {sensor}")
+    for source, why in sorted(report.skipped.items()):
+        console.print(f"skipped {source}: {why}")
+    for sensor, n in sorted(report.messages.items()):
+        console.print(f"wrote   {sensor}: {n} messages")
+    for name, counts in sorted(report.counters.items()):
+        console.print(f"counts  {name}: {counts}")  # readers' and decoders' counts: rejections by reason
     console.print(f"wrote {out}")
 
 

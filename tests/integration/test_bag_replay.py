@@ -26,13 +26,14 @@ from rosbags.typesys import Stores, get_typestore
 from shared.bus.codec import encode
 from shared.bus.node import make_header
 from shared.bus.streams import SENSOR_STREAM, get_stream, sensor_group_source
+from shared.captures.importer import import_files as import_bags
+from shared.captures.rosbag import register_msg_dir
 from shared.paths import DEFAULT_SCENE
 from shared.perception.config import MecSettings, SyncConfig
 from shared.perception.core import MecCore
 from shared.perception.decode import point_cloud_to_array
 from shared.recording.reader import decode_record, read_records
 from shared.recording.writer import RecordingWriter
-from shared.rosbag_import import import_bags, register_msg_dir
 from shared.scene.scene import Scene
 from shared.timebase import NS_PER_S
 from shared.vehicle.ros2 import ros_header

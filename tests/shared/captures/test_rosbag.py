@@ -1,6 +1,7 @@
-"""`rmmdet import` (shared/rosbag_import.py) on bags written here with rosbags: ROS 1, ROS 2 sqlite3 and
-ROS 2 mcap; raw and compressed images; PointCloud2 in two field layouts and both byte orders; a custom
-radar type registered from its .msg text; and every bad input with its message and no output left."""
+"""`rmmdet import` (shared/captures/rosbag.py through importer.py) on bags written here with rosbags:
+ROS 1, ROS 2 sqlite3 and ROS 2 mcap; raw and compressed images; PointCloud2 in two field layouts and
+both byte orders; a custom radar type registered from its .msg text; and every bad input with its
+message and no output left."""
 
 from __future__ import annotations
 
@@ -14,16 +15,13 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Ros2Writer
 from rosbags.typesys import Stores, get_typestore
 
+from shared.captures.errors import CaptureError
+from shared.captures.importer import import_files as import_bags
+from shared.captures.mapping import load_mapping
+from shared.captures.rosbag import BagImportError, pointcloud2_points, register_msg_dir
 from shared.paths import DEFAULT_SCENE
 from shared.perception.decode import point_cloud_to_array
 from shared.recording.reader import decode_record, read_records
-from shared.rosbag_import import (
-    BagImportError,
-    import_bags,
-    load_mapping,
-    pointcloud2_points,
-    register_msg_dir,
-)
 from shared.scene.scene import Scene
 from shared.vehicle.ros2 import ros_header
 
@@ -273,7 +271,7 @@ def test_bad_input_names_topic_and_message_and_leaves_nothing(scene, msg_dir, tm
             import_bags([bag], out, scene, None, msg_dir)
     mapping = tmp_path / "map.yaml"
     mapping.write_text("topics:\n  /lidar_11/points: lidar_99\n")
-    with pytest.raises(BagImportError, match=r"lidar_99.*not in scene"):
+    with pytest.raises(CaptureError, match=r"lidar_99.*not in scene"):
         load_mapping(mapping, scene)
     mapping.write_text("topics:\n  /diagnostics_text: cam_11\n")
     good = write_bag(tmp_path / "good", "mcap", msg_dir)
@@ -348,15 +346,15 @@ def test_raw_robosense_packets_go_through_the_lidar_decoder(scene, msg_dir, tmp_
             stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
             writer.write(connection, stamp, store.serialize_cdr(msg, msgtype))
     mapping = tmp_path / "map.yaml"
-    mapping.write_text("topics:\n  /rslidar_packets: {sensor: lidar_11}\n")
-    with pytest.raises(BagImportError, match="need the unit's model"):
+    mapping.write_text("topics:\n  /rslidar_packets: {sensor: lidar_11, device: rs32}\n")
+    with pytest.raises(CaptureError, match="the mapping says rs32, the unit's packets say rs16"):
         import_bags([bag], tmp_path / "x.mcap", scene, load_mapping(mapping, scene), msg_dir)
-    mapping.write_text("topics:\n  /rslidar_packets: {sensor: lidar_11, device: rs16}\n")
+    mapping.write_text("topics:\n  /rslidar_packets: lidar_11\n")  # the model from its DIFOP
     report = import_bags([bag], tmp_path / "out.mcap", scene, load_mapping(mapping, scene), msg_dir)
     got = [decode_record(r).message for r in read_records(tmp_path / "out.mcap")]
     assert report.messages == {"lidar_11": len(expected)}
     assert [m.timestamp.ToNanoseconds() for m in got] == [m.timestamp.ToNanoseconds() for m in expected]
     assert all(a.data == b.data for a, b in zip(got, expected, strict=True))
     mapping.write_text("topics:\n  /rslidar_packets: {sensor: lidar_11, device: rs99}\n")
-    with pytest.raises(BagImportError, match="rs99"):
+    with pytest.raises(CaptureError, match="rs99"):
         load_mapping(mapping, scene)
