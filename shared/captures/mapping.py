@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator
 
 from shared.captures.errors import MappingError
 from shared.devices import robosense, velodyne
@@ -69,23 +69,30 @@ class Mapping(_Strict):
 
     @field_validator("topics", "units", "radars", mode="before")
     @classmethod
-    def _short_form(cls, value: Any) -> Any:
-        """`<key>: <sensor id>` is `<key>: {sensor: <sensor id>}`."""
+    def _short_form(cls, value: Any, info: ValidationInfo) -> Any:
+        """`<key>: <sensor id>` is `<key>: {sensor: <sensor id>}`; under `radars:` the key is the sensor."""
         if not isinstance(value, dict):
             return value
 
-        def one(v: Any) -> Any:
-            return {"sensor": v} if isinstance(v, str) else v
+        def one(key: str, v: Any) -> Any:
+            if isinstance(v, str):
+                return {"sensor": v}
+            if info.field_name == "radars" and isinstance(v, dict):
+                return {"sensor": key, **v}
+            return v
 
-        return {str(k): [one(x) for x in v] if isinstance(v, list) else one(v) for k, v in value.items()}
+        return {
+            str(k): [one(str(k), x) for x in v] if isinstance(v, list) else one(str(k), v)
+            for k, v in value.items()
+        }
 
     def sensors(self) -> set[str]:
         bound = [b for bs in self.topics.values() for b in bs]
         return {b.sensor for b in [*bound, *self.units.values()]} | set(self.radars)
 
     def radar_bindings(self) -> list[Binding]:
-        """The `radars:` section as bindings (the key is the sensor)."""
-        return [b.model_copy(update={"sensor": s}) for s, b in self.radars.items()]
+        """The `radars:` section's bindings."""
+        return list(self.radars.values())
 
 
 def load_mapping(path: Path | None, scene: Scene) -> Mapping | None:

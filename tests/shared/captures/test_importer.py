@@ -1,0 +1,202 @@
+"""`rmmdet import` of captures and CAN logs (shared/captures/importer.py): real captures and a real
+radar log into recordings (bound by the mapping, models from the bytes), several inputs merged by
+time, the drivers' packet messages in bags written here (rslidar_sdk's 2022 layout, can_msgs), and
+what cannot be imported named with nothing written."""
+
+from __future__ import annotations
+
+import sqlite3
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import Writer as Ros2Writer
+from rosbags.typesys import Stores, get_typestore
+
+from shared.captures.errors import CaptureError, MappingError
+from shared.captures.importer import import_files
+from shared.captures.mapping import load_mapping
+from shared.captures.rosbag import LEGACY_MSG_DIR, MSG_DIR, register_msg_dir
+from shared.captures.units import RobosenseUnit
+from shared.paths import DEFAULT_SCENE
+from shared.recording.reader import decode_record, read_records
+from shared.scene.scene import Scene
+from sim.emulators.robosense import RobosenseEmulator
+
+REAL = Path(__file__).parents[2] / "fixtures" / "real"
+VLP16_GPS = REAL / "mrpt_velodyne" / "sample_velodyne_vlp16_gps.pcap"
+CAN_LOG = REAL / "ars408_candump" / "candump-2026-06-24_154259.log"
+T0_NS = 1_700_000_000_000_000_000
+
+
+@pytest.fixture(scope="module")
+def scene() -> Scene:
+    return Scene.load(DEFAULT_SCENE)
+
+
+def _mapping(tmp_path: Path, scene: Scene, text: str):
+    path = tmp_path / "map.yaml"
+    path.write_text(text)
+    return load_mapping(path, scene)
+
+
+def _records(path: Path) -> list:
+    return [decode_record(r) for r in read_records(path)]
+
+
+def test_a_real_capture_and_a_real_radar_log_make_one_recording(tmp_path: Path, scene: Scene) -> None:
+    mapping = _mapping(tmp_path, scene, "units:\n  10.0.0.100: lidar_11\nradars:\n  radar_2: {can_id: 0}\n")
+    out = tmp_path / "rec.mcap"
+    report = import_files([VLP16_GPS, CAN_LOG], out, scene, mapping)
+    # The VLP-16 (recognised by its factory byte): 3 whole revolutions of its 293 packets; 57 GPS packets.
+    assert report.messages == {"lidar_11": 3, "radar_2": 515}
+    assert report.counters["lidar_11"]["position_packets"] == 57
+    assert report.mapped == {f"{VLP16_GPS.name} 10.0.0.100": "lidar_11", f"{CAN_LOG.name} radar 0": "radar_2"}
+    records = _records(out)
+    stamps = [r.record.publish_time_ns for r in records]
+    assert stamps == sorted(stamps)  # merged by time, though the two were recorded years apart
+    clouds = [r for r in records if "lidar_11" in r.record.key]
+    assert len(clouds) == 3 and all(len(c.message.data) > 100_000 for c in clouds)
+
+
+def test_a_capture_needs_units_and_says_what_it_holds(tmp_path: Path, scene: Scene) -> None:
+    out = tmp_path / "rec.mcap"
+    with pytest.raises(MappingError, match=r"10\.0\.0\.100 -> port 2368: velodyne vlp16"):
+        import_files([VLP16_GPS], out, scene, None)
+    wrong = _mapping(tmp_path, scene, "units:\n  10.0.0.100: {sensor: lidar_11, device: vlp32c}\n")
+    with pytest.raises(MappingError, match="the mapping says vlp32c, the unit's packets say vlp16"):
+        import_files([VLP16_GPS], out, scene, wrong)
+    radar = _mapping(tmp_path, scene, "units:\n  10.0.0.100: radar_2\n")
+    with pytest.raises(MappingError, match="radar_2 is a radar, not a lidar"):
+        import_files([VLP16_GPS], out, scene, radar)
+    with pytest.raises(MappingError, match=r"ARS 408 sensor ids in it: \[0\]"):
+        import_files([CAN_LOG], out, scene, None)
+    (tmp_path / "notes.txt").write_text("hello")
+    with pytest.raises(CaptureError, match="neither a ROS bag"):
+        import_files([tmp_path / "notes.txt"], out, scene, None)
+    assert not out.exists() and not out.with_name(out.name + ".partial").exists()
+
+
+def _robosense_packets(device: str, turns: int) -> tuple[list[tuple[int, bytes]], bytes]:
+    emulator = RobosenseEmulator(device, samples=400)
+    lasers = emulator.model.lasers
+    laser, sample = np.repeat(np.arange(lasers), 400), np.tile(np.arange(400), lasers)
+    packets = []
+    for k in range(turns):
+        start = T0_NS + k * emulator.period_ns
+        turn = emulator.msop_packets(
+            laser, sample, np.full(laser.shape, 3.0 + k), np.full(laser.shape, 0.5), start
+        )
+        packets += [(start + j * 500_000, p) for j, p in enumerate(turn)]
+    return packets, emulator.difop_packet(T0_NS)
+
+
+def test_robosense_capture_model_from_its_difop_even_when_the_difop_comes_late(
+    tmp_path: Path, scene: Scene
+) -> None:
+    """Written here (no public Robosense capture): an RS-LiDAR-32's MSOP on port 6699 with its DIFOP
+    only after its second revolution; the importer takes the DIFOP first (its survey pass), so no
+    revolution is lost, and recognises the model from it."""
+    import dpkt
+
+    packets, difop = _robosense_packets("rs32", 4)
+    frames = []
+    for i, (stamp, data) in enumerate(packets):
+        frames.append((stamp, 6699, data))
+        if i == len(packets) // 2:
+            frames.append((stamp, 7788, difop))
+    path = tmp_path / "rs32.pcapng"
+    with path.open("wb") as f:
+        w = dpkt.pcapng.Writer(f)
+        for stamp, port, data in frames:
+            u = dpkt.udp.UDP(sport=port, dport=port, data=data)
+            u.ulen = len(u)
+            ip = dpkt.ip.IP(src=bytes([192, 168, 1, 200]), dst=bytes([192, 168, 1, 102]), p=17, data=u)
+            ip.len = len(ip)
+            w.writepkt(bytes(dpkt.ethernet.Ethernet(data=ip)), ts=stamp / 1e9)
+    mapping = _mapping(tmp_path, scene, "units:\n  192.168.1.200: lidar_12\n")
+    report = import_files([path], tmp_path / "rec.mcap", scene, mapping)
+    expected = RobosenseUnit("lidar_12", "rs32")
+    expected.on_packet(difop, 0)
+    want = [m for stamp, data in packets for m, _ in expected.on_packet(data, stamp)]
+    assert report.messages == {"lidar_12": len(want)} and len(want) >= 3
+    got = [r.message for r in _records(tmp_path / "rec.mcap")]
+    assert all(a.data == b.data for a, b in zip(got, want, strict=True))
+
+
+def _store(legacy: bool):
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    for folder in (LEGACY_MSG_DIR if legacy else None, MSG_DIR):
+        if folder is not None:
+            register_msg_dir(store, folder, only_new=True)
+    return store
+
+
+def test_rslidar_sdk_2022_layout_packet_arrays(tmp_path: Path, scene: Scene) -> None:
+    """rslidar_sdk's 2022 messages (RslidarScan: arrays of {stamp, uint8[1248] data}; DIFOP alone on
+    its own topic), as a real RS-LiDAR-16 bag holds them (its packets' own stamps zero), written here
+    in a sqlite3 bag that stores no definitions: imported with only the topics mapped."""
+    packets, difop = _robosense_packets("rs16", 3)
+    store = _store(legacy=True)
+    time_cls = store.types["builtin_interfaces/msg/Time"]
+    header_cls, packet_cls = store.types["std_msgs/msg/Header"], store.types["rslidar_msg/msg/RslidarPacket"]
+    scan_cls = store.types["rslidar_msg/msg/RslidarScan"]
+
+    def t(ns: int):
+        return time_cls(sec=ns // 10**9, nanosec=ns % 10**9)
+
+    bag = tmp_path / "rs16_2022"
+    with Ros2Writer(bag, version=8, storage_plugin=StoragePlugin.SQLITE3) as writer:
+        scans = writer.add_connection("/rslidar_packets", "rslidar_msg/msg/RslidarScan", typestore=store)
+        difops = writer.add_connection(
+            "/rslidar_packets_difop", "rslidar_msg/msg/RslidarPacket", typestore=store
+        )
+        d = packet_cls(stamp=t(0), data=np.frombuffer(difop, np.uint8))
+        writer.write(difops, T0_NS, store.serialize_cdr(d, "rslidar_msg/msg/RslidarPacket"))
+        for k in range(0, len(packets), 25):
+            chunk = packets[k : k + 25]
+            stamp = chunk[-1][0]
+            msg = scan_cls(
+                header=header_cls(stamp=t(stamp), frame_id="rslidar"),
+                packets=[packet_cls(stamp=t(0), data=np.frombuffer(p, np.uint8)) for _, p in chunk],
+            )
+            writer.write(scans, stamp, store.serialize_cdr(msg, "rslidar_msg/msg/RslidarScan"))
+    with sqlite3.connect(next(bag.glob("*.db3"))) as db:  # as rosbag2 before Iron wrote it: no definitions
+        db.execute("DELETE FROM message_definitions")
+    mapping = _mapping(
+        tmp_path, scene, "topics:\n  /rslidar_packets: lidar_11\n  /rslidar_packets_difop: lidar_11\n"
+    )
+    report = import_files([bag], tmp_path / "rec.mcap", scene, mapping)
+    assert report.messages["lidar_11"] >= 2
+    assert report.counters["lidar_11"]["msop"] == len(packets)
+
+
+def test_can_msgs_frames_in_a_bag(tmp_path: Path, scene: Scene) -> None:
+    """The real radar log's frames as can_msgs/Frame (ros2_socketcan's message), written here: the same
+    lists as from the log itself."""
+    from shared.captures.canlog import CanLogReader
+
+    store = _store(legacy=False)
+    frame_cls = store.types["can_msgs/msg/Frame"]
+    header_cls, time_cls = store.types["std_msgs/msg/Header"], store.types["builtin_interfaces/msg/Time"]
+    bag = tmp_path / "can"
+    with Ros2Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conn = writer.add_connection("/from_can_bus", "can_msgs/msg/Frame", typestore=store)
+        for f in CanLogReader(CAN_LOG):
+            ns = round(f.stamp_s * 1e9)
+            data = np.zeros(8, np.uint8)
+            data[: len(f.data)] = np.frombuffer(f.data, np.uint8)
+            msg = frame_cls(
+                header=header_cls(stamp=time_cls(sec=ns // 10**9, nanosec=ns % 10**9), frame_id="can1"),
+                id=f.can_id, is_rtr=False, is_extended=False, is_error=False, dlc=len(f.data), data=data,
+            )  # fmt: skip
+            writer.write(conn, ns, store.serialize_cdr(msg, "can_msgs/msg/Frame"))
+    mapping = _mapping(tmp_path, scene, "topics:\n  /from_can_bus: {sensor: radar_2, can_id: 0}\n")
+    from_bag = import_files([bag], tmp_path / "a.mcap", scene, mapping)
+    radars = _mapping(tmp_path, scene, "radars:\n  radar_2: {can_id: 0, channel: can1}\n")
+    from_log = import_files([CAN_LOG], tmp_path / "b.mcap", scene, radars)
+    assert from_bag.messages == from_log.messages == {"radar_2": 515}
+    a = [r.message for r in _records(tmp_path / "a.mcap")]
+    b = [r.message for r in _records(tmp_path / "b.mcap")]
+    assert a == b
