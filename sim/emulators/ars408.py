@@ -20,13 +20,11 @@ The radar keeps the configuration a RadarConfiguration frame (0x200) sets and re
 
 from __future__ import annotations
 
-import contextlib
 import math
-import socket
-import threading
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+
+from shared.devices.slcan import SlcanServer
 
 SENSOR_STRIDE = 0x10  # sensor n adds 0x10 * n to every identifier
 INTERFACE_VERSION = 1
@@ -194,125 +192,30 @@ class Ars408Emulator:
         return bytes(buf)
 
 
-def slcan_line(can_id: int, data: bytes) -> bytes:
-    """A standard data frame in the Lawicel SLCAN text protocol: t<id:3 hex><dlc><data hex>\\r."""
-    return b"t%03X%d%s\r" % (can_id, len(data), data.hex().upper().encode())
-
-
-class SlcanRadarServer:
+class SlcanRadarServer(SlcanServer):
     """The radar behind a serial-line CAN adapter (a CANable-style SLCAN device), served on a TCP port
-    so that python-can's `slcan` interface reaches it as `socket://host:port` (pyserial's socket URL):
-    the interface that carries CAN between processes here, with the same code path as a USB adapter.
-
-    It answers the adapter's set-up commands (C close, S<n> bitrate, O open, V version, F status) with
-    CR, applies RadarConfiguration frames it receives and answers each with RadarState, sends RadarState
-    once a second and each scan's list as it comes. One client at a time (a serial line has one end).
-    Fault injection: `bus_off` silences the radar (a node in bus-off sends nothing) until cleared."""
+    (shared/devices/slcan.py): it applies RadarConfiguration frames it receives and answers each with
+    RadarState, sends RadarState once a second and each scan's list as it comes. Fault injection:
+    `bus_off` silences the radar (a node in bus-off sends nothing) until cleared."""
 
     def __init__(self, emulator: Ars408Emulator, host: str, port: int) -> None:
         self.emulator = emulator
         self.bus_off = False
-        self.frames_sent = 0
         self.configs = 0
-        self._listener = socket.create_server((host, port), reuse_port=False)
-        self._listener.settimeout(0.2)
-        self._client: socket.socket | None = None
-        self._send_lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._serve, name="slcan-radar", daemon=True)
-        self._thread.start()
-
-    @property
-    def port(self) -> int:
-        return int(self._listener.getsockname()[1])
+        super().__init__(host, port, on_frame=self._on_frame, on_tick=self._send_state)
 
     def send_scan(self, targets: Sequence[Target], cycle: int | None = None) -> None:
         """One measurement cycle's list to the client (dropped if none is connected, as on a bus with
         no other node: the radar transmits regardless)."""
         if self.bus_off:
             return
-        frames = self.emulator.scan_frames(targets, cycle)
-        self._write(b"".join(slcan_line(i, d) for i, d in frames), len(frames))
+        self.send(self.emulator.scan_frames(targets, cycle))
 
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=2.0)
-        self._listener.close()
-        if self._client is not None:
-            self._client.close()
+    def _send_state(self) -> None:
+        if not self.bus_off:
+            self.send([self.emulator.state_frame()])
 
-    def _write(self, data: bytes, frames: int) -> None:
-        with self._send_lock:
-            client = self._client
-            if client is None:
-                return
-            try:
-                client.sendall(data)
-                self.frames_sent += frames
-            except OSError:
-                self._drop_client()
-
-    def _drop_client(self) -> None:
-        if self._client is not None:
-            with contextlib.suppress(OSError):
-                self._client.close()
-        self._client = None
-
-    def _serve(self) -> None:
-        buffer = b""
-        next_state = time.monotonic()
-        while not self._stop.is_set():
-            if self._client is None:
-                try:
-                    client, _ = self._listener.accept()
-                except (TimeoutError, OSError):
-                    continue
-                client.settimeout(0.1)
-                with self._send_lock:
-                    self._client = client
-                buffer = b""
-            if time.monotonic() >= next_state:
-                if not self.bus_off:
-                    self._write(slcan_line(*self.emulator.state_frame()), 1)
-                next_state = time.monotonic() + 1.0
-            client = self._client
-            if client is None:
-                continue
-            try:
-                chunk = client.recv(4096)
-            except TimeoutError:
-                continue
-            except OSError:
-                with self._send_lock:
-                    self._drop_client()
-                continue
-            if not chunk:
-                with self._send_lock:
-                    self._drop_client()
-                continue
-            buffer += chunk
-            while b"\r" in buffer:
-                line, buffer = buffer.split(b"\r", 1)
-                self._command(line)
-
-    def _command(self, line: bytes) -> None:
-        if line[:1] == b"t" and len(line) >= 5:
-            try:
-                can_id, dlc = int(line[1:4], 16), int(line[4:5])
-                data = bytes.fromhex(line[5 : 5 + 2 * dlc].decode())
-            except ValueError:
-                self._write(b"\a", 0)
-                return
-            self._write(b"z\r", 0)  # transmit acknowledged
-            if can_id == self.emulator.can_id(0x200) and self.emulator.on_config(data):
-                self.configs += 1
-                if not self.bus_off:
-                    self._write(slcan_line(*self.emulator.state_frame()), 1)
-        elif line[:1] == b"V":
-            self._write(b"V1013\r", 0)
-        elif line[:1] == b"N":
-            self._write(b"NRMD1\r", 0)
-        elif line[:1] == b"F":
-            self._write(b"F00\r", 0)
-        else:  # C, O, L, S<n>, s..., Z...: accepted
-            self._write(b"\r", 0)
+    def _on_frame(self, can_id: int, data: bytes) -> None:
+        if can_id == self.emulator.can_id(0x200) and self.emulator.on_config(data):
+            self.configs += 1
+            self._send_state()
