@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from services.cli import background, calibrate, live, offline, scale, security  # noqa: F401  (their commands register on the app)
+from services.cli import background, calibrate, devices, live, offline, scale, security  # noqa: F401  (their commands register on the app)
 from services.cli.app import app
 
 

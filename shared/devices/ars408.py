@@ -172,6 +172,16 @@ _STATE_ERRORS = (
 )
 
 
+def state_with_sensor_id(data: bytes, sensor_id: int) -> bytes:
+    """A RadarState payload with its RadarState_SensorID set (the DBC's `34|3@0+`: byte 4, bits 2-0),
+    every other bit kept: a recorded radar's state as the same radar configured with another id."""
+    if not 0 <= sensor_id <= MAX_SENSOR_ID or len(data) < 5:
+        raise ValueError(f"sensor id {sensor_id} into a {len(data)}-byte RadarState")
+    out = bytearray(data)
+    out[4] = (out[4] & ~0x07) | sensor_id
+    return bytes(out)
+
+
 def decode_state(data: bytes) -> RadarState:
     """A RadarState payload; ValueError if it is too short."""
     if len(data) < database().get_message_by_frame_id(ID_STATE).length:

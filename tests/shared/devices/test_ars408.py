@@ -206,3 +206,19 @@ def test_quantisation_noise_of_the_dbc_steps() -> None:
     assert range_std == pytest.approx(0.2 / math.sqrt(12))
     assert azimuth_std == pytest.approx(0.2 / math.sqrt(12) / 2.0)
     assert rate_std == pytest.approx(0.25 / math.sqrt(12))
+
+
+def test_state_with_sensor_id_changes_that_signal_only() -> None:
+    """Known answer through cantools: a RadarState with every other signal set keeps them all."""
+    msg = a.database().get_message_by_frame_id(a.ID_STATE)
+    values = {s.name: (s.maximum if s.maximum is not None else 1) for s in msg.signals}
+    values = {k: int(v) if float(v).is_integer() else v for k, v in values.items()}
+    values["RadarState_SensorID"] = 0
+    data = bytes(msg.encode(values, strict=False))
+    out = msg.decode(a.state_with_sensor_id(data, 5), decode_choices=False)
+    before = msg.decode(data, decode_choices=False)
+    assert out.pop("RadarState_SensorID") == 5
+    before.pop("RadarState_SensorID")
+    assert out == before
+    with pytest.raises(ValueError):
+        a.state_with_sensor_id(data, 8)
