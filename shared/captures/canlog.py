@@ -73,8 +73,9 @@ class _Lines(io.StringIO):
 class CanLogReader:
     """The frames of a CAN log in file order; bad lines and a cut-off end counted in `counts`."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, data: bytes | None = None) -> None:
         self.path = Path(path)
+        self.data = data  # the file's bytes, when already in memory (`path` then only names it)
         self.suffix = self.path.suffix.lower()
         if self.suffix not in SUFFIXES:
             raise CaptureFormatError(f"{self.path}: not a CAN log ({', '.join(SUFFIXES)})")
@@ -109,7 +110,8 @@ class CanLogReader:
 
     def _text(self) -> Iterator[CanFrame]:
         try:
-            lines = self.path.read_text(errors="replace").splitlines(keepends=True)
+            raw = self.data if self.data is not None else self.path.read_bytes()
+            lines = raw.decode(errors="replace").splitlines(keepends=True)
         except OSError as exc:
             raise CaptureFormatError(f"{self.path}: {exc}") from None
         if lines and not lines[-1].endswith("\n"):  # written up to the middle of a line: cut short
@@ -141,10 +143,10 @@ class CanLogReader:
 
     def _blf(self) -> Iterator[CanFrame]:
         try:
-            reader = can.BLFReader(str(self.path))
+            reader = can.BLFReader(io.BytesIO(self.data) if self.data is not None else str(self.path))
         except (*_PARSE_ERRORS, OSError) as exc:
             raise CaptureFormatError(f"{self.path}: not a BLF file ({type(exc).__name__}: {exc})") from None
-        size = self.path.stat().st_size
+        size = len(self.data) if self.data is not None else self.path.stat().st_size
         try:
             for msg in reader:
                 yield self._frame(msg, None)

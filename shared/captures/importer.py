@@ -33,31 +33,16 @@ from shared.captures.canlog import CanLogReader, is_can_log
 from shared.captures.errors import CaptureError, CaptureFormatError, MappingError
 from shared.captures.mapping import Binding, Mapping
 from shared.captures.pcap import PcapReader, is_capture
-from shared.captures.units import RadarUnit, RobosenseUnit, VelodyneUnit
+from shared.captures.report import ImportReport, Item
+from shared.captures.units import RadarUnit, RobosenseUnit, VelodyneUnit, lidar_unit
 from shared.devices import ars408
 from shared.scene.scene import Scene
 from shared.timebase import NS_PER_S
 
 log = logging.getLogger(__name__)
 
-Item = tuple[int, str, Message]  # stamp ns, scene sensor, message
 #: How late (in its input) a message may come and still be written in time order.
 REORDER_WINDOW_NS = 2 * NS_PER_S
-
-
-@dataclass
-class ImportReport:
-    mapped: dict[str, str] = field(default_factory=dict)  # recorded source -> sensor id
-    skipped: dict[str, str] = field(default_factory=dict)  # recorded source -> why
-    messages: dict[str, int] = field(default_factory=dict)  # sensor id -> messages written
-    first_stamp_ns: int | None = None
-    counters: dict[str, dict[str, int]] = field(default_factory=dict)  # input or sensor -> counts
-    out: Path | None = None
-
-    @property
-    def packet_counters(self) -> dict[str, dict[str, int]]:
-        """The decoders' counts per sensor (the inputs' own counts are under their file names)."""
-        return {k: v for k, v in self.counters.items() if k in self.messages or k in self.mapped.values()}
 
 
 def input_kind(path: Path) -> str:
@@ -218,30 +203,6 @@ def _binding_for(mapping: Mapping, ip: str, port: int) -> tuple[str, Binding] | 
         if key in mapping.units:
             return key, mapping.units[key]
     return None
-
-
-def lidar_unit(
-    binding: Binding, robosense_difop: bytes | None, velodyne_model: str | None, where: str
-) -> RobosenseUnit | VelodyneUnit:
-    """The decoder of one recorded lidar: the family its packets show, the model its bytes say (else the
-    mapping's); MappingError when neither says, or they disagree."""
-    if velodyne_model is not None or (binding.device or "").startswith(("vlp", "hdl")):
-        device = _model(binding.device, velodyne_model, where)
-        return VelodyneUnit(binding.sensor, device, binding.calibration)
-    said = identify.robosense_model(robosense_difop) if robosense_difop is not None else None
-    device = _model(binding.device, said, where)
-    return RobosenseUnit(binding.sensor, device)
-
-
-def _model(given: str | None, said: str | None, where: str) -> str:
-    if given is not None and said is not None and given != said:
-        raise MappingError(f"{where}: the mapping says {given}, the unit's packets say {said}")
-    device = given or said
-    if device is None:
-        raise MappingError(
-            f"{where}: the packets do not say which model this is: give `device:` in the mapping"
-        )
-    return device
 
 
 def capture_items(path: Path, scene: Scene, mapping: Mapping | None, report: ImportReport) -> Iterator[Item]:

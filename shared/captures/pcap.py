@@ -115,15 +115,16 @@ class PcapReader:
     """The UDP datagrams of a pcap / pcapng file, in file order; other traffic and bad records counted in
     `counts` (`skipped/...`: not UDP; `rejected/...`: damaged; `truncated`: the file ends mid-record)."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, data: bytes | None = None) -> None:
         self.path = Path(path)
+        self.data = data  # the file's bytes, when already in memory (`path` then only names it)
         self.counts: Counter[str] = Counter()
         self.truncated_at: int | None = None  # byte offset of the record cut short
         self.records = 0
         self.link_type: int | None = None
 
     def __iter__(self) -> Iterator[Datagram]:
-        with self.path.open("rb") as raw:
+        with io.BytesIO(self.data) if self.data is not None else self.path.open("rb") as raw:
             head = raw.read(4)
             raw.seek(0)
             f = _ShortReadFile(raw)

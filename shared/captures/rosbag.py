@@ -36,7 +36,7 @@ import re
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import cv2
 import numpy as np
@@ -50,14 +50,12 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from shared.captures import identify
 from shared.captures.errors import CaptureError
 from shared.captures.mapping import Binding, Mapping
-from shared.captures.units import RadarUnit, RobosenseUnit, VelodyneUnit
+from shared.captures.report import ImportReport, Item
+from shared.captures.units import RadarUnit, RobosenseUnit, VelodyneUnit, lidar_unit
 from shared.devices import ars408, robosense
 from shared.perception.decode import encoded_format, point_cloud_message, unit_intensity
 from shared.scene.scene import Scene
 from shared.timebase import NS_PER_S
-
-if TYPE_CHECKING:
-    from shared.captures.importer import ImportReport, Item
 
 POINTFIELD_DTYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
@@ -350,8 +348,6 @@ def _lidar_units(reader: Any, bound: dict[str, _Bound]) -> dict[str, RobosenseUn
         where = f"topic {', '.join(topics)}"
         if not velodyne_seen and difop is None and not (binding.device or "").startswith(("vlp", "hdl")):
             raise BagImportError(f"{where}: Robosense packets without a DIFOP: the unit's angles are unknown")
-        from shared.captures.importer import lidar_unit
-
         unit = lidar_unit(binding, difop, velodyne_model if velodyne_seen else None, where)
         if isinstance(unit, RobosenseUnit) and difop is not None:
             unit.on_packet(difop, 0)

@@ -15,7 +15,9 @@ from typing import Protocol
 
 from google.protobuf.message import Message
 
+from shared.captures import identify
 from shared.captures.errors import MappingError
+from shared.captures.mapping import Binding
 from shared.devices import ars408, robosense, velodyne
 from shared.devices.sources import lidar_frame_message, radar_scan_message, velodyne_scan_message
 from shared.timebase import NS_PER_S
@@ -147,3 +149,27 @@ class RadarUnit:
     def counters(self) -> dict[str, int]:
         own = dict(self._counts)
         return own | (self.assembler.counters if self.assembler is not None else {})
+
+
+def lidar_unit(
+    binding: Binding, robosense_difop: bytes | None, velodyne_model: str | None, where: str
+) -> RobosenseUnit | VelodyneUnit:
+    """The decoder of one recorded lidar: the family its packets show, the model its bytes say (else the
+    mapping's); MappingError when neither says, or they disagree."""
+    if velodyne_model is not None or (binding.device or "").startswith(("vlp", "hdl")):
+        device = _model(binding.device, velodyne_model, where)
+        return VelodyneUnit(binding.sensor, device, binding.calibration)
+    said = identify.robosense_model(robosense_difop) if robosense_difop is not None else None
+    device = _model(binding.device, said, where)
+    return RobosenseUnit(binding.sensor, device)
+
+
+def _model(given: str | None, said: str | None, where: str) -> str:
+    if given is not None and said is not None and given != said:
+        raise MappingError(f"{where}: the mapping says {given}, the unit's packets say {said}")
+    device = given or said
+    if device is None:
+        raise MappingError(
+            f"{where}: the packets do not say which model this is: give `device:` in the mapping"
+        )
+    return device
