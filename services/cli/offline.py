@@ -110,7 +110,8 @@ def import_cmd(
         console.print(f"[red]{err}[/]")
         raise typer.Exit(2) from None
     for source, sensor in sorted(report.mapped.items()):
-        console.print(f"mapped  {source} -> {sensor}")
+        model = f" ({report.devices[sensor]})" if sensor in report.devices else ""
+        console.print(f"mapped  {source} -> {sensor}{model}")
     for source, why in sorted(report.skipped.items()):
         console.print(f"skipped {source}: {why}")
     for sensor, n in sorted(report.messages.items()):

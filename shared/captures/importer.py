@@ -241,6 +241,7 @@ def capture_items(path: Path, scene: Scene, mapping: Mapping | None, report: Imp
             if isinstance(unit, RobosenseUnit) and u.difop is not None:
                 unit.on_packet(u.difop, 0)  # its angles before its first revolution
             decoders[(ip, port)] = unit
+            report.devices[binding.sensor] = unit.device
             by_ip.setdefault(ip, []).append(unit)
             report.mapped[f"{path.name} {key}"] = binding.sensor
     reader = PcapReader(path)

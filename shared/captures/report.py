@@ -17,6 +17,7 @@ class ImportReport:
     messages: dict[str, int] = field(default_factory=dict)  # sensor id -> messages written
     first_stamp_ns: int | None = None
     counters: dict[str, dict[str, int]] = field(default_factory=dict)  # input or sensor -> counts
+    devices: dict[str, str] = field(default_factory=dict)  # lidar sensor id -> the decoded unit's model
     out: Path | None = None
 
     @property

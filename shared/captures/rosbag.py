@@ -249,7 +249,7 @@ def _bag_items(
         raise BagImportError(f"{', '.join(map(str, bags))}: {type(exc).__name__}: {exc}") from None
     try:
         bound = _bind(reader, scene, mapping, report)
-        units = _lidar_units(reader, bound)
+        units = _lidar_units(reader, bound, report)
         radars = {
             b.sensor: RadarUnit(b.sensor, b.can_id or 0)
             for t in bound.values()
@@ -334,7 +334,9 @@ def packets_of(msg: Any, stamp_ns: int) -> list[tuple[bytes, int]]:
     return out
 
 
-def _lidar_units(reader: Any, bound: dict[str, _Bound]) -> dict[str, RobosenseUnit | VelodyneUnit]:
+def _lidar_units(
+    reader: Any, bound: dict[str, _Bound], report: ImportReport
+) -> dict[str, RobosenseUnit | VelodyneUnit]:
     """A decoder per lidar fed by packet topics, its model from its first packets (or the mapping),
     a Robosense unit given its first DIFOP before any revolution."""
     topics_of: dict[str, list[str]] = {}
@@ -352,6 +354,7 @@ def _lidar_units(reader: Any, bound: dict[str, _Bound]) -> dict[str, RobosenseUn
         if isinstance(unit, RobosenseUnit) and difop is not None:
             unit.on_packet(difop, 0)
         units[sensor] = unit
+        report.devices[sensor] = unit.device
     return units
 
 

@@ -211,18 +211,33 @@ def site_scene(dataset: RoadsideDataset, reference: Scene | None = None) -> Scen
     centre = np.mean([s.T_site_from_sensor[:2, 3] for s in dataset.sensors.values()], axis=0)
     # as far as the lidars reach; a camera-only site as far as the reference cameras render
     reach_m = max(lidar_reach_m) if lidar_reach_m else ref_camera.far_m
-    x0, y0 = float(centre[0] - reach_m), float(centre[1] - reach_m)
+    description = f"{dataset.format} dataset {dataset.name}: sensors from its calibration, ground levelled"
+    return site_spec(_scene_id(dataset), description, dataset.name, sensors, centre, reach_m, ref)
+
+
+def site_spec(
+    scene_id: str,
+    description: str,
+    name: str,
+    sensors: list[SensorSpec],
+    centre_xy_m: np.ndarray,
+    reach_m: float,
+    reference: SceneSpec,
+) -> SceneSpec:
+    """A real site as a scene: one agent (`AGENT_ID`) with `sensors`, no lanes, a square table of half
+    side `reach_m` around `centre_xy_m`; car classes and design speed of the real-size `reference`."""
+    x0, y0 = float(centre_xy_m[0] - reach_m), float(centre_xy_m[1] - reach_m)
     square = [[x0, y0], [x0 + 2 * reach_m, y0], [x0 + 2 * reach_m, y0 + 2 * reach_m], [x0, y0 + 2 * reach_m]]
     return SceneSpec(
-        scene_id=_scene_id(dataset),
-        description=f"{dataset.format} dataset {dataset.name}: sensors from its calibration, ground levelled",
+        scene_id=scene_id,
+        description=description,
         table=TableSpec(size_x_m=2 * reach_m, size_y_m=2 * reach_m, origin_m=(x0, y0)),
-        design_speed_mps=ref.top_speed_mps,
-        vehicle=ref.vehicle,
-        vehicle_classes=list(ref.vehicle_classes),
-        traffic_mix=ref.traffic_mix,
-        areas=[AreaSpec(id="site", name="the dataset's site", polygon_m=square, z_min_m=-5.0, z_max_m=10.0)],
-        agents=[AgentSpec(id=AGENT_ID, name=dataset.name, areas=["site"])],
+        design_speed_mps=reference.top_speed_mps,
+        vehicle=reference.vehicle,
+        vehicle_classes=list(reference.vehicle_classes),
+        traffic_mix=reference.traffic_mix,
+        areas=[AreaSpec(id="site", name="the site", polygon_m=square, z_min_m=-5.0, z_max_m=10.0)],
+        agents=[AgentSpec(id=AGENT_ID, name=name, areas=["site"])],
         sensors=sensors,
     )
 

@@ -200,3 +200,53 @@ def test_can_msgs_frames_in_a_bag(tmp_path: Path, scene: Scene) -> None:
     a = [r.message for r in _records(tmp_path / "a.mcap")]
     b = [r.message for r in _records(tmp_path / "b.mcap")]
     assert a == b
+
+
+NEBULA_VLP16 = REAL / "nebula_velodyne" / "vlp16" / "bag"
+
+
+def test_a_real_velodyne_bag_and_the_same_packets_as_nebula_packets(tmp_path: Path, scene: Scene) -> None:
+    """nebula's real VLP-16 bag (velodyne_msgs/VelodyneScan, no stored definitions) imported with only
+    its topic mapped and the unit's own calibration file; its packets rewritten here as
+    nebula_msgs/NebulaPackets import to the same clouds."""
+    from rosbags.highlevel import AnyReader
+
+    from shared.captures.units import VelodyneUnit
+
+    calibration = REAL / "nebula_velodyne" / "calibration" / "VLP16.yaml"
+    mapping = _mapping(
+        tmp_path, scene, f"topics:\n  /velodyne_packets: {{sensor: lidar_11, calibration: {calibration}}}\n"
+    )
+    report = import_files([NEBULA_VLP16], tmp_path / "a.mcap", scene, mapping)
+    assert report.devices == {"lidar_11": "vlp16"} and report.counters["lidar_11"]["packets"] == 603
+    store = _store(legacy=False)
+    packets = []
+    with AnyReader([NEBULA_VLP16], default_typestore=store) as reader:
+        for c, _, raw in reader.messages():
+            msg = reader.deserialize(raw, c.msgtype)
+            packets += [(p.stamp.sec * 10**9 + p.stamp.nanosec, bytes(p.data)) for p in msg.packets]
+    unit = VelodyneUnit("lidar_11", "vlp16", calibration)
+    expected = [m for stamp, data in packets for m, _ in unit.on_packet(data, stamp)]
+    got = [r.message for r in _records(tmp_path / "a.mcap")]
+    assert len(got) == len(expected) == report.messages["lidar_11"] >= 3
+    assert all(a.data == b.data for a, b in zip(got, expected, strict=True))
+    t_cls, h_cls = store.types["builtin_interfaces/msg/Time"], store.types["std_msgs/msg/Header"]
+    p_cls, s_cls = store.types["nebula_msgs/msg/NebulaPacket"], store.types["nebula_msgs/msg/NebulaPackets"]
+    bag = tmp_path / "nebula"
+    with Ros2Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conn = writer.add_connection("/velodyne_packets", "nebula_msgs/msg/NebulaPackets", typestore=store)
+        for k in range(0, len(packets), 100):
+            chunk = packets[k : k + 100]
+            stamp = chunk[-1][0]
+
+            def t(ns: int):
+                return t_cls(sec=ns // 10**9, nanosec=ns % 10**9)
+
+            msg = s_cls(
+                header=h_cls(stamp=t(stamp), frame_id="velodyne"),
+                packets=[p_cls(stamp=t(s), data=np.frombuffer(d, np.uint8)) for s, d in chunk],
+            )
+            writer.write(conn, stamp, store.serialize_cdr(msg, "nebula_msgs/msg/NebulaPackets"))
+    import_files([bag], tmp_path / "b.mcap", scene, mapping)
+    again = [r.message for r in _records(tmp_path / "b.mcap")]
+    assert [m.data for m in again] == [m.data for m in got]
