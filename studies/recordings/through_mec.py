@@ -205,15 +205,16 @@ def study(inputs: list[Path], map_file: Path, name: str) -> dict[str, Any]:
     }
 
 
-def markdown(r: dict[str, Any], command: str) -> str:
+def markdown(r: dict[str, Any]) -> str:
+    """The results as a docs section (the command and commit follow it: `replace_section`)."""
     m, lidar, counters = r["mec"], r["lidar"], r["import"]["counters"]
     boxes, tracks, ms = m["lidar_boxes_per_frame"], m["tracks_per_frame"], m["frame_ms"]
     sources = ", ".join(f"`{k}`" for k in r["import"]["mapped"])
     low, high = math.degrees(lidar["vertical_min_rad"]), math.degrees(lidar["vertical_max_rad"])
     return "\n".join(
         [
-            f"`{command}`; MEC settings of the `{r['mec_profile']}` profile, clustering lidar detector; "
-            f"commit {r['commit']}, {r['machine']['cpu_model']}.",
+            f"MEC settings of the `{r['mec_profile']}` profile, clustering lidar detector; "
+            f"{r['machine']['cpu_model']}.",
             "",
             f"- imported: {sources} -> one {r['device']} (its model from its bytes); decoder {counters}",
             f"- the site configured for it: the lidar {r['lidar_height_m']:.2f} m above the level plane "
@@ -243,8 +244,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     result = study(args.inputs, args.map_file, args.name)
-    command = "python -m studies.recordings.through_mec " + " ".join(sys.argv[1:] if argv is None else argv)
-    text = markdown(result, command)
+    text = markdown(result)
     print(text)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
