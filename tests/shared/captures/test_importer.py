@@ -250,3 +250,62 @@ def test_a_real_velodyne_bag_and_the_same_packets_as_nebula_packets(tmp_path: Pa
     import_files([bag], tmp_path / "b.mcap", scene, mapping)
     again = [r.message for r in _records(tmp_path / "b.mcap")]
     assert [m.data for m in again] == [m.data for m in got]
+
+
+def test_ros1_driver_layouts(tmp_path: Path, scene: Scene) -> None:
+    """ROS 1 bags as ros_rslidar writes them (rslidar_msgs/rslidarScan arrays, a DIFOP as
+    rslidar_msgs/rslidarPacket; an emulated RS-LiDAR-16 written here) and as the ROS 1 velodyne driver
+    writes single packets (velodyne_msgs/VelodynePacket; nebula's real VLP-16 packets rewritten here)."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag1 import Writer as Ros1Writer
+
+    from shared.captures.units import VelodyneUnit
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    register_msg_dir(store, MSG_DIR, only_new=True)
+    t_cls, h_cls = store.types["builtin_interfaces/msg/Time"], store.types["std_msgs/msg/Header"]
+
+    def t(ns: int):
+        return t_cls(sec=ns // 10**9, nanosec=ns % 10**9)
+
+    packets, difop = _robosense_packets("rs16", 3)
+    rs_packet, rs_scan = (
+        store.types["rslidar_msgs/msg/rslidarPacket"],
+        store.types["rslidar_msgs/msg/rslidarScan"],
+    )
+    v_packet = store.types["velodyne_msgs/msg/VelodynePacket"]
+    velodyne = []
+    with AnyReader([NEBULA_VLP16], default_typestore=_store(legacy=False)) as reader:
+        for c, _, raw in reader.messages():
+            msg = reader.deserialize(raw, c.msgtype)
+            velodyne += [(p.stamp.sec * 10**9 + p.stamp.nanosec, bytes(p.data)) for p in msg.packets]
+    bag = tmp_path / "drivers.bag"
+    with Ros1Writer(bag) as writer:
+        scans = writer.add_connection("/rslidar_packets", "rslidar_msgs/msg/rslidarScan", typestore=store)
+        difops = writer.add_connection(
+            "/rslidar_packets_difop", "rslidar_msgs/msg/rslidarPacket", typestore=store
+        )
+        vlp = writer.add_connection("/velodyne_packets", "velodyne_msgs/msg/VelodynePacket", typestore=store)
+        d = rs_packet(stamp=t(T0_NS), data=np.frombuffer(difop, np.uint8))
+        writer.write(difops, T0_NS, store.serialize_ros1(d, packet_type))
+        for k in range(0, len(packets), 30):
+            chunk = packets[k : k + 30]
+            msg = rs_scan(
+                header=h_cls(seq=k, stamp=t(chunk[-1][0]), frame_id="rslidar"),
+                packets=[rs_packet(stamp=t(s), data=np.frombuffer(p, np.uint8)) for s, p in chunk],
+            )
+            writer.write(scans, chunk[-1][0], store.serialize_ros1(msg, scan_type))
+        for stamp, data in velodyne:  # another time, another unit: the bag holds both
+            p = v_packet(stamp=t(stamp), data=np.frombuffer(data, np.uint8))
+            writer.write(vlp, stamp, store.serialize_ros1(p, "velodyne_msgs/msg/VelodynePacket"))
+    mapping = _mapping(
+        tmp_path, scene, "topics:\n  /rslidar_packets: lidar_11\n  /rslidar_packets_difop: lidar_11\n"
+        "  /velodyne_packets: lidar_12\n"
+    )  # fmt: skip
+    report = import_files([bag], tmp_path / "rec.mcap", scene, mapping)
+    assert report.devices == {"lidar_11": "rs16", "lidar_12": "vlp16"}
+    assert report.counters["lidar_11"]["msop"] == len(packets) and report.messages["lidar_11"] >= 2
+    unit = VelodyneUnit("lidar_12", "vlp16")
+    expected = [m for stamp, data in velodyne for m, _ in unit.on_packet(data, stamp)]
+    got = [r.message for r in _records(tmp_path / "rec.mcap") if "lidar_12" in r.record.key]
+    assert [m.data for m in got] == [m.data for m in expected] and len(got) >= 3
