@@ -269,10 +269,8 @@ def test_ros1_driver_layouts(tmp_path: Path, scene: Scene) -> None:
         return t_cls(sec=ns // 10**9, nanosec=ns % 10**9)
 
     packets, difop = _robosense_packets("rs16", 3)
-    rs_packet, rs_scan = (
-        store.types["rslidar_msgs/msg/rslidarPacket"],
-        store.types["rslidar_msgs/msg/rslidarScan"],
-    )
+    packet_type, scan_type = "rslidar_msgs/msg/rslidarPacket", "rslidar_msgs/msg/rslidarScan"
+    rs_packet, rs_scan = store.types[packet_type], store.types[scan_type]
     v_packet = store.types["velodyne_msgs/msg/VelodynePacket"]
     velodyne = []
     with AnyReader([NEBULA_VLP16], default_typestore=_store(legacy=False)) as reader:
@@ -281,10 +279,8 @@ def test_ros1_driver_layouts(tmp_path: Path, scene: Scene) -> None:
             velodyne += [(p.stamp.sec * 10**9 + p.stamp.nanosec, bytes(p.data)) for p in msg.packets]
     bag = tmp_path / "drivers.bag"
     with Ros1Writer(bag) as writer:
-        scans = writer.add_connection("/rslidar_packets", "rslidar_msgs/msg/rslidarScan", typestore=store)
-        difops = writer.add_connection(
-            "/rslidar_packets_difop", "rslidar_msgs/msg/rslidarPacket", typestore=store
-        )
+        scans = writer.add_connection("/rslidar_packets", scan_type, typestore=store)
+        difops = writer.add_connection("/rslidar_packets_difop", packet_type, typestore=store)
         vlp = writer.add_connection("/velodyne_packets", "velodyne_msgs/msg/VelodynePacket", typestore=store)
         d = rs_packet(stamp=t(T0_NS), data=np.frombuffer(difop, np.uint8))
         writer.write(difops, T0_NS, store.serialize_ros1(d, packet_type))
