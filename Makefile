@@ -114,7 +114,7 @@ test-integration: install
 test-fault: install
 	$(BIN)/python -m pytest -m "fault and not slow" $(PYTEST_ARGS)
 
-bench: install pki ## benchmarks: the whole system as `make up` runs it (10 min), then bus, sim, detectors, MEC, coordinator, memory, secure sites, device decoders -> tests/bench/results/*.json
+bench: install pki ## benchmarks: the whole system as `make up` runs it (10 min), then bus, sim, detectors, MEC, coordinator, memory, secure sites, device decoders, recording import -> tests/bench/results/*.json
 	$(MAKE) down
 	$(BIN)/python -m tests.bench.system_bench --readme $(SYSTEM_BENCH_ARGS)
 	$(BIN)/python -m tests.bench.bus_bench $(BENCH_ARGS)
@@ -128,6 +128,7 @@ bench: install pki ## benchmarks: the whole system as `make up` runs it (10 min)
 	$(BIN)/python -m tests.shared.bus.fuzz --inputs 1000000 --out tests/bench/results/fuzz.json
 	$(BIN)/python -m tests.bench.device_decoder_bench
 	$(BIN)/python -m tests.shared.devices.fuzz --inputs 1000000 --out tests/bench/results/device_fuzz.json
+	$(BIN)/python -m tests.bench.import_bench
 
 soak: install pki ## the whole system for 1 h: RSS slope (MB/h), threads and fds per process -> tests/bench/results/system.json (label soak)
 	$(MAKE) down
