@@ -43,6 +43,10 @@ log = logging.getLogger(__name__)
 
 #: How late (in its input) a message may come and still be written in time order.
 REORDER_WINDOW_NS = 2 * NS_PER_S
+#: An import's chunks: lz4, not the recorder's zstd. Imports are the bulk of what is written at once
+#: (raw clouds, JPEGs): zstd took 1.25 s of a 20 s capture's 6 s import for 17 % smaller clouds and
+#: 2 % smaller JPEGs, lz4 0.25 s (tests/bench/import_bench.py).
+IMPORT_COMPRESSION = "lz4"
 
 
 def input_kind(path: Path) -> str:
@@ -67,8 +71,10 @@ def import_files(
     mapping: Mapping | None = None,
     msg_dir: Path | None = None,
     rebase_to_ns: int | None = None,
+    compression: str = IMPORT_COMPRESSION,
 ) -> ImportReport:
-    """Import `paths` into the recording `out` (module docstring); CaptureError when it cannot."""
+    """Import `paths` into the recording `out` (module docstring); CaptureError when it cannot.
+    `compression`: the recording's chunk compression (shared/recording/writer.py COMPRESSIONS)."""
     from shared.captures import rosbag  # the bag reader pulls in rosbags
     from shared.recording.writer import RecordingWriter  # mcap's protobuf support, only when writing
 
@@ -86,7 +92,7 @@ def import_files(
     partial = out.with_name(out.name + ".partial")
     partial.unlink(missing_ok=True)
     try:
-        with RecordingWriter(partial) as writer:
+        with RecordingWriter(partial, compression=compression) as writer:
             sink = _Sink(writer, scene, report, rebase_to_ns)
             for stamp_ns, sensor, message in heapq.merge(*map(_in_order, streams), key=lambda i: i[0]):
                 sink.write(sensor, message, stamp_ns)

@@ -22,8 +22,8 @@ Timed on one core (sched_setaffinity), `--reps` times (p50 reported): the whole 
 time, the real-time factor = recorded seconds / wall seconds) and each input imported alone; then,
 once, each input's import in its steps: reading + decoding (the importer's item generator), and
 writing the same messages through the importer's sink with each of the recording writer's
-compressions (the import writes zstd). Below the target (or with --profile), one more import runs
-under cProfile and the functions and files that take the time are reported. `--lidar-samples 250`
+compressions (the import writes IMPORT_COMPRESSION). Below the target (or with --profile), one more
+import runs under cProfile and the functions and files that take the time are reported. `--lidar-samples 250`
 makes the lidar return on the sand table's 250 azimuths a turn only (8000 points a turn).
 
     python -m tests.bench.import_bench [--seconds 20] [--reps 3] [--profile] [--lidar-samples 1800]
@@ -76,7 +76,7 @@ CAN_FRAME_S = 230e-6  # an 8-byte frame with stuffing at 500 kbit/s
 LIDAR_IP, HOST_IP = bytes([192, 168, 1, 200]), bytes([192, 168, 1, 102])
 MSOP_PORT, DIFOP_PORT = 6699, 7788
 FIRINGS = 1800  # an RS-LiDAR-32's firings a turn at 600 rpm
-COMPRESSIONS = ("zstd", "lz4", "none")  # the recording writer's; the import writes zstd
+COMPRESSIONS = ("zstd", "lz4", "none")  # the recording writer's
 
 
 @dataclass(frozen=True)
@@ -311,8 +311,8 @@ def components(
 ) -> dict[str, dict[str, Any]]:
     """Each input's import in its steps, timed once: reading and decoding (the importer's item
     generator run to its end), then writing the same messages as the importer does (its sink) with each
-    of the recording writer's compressions (the import itself writes zstd). For the pcap, one pass of
-    its reader alone too (the importer reads a capture twice: a survey, then the decode)."""
+    of the recording writer's compressions (the import itself writes IMPORT_COMPRESSION). For the pcap,
+    one pass of its reader alone too (the importer reads a capture twice: a survey, then the decode)."""
     from shared.captures import importer, rosbag
     from shared.captures.pcap import PcapReader
     from shared.captures.report import ImportReport
