@@ -19,6 +19,7 @@ import threading
 import time
 
 NS_PER_S = 1_000_000_000
+MAX_STAMP_NS = 2**63 - 1  # a stamp is int64 ns since the UNIX epoch (a header's, a recording's)
 MAX_SIM_SPEED = 100.0  # sim seconds per wall second a sim may run at (and a SimClock may claim)
 TICK_HZ_DECIMALS = 6
 

@@ -9,6 +9,11 @@ What those readers leave to their user is done here:
   `truncated`, not read (a part of a frame's bytes would read as a shorter frame);
 - a BLF file shorter than its header says (a recording stopped mid-write) reads to its last whole
   object without complaint; it is counted as `truncated` (the header's and the file's sizes);
+- a BLF object that does not read (a bad signature, a container that does not decompress, a size less
+  than its header's, which python-can's reader would read again for ever) is counted
+  (`rejected/blf_object`) and the reading stops there;
+- a frame whose time is none (NaN, negative, past what a stamp in ns holds) is counted
+  (`rejected/timestamp`), not passed on;
 - error frames and remote frames are counted and passed on as such (the ARS 408 list assembler
   counts error frames; a remote frame carries no data).
 A file that is none of these formats, or whose header does not read, is a `CaptureFormatError`.
@@ -20,6 +25,7 @@ import io
 import logging
 import re
 import struct
+import zlib
 from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -27,8 +33,10 @@ from pathlib import Path
 from typing import Any
 
 import can
+from can.io.blf import BLFParseError
 
 from shared.captures.errors import CaptureFormatError
+from shared.timebase import MAX_STAMP_NS, NS_PER_S
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +44,8 @@ SUFFIXES = (".log", ".asc", ".blf")
 _ASC_DATA_LINE = re.compile(r"^\s*\d+(\.\d+)?\s")  # an ASC event line starts with its time
 # What python-can's readers raise on a line or object they cannot parse.
 _PARSE_ERRORS = (ValueError, IndexError, KeyError, struct.error, TypeError, can.CanError)
+_BLF_ERRORS = (*_PARSE_ERRORS, BLFParseError, zlib.error)  # zlib: a container that does not decompress
+_BLF_OBJECT_HEADER = struct.Struct("<4sHHLL")  # signature, header size, header version, object size, type
 
 
 @dataclass(frozen=True, slots=True)
@@ -51,6 +61,22 @@ class CanFrame:
     data: bytes
     is_error: bool = False
     is_remote: bool = False
+
+
+class _BlfReader(can.BLFReader):
+    """python-can's BLFReader, stopping at an object whose size is less than its header's: python-can's
+    moves on by an object's size, so it would read an object of size 0 for ever."""
+
+    def _parse_container(self, data: bytes) -> Iterator[can.Message]:
+        whole, pos = self._tail + data, 0
+        while (at := whole.find(b"LOBJ", pos, pos + 8)) >= 0 and at + _BLF_OBJECT_HEADER.size <= len(whole):
+            size = _BLF_OBJECT_HEADER.unpack_from(whole, at)[3]
+            if size < _BLF_OBJECT_HEADER.size:
+                self._tail = b""
+                yield from super()._parse_container(whole[:at])
+                raise BLFParseError(f"an object of {size} bytes, less than its header")
+            pos = at + size
+        yield from super()._parse_container(data)
 
 
 def is_can_log(path: Path) -> bool:
@@ -89,11 +115,17 @@ class CanLogReader:
         else:
             yield from self._text()
 
-    def _frame(self, msg: Any, line: int | None) -> CanFrame:
+    def _frame(self, msg: Any, line: int | None) -> CanFrame | None:
+        """The frame of a python-can message; None (counted) when its time is none (NaN, negative, past
+        what a stamp in ns holds)."""
+        stamp_s = float(msg.timestamp)
+        if not 0 <= stamp_s < MAX_STAMP_NS / NS_PER_S:
+            self.counts["rejected/timestamp"] += 1
+            return None
         frame = CanFrame(
             index=self.frames,
             line=line,
-            stamp_s=float(msg.timestamp),
+            stamp_s=stamp_s,
             channel="" if msg.channel is None else str(msg.channel),
             can_id=int(msg.arbitration_id),
             is_extended=bool(msg.is_extended_id),
@@ -128,7 +160,9 @@ class CanLogReader:
             text = _Lines("".join(header + lines[start:]))
             try:
                 for msg in reader_cls(text):
-                    yield self._frame(msg, start + text.taken)  # the line just read, 1-based
+                    frame = self._frame(msg, start + text.taken)  # the line just read, 1-based
+                    if frame is not None:
+                        yield frame
                 return
             except _PARSE_ERRORS as exc:
                 bad = start + max(text.taken - len(header), 1) - 1  # the line the reader stopped on
@@ -143,14 +177,16 @@ class CanLogReader:
 
     def _blf(self) -> Iterator[CanFrame]:
         try:
-            reader = can.BLFReader(io.BytesIO(self.data) if self.data is not None else str(self.path))
-        except (*_PARSE_ERRORS, OSError) as exc:
+            reader = _BlfReader(io.BytesIO(self.data) if self.data is not None else str(self.path))
+        except (*_BLF_ERRORS, OSError) as exc:
             raise CaptureFormatError(f"{self.path}: not a BLF file ({type(exc).__name__}: {exc})") from None
         size = len(self.data) if self.data is not None else self.path.stat().st_size
         try:
             for msg in reader:
-                yield self._frame(msg, None)
-        except _PARSE_ERRORS as exc:
+                frame = self._frame(msg, None)
+                if frame is not None:
+                    yield frame
+        except _BLF_ERRORS as exc:
             self.counts["rejected/blf_object"] += 1
             log.warning("%s: stopped at an object that does not read (%s)", self.path, exc)
         if reader.file_size and size < reader.file_size:

@@ -11,8 +11,10 @@ its user is done here:
 - link types: Ethernet (with VLAN tags), Linux cooked v1 / v2 (`tcpdump -i any`), raw IP, BSD
   loopback. Any other is a `CaptureFormatError` naming it (nothing of such a file can be read).
 Timestamps: dpkt gives float seconds; stamps are rounded to the nanosecond, within 0.3 us of the
-file's (a lidar packet lasts 0.5 ms or more). In a pcapng file every interface is read with the first
-interface's link type and resolution (dpkt's reader; a capture of one lidar network has one).
+file's (a lidar packet lasts 0.5 ms or more); a pcapng record whose 64-bit time is past what a stamp
+(int64 ns) holds is damaged: counted (`rejected/timestamp`). In a pcapng file every interface is read
+with the first interface's link type and resolution (dpkt's reader; a capture of one lidar network has
+one).
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from typing import Any, BinaryIO
 import dpkt
 
 from shared.captures.errors import CaptureFormatError
-from shared.timebase import NS_PER_S
+from shared.timebase import MAX_STAMP_NS, NS_PER_S
 
 log = logging.getLogger(__name__)
 
@@ -154,6 +156,9 @@ class PcapReader:
                 index = self.records
                 self.records += 1
                 stamp_ns = round(ts * NS_PER_S)
+                if not 0 <= stamp_ns <= MAX_STAMP_NS:  # a pcapng time no stamp holds: a damaged record
+                    self.counts["rejected/timestamp"] += 1
+                    continue
                 datagram = self._dissect(link, buf, index, start, stamp_ns, fragments, last)
                 if datagram is not None:
                     yield datagram
@@ -187,7 +192,9 @@ class PcapReader:
     ) -> Datagram | None:
         try:
             ip = _network_layer(link, buf)
-        except (dpkt.NeedData, dpkt.UnpackError, struct.error, ValueError, IndexError):
+        # AttributeError: dpkt 1.9.8 on an IPv6 fragment header followed by other extension headers
+        # (it asks the last one for `frag_off`).
+        except (dpkt.NeedData, dpkt.UnpackError, struct.error, ValueError, IndexError, AttributeError):
             self.counts["rejected/link_header"] += 1
             return None
         if isinstance(ip, dpkt.ip.IP):
@@ -241,7 +248,7 @@ class PcapReader:
             last.pop(oldest, None)
             self.counts["rejected/ip_fragments_incomplete"] += 1
         pieces = fragments.setdefault(key, {})
-        start = int(ip.offset)  # bytes
+        start = int(ip.offset) * 8  # dpkt gives the field as sent: in 8-byte units (RFC 791)
         pieces[start] = data
         if not ip.mf:
             last[key] = start + len(data)

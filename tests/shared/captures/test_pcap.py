@@ -110,7 +110,7 @@ def test_pcapng_and_other_links(tmp_path: Path) -> None:
 
 def _fragment(ident: int, offset: int, more: bool, data: bytes) -> dpkt.ip.IP:
     ip = dpkt.ip.IP(src=bytes([192, 168, 1, 200]), dst=bytes([192, 168, 1, 102]), p=17, id=ident)
-    ip.mf, ip.offset = int(more), offset
+    ip.mf, ip.offset = int(more), offset // 8  # the field counts 8-byte units (RFC 791)
     ip.data = data
     ip.len = 20 + len(data)
     return ip
