@@ -128,6 +128,7 @@ bench: install pki ## benchmarks: the whole system as `make up` runs it (10 min)
 	$(BIN)/python -m tests.shared.bus.fuzz --inputs 1000000 --out tests/bench/results/fuzz.json
 	$(BIN)/python -m tests.bench.device_decoder_bench
 	$(BIN)/python -m tests.shared.devices.fuzz --inputs 1000000 --out tests/bench/results/device_fuzz.json
+	$(BIN)/python -m tests.shared.captures.fuzz --inputs 100000 --out tests/bench/results/capture_fuzz.json
 	$(BIN)/python -m tests.bench.import_bench
 
 soak: install pki ## the whole system for 1 h: RSS slope (MB/h), threads and fds per process -> tests/bench/results/system.json (label soak)
