@@ -34,18 +34,13 @@ from shared.captures.mapping import load_mapping
 from shared.datasets.roadside.site import (
     AGENT_ID,
     GROUND_FRAMES,
-    GROUND_ITERATIONS,
-    GROUND_MAX_POINTS,
     GROUND_MAX_TILT_RAD,
-    GROUND_MIN_INLIERS,
-    GROUND_SEED,
-    GROUND_TOLERANCE_M,
     RANGE_MARGIN,
     REFERENCE_SCENE,
+    fit_ground,
     levelling_transform,
     site_spec,
 )
-from shared.detection.lidar.ground import fit_horizontal_plane
 from shared.devices import robosense
 from shared.geometry.transforms import pose_from_matrix
 from shared.machine import git_commit, machine_info
@@ -110,15 +105,7 @@ def configured_scene(
     """The one-lidar site configured for the recorded unit (module docstring); its height above the
     ground found, and the share of the first clouds' points on that ground."""
     xyz = [point_cloud_to_array(c)[:, :3].astype(np.float64) for _, c in recorded]
-    found = fit_horizontal_plane(
-        np.concatenate(xyz[:GROUND_FRAMES]),
-        np.random.default_rng(GROUND_SEED),
-        tolerance_m=GROUND_TOLERANCE_M,
-        max_tilt_rad=GROUND_MAX_TILT_RAD,
-        min_inliers=GROUND_MIN_INLIERS,
-        iterations=GROUND_ITERATIONS,
-        max_points=GROUND_MAX_POINTS,
-    )
+    found = fit_ground(np.concatenate(xyz[:GROUND_FRAMES]))
     if found is None:
         raise ValueError(f"{name}: no ground within {GROUND_MAX_TILT_RAD} rad of level in its first clouds")
     plane, inliers = found

@@ -93,8 +93,17 @@ def fit_site_ground(dataset: RoadsideDataset) -> Plane:
                 pooled.append(xyz @ T[:3, :3].T + T[:3, 3])
     if not pooled:
         raise RoadsideFormatError(f"{dataset.root}: no lidar frame to find the ground in")
-    found = fit_horizontal_plane(
-        np.concatenate(pooled),
+    found = fit_ground(np.concatenate(pooled))
+    if found is None:
+        raise RoadsideFormatError(f"{dataset.root}: no ground within {GROUND_MAX_TILT_RAD} rad of level")
+    return found[0]
+
+
+def fit_ground(xyz_m: np.ndarray) -> tuple[Plane, np.ndarray] | None:
+    """The real site's ground in (N, 3) points pooled from its first lidar frames: the seeded RANSAC's
+    best near-horizontal plane and its inlier mask, or None (the GROUND_* settings above)."""
+    return fit_horizontal_plane(
+        xyz_m,
         np.random.default_rng(GROUND_SEED),
         tolerance_m=GROUND_TOLERANCE_M,
         max_tilt_rad=GROUND_MAX_TILT_RAD,
@@ -102,10 +111,6 @@ def fit_site_ground(dataset: RoadsideDataset) -> Plane:
         iterations=GROUND_ITERATIONS,
         max_points=GROUND_MAX_POINTS,
     )
-    if found is None:
-        raise RoadsideFormatError(f"{dataset.root}: no ground within {GROUND_MAX_TILT_RAD} rad of level")
-    plane, _ = found
-    return plane
 
 
 def levelling_transform(plane: Plane) -> np.ndarray:
