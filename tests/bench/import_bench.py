@@ -55,6 +55,7 @@ from shared.captures.importer import import_files
 from shared.captures.mapping import Mapping, load_mapping
 from shared.machine import git_commit, machine_info
 from shared.paths import DEFAULT_SCENE
+from shared.readme import replace_section
 from shared.scene.scene import Scene
 from shared.timebase import NS_PER_S
 from sim.emulators.ars408 import Ars408Emulator, Target
@@ -512,6 +513,9 @@ def main(argv: list[str] | None = None) -> int:
         "--work", type=Path, help="where the recording is built (a temporary folder by default)"
     )
     parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument(
+        "--readme", action="store_true", help="write the import-bench section of docs/recordings.md"
+    )
     args = parser.parse_args(argv)
     os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})  # one core
     with tempfile.TemporaryDirectory(prefix="import_bench_") as tmp:
@@ -533,7 +537,42 @@ def main(argv: list[str] | None = None) -> int:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(record, indent=1))
     print("\n".join(summary_lines(record)))
+    if args.readme:
+        replace_section("import-bench", docs_section(record))
     return 0
+
+
+def docs_section(record: dict[str, Any]) -> str:
+    """The whole import and each input alone against the target, and where the time goes."""
+    imp, alone, steps = record["import"], record.get("alone", {}), record.get("steps", {})
+    met = "met" if record["met"] else "**not met**"
+    lines = [
+        f"{record['recorded_s']:g} s recorded; {record['machine']['cpu_model']}, one core; p50 of "
+        f"{record['reps']} imports.",
+        "",
+        "| Imported | Wall s | CPU s | Real-time factor |",
+        "|---|---|---|---|",
+        f"| all three | {imp['wall_s_p50']:.2f} | {imp['cpu_s_p50']:.2f} | {imp['real_time_factor']:.1f}x "
+        f"(target {record['target_real_time_factor']:g}x: {met}) |",
+    ]
+    for name, r in alone.items():
+        lines.append(
+            f"| {name} alone | {r['wall_s_p50']:.2f} | {r['cpu_s_p50']:.2f} | {r['real_time_factor']:.1f}x |"
+        )
+    if steps:
+        lines += [
+            "",
+            "Each input's import in its steps (s):",
+            "",
+            "| Input | Read + decode | Write zstd / lz4 / none |",
+            "|---|---|---|",
+        ]
+        for name, st in steps.items():
+            w = st["write_s"]
+            lines.append(
+                f"| {name} | {st['read_decode_s']:.2f} | {w['zstd']:.2f} / {w['lz4']:.2f} / {w['none']:.2f} |"
+            )
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":
