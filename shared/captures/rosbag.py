@@ -223,20 +223,35 @@ def bag_items(
     """The scene-sensor messages of `bags` (module docstring), in the bags' time order."""
     try:
         types = _bag_types(bags)
+        legacy = _legacy_layout(bags, types, msg_dir)
+    except CaptureError:
+        raise
     except Exception as exc:  # rosbags' own errors on a corrupt, foreign or cut-off bag
         raise BagImportError(f"{', '.join(map(str, bags))}: {type(exc).__name__}: {exc}") from None
-    for legacy in (LEGACY_MARKER in types, LEGACY_MARKER not in types):
-        store = _typestore(bags, legacy, msg_dir)
-        try:
-            yield from _bag_items(bags, scene, mapping, store, report)
-            return
-        except _WrongLayout:
-            continue
+    yield from _bag_items(bags, scene, mapping, _typestore(bags, legacy, msg_dir), report)
+
+
+def _legacy_layout(bags: Sequence[Path], types: set[str], msg_dir: Path | None) -> bool:
+    """Whether the bag's rslidar_msg packets are rslidar_sdk's 2022 layout: it has `RslidarScan`, or its
+    first `RslidarPacket` reads as a 1248-byte packet only that way. Decided once, before anything is
+    imported: a later packet of the wrong length is the decoder's to count, not a reason to switch."""
+    if LEGACY_MARKER in types:
+        return True
+    if "rslidar_msg/msg/RslidarPacket" not in types:
+        return False
+    for legacy in (False, True):
+        with AnyReader(list(bags), default_typestore=_typestore(bags, legacy, msg_dir)) as reader:
+            connections = [c for c in reader.connections if c.msgtype == "rslidar_msg/msg/RslidarPacket"]
+            first = next(iter(reader.messages(connections=connections)), None)
+            if first is None:
+                return False
+            try:
+                msg = reader.deserialize(first[2], first[0].msgtype)
+            except Exception:  # rosbags' own error: the bytes are not this layout
+                continue
+            if len(bytes(getattr(msg, "data", b""))) == robosense.PACKET_BYTES:
+                return legacy
     raise BagImportError(f"{', '.join(map(str, bags))}: rslidar_msg packets read in neither layout")
-
-
-class _WrongLayout(Exception):
-    """rslidar_msg packets that do not read in the layout tried (nothing was yielded yet)."""
 
 
 def _bag_items(
@@ -260,8 +275,6 @@ def _bag_items(
         for sensor, unit in {**units, **radars}.items():
             unit.finish()
             report.counters[sensor] = unit.counters()
-    except (BagImportError, _WrongLayout):
-        raise
     except CaptureError:
         raise
     except Exception as exc:  # rosbags' and the decoders' own errors on corrupt or cut-off input
@@ -378,14 +391,9 @@ def _first_packets(reader: Any, topics: list[str]) -> tuple[bytes | None, str | 
 
 def _deserialize(reader: Any, raw: bytes, msgtype: str, topic: str, i: int) -> Any:
     try:
-        msg = reader.deserialize(raw, msgtype)
+        return reader.deserialize(raw, msgtype)
     except Exception as exc:
-        if msgtype.startswith("rslidar_msg/"):
-            raise _WrongLayout from None
         raise BagImportError(f"topic {topic} message {i}: does not deserialize ({exc})") from None
-    if msgtype == "rslidar_msg/msg/RslidarPacket" and len(bytes(msg.data)) != robosense.PACKET_BYTES:
-        raise _WrongLayout
-    return msg
 
 
 def _messages(

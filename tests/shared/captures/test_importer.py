@@ -305,3 +305,29 @@ def test_ros1_driver_layouts(tmp_path: Path, scene: Scene) -> None:
     expected = [m for stamp, data in velodyne for m, _ in unit.on_packet(data, stamp)]
     got = [r.message for r in _records(tmp_path / "rec.mcap") if "lidar_12" in r.record.key]
     assert [m.data for m in got] == [m.data for m in expected] and len(got) >= 3
+
+
+def test_a_wrong_length_packet_is_counted_not_a_reason_to_refuse_the_bag(
+    tmp_path: Path, scene: Scene
+) -> None:
+    """rslidar_sdk's current layout with one packet cut to 1000 bytes half-way: the layout is decided
+    on the first packet, the short one is the decoder's to count (it once sent the import to the
+    2022 layout and refused the bag whole)."""
+    packets, difop = _robosense_packets("rs16", 3)
+    packets[len(packets) // 2] = (packets[len(packets) // 2][0], packets[len(packets) // 2][1][:1000])
+    store = _store(legacy=False)
+    t_cls, h_cls = store.types["builtin_interfaces/msg/Time"], store.types["std_msgs/msg/Header"]
+    p_cls = store.types["rslidar_msg/msg/RslidarPacket"]
+    bag = tmp_path / "current"
+    with Ros2Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conn = writer.add_connection("/rslidar_packets", "rslidar_msg/msg/RslidarPacket", typestore=store)
+        for stamp, data, is_difop in [(T0_NS, difop, 1), *((s, d, 0) for s, d in packets)]:
+            header = h_cls(stamp=t_cls(sec=stamp // 10**9, nanosec=stamp % 10**9), frame_id="rslidar")
+            msg = p_cls(
+                header=header, is_difop=is_difop, is_frame_begin=0, data=np.frombuffer(data, np.uint8)
+            )
+            writer.write(conn, stamp, store.serialize_cdr(msg, "rslidar_msg/msg/RslidarPacket"))
+    mapping = _mapping(tmp_path, scene, "topics:\n  /rslidar_packets: lidar_11\n")
+    report = import_files([bag], tmp_path / "rec.mcap", scene, mapping)
+    assert report.counters["lidar_11"]["rejected/msop/bad_length"] == 1
+    assert report.counters["lidar_11"]["msop"] == len(packets) - 1 and report.messages["lidar_11"] >= 1
