@@ -53,7 +53,8 @@ def replay_cmd(
         assert mapping is not None
         counts: Counter[str] = Counter()
         sends = schedule(inputs, site_file, mapping, counts, align_starts=align_starts)
-        replayer = Replayer(site_file, mapping.sensors(), host)
+        replayed = [b.sensor for b in [*mapping.units.values(), *mapping.radar_bindings()]]
+        replayer = Replayer(site_file, replayed, host)
     except (CaptureError, ConfigError, OSError) as err:
         console.print(f"[red]{err}[/]")
         raise typer.Exit(2) from None

@@ -21,6 +21,7 @@ A file that is none of these formats, or whose header does not read, is a `Captu
 
 from __future__ import annotations
 
+import functools
 import io
 import logging
 import re
@@ -41,6 +42,11 @@ from shared.timebase import MAX_STAMP_NS, NS_PER_S
 log = logging.getLogger(__name__)
 
 SUFFIXES = (".log", ".asc", ".blf")
+CAN_ERR_FLAG = 0x20000000  # linux/can.h: an error frame's identifier flag (its class in the other bits)
+CAN_EFF_MASK = 0x1FFFFFFF
+#: A text log whose first this many data lines all fail to read is not a log of its kind (each bad
+#: line restarts python-can's reader: a file of nothing but bad lines would take quadratic time).
+MAX_LEADING_BAD_LINES = 20
 _ASC_DATA_LINE = re.compile(r"^\s*\d+(\.\d+)?\s")  # an ASC event line starts with its time
 # What python-can's readers raise on a line or object they cannot parse.
 _PARSE_ERRORS = (ValueError, IndexError, KeyError, struct.error, TypeError, can.CanError)
@@ -122,15 +128,27 @@ class CanLogReader:
         if not 0 <= stamp_s < MAX_STAMP_NS / NS_PER_S:
             self.counts["rejected/timestamp"] += 1
             return None
+        channel = msg.channel
+        if isinstance(channel, int) and self.suffix in (".asc", ".blf"):
+            channel += 1  # python-can counts a Vector file's channels from 0; the file (and CANalyzer) from 1
+        can_id, is_extended, is_error = (
+            int(msg.arbitration_id),
+            bool(msg.is_extended_id),
+            bool(msg.is_error_frame),
+        )
+        if (
+            is_extended and can_id & CAN_ERR_FLAG
+        ):  # a Linux error frame python-can read as data (no bus-error bit)
+            can_id, is_extended, is_error = can_id & ~CAN_ERR_FLAG & CAN_EFF_MASK, False, True
         frame = CanFrame(
             index=self.frames,
             line=line,
             stamp_s=stamp_s,
-            channel="" if msg.channel is None else str(msg.channel),
-            can_id=int(msg.arbitration_id),
-            is_extended=bool(msg.is_extended_id),
+            channel="" if channel is None else str(channel),
+            can_id=can_id,
+            is_extended=is_extended,
             data=bytes(msg.data or b""),
-            is_error=bool(msg.is_error_frame),
+            is_error=is_error,
             is_remote=bool(msg.is_remote_frame),
         )
         self.frames += 1
@@ -150,7 +168,9 @@ class CanLogReader:
             self.counts["truncated"] += 1
             log.warning("%s: its last line (%d) is cut short; not read", self.path, len(lines))
             lines.pop()
-        reader_cls = can.ASCReader if self.suffix == ".asc" else can.CanutilsLogReader
+        reader_cls: Any = can.CanutilsLogReader
+        if self.suffix == ".asc":  # stamps from the log's own start date, as every other input's (UNIX s)
+            reader_cls = functools.partial(can.ASCReader, relative_timestamp=False)
         header: list[str] = []
         if self.suffix == ".asc":
             first = next((i for i, t in enumerate(lines) if _ASC_DATA_LINE.match(t)), len(lines))
@@ -174,6 +194,12 @@ class CanLogReader:
                         "%s: line %d does not read (%s); later ones are counted", self.path, line_no, exc
                     )
                 start = bad + 1
+                if self.frames == 0 and self.counts["rejected/line"] >= MAX_LEADING_BAD_LINES:
+                    kind = "Vector ASC" if self.suffix == ".asc" else "candump -L"
+                    raise CaptureFormatError(
+                        f"{self.path}: its first {MAX_LEADING_BAD_LINES} lines do not read as {kind} (line "
+                        f"{self.first_bad_line} on)"
+                    ) from None
 
     def _blf(self) -> Iterator[CanFrame]:
         try:
@@ -189,6 +215,8 @@ class CanLogReader:
         except _BLF_ERRORS as exc:
             self.counts["rejected/blf_object"] += 1
             log.warning("%s: stopped at an object that does not read (%s)", self.path, exc)
+        finally:
+            reader.stop()  # the file it opened
         if reader.file_size and size < reader.file_size:
             self.counts["truncated"] += 1
             log.warning(

@@ -94,26 +94,36 @@ def import_files(
     try:
         with RecordingWriter(partial, compression=compression) as writer:
             sink = _Sink(writer, scene, report, rebase_to_ns)
-            for stamp_ns, sensor, message in heapq.merge(*map(_in_order, streams), key=lambda i: i[0]):
+            late: Counter[str] = Counter()
+            ordered = [_in_order(s, late) for s in streams]
+            for stamp_ns, sensor, message in heapq.merge(*ordered, key=lambda i: i[0]):
                 sink.write(sensor, message, stamp_ns)
+            if late:
+                report.count("import", dict(late))
     except CaptureError:
         partial.unlink(missing_ok=True)
         raise
     except Exception as exc:  # a library's own error on input this code did not foresee
         partial.unlink(missing_ok=True)
         raise CaptureError(f"{', '.join(map(str, paths))}: {type(exc).__name__}: {exc}") from None
-    partial.replace(out)
+    try:
+        partial.replace(out)
+    except OSError as exc:
+        partial.unlink(missing_ok=True)
+        raise CaptureError(f"{out}: cannot be written ({exc})") from None
     report.out = out
     return report
 
 
-def _in_order(items: Iterable[Item]) -> Iterator[Item]:
+def _in_order(items: Iterable[Item], late: Counter[str]) -> Iterator[Item]:
     """`items` in time order, for items at most REORDER_WINDOW_NS late; later ones are written where they
-    come (never dropped)."""
+    come (never dropped) and counted in `late`."""
     heap: list[tuple[int, int, str, Message]] = []
     tie = itertools.count()  # equal stamps keep their input order; messages are never compared
     latest = None
     for stamp_ns, sensor, message in items:
+        if latest is not None and stamp_ns < latest - REORDER_WINDOW_NS:
+            late[f"late_beyond_reorder_window/{sensor}"] += 1
         heapq.heappush(heap, (stamp_ns, next(tie), sensor, message))
         latest = stamp_ns if latest is None else max(latest, stamp_ns)
         while heap and heap[0][0] < latest - REORDER_WINDOW_NS:
@@ -166,7 +176,14 @@ class _UnitSurvey:
     kinds: Counter[str] = field(default_factory=Counter)
     data_ports: Counter[int] = field(default_factory=Counter)
     difop: bytes | None = None
-    velodyne: Counter[str] = field(default_factory=Counter)
+    velodyne: dict[int, Counter[str]] = field(default_factory=dict)  # data port -> factory-byte models
+    robosense_ports: set[int] = field(default_factory=set)  # data ports of MSOP packets
+
+    def velodyne_model(self, port: int) -> str | None:
+        """The model the factory bytes of the data packets to `port` say most, or None."""
+        counts = self.velodyne.get(port)
+        model = counts.most_common(1)[0][0] if counts else None
+        return None if model == "unknown" else model
 
 
 def survey_capture(path: Path) -> tuple[dict[str, _UnitSurvey], Counter[str]]:
@@ -181,10 +198,12 @@ def survey_capture(path: Path) -> tuple[dict[str, _UnitSurvey], Counter[str]]:
         u.kinds[kind] += 1
         if kind in ("robosense_msop", "velodyne_data"):
             u.data_ports[d.dst[1]] += 1
+        if kind == "robosense_msop":
+            u.robosense_ports.add(d.dst[1])
         if kind == "robosense_difop" and u.difop is None:
             u.difop = d.payload
         if kind == "velodyne_data":
-            u.velodyne[identify.velodyne_model(d.payload) or "unknown"] += 1
+            u.velodyne.setdefault(d.dst[1], Counter())[identify.velodyne_model(d.payload) or "unknown"] += 1
     return units, reader.counts
 
 
@@ -192,23 +211,15 @@ def describe_units(units: dict[str, _UnitSurvey]) -> str:
     """One line per unit of a survey, for messages that ask for a mapping."""
     lines = []
     for ip, u in sorted(units.items()):
-        family = "robosense" if u.kinds["robosense_msop"] or u.kinds["robosense_difop"] else "velodyne"
-        model = (
-            (identify.robosense_model(u.difop) if u.difop else None)
-            if family == "robosense"
-            else (u.velodyne.most_common(1)[0][0] if u.velodyne else None)
-        )
-        ports = ", ".join(str(p) for p in sorted(u.data_ports)) or "-"
         kinds = ", ".join(f"{k} {n}" for k, n in sorted(u.kinds.items()))
-        lines.append(f"{ip} -> port {ports}: {family} {model or '(model unknown)'} ({kinds})")
+        ports: list[int | None] = [*sorted(u.data_ports)] or [None]
+        for port in ports:
+            if port is not None and port in u.velodyne:
+                family, model = "velodyne", u.velodyne_model(port)
+            else:
+                family, model = "robosense", identify.robosense_model(u.difop) if u.difop else None
+            lines.append(f"{ip} -> port {port or '-'}: {family} {model or '(model unknown)'} ({kinds})")
     return "; ".join(lines)
-
-
-def _binding_for(mapping: Mapping, ip: str, port: int) -> tuple[str, Binding] | None:
-    for key in (f"{ip}:{port}", ip):
-        if key in mapping.units:
-            return key, mapping.units[key]
-    return None
 
 
 def capture_items(path: Path, scene: Scene, mapping: Mapping | None, report: ImportReport) -> Iterator[Item]:
@@ -225,7 +236,7 @@ def capture_items(path: Path, scene: Scene, mapping: Mapping | None, report: Imp
     by_ip: dict[str, list[RobosenseUnit | VelodyneUnit]] = {}
     for ip, u in sorted(units.items()):
         for port in sorted(u.data_ports):
-            found = _binding_for(mapping, ip, port)
+            found = mapping.unit_for(ip, port)
             where = f"{path.name}: unit {ip} -> port {port}"
             if found is None:
                 report.skipped[f"{path.name} {ip}:{port}"] = f"not in the mapping ({describe_units({ip: u})})"
@@ -235,15 +246,17 @@ def capture_items(path: Path, scene: Scene, mapping: Mapping | None, report: Imp
                 raise MappingError(
                     f"{where}: {binding.sensor} is a {scene.sensor(binding.sensor).kind}, not a lidar"
                 )
-            velodyne_model = u.velodyne.most_common(1)[0][0] if u.velodyne else None
-            if velodyne_model == "unknown":
-                velodyne_model = None
-            is_velodyne = bool(u.kinds["velodyne_data"])
+            is_velodyne = port in u.velodyne
+            if not is_velodyne and len(u.robosense_ports) > 1:
+                raise MappingError(
+                    f"{where}: Robosense units at one address ({ip}, ports {sorted(u.robosense_ports)}): "
+                    "their DIFOP packets cannot be told apart; give each unit its own address"
+                )
             if not is_velodyne and u.difop is None:
                 raise MappingError(
                     f"{where}: a Robosense unit without a DIFOP packet in the capture: its angles are unknown"
                 )
-            unit = lidar_unit(binding, u.difop, velodyne_model if is_velodyne else None, where)
+            unit = lidar_unit(binding, u.difop, u.velodyne_model(port) if is_velodyne else None, where)
             if isinstance(unit, RobosenseUnit) and u.difop is not None:
                 unit.on_packet(u.difop, 0)  # its angles before its first revolution
             decoders[(ip, port)] = unit
@@ -267,10 +280,9 @@ def capture_items(path: Path, scene: Scene, mapping: Mapping | None, report: Imp
                 yield stamp_ns, unit.sensor, message
     for unit in decoders.values():
         unit.finish()
-        report.counters[unit.sensor] = unit.counters()
-    report.counters[path.name] = dict(reader.counts) | (
-        {"truncated_at_byte": reader.truncated_at} if reader.truncated_at is not None else {}
-    )
+        report.count(unit.sensor, unit.counters())
+    cut = {"truncated_at_byte": reader.truncated_at} if reader.truncated_at is not None else {}
+    report.count(path.name, dict(reader.counts) | cut)
 
 
 # --- CAN logs ------------------------------------------------------------------------------------
@@ -312,10 +324,9 @@ def canlog_items(path: Path, scene: Scene, mapping: Mapping | None, report: Impo
                 yield stamp_ns, unit.sensor, message
     for _, unit in units:
         unit.finish()
-        report.counters[unit.sensor] = unit.counters()
-    report.counters[path.name] = dict(reader.counts) | (
-        {"first_bad_line": reader.first_bad_line} if reader.first_bad_line is not None else {}
-    )
+        report.count(unit.sensor, unit.counters())
+    bad = {"first_bad_line": reader.first_bad_line} if reader.first_bad_line is not None else {}
+    report.count(path.name, dict(reader.counts) | bad)
 
 
 def _radar_ids(path: Path) -> set[int]:

@@ -90,6 +90,18 @@ class Mapping(_Strict):
         bound = [b for bs in self.topics.values() for b in bs]
         return {b.sensor for b in [*bound, *self.units.values()]} | set(self.radars)
 
+    def unit_for(self, address: str, port: int) -> tuple[str, Binding] | None:
+        """The `units:` entry of a data packet from `address` to `port`: `address:port`, else `address`."""
+        for key in (f"{address}:{port}", address):
+            if key in self.units:
+                return key, self.units[key]
+        return None
+
+    def units_at(self, address: str) -> list[Binding]:
+        """Every `units:` entry of `address` (a DIFOP or a position packet goes to another port than its
+        unit's data: it belongs to the unit at its address)."""
+        return [b for key, b in self.units.items() if key == address or key.rpartition(":")[0] == address]
+
     def radar_bindings(self) -> list[Binding]:
         """The `radars:` section's bindings."""
         return list(self.radars.values())

@@ -72,16 +72,38 @@ def lidar_sends(path: Path, site: SiteFile, mapping: Mapping, counts: Counter[st
         if kind is None:
             counts["skipped/not_lidar"] += 1
             continue
-        binding = mapping.units.get(f"{d.src[0]}:{d.dst[1]}") or mapping.units.get(d.src[0])
+        binding = _unit_binding(mapping, d.src[0], d.dst[1], kind, site)
         if binding is None:
             counts["skipped/unmapped_unit"] += 1
             continue
-        device = site.device(binding.sensor)
+        device = _device(site, binding.sensor)
         port = _lidar_port(device, kind, binding)
         if port is None:
             counts[f"skipped/{kind}"] += 1
             continue
         yield Send(d.stamp_ns, binding.sensor, d.payload, port=port)
+
+
+def _unit_binding(mapping: Mapping, address: str, port: int, kind: str, site: SiteFile) -> Binding | None:
+    """The unit a packet belongs to: a data packet by its address and port, a DIFOP or a position
+    packet (sent to another port) by its address and its unit's family."""
+    if kind in ("robosense_msop", "velodyne_data"):
+        found = mapping.unit_for(address, port)
+        return found[1] if found else None
+    family = RobosenseLidar if kind == "robosense_difop" else VelodyneLidar
+    at = [b for b in mapping.units_at(address) if isinstance(_device(site, b.sensor), family)]
+    if len(at) > 1:
+        raise MappingError(
+            f"{address}: {len(at)} units of one family at one address: its {kind} cannot be told apart"
+        )
+    return at[0] if at else None
+
+
+def _device(site: SiteFile, sensor: str) -> Any:
+    try:
+        return site.device(sensor)
+    except KeyError as exc:
+        raise MappingError(f"site {site.site_id}: no device for {sensor} (bound by the mapping)") from exc
 
 
 def _lidar_port(device: Any, kind: str, binding: Binding) -> int | None:
@@ -104,7 +126,7 @@ def radar_sends(path: Path, site: SiteFile, mapping: Mapping, counts: Counter[st
     """A CAN log's frames of the radars the mapping binds, with the site's radar ids."""
     bindings = mapping.radar_bindings()
     for b in bindings:
-        if not isinstance(site.device(b.sensor), Ars408Radar):
+        if not isinstance(_device(site, b.sensor), Ars408Radar):
             raise MappingError(f"{b.sensor}: its site device is no ARS 408")
     for frame in CanLogReader(path):
         if frame.is_error:
@@ -199,10 +221,18 @@ class Replayer:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 << 20)
         self.can: dict[str, _CanSink] = {}
-        for sensor in sorted(set(sensors)):
-            spec = site.device(sensor)
-            if isinstance(spec, Ars408Radar):
-                self.can[sensor] = _CanSink(spec, host)
+        try:
+            for sensor in sorted(set(sensors)):
+                spec = _device(site, sensor)
+                if isinstance(spec, Ars408Radar):
+                    self.can[sensor] = _CanSink(spec, host)
+        except Exception as exc:
+            self.close()
+            if isinstance(exc, CaptureError):
+                raise
+            raise CaptureError(
+                f"site {site.site_id}: a radar's bus does not open ({type(exc).__name__}: {exc})"
+            ) from None
 
     def wait_ready(self, timeout_s: float) -> bool:
         """Wait until every served radar's adapter has connected (it connects as the live one would)."""
@@ -229,7 +259,11 @@ class Replayer:
             due = start_wall + (s.stamp_ns - first_ns) / NS_PER_S / speed
             wait = due - time.monotonic()
             if wait > 0:
-                time.sleep(wait)
+                if stop is not None and stop.wait(wait):  # Ctrl-C during a long gap stops at once
+                    self.counts["stopped"] += 1
+                    break
+                if stop is None:
+                    time.sleep(wait)
             elif wait < -LATE_S:
                 self.counts["late"] += 1
             self._send(s)

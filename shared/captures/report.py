@@ -20,7 +20,11 @@ class ImportReport:
     devices: dict[str, str] = field(default_factory=dict)  # lidar sensor id -> the decoded unit's model
     out: Path | None = None
 
-    @property
-    def packet_counters(self) -> dict[str, dict[str, int]]:
-        """The decoders' counts per sensor (the inputs' own counts are under their file names)."""
-        return {k: v for k, v in self.counters.items() if k in self.messages or k in self.mapped.values()}
+    def count(self, name: str, counts: dict[str, int]) -> None:
+        """Add an input's or a sensor's counts (two inputs may feed one sensor; two files may share a
+        name in different folders): added up, never one over the other. A "first" or "at" entry (a
+        line number, a byte offset) keeps its first value."""
+        mine = self.counters.setdefault(name, {})
+        for key, n in counts.items():
+            keep_first = key.startswith("first_") or key.endswith("_at_byte")
+            mine[key] = mine.get(key, n) if keep_first else mine.get(key, 0) + n

@@ -83,8 +83,6 @@ KIND_OF_TYPE = {
 MSG_DIR = Path(__file__).with_name("msg")
 LEGACY_MSG_DIR = Path(__file__).with_name("msg_legacy")
 LEGACY_MARKER = "rslidar_msg/msg/RslidarScan"  # only rslidar_sdk's 2022 layout has it
-# Messages read to find a lidar's model before decoding (a DIFOP comes about once a second).
-IDENTIFY_MAX_MESSAGES = 200
 
 
 class BagImportError(CaptureError):
@@ -274,7 +272,7 @@ def _bag_items(
         yield from _messages(reader, bound, units, radars, report)
         for sensor, unit in {**units, **radars}.items():
             unit.finish()
-            report.counters[sensor] = unit.counters()
+            report.count(sensor, unit.counters())
     except CaptureError:
         raise
     except Exception as exc:  # rosbags' and the decoders' own errors on corrupt or cut-off input
@@ -358,7 +356,7 @@ def _lidar_units(
             topics_of.setdefault(t.sensor, []).append(topic)
     units: dict[str, RobosenseUnit | VelodyneUnit] = {}
     for sensor, topics in topics_of.items():
-        binding = bound[topics[0]].bindings[0]
+        binding = _one_binding(sensor, [bound[t].bindings[0] for t in topics])
         difop, velodyne_model, velodyne_seen = _first_packets(reader, topics)
         where = f"topic {', '.join(topics)}"
         if not velodyne_seen and difop is None and not (binding.device or "").startswith(("vlp", "hdl")):
@@ -371,13 +369,25 @@ def _lidar_units(
     return units
 
 
+def _one_binding(sensor: str, bindings: list[Binding]) -> Binding:
+    """The topics of one lidar (its packets, its DIFOP) as one binding: what any of them gives
+    (`device`, `calibration`); two that say different things are refused."""
+    merged: dict[str, object] = {"sensor": sensor}
+    for b in bindings:
+        for key in ("device", "calibration"):
+            value = getattr(b, key)
+            if value is not None and merged.setdefault(key, value) != value:
+                raise BagImportError(f"{sensor}: its topics' mappings give {key} {merged[key]} and {value}")
+    return Binding.model_validate(merged)
+
+
 def _first_packets(reader: Any, topics: list[str]) -> tuple[bytes | None, str | None, bool]:
-    """A Robosense unit's first DIFOP, a Velodyne unit's model and whether Velodyne data came, from the
-    first messages of its topics."""
+    """A Robosense unit's first DIFOP (however far into the bag: a unit sends one a second, among
+    hundreds of MSOP packets a second), or a Velodyne unit's model and that Velodyne data came."""
     connections = [c for c in reader.connections if c.topic in topics]
     difop, model, seen = None, None, False
     for i, (connection, bag_ns, raw) in enumerate(reader.messages(connections=connections)):
-        if i >= IDENTIFY_MAX_MESSAGES or (difop is not None) or seen:
+        if difop is not None or seen:
             break
         msg = _deserialize(reader, raw, connection.msgtype, connection.topic, i)
         for payload, _ in packets_of(msg, bag_ns):

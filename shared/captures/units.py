@@ -23,6 +23,9 @@ from shared.devices.sources import lidar_frame_message, radar_scan_message, velo
 from shared.timebase import NS_PER_S
 
 Out = list[tuple[Message, int]]  # (message, stamp ns)
+#: A radar's frames held until its first RadarState says how to read its lists: about 30 s of a full
+#: object list at 14 Hz (a log whose radar never sends its state is refused by count, not by memory).
+MAX_HELD_FRAMES = 100_000
 
 
 class PacketUnit(Protocol):
@@ -127,7 +130,10 @@ class RadarUnit:
                 out += self._assemble(*frame)
             return out
         if self.assembler is None:
-            self._held.append((can_id, data, stamp_s))
+            if len(self._held) < MAX_HELD_FRAMES:
+                self._held.append((can_id, data, stamp_s))
+            else:
+                self._counts["rejected/before_radar_state"] += 1
             return []
         return self._assemble(can_id, data, stamp_s)
 
@@ -147,8 +153,7 @@ class RadarUnit:
             self._counts["rejected/no_radar_state"] += len(self._held)
 
     def counters(self) -> dict[str, int]:
-        own = dict(self._counts)
-        return own | (self.assembler.counters if self.assembler is not None else {})
+        return dict(self._counts + Counter(self.assembler.counters if self.assembler is not None else {}))
 
 
 def lidar_unit(

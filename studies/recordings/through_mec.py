@@ -174,6 +174,10 @@ def study(inputs: list[Path], map_file: Path, name: str) -> dict[str, Any]:
         report = import_files(inputs, recording, provisional, mapping)
         recorded = clouds(recording)
     device = report.devices.get(LIDAR_ID)
+    bindings = (
+        [*(b for bs in mapping.topics.values() for b in bs), *mapping.units.values()] if mapping else []
+    )
+    given_device = any(b.device for b in bindings)
     if device is None or not recorded:
         raise ValueError(f"{name}: the mapping binds no lidar unit to {LIDAR_ID} (mapped: {report.mapped})")
     scene, height_m, ground_share = configured_scene(recorded, device, name)
@@ -181,6 +185,7 @@ def study(inputs: list[Path], map_file: Path, name: str) -> dict[str, Any]:
         "name": name,
         "inputs": [str(p) for p in inputs],
         "device": device,
+        "model_from": "the mapping" if given_device else "its bytes",
         "import": {"mapped": report.mapped, "counters": report.counters.get(LIDAR_ID, {})},
         "lidar_height_m": height_m,
         "ground_share": ground_share,
@@ -203,7 +208,7 @@ def markdown(r: dict[str, Any]) -> str:
             f"MEC settings of the `{r['mec_profile']}` profile, clustering lidar detector; "
             f"{r['machine']['cpu_model']}.",
             "",
-            f"- imported: {sources} -> one {r['device']} (its model from its bytes); decoder {counters}",
+            f"- imported: {sources} -> one {r['device']} (the model from {r['model_from']}); {counters}",
             f"- the site configured for it: the lidar {r['lidar_height_m']:.2f} m above the level plane "
             f"holding most of its first clouds' points ({100 * r['ground_share']:.0f} %), as the ground; "
             f"{lidar['channels']} channels, {low:.1f} to {high:.1f} deg, "

@@ -87,6 +87,8 @@ def test_the_same_frames_as_vector_asc_and_blf(tmp_path: Path, suffix: str) -> N
     for a, b in zip(lists, reference, strict=True):
         np.testing.assert_array_equal(a.ids, b.ids)
         np.testing.assert_allclose(a.dist_long_m, b.dist_long_m)
+        assert abs(a.stamp_s - b.stamp_s) < 1e-3  # ASC too on the UNIX clock (from its start date)
+    assert {f.channel for f in CanLogReader(out)} == {"2"}  # as the file numbers it (can1 written as 2)
 
 
 def test_bad_lines_error_frames_and_cut_files_are_counted(tmp_path: Path) -> None:
