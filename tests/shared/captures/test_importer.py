@@ -98,23 +98,13 @@ def test_robosense_capture_model_from_its_difop_even_when_the_difop_comes_late(
     """Written here (no public Robosense capture): an RS-LiDAR-32's MSOP on port 6699 with its DIFOP
     only after its second revolution; the importer takes the DIFOP first (its survey pass), so no
     revolution is lost, and recognises the model from it."""
-    import dpkt
-
     packets, difop = _robosense_packets("rs32", 4)
     frames = []
     for i, (stamp, data) in enumerate(packets):
-        frames.append((stamp, 6699, data))
+        frames.append((stamp, 200, 6699, data))
         if i == len(packets) // 2:
-            frames.append((stamp, 7788, difop))
-    path = tmp_path / "rs32.pcapng"
-    with path.open("wb") as f:
-        w = dpkt.pcapng.Writer(f)
-        for stamp, port, data in frames:
-            u = dpkt.udp.UDP(sport=port, dport=port, data=data)
-            u.ulen = len(u)
-            ip = dpkt.ip.IP(src=bytes([192, 168, 1, 200]), dst=bytes([192, 168, 1, 102]), p=17, data=u)
-            ip.len = len(ip)
-            w.writepkt(bytes(dpkt.ethernet.Ethernet(data=ip)), ts=stamp / 1e9)
+            frames.append((stamp, 200, 7788, difop))
+    path = _capture(tmp_path / "rs32.pcapng", frames)
     mapping = _mapping(tmp_path, scene, "units:\n  192.168.1.200: lidar_12\n")
     report = import_files([path], tmp_path / "rec.mcap", scene, mapping)
     expected = RobosenseUnit("lidar_12", "rs32")
@@ -123,6 +113,70 @@ def test_robosense_capture_model_from_its_difop_even_when_the_difop_comes_late(
     assert report.messages == {"lidar_12": len(want)} and len(want) >= 3
     got = [r.message for r in _records(tmp_path / "rec.mcap")]
     assert all(a.data == b.data for a, b in zip(got, want, strict=True))
+
+
+def _capture(path: Path, frames: list[tuple[int, int, int, bytes]]) -> Path:
+    """A pcapng of (stamp ns, source host 192.168.1.<n>, port, payload) UDP datagrams."""
+    import dpkt
+
+    with path.open("wb") as f:
+        w = dpkt.pcapng.Writer(f)
+        for stamp, host, port, data in frames:
+            u = dpkt.udp.UDP(sport=port, dport=port, data=data)
+            u.ulen = len(u)
+            ip = dpkt.ip.IP(src=bytes([192, 168, 1, host]), dst=bytes([192, 168, 1, 102]), p=17, data=u)
+            ip.len = len(ip)
+            w.writepkt(bytes(dpkt.ethernet.Ethernet(data=ip)), ts=stamp / 1e9)
+    return path
+
+
+def test_units_at_one_address_are_told_apart_by_port(tmp_path: Path, scene: Scene) -> None:
+    """Two Velodynes at the factory address 192.168.1.201 on two data ports, a VLP-16 and (its factory
+    byte rewritten here) a VLP-32C: each unit its own model. Two Robosense units at one address are
+    refused: their DIFOP packets, on one port, cannot be told apart."""
+    from shared.captures.pcap import PcapReader
+
+    vlp16 = [g.payload for g in PcapReader(VLP16_GPS) if len(g.payload) == 1206][:40]
+    as_32c = [p[:1205] + bytes([0x28]) for p in vlp16]
+    frames = [(T0_NS + i * 10**6, 201, 2368, p) for i, p in enumerate(vlp16)]
+    frames += [(T0_NS + i * 10**6 + 500, 201, 2369, p) for i, p in enumerate(as_32c)]
+    path = _capture(tmp_path / "two.pcapng", sorted(frames))
+    from shared.captures.importer import survey_capture
+
+    (unit,) = survey_capture(path)[0].values()
+    assert unit.velodyne_model(2368) == "vlp16" and unit.velodyne_model(2369) == "vlp32c"
+    packets, difop = _robosense_packets("rs16", 1)
+    rs = [(T0_NS, 200, 7788, difop)] + [(s, 200, 6699 + k % 2, p) for k, (s, p) in enumerate(packets)]
+    mapping = _mapping(
+        tmp_path, scene, "units:\n  192.168.1.200:6699: lidar_11\n  192.168.1.200:6700: lidar_12\n"
+    )
+    with pytest.raises(MappingError, match="their DIFOP packets cannot be told apart"):
+        import_files([_capture(tmp_path / "rs.pcapng", rs)], tmp_path / "x.mcap", scene, mapping)
+
+
+def test_a_bag_s_difop_is_found_however_far_in(tmp_path: Path, scene: Scene) -> None:
+    """rslidar_sdk's current layout, one packet a message, the first DIFOP after 250 MSOP packets
+    (a unit sends one a second among ~800 MSOP; the search once stopped at 200): found, and every
+    packet decoded."""
+    packets, difop = _robosense_packets("rs16", 16)
+    store = _store(legacy=False)
+    t_cls, h_cls = store.types["builtin_interfaces/msg/Time"], store.types["std_msgs/msg/Header"]
+    p_cls = store.types["rslidar_msg/msg/RslidarPacket"]
+    items = [(s, d, 0) for s, d in packets]
+    assert len(items) > 250
+    items.insert(250, (items[249][0], difop, 1))
+    bag = tmp_path / "late_difop"
+    with Ros2Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conn = writer.add_connection("/rslidar_packets", "rslidar_msg/msg/RslidarPacket", typestore=store)
+        for stamp, data, is_difop in items:
+            header = h_cls(stamp=t_cls(sec=stamp // 10**9, nanosec=stamp % 10**9), frame_id="rslidar")
+            msg = p_cls(
+                header=header, is_difop=is_difop, is_frame_begin=0, data=np.frombuffer(data, np.uint8)
+            )
+            writer.write(conn, stamp, store.serialize_cdr(msg, "rslidar_msg/msg/RslidarPacket"))
+    mapping = _mapping(tmp_path, scene, "topics:\n  /rslidar_packets: lidar_11\n")
+    report = import_files([bag], tmp_path / "rec.mcap", scene, mapping)
+    assert report.devices == {"lidar_11": "rs16"} and report.counters["lidar_11"]["msop"] == len(packets)
 
 
 def _store(legacy: bool):

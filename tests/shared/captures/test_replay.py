@@ -99,3 +99,26 @@ def test_replay_refuses_what_it_cannot_play(tmp_path: Path) -> None:
     (tmp_path / "x.txt").write_text("no")
     with pytest.raises(CaptureError, match="replay plays pcap"):
         schedule([tmp_path / "x.txt"], site, Mapping(), Counter())
+
+
+def test_a_unit_mapped_by_address_and_port_gets_its_difop(tmp_path: Path) -> None:
+    """A Robosense unit mapped as `address:MSOP port`: its DIFOP (sent to another port) still goes to
+    its adapter's DIFOP port (it was once counted as unmapped, and the adapter made no frame)."""
+    from tests.shared.captures.test_importer import _capture, _robosense_packets
+
+    packets, difop = _robosense_packets("rs16", 1)
+    frames = [(packets[0][0] - 1, 200, 7788, difop), *((s, 200, 6699, p) for s, p in packets)]
+    capture = _capture(tmp_path / "rs16.pcapng", frames)
+    site = SiteFile.model_validate(
+        {
+            "site_id": "replay_test",
+            "scene": str(DEFAULT_SCENE),
+            "sensors": {
+                "lidar_11": {"device": "rs16", "bind": "127.0.0.1", "msop_port": 16699, "difop_port": 17788}
+            },
+        }
+    )
+    mapping = Mapping.model_validate({"units": {"192.168.1.200:6699": "lidar_11"}})
+    counts: Counter[str] = Counter()
+    sends = list(schedule([capture], site, mapping, counts))
+    assert [s.port for s in sends] == [17788] + [16699] * len(packets) and not counts
