@@ -159,14 +159,22 @@ def test_a_bag_s_difop_is_found_however_far_in(tmp_path: Path, scene: Scene) -> 
     (a unit sends one a second among ~800 MSOP; the search once stopped at 200): found, and every
     packet decoded."""
     packets, difop = _robosense_packets("rs16", 16)
-    store = _store(legacy=False)
-    t_cls, h_cls = store.types["builtin_interfaces/msg/Time"], store.types["std_msgs/msg/Header"]
-    p_cls = store.types["rslidar_msg/msg/RslidarPacket"]
     items = [(s, d, 0) for s, d in packets]
     assert len(items) > 250
     items.insert(250, (items[249][0], difop, 1))
-    bag = tmp_path / "late_difop"
-    with Ros2Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+    bag = _rslidar_bag(tmp_path / "late_difop", items)
+    mapping = _mapping(tmp_path, scene, "topics:\n  /rslidar_packets: lidar_11\n")
+    report = import_files([bag], tmp_path / "rec.mcap", scene, mapping)
+    assert report.devices == {"lidar_11": "rs16"} and report.counters["lidar_11"]["msop"] == len(packets)
+
+
+def _rslidar_bag(path: Path, items: list[tuple[int, bytes, int]]) -> Path:
+    """A ROS 2 mcap bag of rslidar_sdk's current `RslidarPacket` messages, one (stamp ns, packet,
+    is_difop) a message on /rslidar_packets."""
+    store = _store(legacy=False)
+    t_cls, h_cls = store.types["builtin_interfaces/msg/Time"], store.types["std_msgs/msg/Header"]
+    p_cls = store.types["rslidar_msg/msg/RslidarPacket"]
+    with Ros2Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         conn = writer.add_connection("/rslidar_packets", "rslidar_msg/msg/RslidarPacket", typestore=store)
         for stamp, data, is_difop in items:
             header = h_cls(stamp=t_cls(sec=stamp // 10**9, nanosec=stamp % 10**9), frame_id="rslidar")
@@ -174,9 +182,7 @@ def test_a_bag_s_difop_is_found_however_far_in(tmp_path: Path, scene: Scene) -> 
                 header=header, is_difop=is_difop, is_frame_begin=0, data=np.frombuffer(data, np.uint8)
             )
             writer.write(conn, stamp, store.serialize_cdr(msg, "rslidar_msg/msg/RslidarPacket"))
-    mapping = _mapping(tmp_path, scene, "topics:\n  /rslidar_packets: lidar_11\n")
-    report = import_files([bag], tmp_path / "rec.mcap", scene, mapping)
-    assert report.devices == {"lidar_11": "rs16"} and report.counters["lidar_11"]["msop"] == len(packets)
+    return path
 
 
 def _store(legacy: bool):
@@ -369,18 +375,7 @@ def test_a_wrong_length_packet_is_counted_not_a_reason_to_refuse_the_bag(
     2022 layout and refused the bag whole)."""
     packets, difop = _robosense_packets("rs16", 3)
     packets[len(packets) // 2] = (packets[len(packets) // 2][0], packets[len(packets) // 2][1][:1000])
-    store = _store(legacy=False)
-    t_cls, h_cls = store.types["builtin_interfaces/msg/Time"], store.types["std_msgs/msg/Header"]
-    p_cls = store.types["rslidar_msg/msg/RslidarPacket"]
-    bag = tmp_path / "current"
-    with Ros2Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        conn = writer.add_connection("/rslidar_packets", "rslidar_msg/msg/RslidarPacket", typestore=store)
-        for stamp, data, is_difop in [(T0_NS, difop, 1), *((s, d, 0) for s, d in packets)]:
-            header = h_cls(stamp=t_cls(sec=stamp // 10**9, nanosec=stamp % 10**9), frame_id="rslidar")
-            msg = p_cls(
-                header=header, is_difop=is_difop, is_frame_begin=0, data=np.frombuffer(data, np.uint8)
-            )
-            writer.write(conn, stamp, store.serialize_cdr(msg, "rslidar_msg/msg/RslidarPacket"))
+    bag = _rslidar_bag(tmp_path / "current", [(T0_NS, difop, 1), *((s, d, 0) for s, d in packets)])
     mapping = _mapping(tmp_path, scene, "topics:\n  /rslidar_packets: lidar_11\n")
     report = import_files([bag], tmp_path / "rec.mcap", scene, mapping)
     assert report.counters["lidar_11"]["rejected/msop/bad_length"] == 1
