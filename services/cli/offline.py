@@ -92,19 +92,36 @@ def import_cmd(
         bool, typer.Option(help="move the stamps so the first is now (for a live MEC)")
     ] = False,
     scene: Annotated[Path, typer.Option(help="scene YAML: its sensors")] = DEFAULT_SCENE,
+    compression: Annotated[
+        str | None,
+        typer.Option(
+            help="the recording's chunk compression: none (fastest, the default), lz4 or zstd (smallest)"
+        ),
+    ] = None,
 ) -> None:
     """Offline: recordings the devices' own tools wrote into the project's recording, each recorded
     source bound to one of the scene's sensors."""
     import time
 
     from shared.captures.errors import CaptureError
-    from shared.captures.importer import import_files
+    from shared.captures.importer import IMPORT_COMPRESSION, import_files
     from shared.captures.mapping import load_mapping
+    from shared.recording.writer import COMPRESSIONS
 
+    compression = compression or IMPORT_COMPRESSION
+    if compression not in COMPRESSIONS:
+        console.print(f"[red]--compression {compression}: one of {', '.join(COMPRESSIONS)}[/]")
+        raise typer.Exit(2)
     loaded = Scene.load(scene)
     try:
         report = import_files(
-            inputs, out, loaded, load_mapping(map_file, loaded), msg, time.time_ns() if rebase else None
+            inputs,
+            out,
+            loaded,
+            load_mapping(map_file, loaded),
+            msg,
+            time.time_ns() if rebase else None,
+            compression,
         )
     except CaptureError as err:
         console.print(f"[red]{err}[/]")

@@ -52,11 +52,12 @@ _ASC_DATA_LINE = re.compile(r"^\s*\d+(\.\d+)?\s")  # an ASC event line starts wi
 _PARSE_ERRORS = (ValueError, IndexError, KeyError, struct.error, TypeError, can.CanError)
 _BLF_ERRORS = (*_PARSE_ERRORS, BLFParseError, zlib.error)  # zlib: a container that does not decompress
 _BLF_OBJECT_HEADER = struct.Struct("<4sHHLL")  # signature, header size, header version, object size, type
+MAX_STAMP_S = MAX_STAMP_NS / NS_PER_S
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class CanFrame:
-    """One frame of a log."""
+    """One frame of a log (not frozen: a frozen one costs more to make, one per frame)."""
 
     index: int  # counted from 0 over the frames read
     line: int | None  # the text log's line number (1-based); None in a BLF file
@@ -114,6 +115,7 @@ class CanLogReader:
         self.counts: Counter[str] = Counter()
         self.first_bad_line: int | None = None
         self.frames = 0
+        self._vector = self.suffix in (".asc", ".blf")
 
     def __iter__(self) -> Iterator[CanFrame]:
         if self.suffix == ".blf":
@@ -125,36 +127,41 @@ class CanLogReader:
         """The frame of a python-can message; None (counted) when its time is none (NaN, negative, past
         what a stamp in ns holds)."""
         stamp_s = float(msg.timestamp)
-        if not 0 <= stamp_s < MAX_STAMP_NS / NS_PER_S:
+        if not 0 <= stamp_s < MAX_STAMP_S:
             self.counts["rejected/timestamp"] += 1
             return None
         channel = msg.channel
-        if isinstance(channel, int) and self.suffix in (".asc", ".blf"):
-            channel += 1  # python-can counts a Vector file's channels from 0; the file (and CANalyzer) from 1
-        can_id, is_extended, is_error = (
-            int(msg.arbitration_id),
-            bool(msg.is_extended_id),
-            bool(msg.is_error_frame),
+        if channel is None:
+            channel = ""
+        elif isinstance(channel, int) and self._vector:
+            channel = str(channel + 1)  # python-can counts a Vector file's channels from 0; the file from 1
+        else:
+            channel = str(channel)
+        can_id, is_extended, is_error, is_remote = (
+            msg.arbitration_id,
+            msg.is_extended_id,
+            msg.is_error_frame,
+            msg.is_remote_frame,
         )
         if (
             is_extended and can_id & CAN_ERR_FLAG
         ):  # a Linux error frame python-can read as data (no bus-error bit)
             can_id, is_extended, is_error = can_id & ~CAN_ERR_FLAG & CAN_EFF_MASK, False, True
         frame = CanFrame(
-            index=self.frames,
-            line=line,
-            stamp_s=stamp_s,
-            channel="" if channel is None else str(channel),
-            can_id=can_id,
-            is_extended=is_extended,
-            data=bytes(msg.data or b""),
-            is_error=is_error,
-            is_remote=bool(msg.is_remote_frame),
+            self.frames,
+            line,
+            stamp_s,
+            channel,
+            can_id,
+            is_extended,
+            bytes(msg.data or b""),
+            is_error,
+            is_remote,
         )
         self.frames += 1
-        if frame.is_error:
+        if is_error:
             self.counts["error_frames"] += 1
-        elif frame.is_remote:
+        elif is_remote:
             self.counts["remote_frames"] += 1
         return frame
 

@@ -43,10 +43,11 @@ log = logging.getLogger(__name__)
 
 #: How late (in its input) a message may come and still be written in time order.
 REORDER_WINDOW_NS = 2 * NS_PER_S
-#: An import's chunks: lz4, not the recorder's zstd. Imports are the bulk of what is written at once
-#: (raw clouds, JPEGs): zstd took 1.25 s of a 20 s capture's 6 s import for 17 % smaller clouds and
-#: 2 % smaller JPEGs, lz4 0.25 s (tests/bench/import_bench.py).
-IMPORT_COMPRESSION = "lz4"
+#: An import's chunks are written uncompressed: what an import writes is nearly all raw clouds (float32
+#: coordinates with noise in the low bits) and JPEGs, which lz4 hardly shrinks and zstd shrinks a
+#: little at several times the import's own cost (tests/bench/import_bench.py writes each input with
+#: each compression: its steps table); `rmmdet import --compression` chooses another.
+IMPORT_COMPRESSION = "none"
 
 
 def input_kind(path: Path) -> str:
@@ -304,18 +305,30 @@ def canlog_items(path: Path, scene: Scene, mapping: Mapping | None, report: Impo
         units.append((b, RadarUnit(b.sensor, b.can_id or 0)))
         on = f" on {b.channel}" if b.channel else ""
         report.mapped[f"{path.name} radar {b.can_id or 0}{on}"] = b.sensor
+    # The units a frame goes to, by its channel and its ARS 408 sensor id (a binding with no channel
+    # takes every channel's); worked out once per channel the log names.
+    routes: dict[str, dict[int, list[RadarUnit]]] = {}
+    no_units: list[RadarUnit] = []
+
+    def route(channel: str) -> dict[int, list[RadarUnit]]:
+        found: dict[int, list[RadarUnit]] = {}
+        for b, u in units:
+            if b.channel is None or b.channel == channel:
+                found.setdefault(b.can_id or 0, []).append(u)
+        return routes.setdefault(channel, found)
+
     reader = CanLogReader(path)
     for frame in reader:
-        on_channel = [(b, u) for b, u in units if b.channel is None or b.channel == frame.channel]
+        by_id = routes.get(frame.channel) or route(frame.channel)
         if frame.is_error:
-            for _, u in on_channel:
-                u.on_error_frame(frame.can_id)
+            for targets in by_id.values():
+                for u in targets:
+                    u.on_error_frame(frame.can_id)
             continue
         if frame.is_remote or frame.is_extended:
             reader.counts["skipped/not_ars408"] += 1
             continue
-        _, sensor_id = ars408.split_id(frame.can_id)
-        targets = [u for b, u in on_channel if (b.can_id or 0) == sensor_id]
+        targets = by_id.get(ars408.split_id(frame.can_id)[1], no_units)
         if not targets:
             reader.counts["skipped/other_radar_or_device"] += 1
             continue

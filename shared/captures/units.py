@@ -114,7 +114,10 @@ class RadarUnit:
 
     def on_frame(self, can_id: int, data: bytes, stamp_s: float) -> Out:
         base, _ = ars408.split_id(can_id)
-        if base == ars408.ID_STATE and (self.assembler is None or not self.assembler.configured):
+        assembler = self.assembler
+        if assembler is not None and base != ars408.ID_STATE:  # the usual frame: straight to the lists
+            return self._assemble(can_id, data, stamp_s)
+        if base == ars408.ID_STATE and (assembler is None or not assembler.configured):
             try:
                 state = ars408.decode_state(data)
             except ValueError:

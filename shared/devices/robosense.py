@@ -398,34 +398,48 @@ def decode_blocks(
     chans = blocks["channels"]  # (P, 12, 32)
     laser = model.laser_of()
     vert = np.deg2rad(info.vertical_deg[laser])  # (32,)
-    horiz_off = info.horizontal_deg[laser] * 100.0  # 0.01 deg
+    horiz_off = np.deg2rad(info.horizontal_deg[laser])  # (32,)
     distance = chans["distance"] * DISTANCE_RES_M  # float64: 80 units is 0.4 m exactly
     lo = model.min_range_m if min_range_m is None else min_range_m
     hi = model.max_range_m if max_range_m is None else max_range_m
-    valid = keep_block[:, :, None] & (distance >= lo) & (distance <= hi) & (distance > 0)
-    p, b, c = np.nonzero(valid)
-    d = distance[p, b, c]
-    a = az[p, b] + diff[p, b] * model.chan_fraction(dual)[c]  # channel azimuth, 0.01 deg
-    a_rad = np.deg2rad(a * 0.01)
-    h_rad = np.deg2rad((a + horiz_off[c]) * 0.01)
-    v = vert[c]
-    rx = model.lens_offset_m
+    valid = (distance >= lo) & (distance <= hi) & (distance > 0)
+    valid &= keep_block[:, :, None]
+    # Each per-point array is made dense over (P, 12, 32) and masked once (boolean masks cost less than
+    # gathers by index); per-channel constants are looked up by the points' channels.
+    c = np.broadcast_to(np.arange(CHANNELS_PER_BLOCK, dtype=np.intp), valid.shape)[valid]
+    d = distance[valid].astype(np.float32)
+    a = (az[:, :, None] + diff[:, :, None] * model.chan_fraction(dual))[valid]  # channel azimuth, 0.01 deg
+    # Sines and cosines in float32 (numpy's are vectorised for float32 only here: ten times faster),
+    # of the azimuth alone; the channel's horizontal offset is added by the angle-sum identities.
+    # Within 0.01 mm of float64 at 30 m, 0.1 mm at the 230 m range limit (the cloud is float32).
+    a_rad = np.deg2rad(a * 0.01).astype(np.float32)
+    cos_a, sin_a = np.cos(a_rad), np.sin(a_rad)
+    cos_o, sin_o = np.cos(horiz_off).astype(np.float32)[c], np.sin(horiz_off).astype(np.float32)[c]
+    cos_h = cos_a * cos_o - sin_a * sin_o  # h = a + horizontal offset
+    sin_h = sin_a * cos_o + cos_a * sin_o
+    d_cos_v = d * np.cos(vert).astype(np.float32)[c]
+    rx = np.float32(model.lens_offset_m)
     xyz = np.empty((len(d), 3), np.float32)
-    xyz[:, 0] = d * np.cos(v) * np.cos(h_rad) + rx * np.cos(a_rad)
-    xyz[:, 1] = -d * np.cos(v) * np.sin(h_rad) - rx * np.sin(a_rad)
-    xyz[:, 2] = d * np.sin(v)
-    if model.lasers == 16:
-        ret = (c >= 16).astype(np.uint8) if dual else np.zeros(len(c), np.uint8)
+    xyz[:, 0] = d_cos_v * cos_h + rx * cos_a
+    xyz[:, 1] = -d_cos_v * sin_h - rx * sin_a
+    xyz[:, 2] = d * np.sin(vert).astype(np.float32)[c]
+    if not dual:
+        ret = np.zeros(len(c), np.uint8)
+    elif model.lasers == 16:
+        ret = (c >= 16).astype(np.uint8)
     else:
-        ret = (b % 2).astype(np.uint8) if dual else np.zeros(len(c), np.uint8)
-    time_us = packet_offset_us[p] + model.block_time_us(dual)[b] + model.chan_time_us(dual)[c]
+        block_ret = (np.arange(BLOCKS_PER_PACKET) % 2).astype(np.uint8)[None, :, None]
+        ret = np.broadcast_to(block_ret, valid.shape)[valid]
+    time_us = (
+        packet_offset_us[:, None, None] + model.block_time_us(dual)[None, :, None] + model.chan_time_us(dual)
+    )[valid]
     return Points(
         xyz_m=xyz,
-        intensity=chans["intensity"][p, b, c],
+        intensity=chans["intensity"][valid],
         laser=laser[c].astype(np.int16),
         ret=ret,
         time_offset_us=time_us,
-        distance_m=d.astype(np.float32),
+        distance_m=d,
     )
 
 
@@ -536,6 +550,7 @@ class LidarStream:
         self._splitter = FrameSplitter(split_az)
         self._frame = _Partial()
         self._last_day: tuple[int, int, int] | None = None  # date of the last packet whose time was good
+        self._az_step = 0  # the nominal azimuth step between firing blocks (DIFOP's rpm and mode)
 
     def _count(self, reason: str, n: int = 1) -> None:
         self.counters[reason] = self.counters.get(reason, 0) + n
@@ -555,6 +570,7 @@ class LidarStream:
             self._count("difop/changed")
             self._frame = _Partial()  # its blocks were laid out under the old settings
         self.info = info
+        self._az_step = self.model.nominal_az_step(info.rpm, info.dual)
         self._count("difop")
         return True
 
@@ -615,13 +631,10 @@ class LidarStream:
 
     def _ends_turn(self, azimuths: Sequence[int]) -> bool:
         """Does the next firing after this packet's last block cross the split azimuth?"""
-        valid = [a for a in azimuths if a < AZIMUTH_PER_TURN]
-        if not valid or self.info is None:
+        last = next((a for a in reversed(azimuths) if a < AZIMUTH_PER_TURN), None)
+        if last is None or self.info is None:
             return False
-        last = valid[-1]
-        step = self.model.nominal_az_step(self.info.rpm, self.info.dual)
-        split = self._splitter.split_az
-        return (split - last - 1) % AZIMUTH_PER_TURN < step
+        return (self._splitter.split_az - last - 1) % AZIMUTH_PER_TURN < self._az_step
 
     def flush(self) -> Frame | None:
         """The open frame as it stands (the caller knows its revolution ended: a recording's last

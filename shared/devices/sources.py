@@ -126,12 +126,12 @@ class _Source:
 def lidar_frame_message(frame: robosense.Frame, sensor_id: str, returns: str = "first") -> Any:
     """foxglove.PointCloud of a decoded frame (first returns only unless `returns` is 'all')."""
     pts = frame.points
-    keep = np.ones(len(pts), bool) if returns == "all" else pts.ret == 0
+    xyz_m, intensity = pts.xyz_m, pts.intensity
+    if returns != "all" and pts.ret.any():  # single-return frames (no second returns) are taken whole
+        keep = pts.ret == 0
+        xyz_m, intensity = xyz_m[keep], intensity[keep]
     return point_cloud_message(
-        pts.xyz_m[keep],
-        pts.intensity[keep].astype(np.float32) / INTENSITY_FULL_SCALE,
-        sensor_id,
-        frame.stamp_ns,
+        xyz_m, intensity.astype(np.float32) / INTENSITY_FULL_SCALE, sensor_id, frame.stamp_ns
     )
 
 

@@ -37,6 +37,7 @@ slowest input's CPU time is reported with what it was.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import io
 import itertools
@@ -404,6 +405,28 @@ def _header_mutation(rng: np.random.Generator, data: bytes, heads: list[int], bi
     return data[:start] + rng.bytes(int(rng.integers(1, 4))) + data[start + 3 :]
 
 
+def _read_all(name: str, data: bytes, reference: bool) -> tuple[Any, ...]:
+    reader = PcapReader(Path(name), data=data, reference=reference)
+    try:
+        grams, error = list(reader), None
+    except CaptureFormatError as err:
+        grams, error = [], str(err)
+    return grams, error, dict(reader.counts), reader.truncated_at, reader.records
+
+
+def fast_path_agrees(name: str, data: bytes) -> None:
+    """AssertionError unless the classic pcap's fast path (shared/captures/pcap.py) reads `data` as dpkt
+    does: the same datagrams (stamps within 1 us: dpkt's are float seconds), counts and cut, or the
+    same refusal."""
+    fast, ref = _read_all(name, data, False), _read_all(name, data, True)
+    (fast_grams, *fast_rest), (ref_grams, *ref_rest) = fast, ref
+    assert fast_rest == ref_rest, (fast_rest, ref_rest)
+    assert len(fast_grams) == len(ref_grams), (len(fast_grams), len(ref_grams))
+    for a, b in zip(fast_grams, ref_grams, strict=True):
+        assert dataclasses.replace(a, stamp_ns=0) == dataclasses.replace(b, stamp_ns=0), (a, b)
+        assert abs(a.stamp_ns - b.stamp_ns) <= 1000, (a.stamp_ns, b.stamp_ns)
+
+
 def fuzz_pcap(inputs: int, seed: int) -> Report:
     rng = np.random.default_rng(seed)
     report = Report("pcap", inputs)
@@ -455,6 +478,9 @@ def fuzz_pcap(inputs: int, seed: int) -> Report:
             except CaptureFormatError:
                 refused = True
                 report.counters["format_error"] = report.counters.get("format_error", 0) + 1
+        if not ng:
+            with one.run():
+                one.guard("PcapReader fast path vs dpkt", fast_path_agrees, name, data)
         report.count(reader.counts)
         report.counters["datagrams"] = report.counters.get("datagrams", 0) + datagrams
         report.taken += datagrams > 0
