@@ -112,6 +112,39 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             return NOMINAL, f"{len(sources)} devices, frames: {counts}"
 
         node.health.set_status(status)
+
+        frame_errors = {"n": 0}
+
+        def publish(out: Output, now: float) -> None:
+            """Stamp, demand-check and publish one device output."""
+            start_ns = time.time_ns()
+            seen[out.sensor_id] += 1
+            spec = by_id[out.sensor_id]
+            stamp = stampers[out.sensor_id].stamp(out.stamp_ns, out.on_wall_clock, out.cycle)
+            every_n = demands.every_n(now)
+            if kind == "camera" and every_n != cadence["every_n"]:
+                cadence["every_n"] = every_n
+                for sid in sources:
+                    monitor.set_rate(sid, by_id[sid].rate_hz / every_n, sim_time.now_s())
+            if kind == "camera" and not frame_wanted(
+                scene, spec, stamp.tick, sim_time, every_n, seen[out.sensor_id]
+            ):
+                node.counters.inc("frames/not_demanded")
+                return
+            message = out.message
+            if hasattr(message, "timestamp"):
+                message.timestamp.FromNanoseconds(stamp.stamp_ns)
+            pub = pubs[out.sensor_id]
+            header = pub.next_header(
+                stamp_ns=stamp.stamp_ns, tick=stamp.tick, epoch=stamp.epoch, frame_id=out.sensor_id
+            )
+            if hasattr(message, "header"):
+                message.header.CopyFrom(header)
+            pub.put(message, header, stages=[processing_stamp(f"device/{kind}", start_ns, time.time_ns())])
+            published[out.sensor_id] += 1
+            monitor.accept(out.sensor_id, stamp.stamp_ns, sim_time.now_s(), stamp.stamp_ns)
+            node.counters.inc(f"frames/{kind}")
+
         for source in sources.values():
             source.start()
         log.info("group %s: %d devices from site %s", args.group, len(sources), site.site_id)
@@ -141,35 +174,13 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                     out = outputs.get(timeout=0.1)
                 except queue.Empty:
                     continue
-                start_ns = time.time_ns()
-                seen[out.sensor_id] += 1
-                spec = by_id[out.sensor_id]
-                stamp = stampers[out.sensor_id].stamp(out.stamp_ns, out.on_wall_clock, out.cycle)
-                every_n = demands.every_n(now)
-                if kind == "camera" and every_n != cadence["every_n"]:
-                    cadence["every_n"] = every_n
-                    for sid in sources:
-                        monitor.set_rate(sid, by_id[sid].rate_hz / every_n, sim_time.now_s())
-                if kind == "camera" and not frame_wanted(
-                    scene, spec, stamp.tick, sim_time, every_n, seen[out.sensor_id]
-                ):
-                    node.counters.inc("frames/not_demanded")
-                    continue
-                message = out.message
-                if hasattr(message, "timestamp"):
-                    message.timestamp.FromNanoseconds(stamp.stamp_ns)
-                pub = pubs[out.sensor_id]
-                header = pub.next_header(
-                    stamp_ns=stamp.stamp_ns, tick=stamp.tick, epoch=stamp.epoch, frame_id=out.sensor_id
-                )
-                if hasattr(message, "header"):
-                    message.header.CopyFrom(header)
-                pub.put(
-                    message, header, stages=[processing_stamp(f"device/{kind}", start_ns, time.time_ns())]
-                )
-                published[out.sensor_id] += 1
-                monitor.accept(out.sensor_id, stamp.stamp_ns, sim_time.now_s(), stamp.stamp_ns)
-                node.counters.inc(f"frames/{kind}")
+                try:
+                    publish(out, now)
+                except Exception:  # one frame's fault (a field no message holds) never ends the group
+                    frame_errors["n"] += 1
+                    node.counters.inc("errors/frame")
+                    if frame_errors["n"] == 1:  # the first with its trace; the rest counted
+                        log.exception("%s: a frame could not be published; later ones counted", out.sensor_id)
         finally:
             for source in sources.values():
                 source.close()

@@ -24,12 +24,13 @@ from dataclasses import dataclass
 from urllib.parse import urlsplit
 
 from shared.bus.codec import DEFAULT_MAX_PAYLOAD_BYTES
-from shared.timebase import NS_PER_S
+from shared.timebase import MAX_STAMP_NS, NS_PER_S
 
 TIMESTAMP_HEADER = "X-Timestamp"
 MAX_PART_BYTES = DEFAULT_MAX_PAYLOAD_BYTES  # a larger image could not be published anyway
 MAX_LINE_BYTES = 1024  # a boundary line; longer is not a boundary
 MAX_LINES_BEFORE_PART = 8  # blank lines and preamble tolerated before a boundary
+MAX_SECONDS_DIGITS = len(str(MAX_STAMP_NS // NS_PER_S))  # more is past any stamp, not worth parsing
 _TIMESTAMP = re.compile(r"(\d+)(?:\.(\d{1,9}))?", re.ASCII)
 
 
@@ -54,11 +55,16 @@ def parse_timestamp_ns(text: str) -> int:
     >>> parse_timestamp_ns("1700000000.000250")
     1700000000000250000
     """
-    match = _TIMESTAMP.fullmatch(text.strip())
+    match = _TIMESTAMP.fullmatch(text.strip()[:MAX_LINE_BYTES])
     if match is None:
-        raise ValueError(f"X-Timestamp not <seconds>.<fraction>: {text!r}")
+        raise ValueError(f"X-Timestamp not <seconds>.<fraction>: {text[:40]!r}")
     whole, frac = match.group(1), match.group(2) or ""
-    return int(whole) * NS_PER_S + int(frac.ljust(9, "0"))
+    if len(whole) > MAX_SECONDS_DIGITS:
+        raise ValueError(f"X-Timestamp of {len(whole)} digits of seconds: past what a stamp holds")
+    ns = int(whole) * NS_PER_S + int(frac.ljust(9, "0"))
+    if ns > MAX_STAMP_NS:
+        raise ValueError(f"X-Timestamp {whole} s: past what a stamp holds")
+    return ns
 
 
 class MjpegStream:

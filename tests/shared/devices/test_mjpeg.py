@@ -104,8 +104,26 @@ def test_timestamp_known_answers(text: str, ns: int) -> None:
     assert parse_timestamp_ns(text) == ns
 
 
-@pytest.mark.parametrize("text", ["", ".5", "abc", "-1.0", "1.-2", "1.2.3", "1.1234567890", "1e9", "1,5"])
+@pytest.mark.parametrize(
+    "text",
+    [
+        "",
+        ".5",
+        "abc",
+        "-1.0",
+        "1.-2",
+        "1.2.3",
+        "1.1234567890",
+        "1e9",
+        "1,5",
+        "9" * 30,
+        "9223372037",
+        "1" * 5000,
+    ],
+)
 def test_timestamp_refusals(text: str) -> None:
+    """Issue 52 item 5: thirty 9s made a stamp past int64 ns (FromNanoseconds raised in the device
+    service, which died on every frame); the refusal is what the source counts."""
     with pytest.raises(ValueError, match="X-Timestamp"):
         parse_timestamp_ns(text)
 
@@ -204,6 +222,17 @@ def test_a_camera_on_its_own_clock_is_stamped_with_the_capture_time(
     server.publish(jpeg(3), capture_ns + 100_000_000)
     out.wait(3)
     assert not out.outputs[2].on_wall_clock and source.status() == ""
+
+
+def test_a_camera_stamp_past_any_stamp_is_counted_and_the_frame_stamped_on_receive(
+    camera_on_its_clock: tuple[MjpegServer, CameraSource, Collector],
+) -> None:
+    """Issue 52 item 5: an X-Timestamp of thirty 9s came out as the frame's stamp."""
+    server, source, out = camera_on_its_clock
+    server.publish(jpeg(1), int("9" * 30) * 1000)
+    out.wait(1)
+    assert out.outputs[0].on_wall_clock and out.outputs[0].message.data == jpeg(1)
+    assert source.counters_snapshot()["clock/bad_device_stamp"] == 1
 
 
 def test_a_camera_on_its_own_clock_comes_back_after_its_stream_dies(
