@@ -32,6 +32,8 @@ converted, a corrupt or cut-off bag: `BagImportError` naming the topic and messa
 
 from __future__ import annotations
 
+import bz2
+import functools
 import re
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -39,21 +41,34 @@ from pathlib import Path
 from typing import Any
 
 import cv2
+import lz4.frame
 import numpy as np
+import zstandard
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from google.protobuf.message import Message
 from rmmdet.v1.sensors_pb2 import RadarScan, RadarTarget
+from rosbags import rosbag1
 from rosbags.highlevel import AnyReader
 from rosbags.image import message_to_cvimage
+from rosbags.rosbag2 import storage_mcap
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from shared.bus.codec import DEFAULT_MAX_PAYLOAD_BYTES
 from shared.captures import identify
 from shared.captures.errors import CaptureError
 from shared.captures.mapping import Binding, Mapping
 from shared.captures.report import ImportReport, Item
 from shared.captures.units import RadarUnit, RobosenseUnit, VelodyneUnit, lidar_unit
 from shared.devices import ars408, robosense
-from shared.perception.decode import encoded_format, point_cloud_message, unit_intensity
+from shared.perception.decode import (
+    FLOAT32_BYTES,
+    MAX_IMAGE_PIXELS,
+    POINT_FIELDS,
+    encoded_format,
+    image_size,
+    point_cloud_message,
+    unit_intensity,
+)
 from shared.scene.scene import Scene
 from shared.timebase import NS_PER_S
 
@@ -85,8 +100,61 @@ LEGACY_MSG_DIR = Path(__file__).with_name("msg_legacy")
 LEGACY_MARKER = "rslidar_msg/msg/RslidarScan"  # only rslidar_sdk's 2022 layout has it
 
 
+#: Caps checked against what a bag declares before anything is read or allocated (a message or chunk
+#: that declares more is refused by name). A cloud: what one point-cloud message may carry over the bus
+#: (x, y, z, intensity float32: 16 bytes a point). An image: the MEC's MAX_IMAGE_PIXELS. A chunk:
+#: ROS 1 and rosbag2 write chunks of under a megabyte by default.
+MAX_CLOUD_POINTS = DEFAULT_MAX_PAYLOAD_BYTES // (FLOAT32_BYTES * len(POINT_FIELDS))
+MAX_CHUNK_BYTES = 256 * 1024 * 1024
+
+
 class BagImportError(CaptureError):
     """The import stopped; nothing was written."""
+
+
+def _inflate(compression: str, data: bytes, size: int) -> bytes:
+    """A bag chunk's bytes, inflated to at most its declared `size` (and `size` at most MAX_CHUNK_BYTES):
+    a chunk whose data would inflate past what it declares is refused before it is allocated."""
+    if size > MAX_CHUNK_BYTES:
+        raise BagImportError(
+            f"a chunk declares {size} bytes, more than the {MAX_CHUNK_BYTES} a chunk may hold"
+        )
+    if compression in ("", "none"):
+        return data
+    if compression == "zstd":
+        declared = zstandard.frame_content_size(data)  # -1: not in the frame header
+        if declared > size:
+            raise BagImportError(f"a zstd chunk inflates to {declared} bytes, past the {size} it declares")
+        return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
+    if compression == "lz4":
+        inflater: Any = lz4.frame.LZ4FrameDecompressor()
+    elif compression == "bz2":
+        inflater = bz2.BZ2Decompressor()
+    else:
+        raise BagImportError(f"chunk compression {compression!r} is none of zstd, lz4, bz2")
+    raw = inflater.decompress(data, max_length=size + 1)
+    if len(raw) > size:
+        raise BagImportError(f"a {compression} chunk inflates past the {size} bytes it declares")
+    return raw
+
+
+# rosbags hands an MCAP chunk's declared uncompressed size to its decompressors and inflates without
+# bound itself: every one it knows is replaced by the bounded one (the same bytes for any honest chunk).
+for _name in list(storage_mcap.DECOMPRESSORS):
+    storage_mcap.DECOMPRESSORS[_name] = functools.partial(_inflate, _name)
+
+
+def _bound_ros1_chunks(reader: Any) -> None:
+    """The ROS 1 bags' chunks inflated by `_inflate`, to the uncompressed size each chunk's header
+    declares (rosbags keeps only the compressed size)."""
+    for bag in getattr(reader, "readers", []):
+        if not isinstance(bag, rosbag1.Reader) or bag.bio is None:
+            continue
+        for pos, chunk in list(bag.chunks.items()):
+            bag.bio.seek(pos)
+            header = rosbag1.reader.Header.read(bag.bio, rosbag1.reader.RecordType.CHUNK)
+            compression, size = header.get_string("compression"), header.get_uint32("size")
+            bag.chunks[pos] = chunk._replace(decompressor=functools.partial(_inflate, compression, size=size))
 
 
 def register_msg_dir(store: Any, msg_dir: Path, only_new: bool = False) -> list[str]:
@@ -128,11 +196,19 @@ def pointcloud2_points(msg: Any) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"PointCloud2 fields do not fit its point_step {step}")
     dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": step})
     height, width, row_step = int(msg.height), int(msg.width), int(msg.row_step)
+    if height * width > MAX_CLOUD_POINTS or (width == 0 and height > MAX_CLOUD_POINTS):
+        raise ValueError(
+            f"PointCloud2 of {height} x {width} points: over the {MAX_CLOUD_POINTS} a cloud message carries"
+        )
     data = bytes(msg.data)
     if row_step < width * step or len(data) < height * row_step:
         raise ValueError(f"PointCloud2 data of {len(data)} B is short of {height} rows of {row_step} B")
-    rows = [np.frombuffer(data, dtype, count=width, offset=r * row_step) for r in range(height)]
-    points = np.concatenate(rows) if rows else np.zeros(0, dtype)
+    if width == 0 or height == 0:
+        points = np.zeros(0, dtype)
+    else:  # the rows' points, read through a strided view (one copy, however many rows)
+        raw = np.frombuffer(data, np.uint8, count=(height - 1) * row_step + width * step)
+        cells = np.lib.stride_tricks.as_strided(raw, (height, width, step), (row_step, step, 1))
+        points = np.ascontiguousarray(cells).reshape(-1).view(dtype)
     xyz = np.column_stack([points["x"], points["y"], points["z"]]).astype(np.float64)
     intensity = points["intensity"].astype(np.float64) if "intensity" in names else np.zeros(len(points))
     keep = np.isfinite(xyz).all(axis=1)
@@ -147,11 +223,16 @@ def image_data(msg: Any, msgtype: str) -> tuple[str, bytes]:
         fmt = encoded_format(data)
         if fmt is not None:
             return fmt, data
+        width, height = image_size(data)  # the header's size, nothing decoded: a bomb is refused unread
+        if width * height > MAX_IMAGE_PIXELS:
+            raise ValueError(f"CompressedImage of {width}x{height} px: over the {MAX_IMAGE_PIXELS} px cap")
         decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
         if decoded is None:
             raise ValueError(f"CompressedImage of format {msg.format!r} does not decode")
         image = decoded
     else:
+        if int(msg.width) * int(msg.height) > MAX_IMAGE_PIXELS:
+            raise ValueError(f"Image of {msg.width}x{msg.height} px: over the {MAX_IMAGE_PIXELS} px cap")
         try:
             image = message_to_cvimage(msg, "bgr8")
         except Exception as exc:  # rosbags-image raises on encodings and sizes it cannot take
@@ -239,6 +320,7 @@ def _legacy_layout(bags: Sequence[Path], types: set[str], msg_dir: Path | None) 
         return False
     for legacy in (False, True):
         with AnyReader(list(bags), default_typestore=_typestore(bags, legacy, msg_dir)) as reader:
+            _bound_ros1_chunks(reader)
             connections = [c for c in reader.connections if c.msgtype == "rslidar_msg/msg/RslidarPacket"]
             first = next(iter(reader.messages(connections=connections)), None)
             if first is None:
@@ -261,6 +343,7 @@ def _bag_items(
     except Exception as exc:
         raise BagImportError(f"{', '.join(map(str, bags))}: {type(exc).__name__}: {exc}") from None
     try:
+        _bound_ros1_chunks(reader)
         bound = _bind(reader, scene, mapping, report)
         units = _lidar_units(reader, bound, report)
         radars = {

@@ -5,6 +5,8 @@ message and no output left."""
 
 from __future__ import annotations
 
+import struct
+import time
 from pathlib import Path
 
 import cv2
@@ -18,9 +20,16 @@ from rosbags.typesys import Stores, get_typestore
 from shared.captures.errors import CaptureError
 from shared.captures.importer import import_files as import_bags
 from shared.captures.mapping import load_mapping
-from shared.captures.rosbag import BagImportError, pointcloud2_points, register_msg_dir
+from shared.captures.rosbag import (
+    MAX_CHUNK_BYTES,
+    MAX_CLOUD_POINTS,
+    BagImportError,
+    image_data,
+    pointcloud2_points,
+    register_msg_dir,
+)
 from shared.paths import DEFAULT_SCENE
-from shared.perception.decode import point_cloud_to_array
+from shared.perception.decode import MAX_IMAGE_PIXELS, point_cloud_to_array
 from shared.recording.reader import decode_record, read_records
 from shared.scene.scene import Scene
 from shared.vehicle.ros2 import ros_header
@@ -358,3 +367,74 @@ def test_raw_robosense_packets_go_through_the_lidar_decoder(scene, msg_dir, tmp_
     mapping.write_text("topics:\n  /rslidar_packets: {sensor: lidar_11, device: rs99}\n")
     with pytest.raises(CaptureError, match="rs99"):
         load_mapping(mapping, scene)
+
+
+# --- bag bombs (issue 52 item 4): caps checked against what a message or chunk declares, before reading
+
+
+def test_a_cloud_of_no_width_and_a_huge_height_is_refused_unread() -> None:
+    """width 0, row_step 0 and 2^32 - 1 rows passed every size check and looped over each row (10^6
+    rows took 2.4 s and 150 MB)."""
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    msg = cloud(store, 0, "l", False, "xyzi")
+    msg.width, msg.row_step, msg.height = 0, 0, 2**32 - 1
+    started = time.process_time()
+    with pytest.raises(ValueError, match=rf"over the {MAX_CLOUD_POINTS} a cloud message carries"):
+        pointcloud2_points(msg)
+    msg.width, msg.height = 2**16, 2**16  # as many points declared, whatever the data holds
+    with pytest.raises(ValueError, match="a cloud message carries"):
+        pointcloud2_points(msg)
+    assert time.process_time() - started < 0.5
+
+
+def test_a_compressed_image_declaring_more_pixels_than_the_cap_is_not_decoded() -> None:
+    """A 58-byte BMP saying 6000 x 6000 px was handed to OpenCV to decode."""
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    bmp = (
+        b"BM"
+        + struct.pack("<IHHI", 58, 0, 0, 54)
+        + struct.pack("<IiiHHIIiiII", 40, 6000, 6000, 1, 24, 0, 0, 0, 0, 0, 0)
+    )
+    msg = store.types["sensor_msgs/msg/CompressedImage"](
+        header=header(store, 0, "cam_11"), format="bmp", data=np.frombuffer(bmp + bytes(4), np.uint8)
+    )
+    with pytest.raises(
+        ValueError, match=rf"CompressedImage of 6000x6000 px: over the {MAX_IMAGE_PIXELS} px cap"
+    ):
+        image_data(msg, "sensor_msgs/msg/CompressedImage")
+
+
+def test_chunks_inflate_to_no_more_than_they_declare(scene, msg_dir, tmp_path) -> None:
+    """Bag chunks were inflated without bound: a ROS 1 chunk whose header says 64 bytes but whose lz4
+    data holds more, and an MCAP chunk whose zstd frame says more than the chunk, are refused by name;
+    a chunk declaring more than MAX_CHUNK_BYTES is refused before it is read."""
+    bag = tmp_path / "lz4.bag"
+    store = store_for("ros1", msg_dir)
+    writer = Ros1Writer(bag)
+    writer.set_compression(Ros1Writer.CompressionFormat.LZ4)
+    with writer:
+        conn = writer.add_connection("/lidar_11/points", "sensor_msgs/msg/PointCloud2", typestore=store)
+        for k in range(3):
+            msg = cloud(store, k, "lidar_11", False, "xyzi")
+            writer.write(
+                conn, T0_NS + k * 100_000_000, store.serialize_ros1(msg, "sensor_msgs/msg/PointCloud2")
+            )
+    out = tmp_path / "out.mcap"
+    assert import_bags([bag], out, scene, None, msg_dir).messages["lidar_11"] == 3  # honest: as before
+    data = bytearray(bag.read_bytes())
+    at = data.index(b"size=", data.index(b"compression=lz4") - 64)  # the chunk header's uncompressed size
+    data[at + 5 : at + 9] = struct.pack("<I", 64)
+    bag.write_bytes(bytes(data))
+    refused = tmp_path / "refused.mcap"
+    with pytest.raises(BagImportError, match="lz4 chunk inflates past the 64 bytes it declares"):
+        import_bags([bag], refused, scene, None, msg_dir)
+    assert not refused.exists()
+    import zstandard
+    from rosbags.rosbag2 import storage_mcap
+
+    frame = zstandard.ZstdCompressor().compress(bytes(10_000_000))  # its header says 10^7 bytes
+    with pytest.raises(BagImportError, match="inflates to 10000000 bytes, past the 1000 it declares"):
+        storage_mcap.decompress(frame, "zstd", 1000, 0)
+    with pytest.raises(BagImportError, match=f"the {MAX_CHUNK_BYTES} a chunk may hold"):
+        storage_mcap.decompress(frame, "zstd", MAX_CHUNK_BYTES + 1, 0)
+    assert storage_mcap.decompress(frame, "zstd", 10_000_000, 0) == bytes(10_000_000)
