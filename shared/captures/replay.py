@@ -5,7 +5,8 @@ as on the live units.
 What goes where (the site file says each sensor's device and where its adapter listens; the mapping's
 `units:` / `radars:` say which recorded unit is which sensor, shared/captures/mapping.py):
 - a Robosense unit's MSOP and DIFOP packets to its `msop_port` / `difop_port`, a Velodyne's data packets
-  to its `data_port`, on the adapter's `bind` address (127.0.0.1 for 0.0.0.0, or `host`); a Velodyne's
+  to its `data_port`, on the adapter's `bind` address (127.0.0.1 for 0.0.0.0, or `host`), sent from the
+  unit's `unit_address` (the adapter refuses any other sender: it must be this host's); a Velodyne's
   position packets have no port in the site file and are counted, not sent;
 - a radar's CAN frames to its bus: an `slcan` radar at `socket://host:port` is served on that port (as
   the adapter's serial-line adapter would be, shared/devices/slcan.py); a `socketcan`, `udp_multicast`
@@ -212,20 +213,38 @@ class _CanSink:
             self.bus.shutdown()
 
 
+def _sender_at(sensor: str, unit_address: str) -> socket.socket:
+    """A socket sending from `unit_address` (the adapter takes a lidar's packets from there only): one
+    of this host's addresses (any 127.x.y.z on loopback), else a CaptureError saying so."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 << 20)
+    try:
+        sock.bind((unit_address, 0))
+    except OSError as exc:
+        sock.close()
+        raise CaptureError(
+            f"{sensor}: the site's unit_address {unit_address} is not an address of this host ({exc}): "
+            "its adapter takes the unit's packets from that address only; replay to a site whose units "
+            "are at 127.0.0.1, or give this host that address"
+        ) from None
+    return sock
+
+
 class Replayer:
     """Plays sends to a site's adapters (module docstring)."""
 
     def __init__(self, site: SiteFile, sensors: Iterable[str], host: str | None = None) -> None:
         self.site, self.host = site, host
         self.counts: Counter[str] = Counter()
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 << 20)
+        self.socks: dict[str, socket.socket] = {}  # a lidar's packets leave from its unit_address
         self.can: dict[str, _CanSink] = {}
         try:
             for sensor in sorted(set(sensors)):
                 spec = _device(site, sensor)
                 if isinstance(spec, Ars408Radar):
                     self.can[sensor] = _CanSink(spec, host)
+                elif hasattr(spec, "unit_address"):
+                    self.socks[sensor] = _sender_at(sensor, spec.unit_address)
         except Exception as exc:
             self.close()
             if isinstance(exc, CaptureError):
@@ -272,7 +291,7 @@ class Replayer:
     def _send(self, s: Send) -> None:
         if s.port is not None:
             spec = self.site.device(s.sensor)
-            self.sock.sendto(s.payload, (_local(getattr(spec, "bind", ""), self.host), s.port))
+            self.socks[s.sensor].sendto(s.payload, (_local(getattr(spec, "bind", ""), self.host), s.port))
             self.counts[f"sent/{s.sensor}"] += 1
             return
         if self.can[s.sensor].send(s.can_id, s.payload):
@@ -281,6 +300,7 @@ class Replayer:
             self.counts[f"dropped/no_adapter/{s.sensor}"] += 1
 
     def close(self) -> None:
-        self.sock.close()
+        for sock in self.socks.values():
+            sock.close()
         for sink in self.can.values():
             sink.close()

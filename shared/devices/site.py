@@ -21,11 +21,12 @@ Sensors the file does not list are not this site's (a sensor group lists all of 
 
 from __future__ import annotations
 
+import ipaddress
 from pathlib import Path
 from typing import Annotated, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from shared.config import ConfigError, read_yaml
 from shared.devices.robosense import MODELS
@@ -41,8 +42,25 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+def _ip_address(text: str) -> str:
+    try:
+        return str(ipaddress.ip_address(text))
+    except ValueError:
+        raise ValueError(f"unit_address {text!r} is no IP address") from None
+
+
+# The address a lidar's packets come from: any other sender's are refused (counted
+# `rejected/foreign_sender`), so a host on the lidar network cannot feed or reset the unit's frames.
+UnitAddress = Annotated[
+    str,
+    AfterValidator(_ip_address),
+    Field(description="the unit's own IP address; packets from any other sender are refused"),
+]
+
+
 class RobosenseLidar(_Strict):
     device: Literal["rs16", "rs32"]
+    unit_address: UnitAddress
     bind: str = Field("0.0.0.0", description="address the adapter listens on")
     msop_port: int = Field(6699, gt=0, lt=65536)
     difop_port: int = Field(7788, gt=0, lt=65536)
@@ -64,6 +82,7 @@ class VelodyneLidar(_Strict):
     unit's own calibration file where given, else the package's bundled one for the model."""
 
     device: Literal["vlp16", "vlp32c", "hdl32e"]
+    unit_address: UnitAddress
     bind: str = Field("0.0.0.0", description="address the adapter listens on")
     data_port: int = Field(2368, gt=0, lt=65536)
     clock: Clock = "receive"  # device: the packets' microseconds past the hour on the host's hour

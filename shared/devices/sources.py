@@ -136,8 +136,10 @@ def lidar_frame_message(frame: robosense.Frame, sensor_id: str, returns: str = "
 
 
 def _udp_socket(bind: str, port: int) -> socket.socket:
+    # No SO_REUSEADDR: with it on both sockets, another local process could bind the same port (its
+    # own socket with the option) and be handed the unit's datagrams in place of this adapter (Linux
+    # gives a unicast datagram to one of them); a UDP port has no TIME_WAIT to wait out on restart.
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)  # a turn of RS-LiDAR-32 is 187 kB
     sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
     sock.bind((bind, port))
@@ -145,17 +147,18 @@ def _udp_socket(bind: str, port: int) -> socket.socket:
     return sock
 
 
-def _recv_stamped(sock: socket.socket) -> tuple[bytes, int] | None:
-    """One datagram and its kernel receive time (wall ns; now if the kernel gave none)."""
+def _recv_stamped(sock: socket.socket) -> tuple[bytes, int, str] | None:
+    """One datagram, its kernel receive time (wall ns; now if the kernel gave none) and its sender's
+    address."""
     try:
-        data, ancdata, _flags, _addr = sock.recvmsg(2048, 64)
+        data, ancdata, _flags, addr = sock.recvmsg(2048, 64)
     except BlockingIOError:
         return None
     for level, kind, payload in ancdata:
         if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(payload) >= _TIMESPEC.size:
             sec, nsec = _TIMESPEC.unpack(payload[: _TIMESPEC.size])
-            return data, sec * NS_PER_S + nsec
-    return data, time.time_ns()
+            return data, sec * NS_PER_S + nsec, addr[0]
+    return data, time.time_ns(), addr[0]
 
 
 class LidarSource(_Source):
@@ -183,7 +186,10 @@ class LidarSource(_Source):
             ready, _, _ = select.select([self.msop, self.difop], [], [], 0.1)
             for sock in ready:
                 while (got := _recv_stamped(sock)) is not None:
-                    data, recv_ns = got
+                    data, recv_ns, sender = got
+                    if sender != self.spec.unit_address:  # its frames and angle tables are the unit's only
+                        self.count("rejected/foreign_sender")
+                        continue
                     if sock is self.difop:
                         self.stream.on_difop(data)
                         continue
@@ -240,7 +246,11 @@ class VelodyneSource(_Source):
             ready, _, _ = select.select([self.sock], [], [], 0.1)
             if ready:
                 while (got := _recv_stamped(self.sock)) is not None:
-                    self.on_packet(*got)
+                    data, recv_ns, sender = got
+                    if sender != self.spec.unit_address:
+                        self.count("rejected/foreign_sender")
+                        continue
+                    self.on_packet(data, recv_ns)
 
     def counters_snapshot(self) -> dict[str, int]:
         return super().counters_snapshot() | dict(self.stream.counters)

@@ -45,6 +45,7 @@ def wire_site(tmp_path: Path) -> Path:
         if spec.agent == "agent1" and spec.kind == "lidar":
             sensors[spec.id] = {
                 "device": "rs16",
+                "unit_address": "127.0.0.1",
                 "bind": "127.0.0.1",
                 "msop_port": free_port(),
                 "difop_port": free_port(),

@@ -34,7 +34,12 @@ def _site(data_port: int, can_port: int) -> SiteFile:
             "site_id": "replay_test",
             "scene": str(DEFAULT_SCENE),
             "sensors": {
-                "lidar_11": {"device": "vlp16", "bind": "127.0.0.1", "data_port": data_port},
+                "lidar_11": {
+                    "device": "vlp16",
+                    "unit_address": "127.0.0.1",
+                    "bind": "127.0.0.1",
+                    "data_port": data_port,
+                },
                 "radar_2": {
                     "device": "ars408",
                     "interface": "slcan",
@@ -99,6 +104,11 @@ def test_replay_refuses_what_it_cannot_play(tmp_path: Path) -> None:
     (tmp_path / "x.txt").write_text("no")
     with pytest.raises(CaptureError, match="replay plays pcap"):
         schedule([tmp_path / "x.txt"], site, Mapping(), Counter())
+    # The adapter takes a lidar's packets from its unit_address only: replay must send from there.
+    lidar = site.sensors["lidar_11"].model_copy(update={"unit_address": "192.0.2.7"})
+    elsewhere = site.model_copy(update={"sensors": {**site.sensors, "lidar_11": lidar}})
+    with pytest.raises(CaptureError, match=r"unit_address 192\.0\.2\.7 is not an address of this host"):
+        Replayer(elsewhere, ["lidar_11"])
 
 
 def test_a_unit_mapped_by_address_and_port_gets_its_difop(tmp_path: Path) -> None:
@@ -114,7 +124,13 @@ def test_a_unit_mapped_by_address_and_port_gets_its_difop(tmp_path: Path) -> Non
             "site_id": "replay_test",
             "scene": str(DEFAULT_SCENE),
             "sensors": {
-                "lidar_11": {"device": "rs16", "bind": "127.0.0.1", "msop_port": 16699, "difop_port": 17788}
+                "lidar_11": {
+                    "device": "rs16",
+                    "unit_address": "127.0.0.1",
+                    "bind": "127.0.0.1",
+                    "msop_port": 16699,
+                    "difop_port": 17788,
+                }
             },
         }
     )

@@ -49,12 +49,17 @@ def write_site(tmp_path: Path, sensors: dict) -> Path:
 
 
 def test_site_refuses_what_cannot_be() -> None:
+    for lidar in ({"device": "rs16"}, {"device": "vlp16"}, {"device": "rs16", "unit_address": "lidar.local"}):
+        with pytest.raises(ValidationError, match="unit_address"):  # packets from any sender were taken
+            SiteFile.model_validate({"site_id": "t", "scene": "x", "sensors": {"l": lidar}})
     with pytest.raises(ValidationError, match="msop_port and difop_port must differ"):
         SiteFile.model_validate(
             {
                 "site_id": "t",
                 "scene": "x",
-                "sensors": {"l": {"device": "rs16", "msop_port": 1, "difop_port": 1}},
+                "sensors": {
+                    "l": {"device": "rs16", "unit_address": "10.0.0.2", "msop_port": 1, "difop_port": 1}
+                },
             }
         )
     with pytest.raises(ValidationError):
@@ -68,9 +73,13 @@ def test_site_refuses_what_cannot_be() -> None:
 def test_site_kinds_are_checked_against_the_scene(tmp_path: Path) -> None:
     kinds = {s.id: s.kind for s in Scene.load(DEFAULT_SCENE).spec.sensors}
     with pytest.raises(ValueError, match="cam_11 is a camera"):
-        SiteFile.load(write_site(tmp_path, {"cam_11": {"device": "rs16"}})).check_against(kinds)
+        SiteFile.load(
+            write_site(tmp_path, {"cam_11": {"device": "rs16", "unit_address": "10.0.0.2"}})
+        ).check_against(kinds)
     with pytest.raises(ValueError, match="not a sensor of the scene"):
-        SiteFile.load(write_site(tmp_path, {"lidar_99": {"device": "rs16"}})).check_against(kinds)
+        SiteFile.load(
+            write_site(tmp_path, {"lidar_99": {"device": "rs16", "unit_address": "10.0.0.2"}})
+        ).check_against(kinds)
 
 
 def sim_time_at(sim_ns: int) -> SimTime:

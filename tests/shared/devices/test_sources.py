@@ -54,6 +54,7 @@ class Collector:
 def lidar() -> Iterator[tuple[LidarSource, LidarSender, Collector]]:
     spec = RobosenseLidar(
         device="rs16",
+        unit_address="127.0.0.1",
         bind="127.0.0.1",
         msop_port=free_port(),
         difop_port=free_port(),
@@ -91,6 +92,51 @@ def test_lidar_frames_with_the_units_clock(lidar) -> None:
     assert first.stamp_ns == T0_NS and not first.on_wall_clock
     assert len(first.message.data) == 8000 * 16  # every ray, x y z intensity float32
     assert source.status() == ""
+
+
+def test_packets_from_another_sender_are_refused_and_counted(lidar) -> None:
+    """Issue 52 item 6: the sender's address was dropped, so a host on the lidar network that sent two
+    alternating DIFOPs (other angle tables) reset the unit's open frame each time: no frame came out."""
+    source, sender, out = lidar
+    wait_until(lambda: source.stream.info is not None, 10.0)
+    forger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    forger.bind(("127.0.0.2", 0))  # another address on loopback: another host as far as the adapter knows
+    tables = tuple(v + 0.5 for v in sender.emulator.model.example_vertical_deg)
+    tilted = RobosenseEmulator("rs16", samples=500, vertical_deg=tables).difop_packet(T0_NS)
+    plain = sender.emulator.difop_packet(T0_NS)
+    try:
+        for k in range(4):
+            packets = turn(sender.emulator, k)
+            for j, packet in enumerate(packets):
+                sender.sock.sendto(packet, ("127.0.0.1", source.spec.msop_port))
+                if j % 10 == 0:
+                    forger.sendto(tilted if j % 20 else plain, ("127.0.0.1", source.spec.difop_port))
+                    forger.sendto(packet, ("127.0.0.1", source.spec.msop_port))
+            time.sleep(0.05)
+        out.wait(3)
+    finally:
+        forger.close()
+    counts = source.counters_snapshot()
+    assert counts["rejected/foreign_sender"] > 0 and "difop/changed" not in counts
+    assert source.stream.info is not None
+    assert source.stream.info.vertical_deg.tolist() == pytest.approx(
+        sender.emulator.model.example_vertical_deg
+    )
+
+
+def test_no_other_local_socket_can_take_the_units_port(lidar) -> None:
+    """Issue 52 item 6: the adapter's sockets set SO_REUSEADDR, so another local process setting it too
+    could bind the unit's port and be handed its datagrams in place of the adapter."""
+    source, _, _ = lidar
+    thief = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    thief.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        with pytest.raises(OSError, match="Address already in use"):
+            thief.bind(("127.0.0.1", source.spec.msop_port))
+        with pytest.raises(OSError, match="Address already in use"):
+            thief.bind(("0.0.0.0", source.spec.difop_port))
+    finally:
+        thief.close()
 
 
 def test_difop_withheld_then_sent(lidar) -> None:

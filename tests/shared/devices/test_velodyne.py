@@ -52,7 +52,9 @@ def revolution(turn: int, returns: dict[tuple[int, int, int], float]) -> list[by
 @pytest.fixture
 def source() -> tuple[VelodyneSource, list[Output]]:
     outputs: list[Output] = []
-    spec = VelodyneLidar(device="vlp16", bind="127.0.0.1", data_port=free_port(), clock="device")
+    spec = VelodyneLidar(
+        device="vlp16", unit_address="127.0.0.1", bind="127.0.0.1", data_port=free_port(), clock="device"
+    )
     src = VelodyneSource("lidar_12", spec, outputs.append)
     yield src, outputs
     src.close()
