@@ -7,9 +7,11 @@ in its own process with its own keys and presence token; Zenoh routers are the o
     requests   a vehicle asks every shard (target ALL, shared/vehicle/plan_client.py); the shard owning
                the lane it asks from answers, the others decline without a reply
     handover   a vehicle the owner does not hold yet may hold a plan from another shard: the owner asks
-               the others (`rmmdet/v1/cloud/@rpc/release/<vehicle>`) and adopts what comes back, plan,
-               versions and claims kept, before it answers; the releasing shard forgets the vehicle, so
-               there is one owner at a time. The request is answered later, not blocked on: a Zenoh
+               the others (`rmmdet/v1/cloud/@rpc/release/<vehicle>`) and adopts its version counter
+               (bounded by its own clock) before it answers, planning the request afresh (a handed-over
+               route is never taken: nothing proves a shard made it); the releasing shard forgets the
+               vehicle, so there is one owner at a time, and refuses a release asked from a lane off
+               the plan the vehicle follows there. The request is answered later, not blocked on: a Zenoh
                thread must not wait for a reply that the same link delivers.
 
 Names: shard k runs as instance `region<k>` of the coordinator service (its health and presence keys).
@@ -191,17 +193,11 @@ class ShardLink:
         now_s = self.clock.now_s()
         try:
             handover = messages.handover_of(msg, vid, now_s)
+            self.core.adopt(handover, now_s, time.time_ns())  # versions only: the route is planned afresh
         except ValueError as err:
             self.counters.inc("rejected/handover")
             log.warning("handover of %s refused: %s", vid, err)
             return False
-        lanes = handover.plan.route.lanes
-        if any(lane not in self.view.overlay.index for lane in lanes) or not self.core.net.is_valid_route(
-            lanes[0], lanes[1:]
-        ):
-            self.counters.inc("rejected/handover_route")
-            return False
-        self.core.adopt(handover, now_s)
         self.counters.inc("handovers/adopted")
         return True
 
@@ -227,6 +223,10 @@ class ShardLink:
         problem = self.peers.release_problem(request.lane_id, request.region)
         if problem is not None:
             raise RpcRejected("release_lane", INVALID, problem)
+        refused = self.core.release_problem(request.vehicle_id, request.lane_id, time.time_ns())
+        if refused is not None:
+            detail = f"{request.vehicle_id} follows a plan here that does not take {request.lane_id!r}"
+            raise RpcRejected(refused, INVALID, detail)
         handover = self.core.release(request.vehicle_id)
         if handover is None:
             return PlanHandover(held=False), 0

@@ -50,7 +50,7 @@ from shared.traffic.planner import (
     RoutePlanner,
     ShardView,
 )
-from shared.traffic.plans import Ack, ActivePlan, Handover, IssuedPlan, PlanBook
+from shared.traffic.plans import Ack, ActivePlan, Handover, IssuedPlan, PlanBook, version_of
 from shared.traffic.regions import Clique
 
 log = logging.getLogger(__name__)
@@ -476,32 +476,50 @@ class CoordinatorCore:
 
     # --- shards: handing a vehicle over ---------------------------------------------------------
 
+    def release_problem(self, vehicle_id: str, lane: str, wall_ns: int) -> str | None:
+        """Why this core must not hand over `vehicle_id` to a shard that says it now asks from `lane`
+        (the refusal's name), or None. While the vehicle follows a plan in force here it can only be on
+        that plan's lanes (claims.py): a release asked from any other lane is a forgery's (a shard
+        never gives away a vehicle that follows its plan on its own lanes because somebody says so)."""
+        with self._lock:
+            given = self._given(vehicle_id)
+            if given is None:
+                return None
+            claim = Claim(lane, given.destination, self.net.lane_start_junction(lane))
+            return "release_claim_lane" if claim_problem(given, claim, wall_ns) is not None else None
+
     def release(self, vehicle_id: str) -> Handover | None:
         """Hand the vehicle over: its latest plan and what the core keeps of it leave this core (None
-        if it has none); the next owner `adopt`s them, so the vehicle has one owner at a time and its
-        plan, version and claims carry on."""
+        if it has none); the next owner `adopt`s it, so the vehicle has one owner at a time."""
         with self._lock:
             plan, active = self.book.latest(vehicle_id), self._active.get(vehicle_id)
+            version = self.book.version(vehicle_id)
+            self.book.forget(vehicle_id)  # held by a plan or only by an adopted version: gone from here
+            self._forget(vehicle_id)
             if plan is None or active is None:
                 return None
-            version = self.book.version(vehicle_id)
-            self.book.forget(vehicle_id)
-            self._forget(vehicle_id)
             return Handover(plan, version, active)
 
-    def adopt(self, handover: Handover, now_s: float) -> None:
-        """Take over a vehicle released by another shard (its plan and versions continue here)."""
+    def adopt(self, handover: Handover, now_s: float, wall_ns: int) -> None:
+        """Take over a vehicle released by another shard: its version counter carries on here, bounded
+        by this core's clock (versions are issue times, `plans.version_of`: one from further ahead than
+        the clock skew is refused, ValueError, or every later plan would look stale to the vehicle).
+        Its route is not taken: nothing proves another shard made it (a forged handover's detour would
+        be signed and served as this shard's), so the vehicle's request is planned afresh here."""
+        newest = version_of(wall_ns + round(limits().max_clock_skew_s * NS_PER_S))
+        if max(handover.version, handover.plan.version) > newest:
+            raise ValueError(
+                f"version {max(handover.version, handover.plan.version)} is ahead of this shard's clock "
+                f"(at most {newest})"
+            )
         with self._lock:
             vid = handover.plan.vehicle_id
             for gone in self.book.heard(vid, now_s):
                 self._forget(gone)
-            self.book.adopt(handover.plan, handover.version)
-            self._active[vid] = handover.active
-            if handover.plan.ack not in ENDED:
-                self.planner.commit(vid, handover.plan.route)
+            self.book.adopt_version(vid, handover.version)
 
     def owns_vehicle(self, vehicle_id: str) -> bool:
-        return self.book.latest(vehicle_id) is not None
+        return self.book.holds(vehicle_id)
 
     def clique(self) -> Clique:
         """A shard's crossing times on its latest maps, for the other shards (regions.Clique)."""

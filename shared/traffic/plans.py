@@ -131,11 +131,14 @@ class PlanBook:
         """The vehicle's latest version (0: none issued here)."""
         return self._version.get(vehicle_id, 0)
 
-    def adopt(self, plan: IssuedPlan, version: int) -> None:
-        """Take over a vehicle's latest plan and version counter from another shard's book (the caller
-        has called `heard` for it)."""
-        self._latest[plan.vehicle_id] = plan
-        self._version[plan.vehicle_id] = max(version, self._version.get(plan.vehicle_id, 0))
+    def adopt_version(self, vehicle_id: str, version: int) -> None:
+        """Take over a vehicle's version counter from another shard's book, not its plan: the next plan
+        issued here is above it (the caller has called `heard` for the vehicle)."""
+        self._version[vehicle_id] = max(version, self._version.get(vehicle_id, 0))
+
+    def holds(self, vehicle_id: str) -> bool:
+        """A plan or a version counter of the vehicle is kept here (adopted, not yet planned for)."""
+        return vehicle_id in self._latest or vehicle_id in self._version
 
     def vehicles(self) -> list[str]:
         return list(self._latest)

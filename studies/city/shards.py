@@ -4,8 +4,8 @@ and serving only the vehicles on its lanes; after each map update every live sha
 and the others plan across its region with it (a lost shard's region by a free-flow prior).
 
 A request goes to the shard owning the vehicle's lane. A shard that does not hold the vehicle asks
-the others to release it (`CoordinatorCore.release`) and adopts what comes back, plan and versions
-kept: one owner at a time, never two (checked on every handover), no gap. What the live shards do over
+the others to release it (`CoordinatorCore.release`) and adopts what comes back (its version counter;
+the request is planned afresh): one owner at a time, never two (checked on every handover), no gap. What the live shards do over
 Zenoh (a query to the other shards for the vehicle) is the same two calls.
 """
 
@@ -130,7 +130,7 @@ class ShardedCoordinator:
                 assert other is not None
                 handover = other.release(vid)
                 if handover is not None:
-                    core.adopt(handover, now_s)
+                    core.adopt(handover, now_s, wall_ns)
                     self.counts["handovers"] += 1
         t0 = time.perf_counter()
         plan, _ = core.serve(req, now_s, wall_ns)

@@ -9,6 +9,7 @@ table's two-region map (deploy/coordinator/regions/sand_table_2.json), three sta
 - the shard restarted serves again within 2 s of its presence token;
 - forged release queries (a lane of the holder's own region, or of a region other than the asker's) are
   refused and counted, and the vehicle stays with its shard.
+- a release asked from a lane off the plan a vehicle follows (acknowledged) is refused (issue 52 item 1).
 Time limits scale with RSP_TIME_SCALE (slow machines).
 """
 
@@ -26,7 +27,7 @@ import pytest
 import zenoh
 from rmmdet.v1.common_pb2 import ErrorResponse
 from rmmdet.v1.health_pb2 import HealthLevel
-from rmmdet.v1.planning_pb2 import ReleaseRequest, RoutePlan
+from rmmdet.v1.planning_pb2 import AckStatus, ReleaseRequest, RouteAck, RoutePlan
 
 from shared.bus.codec import encode
 from shared.bus.node import Node
@@ -46,6 +47,7 @@ AGENTS = ("agent1", "agent2", "agent3")
 STARTUP_S = 45.0
 SERVES_WITHIN_S = 2.0 * SCALE  # issue 37: a restarted shard serves within 2 s of its presence
 PRIOR_WITHIN_S = 5.0 * SCALE  # liveliness loss, else clique_stale_after_s (3 s)
+ACCEPTED = AckStatus.ACK_STATUS_ACCEPTED
 START_LANE, DESTINATION = "l15", "j3"  # region 0's lane into j1, to a junction of region 1
 
 
@@ -138,6 +140,27 @@ def test_two_shards_hand_over_survive_a_kill_and_serve_again_after_restart(shard
     assert counters(shards.health(0)).get("handovers/released", 0) == 0
     kept = shards.routes.request("v01", START_LANE, DESTINATION, version=first.version)
     assert isinstance(kept, RoutePlan) and kept.header.source_id.endswith(shard_instance(0))
+
+    # Issue 52 item 1: v04 follows region 0's plan (acknowledged): a release "asked by region 1" from a
+    # lane of region 1 the plan never takes is a forgery's and refused (it was handed over).
+    follows = shards.wait_plan("v04", START_LANE, 2.0 * SCALE)
+    acks = shards.node.publisher("route_ack", vehicle="v04", source_id="vehicles/v04")
+    ack = RouteAck(vehicle_id="v04", plan_id=follows.plan_id, version=follows.version, status=ACCEPTED)
+    off_plan = next(
+        lane
+        for lane in sorted(shards.net.lanes)
+        if shards.region(lane) == 1
+        and lane not in follows.lane_ids
+        and shards.net.lane_start_junction(lane) != DESTINATION
+    )
+    deadline = time.monotonic() + 5.0 * SCALE
+    while counters(shards.health(0)).get("acks/accepted", 0) < 1:  # taken in the shard's main loop
+        acks.put(ack, stamp_ns=time.time_ns())
+        assert time.monotonic() < deadline, "the shard took no acknowledgement"
+        time.sleep(0.2)
+    assert shards.forged_release("v04", off_plan, 1) == [False, False]
+    assert counters(shards.health(0)).get("rejected/release_claim_lane", 0) >= 1
+    assert counters(shards.health(0)).get("handovers/released", 0) == 0
 
     handed = shards.routes.request("v01", crossing, DESTINATION, version=first.version)
     assert isinstance(handed, RoutePlan), handed

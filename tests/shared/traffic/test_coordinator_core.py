@@ -3,6 +3,8 @@ their delivery, acknowledgements, and the loop's cadence (`tick`)."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from rmmdet.v1.common_pb2 import ErrorCode
@@ -383,7 +385,7 @@ def test_a_repeated_request_is_planned_anew_once_the_coverage_changed(
     assert core.repeats == 0
 
 
-def test_shards_serve_only_their_lanes_and_hand_a_vehicle_over_with_its_plan(scene: Scene) -> None:
+def test_shards_serve_only_their_lanes_and_hand_a_vehicle_over_with_its_versions(scene: Scene) -> None:
     from shared.traffic.regions import Overlay, RegionMap, partition_junctions
     from tests.shared.traffic.scenes import shard_cores
 
@@ -400,15 +402,62 @@ def test_shards_serve_only_their_lanes_and_hand_a_vehicle_over_with_its_plan(sce
         net.is_valid_route(lane, list(plan.lane_ids[1:])) and net.lane_end_junction(plan.lane_ids[-1]) == far
     )
     cores[0].on_ack("v01", plan.plan_id, plan.version, Ack.ACCEPTED, 1.0)
-    # The vehicle reaches region 1: its plan moves there, and only there.
+    # The vehicle reaches region 1: it moves there, and only there.
     assert cores[1].release("v01") is None  # region 1 never held it
+    crossing = next(lane for lane in plan.lane_ids if regions.lane_region(net, lane) == 1)
+    assert cores[0].release_problem("v01", crossing, WALL0_NS + NS_PER_S) is None  # on its plan
     handover = cores[0].release("v01")
     assert handover is not None and not cores[0].owns_vehicle("v01")
-    cores[1].adopt(handover, 2.0)
-    assert cores[1].owns_vehicle("v01") and cores[1].book.latest("v01").plan_id == plan.plan_id
-    crossing = next(lane for lane in plan.lane_ids if regions.lane_region(net, lane) == 1)
+    cores[1].adopt(handover, 2.0, WALL0_NS + NS_PER_S)
+    assert cores[1].owns_vehicle("v01") and cores[1].book.latest("v01") is None  # its version, no route
     later, _ = cores[1].serve(request("v01", crossing, far, plan.version), 2.0, WALL0_NS + NS_PER_S)
-    assert later.version > plan.version  # versions carry on across shards
+    assert later.version > plan.version and later.plan_id != plan.plan_id  # planned here, versions on
+    assert cores[1].release("v01") is not None and not cores[1].owns_vehicle("v01")
+
+
+def test_a_forged_handover_neither_takes_a_vehicle_nor_gives_it_a_route(scene: Scene) -> None:
+    """Issue 52 item 1: a forger asked shard 0 to release a vehicle that followed shard 0's plan on shard
+    0's lanes (claiming a lane of region 1 the plan never takes), then answered shard 0's release query
+    with a detour, TTL + 100 s and version 2^53 - 2: the shard signed and served that plan, and the
+    vehicle refused every later one as from the future."""
+    from shared.traffic.plans import Route
+    from shared.traffic.regions import Overlay, RegionMap, partition_junctions
+    from tests.shared.traffic.scenes import shard_cores
+
+    net = RoadNetwork(scene)
+    regions = RegionMap(partition_junctions(net, 2))
+    cores = shard_cores(Overlay(net, regions))
+    lane = next(lane for lane in sorted(net.lanes) if regions.lane_region(net, lane) == 0)
+    near = net.lane_end_junction(lane)
+    plan, _ = cores[0].serve(request("v01", lane, near), 1.0, WALL0_NS)
+    cores[0].on_ack("v01", plan.plan_id, plan.version, Ack.ACCEPTED, 1.0)
+    off_plan = next(
+        x
+        for x in sorted(net.lanes)
+        if regions.lane_region(net, x) == 1
+        and x not in plan.lane_ids
+        and net.lane_start_junction(x) != near  # (a lane leaving the destination starts the next trip)
+    )
+    assert cores[0].release_problem("v01", off_plan, WALL0_NS + NS_PER_S) == "release_claim_lane"
+    assert cores[0].owns_vehicle("v01")
+    # The forged reply to a release query: its own route and a version far ahead of any clock.
+    forged = cores[0].release("v01")
+    assert forged is not None
+    detour = Route([lane], [], 1e6, 1e6, "balanced")
+    forged = dataclasses.replace(
+        forged, plan=dataclasses.replace(forged.plan, route=detour, version=2**53 - 2), version=2**53 - 2
+    )
+    with pytest.raises(ValueError, match="ahead of this shard's clock"):
+        cores[0].adopt(forged, 2.0, WALL0_NS + NS_PER_S)
+    assert not cores[0].owns_vehicle("v01")
+    # Within the clock: only the version counter is taken; the request is planned afresh.
+    fair = dataclasses.replace(
+        forged, plan=dataclasses.replace(forged.plan, version=plan.version), version=plan.version
+    )
+    cores[0].adopt(fair, 2.0, WALL0_NS + NS_PER_S)
+    again, _ = cores[0].serve(request("v01", lane, near), 2.0, WALL0_NS + NS_PER_S)
+    assert list(again.lane_ids) != [lane] or again.expected_travel_time_s < 1e6
+    assert again.version > plan.version and again.plan_id not in (plan.plan_id, forged.plan.plan_id)
 
 
 @pytest.mark.parametrize(
