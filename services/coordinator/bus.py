@@ -158,9 +158,9 @@ class CoordinatorService:
             if self.shard is not None:
                 self.shard.poll(now)
             if tick.publish_map:
-                stamp_ns = self.publish_map(now)
+                self.publish_map(now)
                 if self.shard is not None:
-                    self.shard.publish_clique(now, stamp_ns)
+                    self.shard.publish_clique(now)
             if tick.replanned:
                 log.info("replan: %d plans to push", tick.replanned)
             self.push(now)

@@ -39,12 +39,12 @@ from shared.bus.rpc import RpcDeclined, RpcDeferred, RpcRejected, RpcServer
 from shared.bus.streams import get_stream, limits, region_of_instance
 from shared.config import ConfigError
 from shared.scene.scene import Scene
-from shared.timebase import SimTime
+from shared.timebase import NS_PER_S, SimTime
 from shared.traffic import messages
 from shared.traffic.config import CoordinatorSettings
 from shared.traffic.core import CoordinatorCore
 from shared.traffic.lanes import lane_agents, lane_network
-from shared.traffic.peers import RegionPeers
+from shared.traffic.peers import RegionPeers, slowest_lane_times_s
 from shared.traffic.planner import ShardView
 from shared.traffic.regions import Clique, Overlay, RegionMap, agent_regions
 
@@ -85,7 +85,12 @@ class ShardLink:
         self.region = self.view.region
         self.counters = node.counters
         self.timeout_s = settings.shards.release_timeout_s
-        self.peers = RegionPeers(self.view.overlay, self.region, settings.shards.clique_stale_after_s)
+        self.peers = RegionPeers(
+            self.view.overlay,
+            self.region,
+            settings.shards.clique_stale_after_s,
+            slowest_lane_times_s(self.view.overlay, settings.planner),
+        )
         self.on_prior: list[int] = self.peers.on_prior(clock.now_s())  # cached for the health callback
         self._own: Clique | None = None
         self._combined_of: tuple[object, object] = (None, None)
@@ -246,7 +251,7 @@ class ShardLink:
             if str(msg.region) != region:
                 self.counters.inc("rejected/clique_key_mismatch")
                 continue
-            problem = self.peers.receive(msg, now_s)
+            problem = self.peers.receive(msg, now_s, item.header.stamp.ToNanoseconds() / NS_PER_S)
             self.counters.inc(f"rejected/{problem}" if problem else "cliques/received")
         for key, alive in self.shards_presence.changes():
             gone = region_of_instance(ALIVE.id_of(key, "instance"))
@@ -268,9 +273,11 @@ class ShardLink:
                 combined[self.region] = self._own
             self.view.cliques = combined  # one assignment: the planner sees the old dict or the new
 
-    def publish_clique(self, now_s: float, stamp_ns: int) -> None:
-        """After a map publication: this region's crossing times, for the others and for itself."""
+    def publish_clique(self, now_s: float) -> None:
+        """After a map publication: this region's crossing times, for the others and for itself, stamped
+        now on the clock of record (the others judge its age by it: `RegionPeers.receive`)."""
         self._own = self.core.clique()
+        stamp_ns = round(now_s * NS_PER_S)
         self.clique_pub.put(messages.clique_message(self._own), stamp_ns=stamp_ns, frame_id="world")
         self.counters.inc("cliques/published")
         self._refresh(now_s)

@@ -6,40 +6,66 @@ region's shape or fails `Overlay.clique_problem` (lanes that do not join, a regi
 limits) is refused and counted, never planned with: a forged clique must not draw traffic into a region.
 A region heard from within `stale_after_s` is planned on its clique; otherwise, or once its shard's
 presence is gone, on the prior (every lane at its speed limit) and named in `on_prior` so the shard's
-health says that part of its plans is blind. Times: seconds on the shard's clock of record.
+health says that part of its plans is blind. A clique's age is its stamp's (a replayed one is old), and
+its times are held between free flow and the slowest a genuine map gives (`slowest_lane_times_s`).
+Times: seconds on the shard's clock of record.
 """
 
 from __future__ import annotations
 
 from rmmdet.v1.traffic_pb2 import RegionClique
 
+from shared.bus.streams import limits
 from shared.traffic import messages
-from shared.traffic.regions import Clique, Overlay
+from shared.traffic.config import PlannerConfig
+from shared.traffic.regions import Clique, FloatArray, Overlay
+
+
+def slowest_lane_times_s(overlay: Overlay, planner: PlannerConfig) -> FloatArray:
+    """(L,) each lane's slowest time a genuine shard's maps can give it, the bound a clique's times are
+    held to: the planner floors perceived speeds at `min_speed_mps` and adds a junction service per car
+    on the lane and `load_weight` per vehicle planned onto it, each count at most what one object list
+    may carry (the bus's `max_list_length`)."""
+    services = planner.junction_service_s * (1.0 + planner.load_weight) * limits().max_list_length
+    return overlay.length_m / planner.min_speed_mps + services
 
 
 class RegionPeers:
-    """Region `region`'s view of the others on `overlay`."""
+    """Region `region`'s view of the others on `overlay`; `slowest_time_s`: `slowest_lane_times_s`."""
 
-    def __init__(self, overlay: Overlay, region: int, stale_after_s: float) -> None:
+    def __init__(
+        self, overlay: Overlay, region: int, stale_after_s: float, slowest_time_s: FloatArray | None = None
+    ) -> None:
         self.overlay = overlay
         self.region = region
         self.stale_after_s = stale_after_s
+        self.slowest_time_s = slowest_time_s
         self.priors = {r: c for r, c in overlay.free_flow_cliques().items() if r != region}
-        self._latest: dict[int, tuple[Clique, float]] = {}
+        self._latest: dict[int, tuple[Clique, float]] = {}  # region -> its newest clique, its stamp (s)
         self._view: dict[int, Clique] = dict(self.priors)
         self._fresh: frozenset[int] = frozenset()
 
-    def receive(self, msg: RegionClique, now_s: float) -> str | None:
-        """Take another shard's clique; returns why it was refused (a counter name) or None."""
+    def receive(self, msg: RegionClique, now_s: float, stamp_s: float) -> str | None:
+        """Take another shard's clique, stamped `stamp_s` by its shard (the clock of record, as `now_s`);
+        returns why it was refused (a counter name) or None. Its freshness is its stamp's, not its
+        arrival's: a clique replayed later is as old as when it was made (`clique_stale` once older than
+        `stale_after_s`, `clique_old` when not newer than the region's clique held)."""
         if msg.region == self.region:
             return "clique_own_region"
+        if now_s - stamp_s > self.stale_after_s:
+            return "clique_stale"
+        held = self._latest.get(msg.region)
+        if held is not None and stamp_s <= held[1]:
+            return "clique_old"
         try:
             clique = messages.clique_of(msg)
         except ValueError:
             return "clique_shape"
-        problem = self.overlay.clique_problem(clique, self.overlay.free_time_s)
+        problem = self.overlay.clique_problem(
+            clique, self.overlay.free_time_s, slowest_time_s=self.slowest_time_s
+        )
         if problem is None:
-            self._latest[clique.region] = (clique, now_s)
+            self._latest[clique.region] = (clique, stamp_s)
             self._view = {}  # rebuilt by `cliques`: a new object, so the overlay's caches refresh
         return problem
 

@@ -162,8 +162,9 @@ class Overlay:
         self._src = np.array([self.index[a] for a, _ in edges], dtype=np.int64)
         self._dst = np.array([self.index[b] for _, b in edges], dtype=np.int64)
         free_mps = np.array([network.scene.lanes[lane].speed_limit_mps for lane in self.lane_ids])
+        self.length_m = np.array([network.lanes[lane].length_m for lane in self.lane_ids])
         #: Each lane's time at its speed limit: the floor of a clique, and a silent region's prior.
-        self.free_time_s = np.array([network.lanes[lane].length_m for lane in self.lane_ids]) / free_mps
+        self.free_time_s = self.length_m / free_mps
         # Driving a junction's connector onto lane b, as the planner costs it.
         self._connector_s = connector_times_s(network, edges, turn_penalty_s)
         self._edge = {(a, b): k for k, (a, b) in enumerate(edges)}
@@ -201,13 +202,22 @@ class Overlay:
         graph.data[:] = np.maximum(self._connector_s[edge] + lane_time_s[self._dst[edge]], 1e-6)
         return graph
 
-    def clique_problem(self, clique: Clique, free_time_s: FloatArray, slack: float = 0.99) -> str | None:
+    def clique_problem(
+        self,
+        clique: Clique,
+        free_time_s: FloatArray,
+        slack: float = 0.99,
+        slowest_time_s: FloatArray | None = None,
+    ) -> str | None:
         """Why a clique received from another shard cannot be used (a counter name), or None. Its region
         must exist; its lanes, junctions and matrix shapes must be the region's; every time a number
         >= 0 (inf: no way); every finite time needs a path of the region's own lanes that the lane graph
         connects, to the right lane or junction, and no faster than that path at free flow (`slack` of
         it, for rounding): a forged clique can neither route through lanes that do not join nor
-        promise a region faster than its speed limits to draw traffic into it."""
+        promise a region faster than its speed limits to draw traffic into it. No way (inf) exactly where
+        the region has none at free flow (a region's lanes are never closed on the maps: a clique of all
+        inf would shut it); with `slowest_time_s` (each lane's slowest time a genuine map can give), no
+        finite time slower than its path at those times (`clique_too_slow`: pushing traffic out)."""
         r = clique.region
         if not 0 <= r < self.regions.regions:
             return "clique_region"
@@ -223,28 +233,51 @@ class Overlay:
         for times in (clique.time_s, clique.to_junction_s):
             if np.isnan(times).any() or (times < 0).any():
                 return "clique_time"
+        prior = self.free_flow_cliques()[r]
+        if (np.isinf(clique.time_s) != np.isinf(prior.time_s)).any() or (
+            np.isinf(clique.to_junction_s) != np.isinf(prior.to_junction_s)
+        ).any():
+            return "clique_no_way"
         for i, a in enumerate(entering):
             for j, b in enumerate(clique.leaving):
                 if np.isfinite(clique.time_s[i, j]):
                     problem = self._path_problem(a, clique.paths.get((a, b)), b, None, r)
-                    if problem is None and clique.time_s[i, j] < slack * self.route_time_s(
-                        a, [*clique.paths[(a, b)], b], free_time_s
-                    ):
-                        problem = "clique_too_fast"
+                    if problem is None:
+                        problem = self._time_problem(
+                            clique.time_s[i, j],
+                            a,
+                            [*clique.paths[(a, b)], b],
+                            free_time_s,
+                            slowest_time_s,
+                            slack,
+                        )
                     if problem:
                         return problem
             for k, junction in enumerate(junctions):
                 if np.isfinite(clique.to_junction_s[i, k]):
                     path = clique.junction_paths.get((a, junction))
                     problem = self._path_problem(a, path, None, junction, r)
-                    if (
-                        problem is None
-                        and path
-                        and clique.to_junction_s[i, k] < slack * self.route_time_s(a, path, free_time_s)
-                    ):
-                        problem = "clique_too_fast"
+                    if problem is None and path:
+                        problem = self._time_problem(
+                            clique.to_junction_s[i, k], a, path, free_time_s, slowest_time_s, slack
+                        )
                     if problem:
                         return problem
+        return None
+
+    def _time_problem(
+        self,
+        time_s: float,
+        start: str,
+        path: list[str],
+        free_time_s: FloatArray,
+        slowest_time_s: FloatArray | None,
+        slack: float,
+    ) -> str | None:
+        if time_s < slack * self.route_time_s(start, path, free_time_s):
+            return "clique_too_fast"
+        if slowest_time_s is not None and time_s * slack > self.route_time_s(start, path, slowest_time_s):
+            return "clique_too_slow"
         return None
 
     def _path_problem(

@@ -5,8 +5,8 @@ and the others plan across its region with it (a lost shard's region by a free-f
 
 A request goes to the shard owning the vehicle's lane. A shard that does not hold the vehicle asks
 the others to release it (`CoordinatorCore.release`) and adopts what comes back (its version counter;
-the request is planned afresh): one owner at a time, never two (checked on every handover), no gap. What the live shards do over
-Zenoh (a query to the other shards for the vehicle) is the same two calls.
+the request is planned afresh): one owner at a time, never two (checked on every handover), no gap.
+What the live shards do over Zenoh (a query to the other shards for the vehicle) is the same two calls.
 """
 
 from __future__ import annotations

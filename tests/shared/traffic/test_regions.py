@@ -141,7 +141,9 @@ def test_a_forged_clique_is_refused_with_its_reason(grid: RoadNetwork) -> None:
     assert forged(paths={**good.paths, (a, b): ["no-such-lane"]}) == "clique_path"
     missing = {k: v for k, v in good.paths.items() if k != (a, b)}
     assert forged(paths=missing) == "clique_path"
-    assert forged(time_s=with_time(float("inf")), paths=missing) is None  # no way: no path needed
+    # No way where the region has one at free flow: refused (issue 52 item 3: a clique of all inf shut
+    # the region; where it has none, a U-turn pair, inf needs no path: test_shard_messages.py).
+    assert forged(time_s=with_time(float("inf")), paths=missing) == "clique_no_way"
 
 
 def test_turns_are_measured_and_a_turn_penalty_takes_the_route_with_fewest_turns(grid: RoadNetwork) -> None:

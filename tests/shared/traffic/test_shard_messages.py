@@ -16,7 +16,8 @@ from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.timebase import NS_PER_S
 from shared.traffic import messages
-from shared.traffic.peers import RegionPeers
+from shared.traffic.config import PlannerConfig
+from shared.traffic.peers import RegionPeers, slowest_lane_times_s
 from shared.traffic.plans import Ack
 from shared.traffic.regions import Overlay, RegionMap, partition_junctions
 from tests.shared.traffic.scenes import shard_cores
@@ -138,13 +139,13 @@ def test_peers_plan_on_fresh_cliques_and_fall_back_to_the_prior(overlay: Overlay
     prior = peers.cliques(0.0)
     assert peers.cliques(0.5) is prior  # unchanged: the same object (the overlay caches per object)
     jammed = overlay.clique(1, overlay.free_time_s * 3.0)
-    assert peers.receive(messages.clique_message(jammed), 1.0) is None
+    assert peers.receive(messages.clique_message(jammed), 1.0, 1.0) is None
     fresh = peers.cliques(1.0)
     assert fresh is not prior and peers.on_prior(1.0) == []
     np.testing.assert_array_equal(fresh[1].time_s, jammed.time_s)
     assert peers.on_prior(4.5) == [1]  # silent past stale_after_s
     np.testing.assert_array_equal(peers.cliques(4.5)[1].time_s, peers.priors[1].time_s)
-    assert peers.receive(messages.clique_message(jammed), 5.0) is None
+    assert peers.receive(messages.clique_message(jammed), 5.0, 5.0) is None
     peers.gone(1)  # its shard's presence left: the prior at once
     assert peers.on_prior(5.0) == [1]
 
@@ -152,18 +153,44 @@ def test_peers_plan_on_fresh_cliques_and_fall_back_to_the_prior(overlay: Overlay
 def test_peers_refuse_forged_and_own_cliques(overlay: Overlay) -> None:
     peers = RegionPeers(overlay, 0, stale_after_s=3.0)
     own = messages.clique_message(overlay.clique(0, overlay.free_time_s))
-    assert peers.receive(own, 1.0) == "clique_own_region"
+    assert peers.receive(own, 1.0, 1.0) == "clique_own_region"
     good = overlay.clique(1, overlay.free_time_s * 2.0)
     i, j = np.argwhere(np.isfinite(good.time_s))[0]
     fast = good.time_s.copy()
     fast[i, j] = 0.01  # a region faster than its speed limits, drawing traffic into it
-    assert peers.receive(messages.clique_message(dataclasses.replace(good, time_s=fast)), 1.0) == (
+    assert peers.receive(messages.clique_message(dataclasses.replace(good, time_s=fast)), 1.0, 1.0) == (
         "clique_too_fast"
     )
     broken = messages.clique_message(good)
     del broken.to_junction_s[0]
-    assert peers.receive(broken, 1.0) == "clique_shape"
+    assert peers.receive(broken, 1.0, 1.0) == "clique_shape"
     assert peers.on_prior(1.0) == [1]  # nothing usable arrived
+
+
+def test_cliques_are_bounded_and_aged_by_their_stamp(overlay: Overlay) -> None:
+    """Issue 52 item 3: a clique whose times were all infinite passed (the region shut to every other
+    shard's traffic), times had no upper bound, and an old genuine clique replayed later was taken as
+    fresh (freshness was its arrival)."""
+    slowest = slowest_lane_times_s(overlay, PlannerConfig())
+    peers = RegionPeers(overlay, 0, stale_after_s=3.0, slowest_time_s=slowest)
+    good = overlay.clique(1, overlay.free_time_s * 2.0)
+    shut = dataclasses.replace(
+        good, time_s=np.full_like(good.time_s, np.inf), to_junction_s=np.full_like(good.to_junction_s, np.inf)
+    )
+    assert peers.receive(messages.clique_message(shut), 1.0, 1.0) == "clique_no_way"
+    i, j = np.argwhere(np.isfinite(good.time_s))[0]
+    slow = good.time_s.copy()
+    slow[i, j] = 1e9  # pushing traffic out of the region: slower than any map the planner makes
+    assert peers.receive(messages.clique_message(dataclasses.replace(good, time_s=slow)), 1.0, 1.0) == (
+        "clique_too_slow"
+    )
+    jammed = overlay.clique(1, np.minimum(overlay.free_time_s * 50.0, slowest))  # slow, but genuine
+    assert peers.receive(messages.clique_message(jammed), 1.0, 1.0) is None
+    assert peers.on_prior(1.0) == []
+    # The same genuine clique replayed: not newer than the one held, then older than stale_after_s.
+    assert peers.receive(messages.clique_message(jammed), 2.0, 1.0) == "clique_old"
+    assert peers.receive(messages.clique_message(good), 9.0, 1.5) == "clique_stale"
+    assert peers.on_prior(4.5) == [1]  # its age is its stamp's: 3.5 s old, whatever arrived since
 
 
 def test_a_shard_hands_over_only_to_the_region_of_the_lane_asked_from(overlay: Overlay) -> None:
