@@ -99,7 +99,12 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             nonlocal handled
             handled += 1
             if car is not None:
-                car.forward(plan, header)
+                try:
+                    car.forward(plan, header)
+                except ValueError as exc:  # a lane the car's road network lacks: it never becomes a Path
+                    counters.inc("rejected/plan_unknown_lane")
+                    acknowledge(plan, header, Ack.REJECTED_INVALID, str(exc), how)
+                    return
                 report(
                     "forwarded",
                     f"{how} plan {plan.plan_id} v{plan.version} to the car on {car.plan_key}",

@@ -195,3 +195,43 @@ def test_a_ros2_car_gets_its_plan_as_a_path_and_answers_it(system) -> None:
         done.set()
         car.undeclare()
         stop(proc)
+
+
+def test_a_ros2_car_client_survives_a_plan_with_a_lane_its_scene_lacks(system) -> None:
+    """Issue 52 item 8: a signed plan naming a lane the car's road network lacks raised out of the
+    vehicle client (Ros2Car.forward -> plan_poses), which died; now it is refused, acknowledged
+    REJECTED_INVALID, and the next plan reaches the car."""
+    router, node = system
+    paths: list[bytes] = []
+    car = node.session.declare_subscriber(
+        ros2.bridge_key(f"/{VEHICLE}", ros2.PLAN_TOPIC), lambda s: paths.append(s.payload.to_bytes())
+    )
+    seen, done = acks_of(node)
+    proc, events = vehicle_client(router, "--ros2", "--duration-s", "60")
+    signer = PlanSigner.load(plan_key_paths(DEFAULT_PKI_DIR).key)
+    try:
+        pub = node.publisher("route_plan", vehicle=VEHICLE)
+        sent: list[str] = []
+        deadline = time.monotonic() + LINE_TIMEOUT_S
+        while (refused := events.poll("rejected_invalid", 1.0)) is None:
+            assert time.monotonic() < deadline, f"the client heard no plan; got {events.lines}"
+            assert proc.poll() is None, "the vehicle client died"
+            strange = signed_plan(signer, [LANE, "no-such-lane"])  # issued now: after the client started
+            sent.append(strange.plan_id)
+            pub.put(strange)
+        assert refused["plan_id"] in sent and "no-such-lane" in refused["reason"]
+        genuine = signed_plan(signer, [LANE, "l1"])
+        pub.put(genuine)
+        forwarded = events.wait("forwarded")
+        assert forwarded["plan_id"] == genuine.plan_id and proc.poll() is None
+        deadline = time.monotonic() + 5
+        while not paths:
+            assert time.monotonic() < deadline, "no Path on the car's key"
+            time.sleep(0.05)
+        while (refused["plan_id"], Ack.REJECTED_INVALID.value) not in seen:
+            assert time.monotonic() < deadline, f"no REJECTED_INVALID ack on the bus: {seen}"
+            time.sleep(0.05)
+    finally:
+        done.set()
+        car.undeclare()
+        stop(proc)
