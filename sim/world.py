@@ -13,7 +13,6 @@ What the scene does not size (table slab, texture resolution, markings, deck pie
 
 from __future__ import annotations
 
-import hashlib
 import itertools
 import math
 import tempfile
@@ -134,15 +133,15 @@ def road_texture(
     return img
 
 
-def _texture_file(scene: Scene, img: np.ndarray) -> Path:
-    """Write the texture to a cache file named by its content (PyBullet loads textures from files)."""
-    digest = hashlib.sha1(img.tobytes()).hexdigest()[:16]
-    path = Path(tempfile.gettempdir()) / f"rmmdet_{scene.scene_id}_{digest}.png"
-    if not path.exists():
-        tmp = path.with_suffix(".tmp.png")
-        cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
-        tmp.replace(path)
-    return path
+def _load_texture(img: np.ndarray, cid: int) -> int:
+    """A PyBullet texture of `img` (RGB). PyBullet loads textures from files only: the image is written
+    to a directory of this process's own (mkdtemp: created 0700 with a name no one can predict) and
+    removed once loaded. A shared cache at a predictable /tmp name let another local user plant the
+    texture, or a symlink the write followed."""
+    with tempfile.TemporaryDirectory(prefix="rmmdet_texture_") as folder:
+        path = Path(folder) / "texture.png"
+        cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+        return int(pb.loadTexture(str(path), physicsClientId=cid))
 
 
 class _Client:
@@ -256,7 +255,7 @@ class StaticWorld(_Client):
                 )
                 body = pb.createMultiBody(0, -1, vis, [tx0 + hx, ty0 + hy, 0.0], physicsClientId=cid)
                 tile = np.ascontiguousarray(texture[r0:r1, c0:c1])
-                tex = pb.loadTexture(str(_texture_file(self.scene, tile)), physicsClientId=cid)
+                tex = _load_texture(tile, cid)
                 pb.changeVisualShape(
                     body, -1, textureUniqueId=tex, rgbaColor=[1, 1, 1, 1], physicsClientId=cid
                 )

@@ -28,7 +28,7 @@ from rmmdet.v1.planning_pb2 import RoutePlan, RouteRequest, RouteResponse
 from services.vehicle.car import Report, Ros2Car, plan_fields
 from shared.bus import names
 from shared.bus.codec import MessageDecoder
-from shared.bus.node import Node, Received
+from shared.bus.node import Node
 from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.config import load_settings
 from shared.scene.road_network import RoadNetwork
@@ -39,7 +39,7 @@ from shared.shutdown import GracefulShutdown
 from shared.traffic.plans import Ack
 from shared.vehicle.config import VehicleSettings
 from shared.vehicle.follower import PlanFollower
-from shared.vehicle.plan_client import Outcome, PlanCheck, RequestRetry, VehicleLink
+from shared.vehicle.plan_client import CheckedPushes, Outcome, PlanCheck, RequestRetry, VehicleLink
 
 log = logging.getLogger("services.vehicle")
 
@@ -72,7 +72,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         outcomes = BoundedQueue[Outcome](
             OUTCOME_QUEUE, OverflowPolicy.DROP_OLDEST, counters, "dropped/outcomes"
         )
-        pushed = BoundedQueue[Received](PUSHED_QUEUE, OverflowPolicy.DROP_OLDEST, counters, "dropped/pushed")
+        pushed = CheckedPushes(vehicle_id, check, PUSHED_QUEUE, counters)
         decoder = MessageDecoder(RouteResponse, counters)
         link = VehicleLink(
             node, vehicle_id, settings.plan_request_timeout_s, check, decoder, outcomes, pushed
@@ -151,12 +151,8 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                         counters.inc("plans/given_up")
             if retry.due(now_s):
                 ask()
-            for received in pushed.drain():
-                plan = received.message
-                if plan.vehicle_id != vehicle_id:
-                    counters.inc("rejected/plan_key_mismatch")
-                elif check.accept(plan):  # else counted rejected/plan_<reason>
-                    offer(plan, received.header, "pushed")
+            for received in pushed.drain():  # each checked on arrival (CheckedPushes)
+                offer(received.message, received.header, "pushed")
             if car is not None:
                 for plan, header, answer in car.answers():
                     follower.answered(plan, answer.status)

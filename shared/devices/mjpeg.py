@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from urllib.parse import urlsplit
 
 from shared.bus.codec import DEFAULT_MAX_PAYLOAD_BYTES
+from shared.devices.redact import redacted
 from shared.timebase import MAX_STAMP_NS, NS_PER_S
 
 TIMESTAMP_HEADER = "X-Timestamp"
@@ -74,7 +75,7 @@ class MjpegStream:
     def __init__(self, url: str, timeout_s: float) -> None:
         split = urlsplit(url)
         if split.scheme not in ("http", "https") or not split.hostname:
-            raise StreamError("open_failed", f"not an http(s) URL: {url!r}")
+            raise StreamError("open_failed", f"not an http(s) URL: {redacted(url)!r}")
         path = split.path or "/"
         if split.query:
             path += "?" + split.query

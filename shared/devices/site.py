@@ -29,6 +29,7 @@ import yaml
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from shared.config import ConfigError, read_yaml
+from shared.devices.redact import redacted
 from shared.devices.robosense import MODELS
 from shared.devices.velodyne import DEVICES as VELODYNE_DEVICES
 from shared.paths import REPO_ROOT
@@ -117,7 +118,7 @@ class StreamCamera(_Strict):
     def _device_clock_over_http(self) -> StreamCamera:
         if self.clock == "device" and not self.url.startswith(("http://", "https://")):
             raise ValueError(
-                f"clock: device reads an HTTP MJPEG stream's X-Timestamp; {self.url!r} is not http(s)://"
+                f"clock: device reads an HTTP MJPEG stream's X-Timestamp; {redacted(self.url)!r} is not http(s)://"
             )
         return self
 

@@ -40,6 +40,7 @@ from rmmdet.v1.sensors_pb2 import RadarScan, RadarTarget
 
 from shared.devices import ars408, robosense, serial_urls, velodyne
 from shared.devices.mjpeg import TIMESTAMP_HEADER, MjpegStream, StreamError
+from shared.devices.redact import redacted
 from shared.devices.site import Ars408Radar, RobosenseLidar, SiteFile, StreamCamera, VelodyneLidar
 from shared.perception.decode import INTENSITY_FULL_SCALE, point_cloud_message
 from shared.scene.model import SensorSpec
@@ -554,7 +555,7 @@ class CameraSource(_Source):
 
     def status(self) -> str:
         if not self.connected:
-            return f"stream {self.spec.url} not open"
+            return f"stream {redacted(self.spec.url)} not open"
         if self.no_device_stamp:
             return f"no {TIMESTAMP_HEADER} from the camera: stamped on receive"
         return ""

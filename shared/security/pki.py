@@ -21,6 +21,7 @@ made, so adding an identity never reissues the others (their keys may already be
 from __future__ import annotations
 
 import datetime as dt
+import errno
 import ipaddress
 import os
 import re
@@ -49,6 +50,7 @@ RENEW_WITHIN_DAYS = 14
 #: Identities are file names and certificate CNs: keep them to a safe alphabet.
 IDENTITY_RE = re.compile(r"^[a-z0-9][a-z0-9_-]{0,62}$")
 PRIVATE_MODE = 0o600
+PUBLIC_MODE = 0o644  # certificates: anyone may read them
 
 
 @dataclass(frozen=True)
@@ -88,10 +90,22 @@ def check_identity(identity: str) -> str:
     return identity
 
 
-def _write_private(path: Path, pem: bytes) -> None:
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, PRIVATE_MODE)
+def write_file(path: Path, data: bytes, mode: int) -> None:
+    """Write `data` to `path` with exactly `mode`, also when the file was there with a wider one (a
+    creation mode applies to new files only); a symbolic link at `path` is refused (O_NOFOLLOW), not
+    followed to wherever it points. ConfigError when it cannot be written."""
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, mode)
+    except OSError as exc:
+        why = "a symbolic link, refused" if exc.errno == errno.ELOOP else exc.strerror
+        raise ConfigError(f"{path}: cannot be written ({why})") from None
     with os.fdopen(fd, "wb") as f:
-        f.write(pem)
+        os.fchmod(f.fileno(), mode)
+        f.write(data)
+
+
+def _write_private(path: Path, pem: bytes) -> None:
+    write_file(path, pem, PRIVATE_MODE)
 
 
 def _key_pem(key: ec.EllipticCurvePrivateKey | Ed25519PrivateKey) -> bytes:
@@ -155,7 +169,7 @@ class CertificateAuthority:
         )
         pki_dir.mkdir(parents=True, exist_ok=True)
         _write_private(ca_paths(pki_dir).key, _key_pem(key))
-        ca_paths(pki_dir).cert.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+        write_file(ca_paths(pki_dir).cert, cert.public_bytes(serialization.Encoding.PEM), PUBLIC_MODE)
         return cls(cert, key)
 
     @classmethod
@@ -216,7 +230,7 @@ class CertificateAuthority:
             .sign(self.key, hashes.SHA256())
         )
         _write_private(paths.key, _key_pem(key))
-        paths.cert.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+        write_file(paths.cert, cert.public_bytes(serialization.Encoding.PEM), PUBLIC_MODE)
         return paths
 
 
@@ -224,11 +238,10 @@ def create_plan_key(pki_dir: Path, name: str = PLAN_KEY_NAME) -> Paths:
     paths = plan_key_paths(pki_dir, name)
     key = Ed25519PrivateKey.generate()
     _write_private(paths.key, _key_pem(key))
-    paths.cert.write_bytes(
-        key.public_key().public_bytes(
-            serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
-        )
+    public = key.public_key().public_bytes(
+        serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
     )
+    write_file(paths.cert, public, PUBLIC_MODE)
     return paths
 
 

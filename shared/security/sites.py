@@ -16,7 +16,6 @@ from __future__ import annotations
 import ipaddress
 import json
 import logging
-import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -33,12 +32,14 @@ from shared.security.acl import access_control
 from shared.security.identities import CLOUD_ROUTER, parse_identity, vehicle_identity
 from shared.security.pki import (
     PRIVATE_MODE,
+    PUBLIC_MODE,
     RENEW_WITHIN_DAYS,
     ca_paths,
     days_left,
     identity_paths,
     plan_key_paths,
     trusted_plan_keys,
+    write_file,
 )
 from shared.supervision.programs import Program, render_program
 
@@ -310,9 +311,7 @@ def bundle_host(layout: Layout, host: str, pki_dir: Path, out_dir: Path) -> list
             )
         dst = out_dir / src.name
         private = src.suffix == ".key"
-        fd = os.open(dst, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, PRIVATE_MODE if private else 0o644)
-        with os.fdopen(fd, "wb") as f:
-            f.write(src.read_bytes())
+        write_file(dst, src.read_bytes(), PRIVATE_MODE if private else PUBLIC_MODE)
         copies.append(dst)
     return copies
 

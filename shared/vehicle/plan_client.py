@@ -26,7 +26,7 @@ from rmmdet.v1.planning_pb2 import RouteAck, RoutePlan, RouteRequest, RouteRespo
 
 from shared.bus.codec import Counters, MessageDecoder, encode
 from shared.bus.node import Node, Received
-from shared.bus.queues import BoundedQueue
+from shared.bus.queues import BoundedQueue, OverflowPolicy
 from shared.bus.streams import get_stream
 from shared.security.plan_signing import PlanVerifier
 from shared.traffic.plans import Ack, plan_problem
@@ -140,10 +140,29 @@ class JoinAsks:
         return True
 
 
+class CheckedPushes(BoundedQueue[Received]):
+    """A vehicle's pushed plans, each checked (`PlanCheck.accept`: signature, key, TTL, version, run)
+    on arrival, before it takes a place: refused ones are counted and never queued, so a flood of
+    forged pushes cannot evict a genuine one from the bounded queue (it did: checked only when taken)."""
+
+    def __init__(self, vehicle_id: str, check: PlanCheck, maxsize: int, counters: Counters) -> None:
+        super().__init__(maxsize, OverflowPolicy.DROP_OLDEST, counters, "dropped/pushed")
+        self.vehicle_id, self.check, self._counters_in = vehicle_id, check, counters
+
+    def put(self, item: Received) -> bool:
+        plan = item.message
+        if plan.vehicle_id != self.vehicle_id:
+            self._counters_in.inc("rejected/plan_key_mismatch")
+            return False
+        if not self.check.accept(plan):  # counted by the check
+            return False
+        return super().put(item)
+
+
 class VehicleLink:
     """One vehicle's route RPC querier, pushed-plan subscription and ack publisher on `node`. Replies
-    (`Outcome`s, checked by `check`) go to `outcomes`; pushed plans (unchecked: `PlanCheck.accept`
-    them) to `pushed`. `subscribe_pushed=False`: the caller hears every vehicle's pushes at once."""
+    (`Outcome`s, checked by `check`) go to `outcomes`; pushed plans to `pushed` (a `CheckedPushes`
+    checks them on arrival). `subscribe_pushed=False`: the caller hears every vehicle's pushes at once."""
 
     def __init__(
         self,

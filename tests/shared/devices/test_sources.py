@@ -353,3 +353,21 @@ def test_a_paced_sender_spreads_a_turn_over_its_revolution_and_hurries_a_late_on
             assert len(got) == 2 * len(packets) and sender.hurried == 1
         finally:
             sender.close()
+
+
+def test_a_camera_urls_credentials_stay_out_of_health_text() -> None:
+    """Issue 52 item 9: a camera's URL with its login was shown whole in the device service's health."""
+    from shared.devices.redact import redacted
+
+    url = f"http://admin:hunter2@127.0.0.1:{free_port()}/video.mjpg?channel=1&pwd=hunter2"
+    source = CameraSource("cam_2", StreamCamera(device="stream", url=url), Collector())
+    source.start()
+    try:
+        wait_until(lambda: source.status() != "", 5.0)
+        assert "hunter2" not in source.status() and "admin:***@127.0.0.1" in source.status()
+    finally:
+        source.close()
+    assert redacted("rtsp://10.0.0.5/live") == "rtsp://10.0.0.5/live"
+    assert redacted("rtsp://viewer@10.0.0.5/live") == "rtsp://viewer@10.0.0.5/live"  # no password
+    assert redacted("/dev/video0") == "/dev/video0" and redacted("0") == "0"
+    assert redacted("http://h/x?token=abc&size=2") == "http://h/x?token=***&size=2"

@@ -84,6 +84,26 @@ def test_init_keeps_what_exists_and_renews_only_leaves(tmp_path: Path) -> None:
     assert (tmp_path / "coordinator.pem").read_bytes() != before["coordinator.pem"]
 
 
+def test_a_renewed_key_is_private_whatever_mode_it_had_and_a_symlink_is_refused(tmp_path: Path) -> None:
+    """Issue 52 item 9: a key file renewed in place kept a wider mode it had (the creation mode applies
+    to new files only), and a symbolic link at a key's path was followed to wherever it pointed."""
+    import os
+    import stat
+
+    init_pki(tmp_path, ["coordinator"])
+    key = tmp_path / "coordinator.key"
+    key.chmod(0o644)
+    init_pki(tmp_path, ["coordinator"], renew=True)
+    assert stat.S_IMODE(key.stat().st_mode) == 0o600
+    victim = tmp_path / "victim"
+    victim.write_text("mine")
+    key.unlink()
+    os.symlink(victim, key)
+    with pytest.raises(ConfigError, match="symbolic link"):
+        init_pki(tmp_path, ["coordinator"], renew=True)
+    assert victim.read_text() == "mine"
+
+
 @pytest.mark.parametrize("name", ["", "ca", "plan-signing", "../etc", "Upper", "a" * 64])
 def test_bad_identity_names_are_refused(tmp_path: Path, name: str) -> None:
     with pytest.raises(ConfigError):

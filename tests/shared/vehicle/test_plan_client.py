@@ -149,3 +149,30 @@ def test_a_flapping_coordinator_token_asks_every_vehicle_once_per_interval() -> 
     assert asks.due(11.0) and not asks.due(11.5)
     asks.joined()
     assert not asks.due(11.9) and asks.due(12.0)
+
+
+def test_a_flood_of_forged_pushes_does_not_evict_a_genuine_one() -> None:
+    """Issue 52 item 9: pushes were queued unchecked (64 places, oldest dropped) and checked only when
+    the main loop took them: 64 forged pushes after a genuine one evicted it. Checked on arrival, the
+    forged ones never take a place."""
+    from shared.bus.node import Received
+    from shared.vehicle.plan_client import CheckedPushes
+
+    counters = Counters()
+    check = PlanCheck(PlanVerifier([GENUINE._key.public_key()]), max_ttl_s=1e12, counters=counters)
+    pushed = CheckedPushes("v1", check, 64, counters)
+
+    def push(signer: PlanSigner, plan_id: str, vehicle: str = "v1") -> None:
+        plan = RoutePlan(vehicle_id=vehicle, plan_id=plan_id, version=1, lane_ids=["l0"])
+        plan.valid_until.FromNanoseconds(2**62)
+        pushed.put(Received("k", signer.sign(plan), Header(), 0, 0))
+
+    push(GENUINE, "a" * 32)
+    for k in range(1000):
+        push(ROGUE, f"{k:032x}")
+    push(GENUINE, "b" * 32, vehicle="v2")  # genuine, but another vehicle's
+    assert [r.message.plan_id for r in pushed.drain()] == ["a" * 32]
+    assert (
+        counters.get("rejected/plan_unknown_key") == 1000 and counters.get("rejected/plan_key_mismatch") == 1
+    )
+    assert counters.get("dropped/pushed") == 0
