@@ -89,8 +89,8 @@ status: ## supervisor view of the services
 logs: ## tail all service logs
 	@tail -n 50 -F $(RUN_DIR)/logs/*.log
 
-VIEW_WEB_PORT ?= 8090
-view-web: install ## the live 3D view in a local browser: prebuilt Foxglove Studio (from npm; needs npm) on http://127.0.0.1:8090/, connected to the viewer with the project's layout
+VIEW_WEB_PORT ?= $(shell $(BIN)/python -c "from shared.viewer.origin import VIEW_WEB_PORT; print(VIEW_WEB_PORT)")
+view-web: install ## the live 3D view in a local browser: prebuilt Foxglove Studio (from npm; needs npm) on http://127.0.0.1:VIEW_WEB_PORT/ (shared/viewer/origin.py), connected to the viewer with the project's layout
 	@bash deploy/foxglove/web/assemble.sh $(RUN_DIR)/foxglove-web >/dev/null
 	@echo "open http://127.0.0.1:$(VIEW_WEB_PORT)/?ds=foxglove-websocket&ds.url=ws://127.0.0.1:8765   (Ctrl-C stops)"
 	@$(BIN)/python -m http.server $(VIEW_WEB_PORT) --bind 127.0.0.1 --directory $(RUN_DIR)/foxglove-web

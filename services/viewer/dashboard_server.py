@@ -36,7 +36,7 @@ from websockets.http11 import Request, Response
 from websockets.sync.server import Server, ServerConnection, serve
 
 from shared.bus.codec import Counters
-from shared.viewer.origin import allowed_hosts, headers_problem
+from shared.viewer.origin import allowed_hosts, headers_problem, token_cookie, token_given
 
 log = logging.getLogger("services.viewer.dashboard")
 
@@ -45,16 +45,38 @@ PUSH_POLL_S = 0.1  # how often a connection looks for a newer snapshot
 POLLED_WATCHING_S = 10.0  # an /api/state request counts as someone watching for this long
 
 
-def response(status: HTTPStatus, body: bytes, content_type: str) -> Response:
+def response(status: HTTPStatus, body: bytes, content_type: str, cookie: str | None = None) -> Response:
     headers = Headers([("Content-Type", content_type), ("Content-Length", str(len(body)))])
     headers["Cache-Control"] = "no-store"
+    if cookie is not None:
+        headers["Set-Cookie"] = cookie
     return Response(status.value, status.phrase, headers, body)
+
+
+def token_refusal(request: Request, token: str | None, counters: Counters) -> Response | str | None:
+    """A 401 (counted) for a request without the viewer's token (`origin.token_given`), "query" when it
+    came in the query (a page response then sets the cookie), else None."""
+    given = token_given(request.path, request.headers.get_all("Cookie"), token)
+    if given:
+        return "query" if given == "query" else None
+    counters.inc("rejected/http_401")
+    body = b"refused: this viewer serves beyond loopback and needs its token (?token=... once)\n"
+    return response(HTTPStatus.UNAUTHORIZED, body, "text/plain; charset=utf-8")
 
 
 class DashboardServer:
     """Serves `publish`ed snapshots; `table` is the static map (lanes, junctions)."""
 
-    def __init__(self, host: str, port: int, table: dict[str, Any], host_names: Iterable[str] = ()) -> None:
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        table: dict[str, Any],
+        host_names: Iterable[str] = (),
+        token: str | None = None,
+    ) -> None:
+        """`token`: asked of every request (`origin.view_token`: a bind beyond loopback)."""
+        self.token = token
         self._table = json.dumps(table).encode()
         self._page = PAGE.read_bytes()
         self._latest = b"{}"
@@ -98,11 +120,15 @@ class DashboardServer:
             what = "Host" if refused == HTTPStatus.MISDIRECTED_REQUEST else "Origin"
             body = f"refused: {what} is not this dashboard's ({refused.phrase})\n".encode()
             return response(refused, body, "text/plain; charset=utf-8")
+        by_token = token_refusal(request, self.token, self.counters)
+        if isinstance(by_token, Response):
+            return by_token
         path = request.path.split("?", 1)[0]
         if path == "/ws":
             return None  # the WebSocket handshake goes on
         if path in ("/", "/index.html"):
-            return response(HTTPStatus.OK, self._page, "text/html; charset=utf-8")
+            cookie = token_cookie(self.token) if by_token == "query" and self.token else None
+            return response(HTTPStatus.OK, self._page, "text/html; charset=utf-8", cookie)
         if path == "/api/state":
             with self._changed:
                 self._polled_s = time.monotonic()

@@ -50,7 +50,7 @@ from services.viewer.dashboard_server import DashboardServer
 from services.viewer.ws_gate import start_view_server
 from shared.bus import names
 from shared.bus.node import Node
-from shared.paths import DEFAULT_SCENE
+from shared.paths import DEFAULT_SCENE, RUN_DIR
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.service import exit_process, positive_float, run_service
@@ -60,6 +60,7 @@ from shared.viewer.dashboard import DashboardState, map_of
 from shared.viewer.feeds import Channels, SensorFeeds
 from shared.viewer.health_feed import IDLE_EVERY_S, HealthFeed
 from shared.viewer.inputs import ViewerInputs
+from shared.viewer.origin import view_token
 
 log = logging.getLogger("services.viewer")
 
@@ -72,20 +73,29 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     context = foxglove.Context()
     feeds = SensorFeeds(scene, context)
     try:  # a port in use is a clear one-line exit, not a traceback
+        token = view_token(args.host, args.token_file)
         dashboard = (
-            DashboardServer(args.host, args.dashboard_port, map_of(scene, network), args.host_name or ())
+            DashboardServer(
+                args.host, args.dashboard_port, map_of(scene, network), args.host_name or (), token
+            )
             if args.dashboard_port
             else None
         )
         server, gate = start_view_server(
-            context, feeds, args.host, args.port, args.host_name or (), args.allow_origin or ()
+            context, feeds, args.host, args.port, args.host_name or (), args.allow_origin or (), token
         )
-    except (OSError, RuntimeError) as err:
+    except (OSError, RuntimeError, ValueError) as err:
         raise SystemExit(
             f"viewer: cannot serve on {args.host} ports {args.port}/{args.dashboard_port}: {err}"
         ) from None
     recording = foxglove.open_mcap(args.mcap, allow_overwrite=True, context=context) if args.mcap else None
     log.info("Foxglove WebSocket server on ws://%s:%d", args.host, gate.port)
+    if token is not None:
+        log.warning(
+            "serving beyond loopback: every request needs the token in %s (?token=<it> once: the browser "
+            "keeps it)",
+            args.token_file,
+        )
     if dashboard is not None:
         dashboard.start()
         log.info("dashboard on http://%s:%d/", args.host, dashboard.port)
@@ -152,6 +162,12 @@ def add_args(parser: argparse.ArgumentParser) -> None:
         action="append",
         help="a web app (scheme://name) allowed to open the Foxglove WebSocket besides the viewer's own "
         "names and https://app.foxglove.dev (repeatable)",
+    )
+    parser.add_argument(
+        "--token-file",
+        type=Path,
+        default=RUN_DIR / "viewer.token",
+        help="with --host beyond loopback: the token every request needs (made if missing)",
     )
     parser.add_argument("--mcap", type=Path, help="also write every channel into this MCAP file")
     parser.add_argument(

@@ -5,9 +5,12 @@ so a page on any web site could open ws://127.0.0.1:8765 in the user's browser a
 and the camera frames. The viewer therefore runs that server on a loopback port of its own and serves
 the public port here: a handshake whose Host is not one of the viewer's names is refused with 421, one
 whose Origin is neither one of them nor a web app that may watch (Foxglove's, or one served from this
-machine's loopback such as `make view-web`: `FOXGLOVE_APP_ORIGINS`, more with `--allow-origin`) with 403
-(`shared/viewer/origin.py`, the dashboard's rule), counted; an accepted one is joined to the inner
-server with the same subprotocol and every message is passed on as it is, both ways.
+machine's loopback by `make view-web`: `FOXGLOVE_APP_ORIGINS`, more with `--allow-origin`) with 403
+(`shared/viewer/origin.py`, the dashboard's rule), counted; bound beyond loopback, a handshake without
+the viewer's token is refused with 401; an accepted one is joined to the inner server with the same
+subprotocol and every message is passed on as it is, both ways (a client's at most
+MAX_CLIENT_MESSAGE_BYTES). The inner server's loopback port stays open to local processes: the SDK has
+no hook to refuse them.
 """
 
 from __future__ import annotations
@@ -23,8 +26,8 @@ from websockets.http11 import Request, Response
 from websockets.sync.client import ClientConnection, connect
 from websockets.sync.server import Server, ServerConnection, serve
 
-from services.viewer.dashboard_server import response
-from shared.bus.codec import Counters
+from services.viewer.dashboard_server import response, token_refusal
+from shared.bus.codec import DEFAULT_MAX_PAYLOAD_BYTES, Counters
 from shared.viewer.feeds import SensorFeeds
 from shared.viewer.origin import FOXGLOVE_APP_ORIGINS, allowed_hosts, headers_problem
 
@@ -32,6 +35,12 @@ log = logging.getLogger(__name__)
 
 #: The Foxglove WebSocket protocols (the SDK's and the older one); the client's choice is passed on.
 SUBPROTOCOLS = ("foxglove.sdk.v1", "foxglove.websocket.v1")
+#: What a viewing client sends is subscriptions and the like (JSON of a few kB): a larger frame closes
+#: its connection (1009) before it is buffered whole.
+MAX_CLIENT_MESSAGE_BYTES = 1024 * 1024
+#: What the viewer's own server sends: a message of the bus at most (a camera frame) and its framing, or
+#: a channel advertisement with its schemas.
+MAX_VIEW_MESSAGE_BYTES = 4 * DEFAULT_MAX_PAYLOAD_BYTES
 
 
 class OriginGate:
@@ -44,8 +53,10 @@ class OriginGate:
         inner_port: int,
         host_names: Iterable[str] = (),
         origins: Iterable[str] = (),
+        token: str | None = None,
     ) -> None:
         self.inner_port = inner_port
+        self.token = token
         self.origins = (*FOXGLOVE_APP_ORIGINS, *origins)
         self.counters = Counters()
         self._server: Server = serve(
@@ -55,7 +66,7 @@ class OriginGate:
             process_request=self._check,
             subprotocols=list(SUBPROTOCOLS),  # type: ignore[arg-type]
             compression=None,
-            max_size=None,
+            max_size=MAX_CLIENT_MESSAGE_BYTES,
         )
         self.port = self._server.socket.getsockname()[1]
         self._allowed = allowed_hosts(host, self.port, host_names)
@@ -74,7 +85,8 @@ class OriginGate:
             headers.get_all("Host"), headers.get_all("Origin"), self._allowed, self.origins
         )
         if refused is None:
-            return None
+            by_token = token_refusal(request, self.token, self.counters)
+            return by_token if isinstance(by_token, Response) else None
         self.counters.inc(f"rejected/http_{refused.value}")
         what = "Host" if refused == HTTPStatus.MISDIRECTED_REQUEST else "Origin"
         return response(refused, f"refused: {what} not allowed ({refused.phrase})\n".encode(), "text/plain")
@@ -86,7 +98,7 @@ class OriginGate:
                 f"ws://127.0.0.1:{self.inner_port}",
                 subprotocols=protocols,  # type: ignore[arg-type]
                 compression=None,
-                max_size=None,
+                max_size=MAX_VIEW_MESSAGE_BYTES,
             )
         except (OSError, ConnectionClosed) as err:
             self.counters.inc("errors/inner_connect")
@@ -119,6 +131,7 @@ def start_view_server(
     port: int,
     host_names: Iterable[str] = (),
     origins: Iterable[str] = (),
+    token: str | None = None,
 ) -> tuple[foxglove.WebSocketServer, OriginGate]:
     """The Foxglove WebSocket server of `context`'s channels, the sensor feeds listening to who
     subscribes, on a loopback port of its own, and the gate that serves it on `host:port` to the
@@ -127,7 +140,7 @@ def start_view_server(
         name="rmmdet", host="127.0.0.1", port=0, context=context, server_listener=feeds
     )
     try:
-        gate = OriginGate(host, port, inner.port, host_names, origins)
+        gate = OriginGate(host, port, inner.port, host_names, origins, token)
     except (OSError, RuntimeError):
         inner.stop()
         raise

@@ -127,3 +127,66 @@ def test_the_foxglove_websocket_refuses_a_foreign_origin_or_host(test_scene: Sce
     assert (
         counts["rejected/http_403"] == 2 and counts["rejected/http_421"] == 2 and counts["connections"] == 4
     )
+
+
+def test_beyond_loopback_a_token_is_needed_and_frames_are_capped(test_scene: Scene, tmp_path) -> None:
+    """Issue 52 item 7: bound beyond loopback the dashboard and the Foxglove WebSocket served anyone who
+    reached the port; a web app on any loopback port was an allowed origin; the gate buffered client
+    frames of any size. Now: a token (once in the query, then a cookie), the project's web app named
+    (its port only), client frames over MAX_CLIENT_MESSAGE_BYTES closed."""
+    import os
+    import stat
+
+    from services.viewer.ws_gate import MAX_CLIENT_MESSAGE_BYTES
+    from shared.viewer.origin import FOXGLOVE_APP_ORIGINS, TOKEN_COOKIE, view_token
+
+    token_file = tmp_path / "viewer.token"
+    assert view_token("127.0.0.1", token_file) is None and not token_file.exists()
+    token = view_token("0.0.0.0", token_file)
+    assert token and stat.S_IMODE(os.stat(token_file).st_mode) == 0o600
+    assert view_token("0.0.0.0", token_file) == token  # kept
+    assert "http://127.0.0.1:3000" not in FOXGLOVE_APP_ORIGINS  # another local web app: not by default
+
+    board = DashboardServer("0.0.0.0", 0, {"lanes": []}, token=token)
+    board.start()
+    context = foxglove.Context()
+    server, gate = start_view_server(context, SensorFeeds(test_scene, context), "0.0.0.0", 0, token=token)
+    try:
+
+        def get(path: str, headers: dict[str, str]) -> tuple[int, str | None]:
+            conn = http.client.HTTPConnection("127.0.0.1", board.port, timeout=5)
+            try:
+                conn.request("GET", path, headers={"Host": f"127.0.0.1:{board.port}", **headers})
+                got = conn.getresponse()
+                return got.status, got.getheader("Set-Cookie")
+            finally:
+                conn.close()
+
+        assert get("/api/state", {})[0] == 401
+        assert get(f"/api/state?token={token[:-1]}x", {})[0] == 401
+        status, cookie = get(f"/?token={token}", {})
+        assert status == 200 and cookie is not None and cookie.startswith(f"{TOKEN_COOKIE}={token};")
+        assert "HttpOnly" in cookie and "SameSite=Strict" in cookie
+        assert get("/api/state", {"Cookie": f"{TOKEN_COOKIE}={token}"})[0] == 200
+        url = f"ws://127.0.0.1:{gate.port}"
+        with pytest.raises(Exception, match="401"):
+            connect(url, subprotocols=[SUBPROTOCOL], open_timeout=5)  # type: ignore[list-item]
+        with pytest.raises(Exception, match="403"):  # a local web app on another port
+            connect(
+                f"{url}/?token={token}",
+                origin="http://127.0.0.1:3000",
+                subprotocols=[SUBPROTOCOL],
+                open_timeout=5,
+            )  # type: ignore[list-item]
+        with connect(f"{url}/?token={token}", subprotocols=[SUBPROTOCOL], open_timeout=5) as ws:  # type: ignore[list-item]
+            assert json.loads(ws.recv(timeout=5))["op"] == "serverInfo"
+            ws.send(b"\0" * (MAX_CLIENT_MESSAGE_BYTES + 1))
+            with pytest.raises(ConnectionClosed):
+                for _ in range(100):
+                    ws.recv(timeout=5)
+    finally:
+        gate.stop()
+        server.stop()
+        board.stop()
+    assert board.counters.snapshot()["rejected/http_401"] == 2
+    assert gate.counters.snapshot()["rejected/http_401"] == 1
