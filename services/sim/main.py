@@ -89,7 +89,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         plans = None
         if settings.traffic.route_policy == "plan":
             check = PlanCheck(
-                PlanVerifier.load(settings.plan_verify_keys),
+                PlanVerifier.watching(settings.plan_key_source()),
                 settings.plan_max_ttl_s,
                 node.counters,
                 run_start_ns=start_wall_ns,

@@ -66,9 +66,8 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         announce=False,
     ) as node:
         counters = node.counters
-        check = PlanCheck(
-            PlanVerifier.load(settings.plan_verify_keys), settings.plan_max_ttl_s, counters, time.time_ns()
-        )
+        verifier = PlanVerifier.watching(settings.plan_key_source())
+        check = PlanCheck(verifier, settings.plan_max_ttl_s, counters, time.time_ns())
         outcomes = BoundedQueue[Outcome](
             OUTCOME_QUEUE, OverflowPolicy.DROP_OLDEST, counters, "dropped/outcomes"
         )

@@ -14,6 +14,10 @@ cross-language deployment would sign the exact bytes in an envelope instead).
 from __future__ import annotations
 
 import hashlib
+import logging
+import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 from cryptography.exceptions import InvalidSignature
@@ -24,6 +28,8 @@ from rmmdet.v1.planning_pb2 import RoutePlan
 from shared.config import ConfigError
 
 #: Length of an Ed25519 signature, bytes.
+log = logging.getLogger(__name__)
+
 SIGNATURE_BYTES = 64
 
 
@@ -85,20 +91,64 @@ class PlanSigner:
         return plan
 
 
-class PlanVerifier:
-    """The vehicles' side: `problem` names why a plan's signature is not acceptable (None: it is)."""
+#: How often a watching verifier looks whether its key files changed (a rotation's stage or promotion).
+KEY_RECHECK_S = 2.0
 
-    def __init__(self, public_keys: list[Ed25519PublicKey]) -> None:
+
+class PlanVerifier:
+    """The vehicles' side: `problem` names why a plan's signature is not acceptable (None: it is).
+
+    `watching` verifiers follow their key files: a key staged, promoted or retired by `rmmdet pki
+    rotate --plan-key` is trusted or no longer trusted within KEY_RECHECK_S, no restart needed (a
+    vehicle trusted a retired key until it restarted). A file that does not read keeps the keys held."""
+
+    def __init__(
+        self,
+        public_keys: list[Ed25519PublicKey],
+        source: Callable[[], list[Path]] | None = None,
+        recheck_s: float = KEY_RECHECK_S,
+    ) -> None:
         if not public_keys:
             raise ValueError("at least one trusted plan key")
         self._keys = {key_id(k): k for k in public_keys}
+        self._source, self._recheck_s = source, recheck_s
+        self._files = _files_stamp(source()) if source is not None else ()
+        self._due_s = time.monotonic() + recheck_s
+        self._lock = threading.Lock()
 
     @classmethod
     def load(cls, paths: list[Path]) -> PlanVerifier:
         return cls([load_public_key(p) for p in paths])
 
+    @classmethod
+    def watching(cls, source: Callable[[], list[Path]], recheck_s: float = KEY_RECHECK_S) -> PlanVerifier:
+        """A verifier of the keys `source` lists (read now: ConfigError as `load`), re-read on a change."""
+        return cls([load_public_key(p) for p in source()], source, recheck_s)
+
+    def _refresh(self) -> None:
+        if self._source is None or time.monotonic() < self._due_s:
+            return
+        with self._lock:
+            if time.monotonic() < self._due_s:
+                return
+            self._due_s = time.monotonic() + self._recheck_s
+            paths = [p for p in self._source() if p.exists()]
+            files = _files_stamp(paths)
+            if files == self._files:
+                return
+            try:
+                keys = [load_public_key(p) for p in paths]
+            except ConfigError as err:  # mid-write, or damaged: keep what is trusted now
+                log.warning("plan keys not reloaded: %s", err)
+                return
+            if not keys:
+                return
+            self._keys, self._files = {key_id(k): k for k in keys}, files
+            log.info("trusted plan keys now: %s", ", ".join(sorted(self._keys)))
+
     def problem(self, plan: RoutePlan) -> str | None:
         """ "unsigned", "unknown_key" or "bad_signature"; None for a plan signed by a trusted key."""
+        self._refresh()
         if not plan.signature:
             return "unsigned"
         key = self._keys.get(plan.key_id)
@@ -109,3 +159,15 @@ class PlanVerifier:
         except InvalidSignature:
             return "bad_signature"
         return None
+
+
+def _files_stamp(paths: list[Path]) -> tuple[tuple[str, int, int], ...]:
+    """Which key files there are and their versions (modification time, size): a change to look at."""
+    out = []
+    for p in paths:
+        try:
+            st = p.stat()
+        except OSError:
+            continue
+        out.append((str(p), st.st_mtime_ns, st.st_size))
+    return tuple(out)

@@ -3,6 +3,7 @@ car's client (VehicleSettings, `rmmdet vehicle`; environment RMMDET_VEHICLE_*)."
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 from pydantic import BaseModel, Field
@@ -38,6 +39,14 @@ class PlanClientSettings(BaseModel):
     def resolve_paths(self) -> None:
         """Relative key paths are the repo root's (the result does not depend on the working directory)."""
         self.plan_verify_keys = [k if k.is_absolute() else REPO_ROOT / k for k in self.plan_verify_keys]
+
+    def plan_key_source(self) -> Callable[[], list[Path]]:
+        """Where the trusted plan keys are looked up each time (`PlanVerifier.watching`): the keys given in
+        the settings, else the PKI's trusted ones as they are now (a key staged later is trusted too)."""
+        if "plan_verify_keys" in self.model_fields_set:
+            given = list(self.plan_verify_keys)
+            return lambda: given
+        return lambda: trusted_plan_keys(DEFAULT_PKI_DIR)
 
 
 class VehicleSettings(RmmdetSettings, PlanClientSettings):

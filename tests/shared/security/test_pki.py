@@ -147,3 +147,20 @@ def test_a_plan_key_rotation_trusts_current_and_next_then_refuses_the_retired(tm
     assert plan_problem(before.sign(plan), after, 10**18, 600.0) == "plan_unknown_key"
     assert not plan_key_paths(tmp_path, NEXT_PLAN_KEY_NAME).key.exists()
     assert len(list((tmp_path / "retired").glob("*/plan-signing.pub"))) == 1
+
+
+def test_a_watching_verifier_follows_a_rotation_without_a_restart(tmp_path: Path) -> None:
+    """Issue 52 item 9: a vehicle read its trusted plan keys once, so a retired key stayed trusted (and a
+    staged one untrusted) until it restarted."""
+    init_pki(tmp_path, ["coordinator"])
+    plan = RoutePlan(vehicle_id="v1", plan_id="0" * 32, version=1, lane_ids=["a"])
+    plan.valid_until.FromNanoseconds(10**18 + 10**10)
+    before = PlanSigner(load_private_key(plan_key_paths(tmp_path).key))
+    vehicle = PlanVerifier.watching(lambda: trusted_plan_keys(tmp_path), recheck_s=0.0)
+    assert vehicle.problem(before.sign(plan)) is None
+    assert rotate_plan_key(tmp_path) == "staged"
+    nxt = PlanSigner(load_private_key(plan_key_paths(tmp_path, NEXT_PLAN_KEY_NAME).key))
+    assert vehicle.problem(nxt.sign(plan)) is None  # the staged key: trusted at once
+    assert rotate_plan_key(tmp_path) == "promoted"
+    assert vehicle.problem(nxt.sign(plan)) is None
+    assert vehicle.problem(before.sign(plan)) == "unknown_key"  # the retired key: no longer trusted
