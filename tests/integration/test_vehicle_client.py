@@ -108,6 +108,14 @@ def acks_of(node: Node) -> tuple[list[tuple[str, int]], threading.Event]:
     return seen, done
 
 
+def wait_for_ack(seen: list[tuple[str, int]], plan_id: str, status: Ack, timeout_s: float = 5.0) -> None:
+    """Until the bus carried the vehicle's acknowledgement of `plan_id` with `status`."""
+    deadline = time.monotonic() + timeout_s
+    while (plan_id, status.value) not in seen:
+        assert time.monotonic() < deadline, f"no {status.name} ack of {plan_id} on the bus: {seen}"
+        time.sleep(0.05)
+
+
 def signed_plan(signer: PlanSigner, lanes: list[str]) -> RoutePlan:
     now_ns = time.time_ns()
     plan = RoutePlan(vehicle_id=VEHICLE, plan_id=uuid.uuid4().hex, version=now_ns // 1000, lane_ids=lanes)
@@ -123,10 +131,7 @@ def test_a_vehicle_asks_verifies_and_acknowledges_its_plan(system) -> None:
         accepted = events.wait("accepted")
         assert accepted["lanes"][0] == LANE and accepted["how"] == "requested"
         assert 0 < accepted["valid_for_s"] <= 121
-        deadline = time.monotonic() + 5
-        while (accepted["plan_id"], Ack.ACCEPTED.value) not in seen:
-            assert time.monotonic() < deadline, f"no ACCEPTED ack on the bus: {seen}"
-            time.sleep(0.05)
+        wait_for_ack(seen, accepted["plan_id"], Ack.ACCEPTED)
         assert proc.wait(15) == 0  # --plans 1: done
     finally:
         done.set()
@@ -187,10 +192,7 @@ def test_a_ros2_car_gets_its_plan_as_a_path_and_answers_it(system) -> None:
         accepted = events.wait("accepted")
         assert (accepted["plan_id"], accepted["how"]) == (forwarded["plan_id"], "car answered")
         assert events.wait("refused")["reason"] == "rejected/plan_ack_cdr"
-        deadline = time.monotonic() + 5
-        while (forwarded["plan_id"], Ack.ACCEPTED.value) not in seen:
-            assert time.monotonic() < deadline, f"no ACCEPTED ack on the bus: {seen}"
-            time.sleep(0.05)
+        wait_for_ack(seen, forwarded["plan_id"], Ack.ACCEPTED)
     finally:
         done.set()
         car.undeclare()
@@ -228,9 +230,7 @@ def test_a_ros2_car_client_survives_a_plan_with_a_lane_its_scene_lacks(system) -
         while not paths:
             assert time.monotonic() < deadline, "no Path on the car's key"
             time.sleep(0.05)
-        while (refused["plan_id"], Ack.REJECTED_INVALID.value) not in seen:
-            assert time.monotonic() < deadline, f"no REJECTED_INVALID ack on the bus: {seen}"
-            time.sleep(0.05)
+        wait_for_ack(seen, refused["plan_id"], Ack.REJECTED_INVALID)
     finally:
         done.set()
         car.undeclare()
