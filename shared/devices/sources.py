@@ -28,7 +28,7 @@ import socket
 import struct
 import threading
 import time
-from collections.abc import Callable, Generator, Mapping
+from collections.abc import Callable, Generator, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -90,6 +90,16 @@ class _Source:
     def counters_snapshot(self) -> dict[str, int]:
         with self._lock:
             return dict(self.counters)
+
+    def _from_unit(self, sock: socket.socket, unit_address: str) -> Iterator[tuple[bytes, int]]:
+        """The datagrams waiting on `sock` that came from `unit_address`, with their receive times; any
+        other sender's refused and counted (its points and angle tables are not the unit's)."""
+        while (got := _recv_stamped(sock)) is not None:
+            data, recv_ns, sender = got
+            if sender != unit_address:
+                self.count("rejected/foreign_sender")
+                continue
+            yield data, recv_ns
 
     def start(self) -> None:
         self._thread.start()
@@ -186,11 +196,7 @@ class LidarSource(_Source):
         while not self._stop.is_set():
             ready, _, _ = select.select([self.msop, self.difop], [], [], 0.1)
             for sock in ready:
-                while (got := _recv_stamped(sock)) is not None:
-                    data, recv_ns, sender = got
-                    if sender != self.spec.unit_address:  # its frames and angle tables are the unit's only
-                        self.count("rejected/foreign_sender")
-                        continue
+                for data, recv_ns in self._from_unit(sock, self.spec.unit_address):
                     if sock is self.difop:
                         self.stream.on_difop(data)
                         continue
@@ -246,11 +252,7 @@ class VelodyneSource(_Source):
         while not self._stop.is_set():
             ready, _, _ = select.select([self.sock], [], [], 0.1)
             if ready:
-                while (got := _recv_stamped(self.sock)) is not None:
-                    data, recv_ns, sender = got
-                    if sender != self.spec.unit_address:
-                        self.count("rejected/foreign_sender")
-                        continue
+                for data, recv_ns in self._from_unit(self.sock, self.spec.unit_address):
                     self.on_packet(data, recv_ns)
 
     def counters_snapshot(self) -> dict[str, int]:
