@@ -12,8 +12,8 @@ from shared.config import ConfigError
 from shared.paths import DEFAULT_PKI_DIR, DEFAULT_SCENE
 from shared.scene.scene import Scene
 from shared.security.identities import deployment_identities, parse_identity
-from shared.security.pki import init_pki, rotate_ca, rotate_plan_key
-from shared.security.sites import DEFAULT_LAYOUT, bundle_host, load_layout
+from shared.security.pki import init_pki, revoke, rotate_ca, rotate_plan_key
+from shared.security.sites import DEFAULT_LAYOUT, bundle_host, load_layout, revocation_steps
 from sim.config import fleet_ids, load_sim_settings
 
 pki_app = typer.Typer(no_args_is_help=True, help="local CA, service certificates, plan-signing key")
@@ -109,3 +109,23 @@ def pki_rotate(
     except ConfigError as err:
         console.print(f"[red]{err}[/]")
         raise typer.Exit(2) from None
+
+
+@pki_app.command("revoke", short_help="revoke one certificate, reissuing only it")
+def pki_revoke(
+    identity: Annotated[str, typer.Argument(help="the identity whose certificate is revoked")],
+    pki_dir: Annotated[Path, typer.Option("--dir", help="PKI directory")] = DEFAULT_PKI_DIR,
+    layout: Annotated[Path, typer.Option(help="site layout (to name the hosts to update)")] = DEFAULT_LAYOUT,
+) -> None:
+    """Revoke one identity's certificate (a stolen host key) without touching any other: a new key and
+    certificate under a new common name. Once the routers named below run with access control rendered
+    again, the old certificate can do nothing (it still completes TLS: Zenoh has no revocation lists)."""
+    try:
+        steps = revocation_steps(load_layout(layout), identity)
+        new_name = revoke(pki_dir, identity)
+    except ConfigError as err:
+        console.print(f"[red]{err}[/]")
+        raise typer.Exit(2) from None
+    console.print(f"{pki_dir}: {identity} reissued as {new_name}; every earlier certificate of it refused")
+    for step in steps:
+        console.print(f"  - {step}")

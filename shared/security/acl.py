@@ -15,7 +15,7 @@ do what its own identities may.
 from __future__ import annotations
 
 from collections import defaultdict
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from typing import Any
 
 from shared.bus.streams import Stream, key_prefix, readers, streams
@@ -150,9 +150,13 @@ def identity_grants(names: Iterable[str]) -> list[Grant]:
     )
 
 
-def access_control(subjects: dict[str, list[str]]) -> dict[str, Any]:
-    """The router's `access_control` section: `subjects` maps each certificate common name that may
-    connect to the identities whose grants it holds (itself, or a whole site for a router)."""
+def access_control(
+    subjects: dict[str, list[str]], common_names: Mapping[str, str] | None = None
+) -> dict[str, Any]:
+    """The router's `access_control` section: `subjects` maps each identity that may connect to the
+    identities whose grants it holds (itself, or a whole site for a router); its certificate's common
+    name is `common_names[identity]` (a revoked leaf's successor, `pki.revoke`), else the identity."""
+    common_names = common_names or {}
     rules: list[dict[str, Any]] = []
     zsubjects: list[dict[str, Any]] = []
     policies: list[dict[str, Any]] = []
@@ -174,7 +178,7 @@ def access_control(subjects: dict[str, list[str]]) -> dict[str, Any]:
                 }
             )
             rule_ids.append(rule_id)
-        zsubjects.append({"id": cn, "cert_common_names": [cn]})
+        zsubjects.append({"id": cn, "cert_common_names": [common_names.get(cn, cn)]})
         if rule_ids:
             policies.append({"id": f"{cn}-policy", "rules": rule_ids, "subjects": [cn]})
     return {

@@ -11,11 +11,16 @@ Layout of a PKI directory (default `.run/pki`, private keys mode 0600):
                                    stolen sensor key cannot pose as the router while it restarts)
     plan-signing.key / .pub        Ed25519, PKCS#8 / SubjectPublicKeyInfo PEM
     plan-signing.next.key / .pub   the staged next plan key during a rotation (`rotate_plan_key`)
+    generations.json               identity -> how many times its leaf was revoked (`revoke`): the
+                                   leaf's CN is `<identity>.<generation>` after the first revocation
     retired/<UTC time>/            public halves of rotated-out CAs and plan keys (`rotate_ca`)
 
 Zenoh's TLS links (rustls) verify chains to `ca.pem`; access control keys its rules on the leaf's
-common name (`shared/security/acl.py`). `init` is idempotent: what exists is kept, what is missing is
-made, so adding an identity never reissues the others (their keys may already be on other hosts).
+common name (`shared/security/acl.py`). Zenoh's TLS has no revocation lists, so one leaf is revoked by
+reissuing it under a new common name (`revoke`): the routers' access control, rendered again, names
+only the current one, and the old certificate may connect but do nothing (default deny).
+`init` is idempotent: what exists is kept, what is missing is made, so adding an identity never
+reissues the others (their keys may already be on other hosts).
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ from __future__ import annotations
 import datetime as dt
 import errno
 import ipaddress
+import json
 import os
 import re
 from dataclasses import dataclass
@@ -41,6 +47,7 @@ CA_NAME = "ca"
 PLAN_KEY_NAME = "plan-signing"
 NEXT_PLAN_KEY_NAME = "plan-signing.next"
 RETIRED_DIR = "retired"  # public halves of rotated-out CAs and plan keys, by UTC time of rotation
+GENERATIONS_FILE = "generations.json"  # identity -> revocations so far (`revoke`); public
 CA_VALIDITY_DAYS = 3650
 #: Leaves are short-lived (issue 34, item 3: a leaf that lived 825 days outlived any compromise of its
 #: host): renew with `rmmdet pki init --renew` (the site launcher warns `RENEW_WITHIN_DAYS` ahead and
@@ -82,6 +89,35 @@ def trusted_plan_keys(pki_dir: Path) -> list[Path]:
     (`rotate_plan_key`), so plans signed by either verify while the coordinator switches over."""
     staged = plan_key_paths(pki_dir, NEXT_PLAN_KEY_NAME).cert
     return [plan_key_paths(pki_dir).cert, *([staged] if staged.exists() else [])]
+
+
+def generations(pki_dir: Path) -> dict[str, int]:
+    """How many times each identity's leaf was revoked (absent: never). ConfigError when unreadable."""
+    path = pki_dir / GENERATIONS_FILE
+    if not path.exists():
+        return {}
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise ConfigError(f"{path}: unreadable ({err})") from None
+    if not isinstance(data, dict) or not all(
+        isinstance(k, str) and type(v) is int and v >= 0 for k, v in data.items()
+    ):
+        raise ConfigError(f"{path}: expected {{identity: non-negative integer}}")
+    return data
+
+
+def certificate_name(identity: str, generation: int = 0) -> str:
+    """The common name of `identity`'s leaf after `generation` revocations: the identity itself, then
+    `<identity>.<generation>` (a dot is outside the identity alphabet, so no identity's name is another's
+    revoked one)."""
+    return identity if generation == 0 else f"{identity}.{generation}"
+
+
+def current_common_names(pki_dir: Path) -> dict[str, str]:
+    """identity -> the common name its current leaf has, for every identity ever revoked (the others:
+    the identity itself)."""
+    return {i: certificate_name(i, g) for i, g in generations(pki_dir).items()}
 
 
 def check_identity(identity: str) -> str:
@@ -208,9 +244,10 @@ class CertificateAuthority:
             else [ExtendedKeyUsageOID.CLIENT_AUTH]
         )
         ca_ski = self.cert.extensions.get_extension_for_class(x509.SubjectKeyIdentifier).value
+        cn = certificate_name(identity, generations(pki_dir).get(identity, 0))
         cert = (
             x509.CertificateBuilder()
-            .subject_name(_name(identity))
+            .subject_name(_name(cn))
             .issuer_name(self.cert.subject)
             .public_key(key.public_key())
             .serial_number(x509.random_serial_number())
@@ -271,6 +308,34 @@ def rotate_ca(pki_dir: Path, extra_names: dict[str, tuple[str, ...]] | None = No
     for identity in identities:
         ca.issue(pki_dir, identity, (extra_names or {}).get(identity, ()))
     return identities
+
+
+def revoke(pki_dir: Path, identity: str) -> str:
+    """Revoke `identity`'s leaf alone: its generation counted up in `generations.json` and a new leaf
+    (new key, new common name, the old one's extra names) issued; no other leaf changes. Once the
+    routers run with access control rendered from this directory, the old certificate still completes
+    TLS (Zenoh has no revocation lists) but its common name is granted nothing. Returns the new CN."""
+    check_identity(identity)
+    ca = CertificateAuthority.load(pki_dir)
+    cert_path = identity_paths(pki_dir, identity).cert
+    try:
+        old = x509.load_pem_x509_certificate(cert_path.read_bytes())
+    except (OSError, ValueError) as err:
+        raise ConfigError(f"{cert_path}: no certificate of {identity} to revoke ({err})") from None
+    extra_names = _extra_names(old, identity)
+    counts = generations(pki_dir)
+    counts[identity] = counts.get(identity, 0) + 1
+    write_file(pki_dir / GENERATIONS_FILE, json.dumps(counts, indent=1, sort_keys=True).encode(), PUBLIC_MODE)
+    ca.issue(pki_dir, identity, extra_names)
+    return certificate_name(identity, counts[identity])
+
+
+def _extra_names(cert: x509.Certificate, identity: str) -> tuple[str, ...]:
+    """The names `issue` was given for `cert` beyond the ones it adds itself."""
+    san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    dns = [n for n in san.get_values_for_type(x509.DNSName) if n not in (identity, "localhost")]
+    ips = [str(a) for a in san.get_values_for_type(x509.IPAddress) if str(a) != "127.0.0.1"]
+    return (*dns, *ips)
 
 
 def rotate_plan_key(pki_dir: Path) -> str:

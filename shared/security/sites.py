@@ -31,11 +31,16 @@ from shared.paths import DEPLOY_DIR, REPO_ROOT
 from shared.security.acl import access_control
 from shared.security.identities import CLOUD_ROUTER, parse_identity, vehicle_identity
 from shared.security.pki import (
+    GENERATIONS_FILE,
     PRIVATE_MODE,
     PUBLIC_MODE,
     RENEW_WITHIN_DAYS,
     ca_paths,
+    certificate_name,
+    common_name,
+    current_common_names,
     days_left,
+    generations,
     identity_paths,
     plan_key_paths,
     trusted_plan_keys,
@@ -147,7 +152,7 @@ def load_layout(path: Path) -> Layout:
 
 
 def router_subjects(layout: Layout, host: str) -> dict[str, list[str]]:
-    """Certificate CN -> the identities whose grants it holds, at `host`'s router."""
+    """Identity connecting to `host`'s router -> the identities whose grants it holds."""
     spec = layout.hosts[host]
     subjects = {i: [i] for i in layout.identities(host) if i != spec.router}
     if host == layout.cloud_host:
@@ -162,6 +167,22 @@ def router_subjects(layout: Layout, host: str) -> dict[str, list[str]]:
     else:  # the cloud router speaks for everyone not at this site
         subjects[CLOUD_ROUTER] = [i for i in layout.all_identities() if i not in layout.identities(host)]
     return subjects
+
+
+def revocation_steps(layout: Layout, identity: str) -> list[str]:
+    """What to do on which host after `pki.revoke(identity)`: the holder's host takes its new bundle,
+    and every router that grants `identity` (`router_subjects`) is rendered again and restarted."""
+    holders = [h for h in layout.hosts if identity in layout.identities(h)]
+    routers = [h for h in layout.hosts if layout.hosts[h].router and identity in router_subjects(layout, h)]
+    if not holders and identity != "operator":
+        raise ConfigError(f"{identity}: not in the layout (hosts: {sorted(layout.hosts)})")
+    steps = [f"{h}: rmmdet pki bundle --host {h} (the new key of {identity}), restart it" for h in holders]
+    steps += [
+        f"{h}: rmmdet pki bundle --host {h} (generations.json), render and restart {layout.hosts[h].router}"
+        for h in routers
+        if h not in holders
+    ]
+    return steps
 
 
 def tls_settings(pki_dir: Path, identity: str) -> dict[str, Any]:
@@ -198,7 +219,9 @@ def identity_config(layout: Layout, host: str, identity: str, pki_dir: Path) -> 
         if host != layout.cloud_host:
             settings["connect/endpoints"] = [layout.endpoint(cloud.address)]
             settings.update(RECONNECT)
-        settings["access_control"] = access_control(router_subjects(layout, host))
+        settings["access_control"] = access_control(
+            router_subjects(layout, host), current_common_names(pki_dir)
+        )
         return _config(DEFAULT_ROUTER_CONFIG, settings)
     router_address = "127.0.0.1" if spec.router else cloud.address
     settings["connect/endpoints"] = [layout.endpoint(router_address)]
@@ -244,6 +267,12 @@ def check_certificate(pki_dir: Path, identity: str, address: str | None = None) 
         cert = x509.load_pem_x509_certificate(path.read_bytes())
     except (OSError, ValueError) as err:
         raise ConfigError(f"{path}: no certificate for {identity} ({err}); run `rmmdet pki init`") from None
+    expected = certificate_name(identity, generations(pki_dir).get(identity, 0))
+    if (cn := common_name(path)) != expected:
+        raise ConfigError(
+            f"{path}: {identity}'s certificate {cn!r} was revoked (now {expected!r}): give this host its"
+            " new bundle (rmmdet pki bundle)"
+        )
     left = days_left(cert)
     if left <= 0:
         raise ConfigError(f"{path}: {identity}'s certificate expired; renew it: rmmdet pki init --renew")
@@ -287,6 +316,8 @@ def host_files(layout: Layout, host: str, pki_dir: Path) -> list[Path]:
     _host_spec(layout, host)
     identities = layout.identities(host)
     files = [ca_paths(pki_dir).cert]
+    if (pki_dir / GENERATIONS_FILE).exists():  # revoked leaves: routers grant only their successors
+        files.append(pki_dir / GENERATIONS_FILE)
     for identity in identities:
         paths = identity_paths(pki_dir, identity)
         files += [paths.cert, paths.key]

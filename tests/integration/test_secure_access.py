@@ -26,7 +26,7 @@ from shared.bus.zenoh_config import DEFAULT_CLIENT_CONFIG
 from shared.paths import DEFAULT_SCENE
 from shared.scene.calibration import calibration_set
 from shared.scene.scene import Scene
-from shared.security.pki import init_pki, rotate_ca
+from shared.security.pki import init_pki, revoke, rotate_ca
 from tests.helpers import free_port, spawn, stop, wait_port, wait_until
 from tests.integration.secure_sites import Deployment, Inbox, make_deployment
 
@@ -268,3 +268,57 @@ def test_after_a_ca_rotation_an_old_certificate_is_refused(tmp_path: Path) -> No
             open_session(tls_client(dep, cert_dir=old), timeout_s=REFUSED_WITHIN_S)
     finally:
         stop(router)
+
+
+def test_one_revoked_leaf_is_refused_and_no_other_is_touched(tmp_path: Path) -> None:
+    """Issue 52 item 9 (acceptance): `rmmdet pki revoke vehicle-v1` reissues that leaf alone; a router
+    rendered afterwards grants the old certificate nothing (its ack is not delivered, its route request
+    unanswered) while the new one and every other identity, its files untouched, work as before."""
+    services = ["coordinator", "mec-agent1", "vehicle-v1"]
+    layout = {
+        "port": free_port(),
+        "hosts": {
+            "cloud": {
+                "address": "127.0.0.1",
+                "router": "router-cloud",
+                "services": [{"identity": s, "command": ["-c", "pass"]} for s in services],
+            }
+        },
+    }
+    dep = make_deployment(tmp_path, layout)
+    old = tmp_path / "old"
+    old.mkdir()
+    for suffix in (".pem", ".key"):
+        shutil.copy(dep.pki / f"vehicle-v1{suffix}", old / f"vehicle-v1{suffix}")
+    others = {p.name: p.read_bytes() for p in dep.pki.glob("*.*") if not p.name.startswith("vehicle-v1")}
+    assert revoke(dep.pki, "vehicle-v1") == "vehicle-v1.1"
+    assert {p.name: p.read_bytes() for p in dep.pki.glob("*.*") if p.name in others} == others
+    config = tmp_path / "router-cloud.json"
+    config.write_text(str(dep.config("router-cloud")))
+    router = spawn(["-m", "services.router", "--config", str(config)])
+    rpc, ack = get_stream("route_rpc"), "rmmdet/v1/vehicles/v1/plan_ack"
+    inbox = Inbox()
+    try:
+        wait_port(dep.layout.port)
+        stolen = tls_client(dep, cert_dir=old, identity="vehicle-v1")
+        with (
+            dep.session("operator") as watcher,
+            dep.session("coordinator") as coordinator,
+            dep.session("mec-agent1") as mec,
+            dep.session("vehicle-v1") as current,
+            open_session(stolen, timeout_s=10) as revoked,
+        ):
+            watcher.declare_subscriber("rmmdet/v1/**", inbox)
+            coordinator.declare_queryable(rpc.pattern(), lambda q: q.reply(q.key_expr, b"plan"))
+            time.sleep(SETTLE_S)
+            revoked.put(ack, b"revoked")
+            current.put(ack, b"current")
+            mec.put("rmmdet/v1/agent1/objects", b"other")
+            wait_until(lambda: inbox.payloads(ack) == [b"current"], 5, "the current leaf's ack")
+            assert [r.ok for r in current.get(rpc.key(vehicle="v1"), timeout=2.0) if r.ok]
+            answered = [r for r in revoked.get(rpc.key(vehicle="v1"), timeout=1.0) if r.ok]
+            time.sleep(SETTLE_S)
+    finally:
+        stop(router)
+    assert inbox.payloads(ack) == [b"current"] and answered == []
+    assert inbox.payloads("rmmdet/v1/agent1/objects") == [b"other"]

@@ -15,9 +15,11 @@ from shared.config import ConfigError
 from shared.security.pki import (
     NEXT_PLAN_KEY_NAME,
     common_name,
+    current_common_names,
     identity_paths,
     init_pki,
     plan_key_paths,
+    revoke,
     rotate_ca,
     rotate_plan_key,
     trusted_plan_keys,
@@ -164,3 +166,30 @@ def test_a_watching_verifier_follows_a_rotation_without_a_restart(tmp_path: Path
     assert rotate_plan_key(tmp_path) == "promoted"
     assert vehicle.problem(nxt.sign(plan)) is None
     assert vehicle.problem(before.sign(plan)) == "unknown_key"  # the retired key: no longer trusted
+
+
+def test_one_leaf_is_revoked_alone_under_a_new_common_name(tmp_path: Path) -> None:
+    """Issue 52 item 9: one leaf could not be revoked without rotating the CA (every host reissued).
+    `revoke` reissues only that leaf, under `<identity>.<generation>`, keeping a router's extra names."""
+    init_pki(tmp_path, ["operator", "router-cloud", "mec-agent1"], {"router-cloud": ("10.0.0.1",)})
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()}
+    old = load(identity_paths(tmp_path, "router-cloud").cert)
+    assert revoke(tmp_path, "router-cloud") == "router-cloud.1"
+    changed = {p.name for p in tmp_path.iterdir() if p.is_file() and before.get(p.name) != p.read_bytes()}
+    assert changed == {"router-cloud.pem", "router-cloud.key", "generations.json"}
+    new = load(identity_paths(tmp_path, "router-cloud").cert)
+    new.verify_directly_issued_by(load(tmp_path / "ca.pem"))
+    assert common_name(identity_paths(tmp_path, "router-cloud").cert) == "router-cloud.1"
+    names = x509.SubjectAlternativeName
+    assert set(new.extensions.get_extension_for_class(names).value) == set(
+        old.extensions.get_extension_for_class(names).value
+    )
+    assert revoke(tmp_path, "router-cloud") == "router-cloud.2"
+    assert current_common_names(tmp_path) == {"router-cloud": "router-cloud.2"}
+    init_pki(tmp_path, ["router-cloud"], renew=True)  # a renewal keeps the generation
+    assert common_name(identity_paths(tmp_path, "router-cloud").cert) == "router-cloud.2"
+    with pytest.raises(ConfigError, match="no certificate"):
+        revoke(tmp_path, "recorder")
+    (tmp_path / "generations.json").write_text('{"operator": -1}')
+    with pytest.raises(ConfigError, match=r"generations\.json"):
+        current_common_names(tmp_path)

@@ -22,6 +22,7 @@ from shared.security.sites import (
     identity_config,
     load_layout,
     render_host,
+    revocation_steps,
     router_subjects,
     supervisor_program,
 )
@@ -189,3 +190,50 @@ def test_bad_layouts_are_config_errors(tmp_path: Path, hosts: dict) -> None:
     path.write_text(json.dumps({"hosts": hosts}))
     with pytest.raises(ConfigError):
         load_layout(path)
+
+
+def test_a_revoked_leaf_is_granted_nothing_and_its_holder_must_take_the_new_bundle(tmp_path: Path) -> None:
+    """Issue 52 item 9: after `pki.revoke`, every router that granted the identity names only its new
+    common name, the holder's host refuses to render from the old leaf, and the steps name both hosts."""
+    layout = load_layout(THREE_SITES)
+    pki = tmp_path / "pki"
+    init_pki(pki, layout.all_identities(), layout.certificate_names())
+    stale = tmp_path / "stale"
+    bundle_host(layout, "site1", pki, stale)
+    pki_module.revoke(pki, "mec-agent1")
+    acl = get(
+        zenoh.Config.from_json5(identity_config(layout, "site1", "router-agent1", pki)), "access_control"
+    )
+    names = {n for subject in acl["subjects"] for n in subject["cert_common_names"]}
+    assert "mec-agent1.1" in names and "mec-agent1" not in names
+    assert "sensor-agent1-cameras" in names  # the others unchanged
+    with pytest.raises(ConfigError, match="revoked"):
+        render_host(layout, "site1", _with_generations(stale, pki), tmp_path / "out")
+    fresh = tmp_path / "fresh"
+    bundle_host(layout, "site1", pki, fresh)
+    render_host(layout, "site1", fresh, tmp_path / "out")
+    assert [s.split(":")[0] for s in revocation_steps(layout, "mec-agent1")] == ["site1"]
+    assert [s.split(":")[0] for s in revocation_steps(layout, "router-agent1")] == ["site1", "cloud"]
+    with pytest.raises(ConfigError, match="not in the layout"):
+        revocation_steps(layout, "mec-agent9")
+
+
+def _with_generations(bundle: Path, pki: Path) -> Path:
+    """A host's old bundle that received the new generations.json but not its new leaf."""
+    (bundle / "generations.json").write_bytes((pki / "generations.json").read_bytes())
+    return bundle
+
+
+def test_rmmdet_pki_revoke_names_the_hosts_to_update(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from services.cli.main import app
+
+    layout = load_layout(THREE_SITES)
+    init_pki(tmp_path, layout.all_identities(), layout.certificate_names())
+    run = CliRunner().invoke(app, ["pki", "revoke", "vehicle-v03", "--dir", str(tmp_path)])
+    assert run.exit_code == 0, run.output
+    assert "vehicle-v03.1" in run.output and "vehicles: rmmdet pki bundle" in run.output
+    assert "cloud: rmmdet pki bundle --host cloud" in run.output  # the router granting it
+    run = CliRunner().invoke(app, ["pki", "revoke", "vehicle-zz", "--dir", str(tmp_path)])
+    assert run.exit_code == 2 and "not in the layout" in run.output
