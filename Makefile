@@ -75,7 +75,7 @@ up: install pki ## start router and every service under supervisord (idempotent)
 	@echo "try: $(BIN)/rmmdet topics   |   $(BIN)/rmmdet health   |   make down"
 
 pki: install ## local CA, service certificates and plan-signing key in .run/pki (keeps what exists)
-	@$(BIN)/rmmdet pki init
+	@$(BIN)/rmmdet pki init --shards $(SHARDS)
 
 down: ## stop every service and supervisord; leaves no process behind
 	@if [ -x $(BIN)/python ]; then $(BIN)/python deploy/local/down.py --conf $(SUPERVISOR_CONF); else echo "not installed: nothing to stop"; fi

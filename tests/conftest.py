@@ -11,15 +11,18 @@ from shared.paths import DEFAULT_SCENE
 from shared.scene.scene import Scene
 from tests.helpers import FULL_SCALE_SCENE, TEST_SCENE, Router, start_router, stop
 
+MAX_TEST_SHARDS = 4
+
 
 @pytest.fixture(scope="session", autouse=True)
 def default_pki() -> None:
-    """The coordinator signs and the sim verifies plans with the default PKI's key (`make pki`)."""
+    """The coordinator signs and the sim verifies plans with the default PKI's keys (`make pki`), a
+    sharded coordinator's shards each with their own (`rmmdet pki init --shards N`)."""
     from shared.paths import DEFAULT_PKI_DIR
-    from shared.security.pki import init_pki, plan_key_paths
+    from shared.security.identities import shard_identity
+    from shared.security.pki import init_pki
 
-    if not plan_key_paths(DEFAULT_PKI_DIR).key.exists():
-        init_pki(DEFAULT_PKI_DIR, [])
+    init_pki(DEFAULT_PKI_DIR, [shard_identity(k) for k in range(MAX_TEST_SHARDS)])  # keeps what exists
 
 
 @pytest.fixture(autouse=True)

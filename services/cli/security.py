@@ -12,7 +12,14 @@ from shared.config import ConfigError
 from shared.paths import DEFAULT_PKI_DIR, DEFAULT_SCENE
 from shared.scene.scene import Scene
 from shared.security.identities import deployment_identities, parse_identity
-from shared.security.pki import init_pki, revoke, rotate_ca, rotate_plan_key
+from shared.security.pki import (
+    PLAN_KEY_NAME,
+    init_pki,
+    revoke,
+    rotate_ca,
+    rotate_plan_key,
+    shard_plan_key_name,
+)
 from shared.security.sites import DEFAULT_LAYOUT, bundle_host, load_layout, revocation_steps
 from sim.config import fleet_ids, load_sim_settings
 
@@ -34,12 +41,15 @@ def pki_init(
     renew: Annotated[
         bool, typer.Option(help="reissue the certificates (never the CA or the plan key)")
     ] = False,
+    shards: Annotated[
+        int, typer.Option(min=1, help="coordinator shards: each its identity and its own plan key")
+    ] = 1,
 ) -> None:
     """Create what is missing of the CA, the plan-signing key and the service certificates."""
     extra = parse_names(name)
     try:
         fleet = fleet_ids(load_sim_settings().traffic.vehicles)  # the sim's vehicles, each its own identity
-        identities = identity or deployment_identities(Scene.load(scene), fleet)
+        identities = identity or deployment_identities(Scene.load(scene), fleet, shards)
         for ident in identities:
             parse_identity(ident)
         report = init_pki(pki_dir, identities, extra, renew=renew)
@@ -94,6 +104,9 @@ def pki_rotate(
         list[str] | None,
         typer.Option(help="--ca: IDENTITY=HOST, an extra DNS name or IP address (as for init)"),
     ] = None,
+    shard: Annotated[
+        int | None, typer.Option(help="--plan-key: the plan key of this shard's region instead")
+    ] = None,
 ) -> None:
     """Rotate the CA (every certificate of the old one refused once the routers have the new ca.pem) or
     the plan key in two steps: stage (restart the vehicles: they trust both), then promote (restart the
@@ -105,7 +118,8 @@ def pki_rotate(
             reissued = rotate_ca(pki_dir, parse_names(name))
             console.print(f"{pki_dir}: new CA; reissued {', '.join(reissued)}; the old CA retired")
         else:
-            console.print(f"{pki_dir}: plan key {rotate_plan_key(pki_dir)}")
+            key = PLAN_KEY_NAME if shard is None else shard_plan_key_name(shard)
+            console.print(f"{pki_dir}: {key} {rotate_plan_key(pki_dir, key)}")
     except ConfigError as err:
         console.print(f"[red]{err}[/]")
         raise typer.Exit(2) from None

@@ -27,9 +27,11 @@ from services.coordinator.shard import ShardLink, shard_core
 from shared.bus import names
 from shared.bus.node import Node
 from shared.bus.rpc import RpcServer
-from shared.bus.streams import shard_instance
+from shared.bus.streams import limits, shard_instance
 from shared.scene.scene import Scene
-from shared.security.plan_signing import PlanSigner
+from shared.security.pki import shard_key_path, trusted_plan_keys
+from shared.security.plan_signing import PlanSigner, PlanVerifier
+from shared.security.shard_auth import ShardAuth
 from shared.service import exit_process, report_interval_s, run_service
 from shared.shutdown import GracefulShutdown
 from shared.timebase import SimTime
@@ -73,14 +75,19 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         if args.instance == INSTANCE:
             args.instance = shard_instance(args.shard)
     settings = core.settings  # at the scene's scale (CoordinatorCore): one set of settings from here on
-    signer = PlanSigner.load(settings.plan_signing_key)
+    key = settings.plan_signing_key
+    signer = PlanSigner.load(key if args.shard is None else shard_key_path(key, args.shard))
+    auth = None
+    if args.shard is not None:  # the other shards' keys: the vehicles' trusted set (pki.trusted_plan_keys)
+        others = PlanVerifier.watching(lambda: trusted_plan_keys(key.parent))
+        auth = ShardAuth(args.shard, signer, others, limits().max_clock_skew_s)
     with Node(
         conf, service=SERVICE, instance=args.instance, scope=SCOPE, stop=shutdown.event, present_at_open=False
     ) as node:
         # Coverage, map smoothing and plan timing run on the clock of record (sim time when a sim runs).
         clock = SimTime()
         node.follow_sim_time(clock)
-        shard = ShardLink(node, core, settings, clock) if core.shard is not None else None
+        shard = ShardLink(node, core, settings, clock, auth) if auth is not None else None
         service = CoordinatorService(node, core, settings, clock, signer, shard)
         rpc = RpcServer(
             node,

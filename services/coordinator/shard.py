@@ -6,6 +6,8 @@ in its own process with its own keys and presence token; Zenoh routers are the o
                plans across their regions with them, across a silent or gone shard's on a free-flow prior
     requests   a vehicle asks every shard (target ALL, shared/vehicle/plan_client.py); the shard owning
                the lane it asks from answers, the others decline without a reply
+    signatures every clique, release request and handover is signed by its shard's own key and checked
+               by the others (shared/security/shard_auth.py)
     handover   a vehicle the owner does not hold yet may hold a plan from another shard: the owner asks
                the others (`rmmdet/v1/cloud/@rpc/release/<vehicle>`) and adopts its version counter
                (bounded by its own clock) before it answers, planning the request afresh (a handed-over
@@ -39,6 +41,7 @@ from shared.bus.rpc import RpcDeclined, RpcDeferred, RpcRejected, RpcServer
 from shared.bus.streams import get_stream, limits, region_of_instance
 from shared.config import ConfigError
 from shared.scene.scene import Scene
+from shared.security.shard_auth import ShardAuth
 from shared.timebase import NS_PER_S, SimTime
 from shared.traffic import messages
 from shared.traffic.config import CoordinatorSettings
@@ -77,10 +80,15 @@ class ShardLink:
     `poll` and `publish_clique` run on the service's main loop; `gate` and `on_release` on Zenoh threads."""
 
     def __init__(
-        self, node: Node, core: CoordinatorCore, settings: CoordinatorSettings, clock: SimTime
+        self,
+        node: Node,
+        core: CoordinatorCore,
+        settings: CoordinatorSettings,
+        clock: SimTime,
+        auth: ShardAuth,
     ) -> None:
         assert core.shard is not None
-        self.node, self.core, self.clock = node, core, clock
+        self.node, self.core, self.clock, self.auth = node, core, clock, auth
         self.view: ShardView = core.shard
         self.region = self.view.region
         self.counters = node.counters
@@ -153,8 +161,9 @@ class ShardLink:
         vid = request.vehicle_id
         ask = ReleaseRequest(vehicle_id=vid, lane_id=request.current_lane_id, region=self.region)
         ask.header.source_id = self.node.source_id
-        ask.header.stamp.FromNanoseconds(time.time_ns())
-        encoded = encode(ask)
+        ask_ns = time.time_ns()
+        ask.header.stamp.FromNanoseconds(ask_ns)
+        encoded = encode(self.auth.sign(ask, ask_ns))
         adopted = [False]
 
         def on_reply(reply: zenoh.Reply) -> None:
@@ -172,6 +181,9 @@ class ShardLink:
                 msg = decoded.message
                 assert isinstance(msg, PlanHandover)
                 if not msg.held:
+                    return
+                if (problem := self.auth.problem(msg, ask_ns, None)) is not None:  # any other shard's
+                    self.counters.inc(f"rejected/handover_{problem}")
                     return
                 if adopted[0]:  # two shards held the vehicle: never expected; the first is kept
                     self.counters.inc("handovers/extra_holder")
@@ -225,6 +237,10 @@ class ShardLink:
     def on_release(self, request: ReleaseRequest, _start_ns: int) -> tuple[PlanHandover, int]:
         """Another shard asks for a vehicle now on a lane of its region: hand it over if held here
         (`RegionPeers.release_problem` refuses the rest)."""
+        stamp_ns = request.header.stamp.ToNanoseconds()
+        forged = self.auth.request_problem(request, stamp_ns, request.region, time.time_ns())
+        if forged is not None:
+            raise RpcRejected(f"release_{forged}", INVALID, f"not signed by region {request.region}'s shard")
         problem = self.peers.release_problem(request.lane_id, request.region)
         if problem is not None:
             raise RpcRejected("release_lane", INVALID, problem)
@@ -236,7 +252,7 @@ class ShardLink:
         if handover is None:
             return PlanHandover(held=False), 0
         self.counters.inc("handovers/released")
-        return messages.handover_message(handover, self.clock.now_s()), 0
+        return self.auth.sign(messages.handover_message(handover, self.clock.now_s()), stamp_ns), 0
 
     # --- peers (main loop) -------------------------------------------------------------------------
 
@@ -251,7 +267,11 @@ class ShardLink:
             if str(msg.region) != region:
                 self.counters.inc("rejected/clique_key_mismatch")
                 continue
-            problem = self.peers.receive(msg, now_s, item.header.stamp.ToNanoseconds() / NS_PER_S)
+            stamp_ns = item.header.stamp.ToNanoseconds()
+            if (forged := self.auth.problem(msg, stamp_ns, msg.region)) is not None:
+                self.counters.inc(f"rejected/clique_{forged}")
+                continue
+            problem = self.peers.receive(msg, now_s, stamp_ns / NS_PER_S)
             self.counters.inc(f"rejected/{problem}" if problem else "cliques/received")
         for key, alive in self.shards_presence.changes():
             gone = region_of_instance(ALIVE.id_of(key, "instance"))
@@ -278,7 +298,8 @@ class ShardLink:
         now on the clock of record (the others judge its age by it: `RegionPeers.receive`)."""
         self._own = self.core.clique()
         stamp_ns = round(now_s * NS_PER_S)
-        self.clique_pub.put(messages.clique_message(self._own), stamp_ns=stamp_ns, frame_id="world")
+        signed = self.auth.sign(messages.clique_message(self._own), stamp_ns)
+        self.clique_pub.put(signed, stamp_ns=stamp_ns, frame_id="world")
         self.counters.inc("cliques/published")
         self._refresh(now_s)
 

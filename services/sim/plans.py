@@ -169,7 +169,7 @@ class PlanClient:
         if (get_stream("route_plan").ids(received.key) or {}).get("vehicle") != plan.vehicle_id:
             self.counters.inc("rejected/plan_key_mismatch")
             return
-        if self.check.accept(plan):
+        if self.check.accept(plan, pushed=True):
             self.apply(plan)
 
     def apply(self, plan: RoutePlan) -> None:

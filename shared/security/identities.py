@@ -106,6 +106,16 @@ def own_instance(grant: Grant) -> str:
     return "*"
 
 
+def shard_region(name: str) -> int | None:
+    """The region of a coordinator shard's identity (`coordinator-region<k>`), else None."""
+    m = _SHARD_RE.match(name)
+    return int(m["region"]) if m else None
+
+
+def shard_identity(region: int) -> str:
+    return f"coordinator-region{region}"
+
+
 def is_router(name: str) -> bool:
     """Whether identity `name` is a router's (the only identities that listen for TLS links)."""
     m = _AGENT_RE.match(name)
@@ -124,10 +134,12 @@ def site_identities(scene: Scene, agent: str) -> list[str]:
     return [f"router-{agent}", *groups, f"mec-{agent}"]
 
 
-def deployment_identities(scene: Scene, vehicles: Sequence[str] = ()) -> list[str]:
+def deployment_identities(scene: Scene, vehicles: Sequence[str] = (), shards: int = 1) -> list[str]:
     """Every identity of the multi-site deployment of `scene` (and the one-host router), with the
-    connected `vehicles`' (their ids)."""
+    connected `vehicles`' (their ids) and, for a coordinator of `shards` > 1 shards, each shard's."""
     names = [LOCAL_ROUTER, CLOUD_ROUTER, "sim", "coordinator", "recorder", "operator"]
+    if shards > 1:
+        names += [shard_identity(k) for k in range(shards)]
     for agent in scene.agents:
         names += site_identities(scene, agent)
     return names + [vehicle_identity(v) for v in vehicles]

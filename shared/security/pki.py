@@ -11,6 +11,9 @@ Layout of a PKI directory (default `.run/pki`, private keys mode 0600):
                                    stolen sensor key cannot pose as the router while it restarts)
     plan-signing.key / .pub        Ed25519, PKCS#8 / SubjectPublicKeyInfo PEM
     plan-signing.next.key / .pub   the staged next plan key during a rotation (`rotate_plan_key`)
+    plan-signing.region<k>.key/.pub  shard k's own plan key (`coordinator-region<k>`): each shard signs
+                                   its plans, cliques and handovers with it, and a vehicle takes a
+                                   pushed plan only from the key of the shard that answered it last
     generations.json               identity -> how many times its leaf was revoked (`revoke`): the
                                    leaf's CN is `<identity>.<generation>` after the first revocation
     retired/<UTC time>/            public halves of rotated-out CAs and plan keys (`rotate_ca`)
@@ -41,11 +44,11 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from shared.config import ConfigError
-from shared.security.identities import is_router
+from shared.security.identities import is_router, shard_region
 
 CA_NAME = "ca"
 PLAN_KEY_NAME = "plan-signing"
-NEXT_PLAN_KEY_NAME = "plan-signing.next"
+NEXT_PLAN_KEY_NAME = f"{PLAN_KEY_NAME}.next"
 RETIRED_DIR = "retired"  # public halves of rotated-out CAs and plan keys, by UTC time of rotation
 GENERATIONS_FILE = "generations.json"  # identity -> revocations so far (`revoke`); public
 CA_VALIDITY_DAYS = 3650
@@ -84,11 +87,35 @@ def plan_key_paths(pki_dir: Path, name: str = PLAN_KEY_NAME) -> Paths:
     return Paths(pki_dir / f"{name}.pub", pki_dir / f"{name}.key")
 
 
+def shard_plan_key_name(region: int) -> str:
+    """The plan key of the shard of region `region` (`plan_key_paths(pki_dir, name)`)."""
+    return shard_key_path(Path(PLAN_KEY_NAME + ".key"), region).stem
+
+
+def shard_key_path(key_path: Path, region: int) -> Path:
+    """The key file shard `region` uses where the coordinator's is `key_path` (either half): beside
+    it, `region<k>` before the suffix (`plan-signing.key` -> `plan-signing.region0.key`)."""
+    return key_path.with_name(f"{key_path.stem}.region{region}{key_path.suffix}")
+
+
+def next_key_name(name: str) -> str:
+    """The staged successor of plan key `name` during a rotation."""
+    return f"{name}.next"
+
+
+def signer_name(public_key_path: Path) -> str:
+    """Which signer a trusted public key file belongs to: its name without `.pub` and without `.next`
+    (a staged key signs for the same coordinator or shard as the current one)."""
+    return public_key_path.name.removesuffix(".pub").removesuffix(".next")
+
+
 def trusted_plan_keys(pki_dir: Path) -> list[Path]:
-    """The public keys vehicles trust: the current plan key, and the next one once it is staged
-    (`rotate_plan_key`), so plans signed by either verify while the coordinator switches over."""
+    """The public keys vehicles trust: the coordinator's current plan key, each shard's
+    (`shard_plan_key_name`), and any next one staged (`rotate_plan_key`), so plans signed by either
+    verify while the signer switches over."""
     staged = plan_key_paths(pki_dir, NEXT_PLAN_KEY_NAME).cert
-    return [plan_key_paths(pki_dir).cert, *([staged] if staged.exists() else [])]
+    shards = sorted(pki_dir.glob(f"{PLAN_KEY_NAME}.region*.pub"))
+    return [plan_key_paths(pki_dir).cert, *([staged] if staged.exists() else []), *shards]
 
 
 def generations(pki_dir: Path) -> dict[str, int]:
@@ -338,16 +365,16 @@ def _extra_names(cert: x509.Certificate, identity: str) -> tuple[str, ...]:
     return (*dns, *ips)
 
 
-def rotate_plan_key(pki_dir: Path) -> str:
-    """One step of a plan-key rotation; returns which: `staged` (a next key made: vehicles restarted
-    now trust it beside the current one, `trusted_plan_keys`) or `promoted` (the next key becomes the
-    current one: the coordinator restarted now signs with it, and the retired key is trusted by no
-    vehicle started after this)."""
-    current, staged = plan_key_paths(pki_dir), plan_key_paths(pki_dir, NEXT_PLAN_KEY_NAME)
+def rotate_plan_key(pki_dir: Path, name: str = PLAN_KEY_NAME) -> str:
+    """One step of a rotation of plan key `name` (a shard's: `shard_plan_key_name`); returns which:
+    `staged` (a next key made: vehicles trust it beside the current one, `trusted_plan_keys`) or
+    `promoted` (the next key becomes the current one: the coordinator restarted now signs with it, and
+    vehicles stop trusting the retired key within `KEY_RECHECK_S`)."""
+    current, staged = plan_key_paths(pki_dir, name), plan_key_paths(pki_dir, next_key_name(name))
     if not current.key.exists():
         raise ConfigError(f"{pki_dir}: no plan key to rotate (`rmmdet pki init` first)")
     if not staged.key.exists():
-        create_plan_key(pki_dir, NEXT_PLAN_KEY_NAME)
+        create_plan_key(pki_dir, next_key_name(name))
         return "staged"
     _retire(pki_dir, current.cert, current.key)
     staged.key.rename(current.key)
@@ -367,8 +394,8 @@ def init_pki(
     extra_names: dict[str, tuple[str, ...]] | None = None,
     renew: bool = False,
 ) -> InitReport:
-    """Make the CA, the plan-signing key and a certificate per identity, keeping what exists (all of
-    the leaves are reissued with `renew`; the CA and the plan key never are)."""
+    """Make the CA, the plan-signing key, a certificate per identity and a plan key per shard identity,
+    keeping what exists (all of the leaves are reissued with `renew`; the CA and plan keys never are)."""
     extra_names = extra_names or {}
     for identity in identities:
         check_identity(identity)
@@ -386,6 +413,13 @@ def init_pki(
         create_plan_key(pki_dir)
         report.created.append(PLAN_KEY_NAME)
     for identity in identities:
+        if (region := shard_region(identity)) is not None:
+            name = shard_plan_key_name(region)
+            if plan_key_paths(pki_dir, name).key.exists():
+                report.kept.append(name)
+            else:
+                create_plan_key(pki_dir, name)
+                report.created.append(name)
         paths = identity_paths(pki_dir, identity)
         if paths.cert.exists() and paths.key.exists() and not renew:
             report.kept.append(identity)

@@ -29,7 +29,7 @@ from shared.bus.zenoh_config import DEFAULT_CLIENT_CONFIG, DEFAULT_ROUTER_CONFIG
 from shared.config import ConfigError, read_yaml
 from shared.paths import DEPLOY_DIR, REPO_ROOT
 from shared.security.acl import access_control
-from shared.security.identities import CLOUD_ROUTER, parse_identity, vehicle_identity
+from shared.security.identities import CLOUD_ROUTER, parse_identity, shard_region, vehicle_identity
 from shared.security.pki import (
     GENERATIONS_FILE,
     PRIVATE_MODE,
@@ -43,6 +43,7 @@ from shared.security.pki import (
     generations,
     identity_paths,
     plan_key_paths,
+    shard_key_path,
     trusted_plan_keys,
     write_file,
 )
@@ -245,14 +246,20 @@ def default_command(identity: str) -> list[str]:
     raise ConfigError(f"identity {identity}: no service to run (give `command` in the layout)")
 
 
-def signs_plans(identity: str) -> bool:
-    """The coordinator and each of its shards sign plans with the deployment's plan key."""
-    return parse_identity(identity).grants[0].role == "coordinator"
+def signing_key(identity: str, pki_dir: Path) -> Path | None:
+    """The plan key `identity` signs with: the coordinator's, a shard's own (`pki.shard_key_path`),
+    None for an identity that signs nothing."""
+    if parse_identity(identity).grants[0].role != "coordinator":
+        return None
+    region = shard_region(identity)
+    key = plan_key_paths(pki_dir).key
+    return key if region is None else shard_key_path(key, region)
 
 
 def service_environment(identity: str, pki_dir: Path) -> dict[str, str]:
-    """Settings a service needs from the PKI besides its TLS identity (plan keys)."""
-    if signs_plans(identity):
+    """Settings a service needs from the PKI besides its TLS identity (plan keys: a shard finds its own
+    beside the coordinator's, `pki.shard_key_path`)."""
+    if signing_key(identity, pki_dir) is not None:
         return {"RMMDET_COORD_PLAN_SIGNING_KEY": str(plan_key_paths(pki_dir).key)}
     if identity == "sim":
         return {"RMMDET_SIM_PLAN_VERIFY_KEYS": json.dumps([str(p) for p in trusted_plan_keys(pki_dir)])}
@@ -321,9 +328,8 @@ def host_files(layout: Layout, host: str, pki_dir: Path) -> list[Path]:
     for identity in identities:
         paths = identity_paths(pki_dir, identity)
         files += [paths.cert, paths.key]
-    if any(signs_plans(i) for i in identities):
-        files.append(plan_key_paths(pki_dir).key)
-    if "sim" in identities:
+    files += [k for i in identities if (k := signing_key(i, pki_dir)) is not None]
+    if "sim" in identities or any(shard_region(i) is not None for i in identities):  # verify others' keys
         files += trusted_plan_keys(pki_dir)
     return files
 

@@ -195,7 +195,8 @@ class CoordinatorSettings(RmmdetSettings):
     shards: ShardConfig = ShardConfig()
     plan_signing_key: Path = Field(
         plan_key_paths(DEFAULT_PKI_DIR).key,
-        description="Ed25519 private key (PEM) that signs every plan (`rmmdet pki init` creates it)",
+        description="Ed25519 private key (PEM) that signs every plan (`rmmdet pki init` creates it); "
+        "shard K signs with its own beside it, `<name>.region<K>.key` (`rmmdet pki init --shards N`)",
     )
     map_publish_hz: float = Field(2.0, gt=0, description="traffic map update and publication rate")
     replan_interval_s: float = Field(

@@ -49,7 +49,12 @@ class Outcome:
 
 class PlanCheck:
     """`plan_problem` with the vehicles' trusted keys and TTL bound; counts what it refuses. Called on
-    Zenoh threads (replies) and the main loop (pushes): stateless but for the thread-safe counters."""
+    Zenoh threads (replies) and the main loop (pushes).
+
+    A pushed plan is taken only from the signer (`PlanVerifier.signer`) of the last plan that answered
+    the vehicle's own request: the coordinator, or the shard that holds the vehicle (the owner of the
+    lane it asked from). Any shard's key is trusted, so without this rule one shard's host could steer a
+    vehicle another shard holds; one it never answered takes no pushes (`push_not_holder`)."""
 
     def __init__(
         self, verifier: PlanVerifier, max_ttl_s: float, counters: Counters, run_start_ns: int = 0
@@ -58,12 +63,20 @@ class PlanCheck:
         self.max_ttl_s = max_ttl_s
         self.counters = counters
         self.run_start_ns = run_start_ns  # plans issued before this run are replays (plan_before_run)
+        self._holder: dict[str, str | None] = {}  # vehicle -> signer of its last answer (its own ids)
 
-    def accept(self, plan: RoutePlan) -> bool:
+    def accept(self, plan: RoutePlan, pushed: bool = False) -> bool:
+        """Whether to take `plan`, a reply to the vehicle's request or (`pushed`) a push."""
         problem = plan_problem(plan, self.verifier, time.time_ns(), self.max_ttl_s, self.run_start_ns)
+        if problem is None and pushed and self._holder.get(plan.vehicle_id, "") != self.verifier.signer(plan):
+            problem = "push_not_holder"
         if problem is not None:
             self.counters.inc(f"rejected/{problem}")
         return problem is None
+
+    def answered(self, plan: RoutePlan) -> None:
+        """`plan` (accepted) is the answer to its vehicle's request: its signer holds the vehicle now."""
+        self._holder[plan.vehicle_id] = self.verifier.signer(plan)
 
 
 class PlanExpiry:
@@ -154,7 +167,7 @@ class CheckedPushes(BoundedQueue[Received]):
         if plan.vehicle_id != self.vehicle_id:
             self._counters_in.inc("rejected/plan_key_mismatch")
             return False
-        if not self.check.accept(plan):  # counted by the check
+        if not self.check.accept(plan, pushed=True):  # counted by the check
             return False
         return super().put(item)
 
@@ -258,6 +271,7 @@ class ReplyHandler:
                         self.check.counters.inc("plans/extra_replies")
                     else:
                         self.answered = True
+                        self.check.answered(response.plan)
                         self.outcomes.put(Outcome(self.vehicle_id, response.plan))
                 return
             error = ErrorResponse()

@@ -7,8 +7,9 @@ table's two-region map (deploy/coordinator/regions/sand_table_2.json), three sta
 - a shard killed: the other names its region as planned on a prior (DEGRADED) and keeps serving its own
   vehicles; the killed region's vehicles get no answer (they keep their plans to the TTL);
 - the shard restarted serves again within 2 s of its presence token;
-- forged release queries (a lane of the holder's own region, or of a region other than the asker's) are
-  refused and counted, and the vehicle stays with its shard.
+- release queries not signed by the key of the shard of the region they claim are refused (issue 52
+  items 1-2); forged ones signed by a shard's key (a lane of the holder's own region, or of a region
+  other than the asker's) are refused and counted, and the vehicle stays with its shard.
 - a release asked from a lane off the plan a vehicle follows (acknowledged) is refused (issue 52 item 1).
 Time limits scale with RSP_TIME_SCALE (slow machines).
 """
@@ -32,9 +33,11 @@ from rmmdet.v1.planning_pb2 import AckStatus, ReleaseRequest, RouteAck, RoutePla
 from shared.bus.codec import encode
 from shared.bus.node import Node
 from shared.bus.streams import get_stream, shard_instance
-from shared.paths import DEFAULT_SCENE, REPO_ROOT
+from shared.paths import DEFAULT_PKI_DIR, DEFAULT_SCENE, REPO_ROOT
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
+from shared.security.pki import plan_key_paths, shard_key_path
+from shared.security.plan_signing import PlanSigner
 from shared.traffic.regions import RegionMap
 from tests.helpers import Router, spawn, stop
 from tests.integration.coordinator_client import RouteClient, coordinator_health, counters
@@ -74,12 +77,21 @@ class Shards:
         assert report is not None, f"region {region}'s shard did not answer its health query"
         return report
 
-    def forged_release(self, vehicle: str, lane: str, region: int) -> list[bool]:
-        """A release query for `vehicle` as if region `region`'s shard asked from `lane`: each reply's
-        ok (True) or error (False)."""
+    def forged_release(
+        self, vehicle: str, lane: str, region: int, signed_by: int | str | None = "claimed"
+    ) -> list[bool]:
+        """A release query for `vehicle` as if region `region`'s shard asked from `lane`, signed by
+        region `signed_by`'s shard key (default: the claimed region's, a forger holding that shard's
+        host; None: unsigned): each reply's ok (True) or error (False)."""
         req = ReleaseRequest(vehicle_id=vehicle, lane_id=lane, region=region)
         req.header.source_id, req.header.seq = "test/forger", 1
-        req.header.stamp.FromNanoseconds(time.time_ns())
+        stamp_ns = time.time_ns()
+        req.header.stamp.FromNanoseconds(stamp_ns)
+        key_region = region if signed_by == "claimed" else signed_by
+        if isinstance(key_region, int):
+            PlanSigner.load(shard_key_path(plan_key_paths(DEFAULT_PKI_DIR).key, key_region)).sign(
+                req, stamp_ns
+            )
         encoded = encode(req)
         replies = self.node.session.get(
             get_stream("release_rpc").key(vehicle=vehicle),
@@ -132,8 +144,15 @@ def test_two_shards_hand_over_survive_a_kill_and_serve_again_after_restart(shard
     # Wait until region 1's shard is up too (it answers its own lanes).
     shards.wait_plan("v02", crossing, STARTUP_S)
 
-    # Forged releases: region 0's shard never gives v01 away for a lane of its own region, nor for a
-    # lane that is not the asking region's; each refusal is counted, and v01 stays with region 0.
+    # Issue 52 items 1-2: a release not signed by the shard of the region it claims is refused (unsigned,
+    # or signed by region 0's key while claiming region 1), whatever it asks.
+    assert shards.forged_release("v01", crossing, 1, signed_by=None) == [False, False]
+    assert shards.forged_release("v01", crossing, 1, signed_by=0) == [False, False]
+    refused = counters(shards.health(0))
+    assert refused.get("rejected/release_unsigned", 0) >= 1, refused
+    assert refused.get("rejected/release_wrong_shard", 0) >= 1, refused
+    # Forged releases by a shard key's holder: region 0's shard never gives v01 away for a lane of its own
+    # region, nor for a lane that is not the asking region's; each refusal is counted, v01 stays put.
     assert shards.forged_release("v01", START_LANE, 1) == [False, False]  # both shards refuse
     assert False in shards.forged_release("v01", crossing, 0)  # region 1's lane, "asked" by region 0
     assert counters(shards.health(0)).get("rejected/release_lane", 0) >= 2

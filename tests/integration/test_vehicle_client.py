@@ -24,7 +24,7 @@ from shared.bus.node import Node
 from shared.paths import DEFAULT_PKI_DIR, DEFAULT_SCENE
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
-from shared.security.pki import plan_key_paths
+from shared.security.pki import plan_key_paths, shard_key_path
 from shared.security.plan_signing import PlanSigner
 from shared.traffic.plans import Ack
 from shared.vehicle import ros2
@@ -139,9 +139,13 @@ def test_a_vehicle_asks_verifies_and_acknowledges_its_plan(system) -> None:
 
 
 def test_a_forged_plan_is_refused_and_a_genuine_push_accepted(system) -> None:
+    """Pushes are taken from the coordinator that answered the vehicle's request; a forged one (unknown
+    key) is refused, and so is one signed by a trusted shard key that never answered it (issue 52
+    item 2: `push_not_holder`)."""
     router, node = system
-    proc, events = vehicle_client(router, "--duration-s", "60")
+    proc, events = vehicle_client(router, "--lane", LANE, "--destination", DESTINATION, "--duration-s", "60")
     try:
+        assert events.wait("accepted")["how"] == "requested"  # the coordinator answered: it holds v03
         pub = node.publisher("route_plan", vehicle=VEHICLE)
         forged = signed_plan(PlanSigner(Ed25519PrivateKey.generate()), [LANE])
         # A put before the client's subscription has reached the router reaches no one (CI stop 58: the
@@ -151,10 +155,19 @@ def test_a_forged_plan_is_refused_and_a_genuine_push_accepted(system) -> None:
             assert time.monotonic() < deadline, f"the client heard no forged plan; got {events.lines}"
             pub.put(forged)
         assert refused["reason"] == "rejected/plan_unknown_key"
+        shard_key = shard_key_path(plan_key_paths(DEFAULT_PKI_DIR).key, 1)
+        pub.put(signed_plan(PlanSigner.load(shard_key), [LANE, "l1"]))
+        deadline = time.monotonic() + LINE_TIMEOUT_S
+        while not [e for e in events.lines if e.get("reason") == "rejected/push_not_holder"]:
+            assert time.monotonic() < deadline, f"a shard's push not refused; got {events.lines}"
+            time.sleep(0.05)
         genuine = signed_plan(PlanSigner.load(plan_key_paths(DEFAULT_PKI_DIR).key), [LANE, "l1"])
         pub.put(genuine)
-        accepted = events.wait("accepted")
-        assert (accepted["plan_id"], accepted["how"]) == (genuine.plan_id, "pushed")
+        deadline = time.monotonic() + LINE_TIMEOUT_S
+        while not (taken := [e for e in events.lines if e.get("plan_id") == genuine.plan_id]):
+            assert time.monotonic() < deadline, f"the genuine push not taken; got {events.lines}"
+            time.sleep(0.05)
+        assert (taken[0]["event"], taken[0]["how"]) == ("accepted", "pushed")
         assert not [e for e in events.lines if e.get("plan_id") == forged.plan_id]  # never acknowledged
     finally:
         stop(proc)
@@ -209,9 +222,12 @@ def test_a_ros2_car_client_survives_a_plan_with_a_lane_its_scene_lacks(system) -
         ros2.bridge_key(f"/{VEHICLE}", ros2.PLAN_TOPIC), lambda s: paths.append(s.payload.to_bytes())
     )
     seen, done = acks_of(node)
-    proc, events = vehicle_client(router, "--ros2", "--duration-s", "60")
+    proc, events = vehicle_client(
+        router, "--ros2", "--lane", LANE, "--destination", DESTINATION, "--duration-s", "60"
+    )
     signer = PlanSigner.load(plan_key_paths(DEFAULT_PKI_DIR).key)
     try:
+        events.wait("forwarded")  # the coordinator's answer: pushes signed by its key are taken from now
         pub = node.publisher("route_plan", vehicle=VEHICLE)
         sent: list[str] = []
         deadline = time.monotonic() + LINE_TIMEOUT_S
@@ -223,11 +239,15 @@ def test_a_ros2_car_client_survives_a_plan_with_a_lane_its_scene_lacks(system) -
             pub.put(strange)
         assert refused["plan_id"] in sent and "no-such-lane" in refused["reason"]
         genuine = signed_plan(signer, [LANE, "l1"])
+        before = len(paths)
         pub.put(genuine)
-        forwarded = events.wait("forwarded")
-        assert forwarded["plan_id"] == genuine.plan_id and proc.poll() is None
+        deadline = time.monotonic() + LINE_TIMEOUT_S
+        while not [e for e in events.lines if e["event"] == "forwarded" and e["plan_id"] == genuine.plan_id]:
+            assert time.monotonic() < deadline, f"the next plan was not forwarded; got {events.lines}"
+            time.sleep(0.05)
+        assert proc.poll() is None
         deadline = time.monotonic() + 5
-        while not paths:
+        while len(paths) == before:
             assert time.monotonic() < deadline, "no Path on the car's key"
             time.sleep(0.05)
         wait_for_ack(seen, refused["plan_id"], Ack.REJECTED_INVALID)

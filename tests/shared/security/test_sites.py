@@ -237,3 +237,30 @@ def test_rmmdet_pki_revoke_names_the_hosts_to_update(tmp_path: Path) -> None:
     assert "cloud: rmmdet pki bundle --host cloud" in run.output  # the router granting it
     run = CliRunner().invoke(app, ["pki", "revoke", "vehicle-zz", "--dir", str(tmp_path)])
     assert run.exit_code == 2 and "not in the layout" in run.output
+
+
+def test_a_shard_host_holds_its_own_plan_key_and_the_others_public_halves(tmp_path: Path) -> None:
+    """Issue 52 item 2: every shard signed with the one plan key. Each shard's host now holds only its
+    own shard's private key and every trusted public key (to check the other shards' messages)."""
+    layout_file = tmp_path / "layout.yaml"
+    layout_file.write_text(
+        json.dumps(
+            {
+                "hosts": {
+                    "cloud": {
+                        "address": "127.0.0.1",
+                        "router": "router-cloud",
+                        "services": ["coordinator-region0"],
+                    },
+                    "east": {"address": "127.0.0.2", "services": ["coordinator-region1"]},
+                }
+            }
+        )
+    )
+    layout = load_layout(layout_file)
+    pki = tmp_path / "pki"
+    init_pki(pki, layout.all_identities(), layout.certificate_names())
+    east = {p.name for p in bundle_host(layout, "east", pki, tmp_path / "east")}
+    assert "plan-signing.region1.key" in east
+    assert not {"plan-signing.region0.key", "plan-signing.key"} & east
+    assert {"plan-signing.pub", "plan-signing.region0.pub", "plan-signing.region1.pub"} <= east

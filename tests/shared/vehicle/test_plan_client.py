@@ -167,6 +167,8 @@ def test_a_flood_of_forged_pushes_does_not_evict_a_genuine_one() -> None:
         plan.valid_until.FromNanoseconds(2**62)
         pushed.put(Received("k", signer.sign(plan), Header(), 0, 0))
 
+    answer = RoutePlan(vehicle_id="v1", plan_id="0" * 32, version=1, lane_ids=["l0"])
+    check.answered(GENUINE.sign(answer))  # the coordinator answered v1 (it holds v1)
     push(GENUINE, "a" * 32)
     for k in range(1000):
         push(ROGUE, f"{k:032x}")
@@ -176,3 +178,35 @@ def test_a_flood_of_forged_pushes_does_not_evict_a_genuine_one() -> None:
         counters.get("rejected/plan_unknown_key") == 1000 and counters.get("rejected/plan_key_mismatch") == 1
     )
     assert counters.get("dropped/pushed") == 0
+
+
+def test_a_push_is_taken_only_from_the_shard_that_answered_the_vehicle() -> None:
+    """Issue 52 item 2: every shard signed with one key, so any shard's host could push a plan to any
+    vehicle. With a key per shard, a vehicle takes pushes only from the signer of the last answer to its
+    own request (the shard holding it); before any answer, none."""
+    from shared.bus.node import Received
+    from shared.vehicle.plan_client import CheckedPushes
+
+    shard0, shard1 = PlanSigner(Ed25519PrivateKey.generate()), PlanSigner(Ed25519PrivateKey.generate())
+    verifier = PlanVerifier(
+        [shard0._key.public_key(), shard1._key.public_key()],
+        signers=["plan-signing.region0", "plan-signing.region1"],
+    )
+    counters = Counters()
+    check = PlanCheck(verifier, max_ttl_s=1e12, counters=counters)
+    pushed = CheckedPushes("v1", check, 64, counters)
+
+    def plan(signer: PlanSigner, plan_id: str) -> RoutePlan:
+        p = RoutePlan(vehicle_id="v1", plan_id=plan_id, version=1, lane_ids=["l0"])
+        p.valid_until.FromNanoseconds(2**62)
+        return signer.sign(p)
+
+    def push(signer: PlanSigner, plan_id: str) -> bool:
+        return pushed.put(Received("k", plan(signer, plan_id), Header(), 0, 0))
+
+    assert not push(shard0, "1" * 32)  # nobody answered v1 yet
+    check.answered(plan(shard0, "2" * 32))
+    assert push(shard0, "3" * 32) and not push(shard1, "4" * 32)  # shard 1 does not hold v1
+    check.answered(plan(shard1, "5" * 32))  # v1 crossed into region 1, which answered it
+    assert push(shard1, "6" * 32) and not push(shard0, "7" * 32)
+    assert counters.get("rejected/push_not_holder") == 3
