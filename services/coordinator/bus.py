@@ -8,6 +8,7 @@ import time
 
 from rmmdet.v1.planning_pb2 import RoutePlan, RouteRequest, RouteResponse
 
+from services.coordinator.newcomers import admit_newcomer, newcomer_admission
 from services.coordinator.shard import ShardLink
 from shared.bus import names
 from shared.bus.health import worst
@@ -54,6 +55,7 @@ class CoordinatorService:
         self.node, self.core, self.settings, self.clock = node, core, settings, clock
         self.signer = signer
         self.shard = shard
+        self.newcomers = shard.newcomers if shard is not None else newcomer_admission(settings)
         self.counters = node.counters
         # Object lists older than the stale threshold on arrival would not make their agent LIVE; lists
         # too large to hold `limits.max_objects_per_list` objects are refused before they are parsed.
@@ -109,6 +111,8 @@ class CoordinatorService:
         """The route RPC's handler (Zenoh thread; the core's lock guards its state)."""
         if self.shard is not None:
             self.shard.gate(request)  # another region's lane: declined; a vehicle not held: deferred
+        elif not self.core.owns_vehicle(request.vehicle_id):
+            admit_newcomer(self.newcomers, request.vehicle_id)
         self.record_objects()  # a plan includes every list that reached the process before the request
         ended = self.core.ended_by_request
         try:

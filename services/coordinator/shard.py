@@ -33,6 +33,7 @@ from rmmdet.v1.common_pb2 import ErrorCode, ErrorResponse
 from rmmdet.v1.planning_pb2 import PlanHandover, ReleaseRequest, RouteRequest
 from rmmdet.v1.traffic_pb2 import RegionClique
 
+from services.coordinator.newcomers import admit_newcomer, newcomer_admission
 from shared.bus import names
 from shared.bus.codec import MessageDecoder, encode
 from shared.bus.health import DEGRADED
@@ -89,6 +90,7 @@ class ShardLink:
     ) -> None:
         assert core.shard is not None
         self.node, self.core, self.clock, self.auth = node, core, clock, auth
+        self.newcomers = newcomer_admission(settings)
         self.view: ShardView = core.shard
         self.region = self.view.region
         self.counters = node.counters
@@ -146,6 +148,7 @@ class ShardLink:
                 return
         if self.core.owns_vehicle(vid):
             return
+        admit_newcomer(self.newcomers, vid)  # before a release round: a flood must not fan out
         raise RpcDeferred(lambda resume: self._todo.put((request, resume)))
 
     def _ask_loop(self) -> None:

@@ -163,7 +163,18 @@ class ServiceConfig(_Section):
     max_vehicles: int = Field(
         256,
         ge=1,
-        description="vehicles whose plans are tracked at once; a further one replaces the longest idle",
+        description="vehicles whose plans are tracked at once; a further one replaces the longest idle "
+        "of those that never accepted a plan (then of the rest)",
+    )
+    new_vehicles_per_s: float = Field(
+        20.0,
+        gt=0,
+        description="route requests from vehicles the coordinator holds no plan for are served at most "
+        "this often on average (shared/bus/admission.py); more are refused at once (UNAVAILABLE) and "
+        "ask again at their next lane. Vehicles it holds are never limited",
+    )
+    new_vehicle_burst: int = Field(
+        40, ge=1, description="... and at most this many at once (a fleet starting together)"
     )
 
 

@@ -91,22 +91,35 @@ class PlanBook:
         self._latest: dict[str, IssuedPlan] = {}
         self._version: dict[str, int] = {}
         self._heard_s: dict[str, float] = {}  # last request or acknowledgement, insertion = LRU order
+        self._accepted: set[str] = set()  # vehicles that accepted a plan of this book (acknowledged)
         self.unacknowledged_dropped = 0  # pushed plans given up after max_sends
         self.evicted = 0  # vehicles forgotten: idle, or the longest idle when a new one came
 
     def heard(self, vehicle_id: str, now_s: float) -> list[str]:
-        """`vehicle_id` asked or acknowledged at `now_s`. Returns the vehicles forgotten to make room
-        (idle longer than `vehicle_idle_s`, then the longest idle while more than `max_vehicles`): a
-        flood of made-up ids cannot lock a real vehicle out, it can only evict idle bookkeeping."""
+        """`vehicle_id` asked or acknowledged at `now_s`. Returns the vehicles forgotten: those idle
+        longer than `vehicle_idle_s`, then, while more than `max_vehicles`, the longest idle of those
+        that never accepted a plan here, and only when there is none the longest idle of the rest. A
+        flood of made-up ids (which ask but never acknowledge) cannot lock a real vehicle out, and
+        evicts only its own kind while vehicles that follow plans are within the bound (issue 52
+        item 10: 10,000 ids evicted every real vehicle's plan)."""
         self._heard_s.pop(vehicle_id, None)
         self._heard_s[vehicle_id] = now_s
         out = []
         for vid, heard_s in list(self._heard_s.items()):
-            if len(self._heard_s) <= self.max_vehicles and now_s - heard_s <= self.cfg.vehicle_idle_s:
+            if now_s - heard_s <= self.cfg.vehicle_idle_s:
                 break  # oldest first: the rest are newer
             if vid != vehicle_id:
                 out.append(vid)
-                self.forget(vid)
+        for vid in out:
+            self.forget(vid)
+        if len(self._heard_s) > self.max_vehicles:
+            for accepted in (False, True):  # strangers first
+                for vid in list(self._heard_s):
+                    if len(self._heard_s) <= self.max_vehicles:
+                        break
+                    if vid != vehicle_id and (vid in self._accepted) is accepted:
+                        out.append(vid)
+                        self.forget(vid)
         self.evicted += len(out)
         return out
 
@@ -114,6 +127,7 @@ class PlanBook:
         self._latest.pop(vehicle_id, None)
         self._version.pop(vehicle_id, None)
         self._heard_s.pop(vehicle_id, None)
+        self._accepted.discard(vehicle_id)
 
     def issue(self, vehicle_id: str, route: Route, now_s: float, *, pushed: bool, wall_ns: int) -> IssuedPlan:
         """The vehicle's next plan, issued at `wall_ns` (Unix ns): its version is the issue time
@@ -153,6 +167,8 @@ class PlanBook:
         if plan is None or plan.plan_id != plan_id or plan.version != version:
             return False
         plan.ack = status
+        if status is Ack.ACCEPTED:
+            self._accepted.add(vehicle_id)
         return True
 
     def due(self, now_s: float) -> list[IssuedPlan]:

@@ -9,6 +9,7 @@ import time
 from dataclasses import dataclass, field
 
 import zenoh
+from google.protobuf.message import DecodeError
 from rmmdet.v1.common_pb2 import ErrorResponse
 from rmmdet.v1.health_pb2 import ServiceHealth
 from rmmdet.v1.planning_pb2 import RoutePlan, RouteRequest, RouteResponse
@@ -75,9 +76,12 @@ class RouteClient:
                 response.ParseFromString(reply.ok.payload.to_bytes())
                 return response.plan
             if first_error is None:
-                first_error = ErrorResponse()
-                if reply.err is not None:
-                    first_error.ParseFromString(reply.err.payload.to_bytes())
+                error = ErrorResponse()
+                try:
+                    error.ParseFromString(reply.err.payload.to_bytes() if reply.err is not None else b"")
+                except DecodeError:  # Zenoh's own error (b"Timeout"): nobody answered in time
+                    continue
+                first_error = error
         return first_error
 
     def close(self) -> None:

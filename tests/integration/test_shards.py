@@ -40,6 +40,7 @@ from shared.security.pki import plan_key_paths, shard_key_path
 from shared.security.plan_signing import PlanSigner
 from shared.traffic.regions import RegionMap
 from tests.helpers import Router, spawn, stop
+from tests.integration import attacker as atk
 from tests.integration.coordinator_client import RouteClient, coordinator_health, counters
 
 pytestmark = [pytest.mark.integration, pytest.mark.fault, pytest.mark.timeout(180)]
@@ -220,3 +221,62 @@ def test_two_shards_hand_over_survive_a_kill_and_serve_again_after_restart(shard
         time.sleep(0.1)
     unknown = shards.routes.request("v06", "no_such_lane", DESTINATION)
     assert isinstance(unknown, ErrorResponse)  # every shard refuses an unknown lane alike
+
+
+STORM = 5_000  # messages per storm
+STORM_CPU_S = 8.0 * SCALE  # shard 0's CPU over the three storms
+STORM_RSS_MB = 20.0
+
+
+def test_release_clique_and_request_storms_leave_a_shard_serving(shards: Shards) -> None:
+    """Issue 52 item 10: 5,000 unsigned release requests, 5,000 cliques of region 1 signed by no shard,
+    and 5,000 route requests of made-up ids on region 0's lanes, each from a process of its own: region
+    0's shard refuses them and counts them, its CPU and memory stay bounded, and a vehicle it holds is
+    answered within its usual p95 (measured just before) throughout."""
+    plan = shards.wait_plan("guard01", START_LANE, STARTUP_S)
+    acks = shards.node.publisher("route_ack", vehicle="guard01", source_id="vehicles/guard01")
+    acks.put(
+        RouteAck(vehicle_id="guard01", plan_id=plan.plan_id, version=plan.version, status=ACCEPTED),
+        stamp_ns=time.time_ns(),
+    )
+    pid = shards.procs["shard0"].pid
+
+    def probes(count: int = 20) -> list[float]:
+        out = []
+        for _ in range(count):
+            t0 = time.monotonic()
+            reply = shards.routes.request("guard01", START_LANE, DESTINATION, version=plan.version)
+            out.append(time.monotonic() - t0)
+            assert isinstance(reply, RoutePlan), reply
+            time.sleep(0.02)
+        return out
+
+    usual = atk.p95_s(probes())
+    before, cpu0, rss0 = counters(shards.health(0)), atk.cpu_s(pid), atk.rss_mb(pid)
+    during: dict[str, float] = {}
+    for kind in ("release", "clique", "route"):
+        args = ["--kind", kind, "--count", str(STORM), "--lane", START_LANE, "--region", "1"]
+        flooder = spawn(["-m", "tests.integration.flood", *shards.router.client_args(), *args])
+        lines = atk.JsonLines(flooder)
+        lines.wait("sending", STARTUP_S)
+        during[kind] = atk.p95_s(probes())
+        lines.wait("done", STARTUP_S)
+        assert flooder.wait(10) == 0
+    after = counters(shards.health(0))
+    cpu_s, rss_mb = atk.cpu_s(pid) - cpu0, atk.rss_mb(pid) - rss0
+    refused = {
+        k: after.get(k, 0) - before.get(k, 0) for k in after if k.startswith(("rejected/", "dropped/"))
+    }
+    print(
+        f"storms of {STORM}: guard01 p95 {usual * 1e3:.1f} ms before, during "
+        f"{ {k: round(v * 1e3, 1) for k, v in during.items()} } ms; shard 0 CPU {cpu_s:.2f} s, "
+        f"RSS {rss_mb:+.1f} MB; refused {refused}"
+    )
+    for kind, p95 in during.items():
+        assert atk.within_usual_p95(p95, usual, SCALE), (kind, p95, usual)
+    assert refused.get("rejected/release_unsigned", 0) >= STORM // 2
+    assert refused.get("rejected/clique_unknown_key", 0) + refused.get("dropped/queue_full", 0) >= STORM // 2
+    assert refused.get("rejected/new_vehicle_rate", 0) >= STORM // 2
+    assert after.get("handovers/released", 0) == before.get("handovers/released", 0)
+    assert cpu_s <= STORM_CPU_S and rss_mb <= STORM_RSS_MB
+    assert all(p.poll() is None for p in shards.procs.values())

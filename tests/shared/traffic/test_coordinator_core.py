@@ -158,6 +158,26 @@ def test_a_full_plan_book_evicts_the_longest_idle_vehicle_and_serves_the_new_one
     assert again.version == version_of(WALL0_NS) and core.vehicles_evicted == 2
 
 
+def test_ten_thousand_made_up_ids_evict_no_vehicle_that_follows_a_plan(scene: Scene) -> None:
+    """Issue 52 item 10: a full book evicted the longest idle vehicle whatever it was, so 10,000
+    made-up ids (asking, never acknowledging) evicted every real vehicle's plan and version counter.
+    Now strangers go first; the book stays at its bound, and the real vehicles keep their plans."""
+    core = make_core(scene, max_vehicles=64)
+    core.update_map(0.0)
+    real = {}
+    for k in range(32):
+        plan, _ = core.serve(request(f"real{k:02d}"), 0.0, WALL0_NS)
+        core.on_ack(plan.vehicle_id, plan.plan_id, plan.version, Ack.ACCEPTED, 0.0)
+        real[plan.vehicle_id] = plan
+    for k in range(10_000):
+        core.serve(request(f"fake{k:05d}"), 1.0 + k * 1e-4, WALL0_NS)
+    assert len(core.book.vehicles()) == 64 and core.vehicles_evicted == 10_000 - 32
+    assert all(core.owns_vehicle(v) for v in real)
+    again, _ = core.serve(request("real00", version=real["real00"].version), 3.0, WALL0_NS)
+    # Its version counter was kept (an evicted vehicle starts again at the issue time's version).
+    assert again.plan_id == real["real00"].plan_id or again.version == real["real00"].version + 1
+
+
 def test_vehicles_idle_past_the_limit_are_forgotten(scene: Scene) -> None:
     core = make_core(scene)
     idle_s = core.settings.delivery.vehicle_idle_s
