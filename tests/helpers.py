@@ -32,11 +32,11 @@ def wait_until(pred, timeout_s: float, what: str = "condition", poll_s: float = 
     return time.monotonic() - t0
 
 
-def wait_port(port: int, timeout_s: float = 10.0) -> None:
+def wait_port(port: int, address: str = "127.0.0.1", timeout_s: float = 10.0) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-            if s.connect_ex(("127.0.0.1", port)) == 0:
+            if s.connect_ex((address, port)) == 0:
                 return
         time.sleep(0.05)
     raise TimeoutError(f"nothing listening on {port} after {timeout_s} s")

@@ -17,6 +17,7 @@ control rules (`shared/security/acl.py`) are those grants with each identity's b
 
 from __future__ import annotations
 
+import hashlib
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -114,6 +115,18 @@ def shard_region(name: str) -> int | None:
 
 def shard_identity(region: int) -> str:
     return f"coordinator-region{region}"
+
+
+def router_loopback(name: str) -> str:
+    """The loopback address router `name` listens on for the services of its own host, and the only
+    one its certificate names besides its extra names: each router its own (a hash of its name in
+    127.0.0.0/8), so a router's stolen key cannot serve another router's clients on their host's
+    loopback while that router restarts (every router's certificate named 127.0.0.1: issue 52
+    item 9). The one-host router keeps 127.0.0.1."""
+    if name == LOCAL_ROUTER:
+        return "127.0.0.1"
+    digest = hashlib.sha256(name.encode()).digest()
+    return f"127.{digest[0]}.{digest[1]}.{1 + digest[2] % 254}"
 
 
 def is_router(name: str) -> bool:

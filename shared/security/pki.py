@@ -5,7 +5,8 @@ Layout of a PKI directory (default `.run/pki`, private keys mode 0600):
 
     ca.pem, ca.key                 the CA (ECDSA P-256, self-signed, path length 0)
     <identity>.pem, <identity>.key one leaf per identity: CN = identity, SAN = DNS:identity; a
-                                   router's also DNS:localhost, IP:127.0.0.1 and its extra names,
+                                   router's also its own loopback address (`router_loopback`) and
+                                   its extra names,
                                    with serverAuth + clientAuth (routers listen and connect); every
                                    other identity's clientAuth only (it connects, never serves: a
                                    stolen sensor key cannot pose as the router while it restarts)
@@ -44,7 +45,7 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from shared.config import ConfigError
-from shared.security.identities import is_router, shard_region
+from shared.security.identities import is_router, router_loopback, shard_region
 
 CA_NAME = "ca"
 PLAN_KEY_NAME = "plan-signing"
@@ -257,8 +258,7 @@ class CertificateAuthority:
         now = _now()
         names: list[x509.GeneralName] = [x509.DNSName(identity)]
         if serves:
-            names.append(x509.DNSName("localhost"))
-            addresses = {ipaddress.ip_address("127.0.0.1")}
+            addresses = {ipaddress.ip_address(router_loopback(identity))}
             for extra in extra_names:
                 try:
                     addresses.add(ipaddress.ip_address(extra))
@@ -361,7 +361,7 @@ def _extra_names(cert: x509.Certificate, identity: str) -> tuple[str, ...]:
     """The names `issue` was given for `cert` beyond the ones it adds itself."""
     san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
     dns = [n for n in san.get_values_for_type(x509.DNSName) if n not in (identity, "localhost")]
-    ips = [str(a) for a in san.get_values_for_type(x509.IPAddress) if str(a) != "127.0.0.1"]
+    ips = [str(a) for a in san.get_values_for_type(x509.IPAddress) if str(a) != router_loopback(identity)]
     return (*dns, *ips)
 
 

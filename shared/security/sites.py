@@ -29,7 +29,14 @@ from shared.bus.zenoh_config import DEFAULT_CLIENT_CONFIG, DEFAULT_ROUTER_CONFIG
 from shared.config import ConfigError, read_yaml
 from shared.paths import DEPLOY_DIR, REPO_ROOT
 from shared.security.acl import access_control
-from shared.security.identities import CLOUD_ROUTER, parse_identity, shard_region, vehicle_identity
+from shared.security.identities import (
+    CLOUD_ROUTER,
+    is_router,
+    parse_identity,
+    router_loopback,
+    shard_region,
+    vehicle_identity,
+)
 from shared.security.pki import (
     GENERATIONS_FILE,
     PRIVATE_MODE,
@@ -213,8 +220,9 @@ def identity_config(layout: Layout, host: str, identity: str, pki_dir: Path) -> 
     cloud = layout.hosts[layout.cloud_host]
     settings: dict[str, Any] = {**LINK_SETTINGS, "transport/link/tls": tls_settings(pki_dir, identity)}
     if identity == spec.router:
-        listen = [layout.endpoint("127.0.0.1")]
-        if host == layout.cloud_host and spec.address != "127.0.0.1":
+        loopback = router_loopback(identity)
+        listen = [layout.endpoint(loopback)]
+        if host == layout.cloud_host and spec.address != loopback:
             listen.insert(0, layout.endpoint(spec.address))
         settings["listen/endpoints"] = listen
         if host != layout.cloud_host:
@@ -224,7 +232,7 @@ def identity_config(layout: Layout, host: str, identity: str, pki_dir: Path) -> 
             router_subjects(layout, host), current_common_names(pki_dir)
         )
         return _config(DEFAULT_ROUTER_CONFIG, settings)
-    router_address = "127.0.0.1" if spec.router else cloud.address
+    router_address = router_loopback(spec.router) if spec.router else cloud.address
     settings["connect/endpoints"] = [layout.endpoint(router_address)]
     return _config(DEFAULT_CLIENT_CONFIG, settings)
 
@@ -268,7 +276,7 @@ def service_environment(identity: str, pki_dir: Path) -> dict[str, str]:
 
 def check_certificate(pki_dir: Path, identity: str, address: str | None = None) -> None:
     """The identity's certificate exists, has not expired (warned `RENEW_WITHIN_DAYS` ahead), and names
-    `address` when peers reach it there."""
+    `address` when peers reach it there (a router's also its own loopback address)."""
     path = identity_paths(pki_dir, identity).cert
     try:
         cert = x509.load_pem_x509_certificate(path.read_bytes())
@@ -287,11 +295,12 @@ def check_certificate(pki_dir: Path, identity: str, address: str | None = None) 
         log.warning(
             "%s: %s's certificate expires in %.0f days: rmmdet pki init --renew", path, identity, left
         )
-    if address is not None:
-        san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
-        if ipaddress.ip_address(address) not in san.get_values_for_type(x509.IPAddress):
-            fix = f"rmmdet pki init --renew --name {identity}={address}"
-            raise ConfigError(f"{path}: does not name {address}; reissue it: {fix}")
+    needed = ([router_loopback(identity)] if is_router(identity) else []) + ([address] if address else [])
+    san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    for ip in needed:
+        if ipaddress.ip_address(ip) not in san.get_values_for_type(x509.IPAddress):
+            fix = "rmmdet pki init --renew" + (f" --name {identity}={address}" if address else "")
+            raise ConfigError(f"{path}: does not name {ip}; reissue it: {fix}")
 
 
 def supervisor_program(name: str, args: list[str], config: Path, env: dict[str, str], logs: Path) -> str:

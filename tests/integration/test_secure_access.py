@@ -51,7 +51,7 @@ def deployment(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Deployment]
             }
         },
     }
-    dep = make_deployment(tmp, layout, extra_identities=("mallory",))
+    dep = make_deployment(tmp, layout, extra_identities=("mallory", "router-agent1"))
     config = tmp / "router-cloud.json"
     config.write_text(str(dep.config("router-cloud")))
     router = spawn(["-m", "services.router", "--config", str(config)])
@@ -94,28 +94,36 @@ def test_only_clients_with_a_certificate_of_the_deployment_ca_connect(
         assert time.monotonic() - t0 < REFUSED_WITHIN_S + 2
 
 
-def rogue_router(dep: Deployment, identity: str, port: int) -> zenoh.Config:
-    """A router's config listening on `port` with `identity`'s certificate and key: a key holder posing
-    as the router (while the real one restarts, its port is free)."""
+def rogue_router(dep: Deployment, identity: str, address: str, port: int) -> zenoh.Config:
+    """A router's config listening on `address:port` with `identity`'s certificate and key: a key holder
+    posing as the router (while the real one restarts, its port is free)."""
     conf = dep.config("router-cloud")
     tls = json.loads(conf.get_json("transport/link/tls"))
     tls["listen_certificate"] = str(dep.pki / f"{identity}.pem")
     tls["listen_private_key"] = str(dep.pki / f"{identity}.key")
     conf.insert_json5("transport/link/tls", json.dumps(tls))
-    conf.insert_json5("listen/endpoints", json.dumps([f"tls/127.0.0.1:{port}"]))
+    conf.insert_json5("listen/endpoints", json.dumps([f"tls/{address}:{port}"]))
     return conf
 
 
-def test_only_a_router_certificate_can_serve_a_client(deployment: Deployment) -> None:
+def test_only_the_hosts_own_router_certificate_can_serve_its_clients(deployment: Deployment) -> None:
     """Issue 34 item 8: a service's key (here a sensor group's) cannot pose as the router: its
     certificate names no address and is for client authentication only, so the operator's TLS client
-    refuses it. With the router's own certificate the same listener is accepted (the control)."""
-    for identity, accepted in (("sensor-agent1-cameras", False), ("router-cloud", True)):
+    refuses it. Issue 52 item 9: nor can another router's key (a site's), as every router's certificate
+    named 127.0.0.1 and clients connected there: now each router has a loopback address of its own. With
+    the router's own certificate the same listener is accepted (the control)."""
+    endpoint = json.loads(deployment.config("operator").get_json("connect/endpoints"))[0]
+    address = endpoint.removeprefix("tls/").rsplit(":", 1)[0]  # where the operator finds its router
+    for identity, accepted in (
+        ("sensor-agent1-cameras", False),
+        ("router-agent1", False),
+        ("router-cloud", True),
+    ):
         port = free_port()
-        with zenoh.open(rogue_router(deployment, identity, port)):
-            wait_port(port)
+        with zenoh.open(rogue_router(deployment, identity, address, port)):
+            wait_port(port, address)
             client = deployment.config("operator")
-            client.insert_json5("connect/endpoints", json.dumps([f"tls/127.0.0.1:{port}"]))
+            client.insert_json5("connect/endpoints", json.dumps([f"tls/{address}:{port}"]))
             if accepted:
                 with open_session(client, timeout_s=10) as session:
                     assert session.info.routers_zid()

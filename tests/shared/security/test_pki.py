@@ -12,6 +12,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 from rmmdet.v1.planning_pb2 import RoutePlan
 
 from shared.config import ConfigError
+from shared.security.identities import router_loopback
 from shared.security.pki import (
     NEXT_PLAN_KEY_NAME,
     common_name,
@@ -43,9 +44,9 @@ def test_init_makes_a_ca_leaves_and_the_plan_key(tmp_path: Path) -> None:
     leaf.verify_directly_issued_by(ca)
     assert common_name(identity_paths(tmp_path, "router-cloud").cert) == "router-cloud"
     san = leaf.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
-    assert set(san.get_values_for_type(x509.DNSName)) == {"router-cloud", "localhost", "cloud.example"}
+    assert set(san.get_values_for_type(x509.DNSName)) == {"router-cloud", "cloud.example"}
     assert set(san.get_values_for_type(x509.IPAddress)) == {
-        ipaddress.ip_address("127.0.0.1"),
+        ipaddress.ip_address(router_loopback("router-cloud")),
         ipaddress.ip_address("10.0.0.1"),
     }
     usages = leaf.extensions.get_extension_for_class(x509.ExtendedKeyUsage).value
@@ -70,7 +71,6 @@ def test_only_a_router_certificate_may_serve_tls(tmp_path: Path) -> None:
         assert (ExtendedKeyUsageOID.SERVER_AUTH in usages) is serves, identity
         assert ExtendedKeyUsageOID.CLIENT_AUTH in usages
         assert bool(san.get_values_for_type(x509.IPAddress)) is serves, identity
-        assert ("localhost" in san.get_values_for_type(x509.DNSName)) is serves, identity
     with pytest.raises(ConfigError, match="only a router"):
         init_pki(tmp_path, ["coordinator"], {"coordinator": ("10.0.0.5",)})
 
@@ -193,3 +193,14 @@ def test_one_leaf_is_revoked_alone_under_a_new_common_name(tmp_path: Path) -> No
     (tmp_path / "generations.json").write_text('{"operator": -1}')
     with pytest.raises(ConfigError, match=r"generations\.json"):
         current_common_names(tmp_path)
+
+
+def test_each_router_names_its_own_loopback_address_only() -> None:
+    """Issue 52 item 9: every router's certificate named 127.0.0.1, so one site router's stolen key
+    served the clients of any other host's router on that host's loopback while it restarted. Each
+    router now listens on, and its certificate names, a loopback address of its own."""
+    names = ["router-cloud", "router-agent1", "router-agent2", "router-agent3"]
+    addresses = {router_loopback(n) for n in names}
+    assert len(addresses) == len(names) and "127.0.0.1" not in addresses
+    assert all(ipaddress.ip_address(a) in ipaddress.ip_network("127.0.0.0/8") for a in addresses)
+    assert router_loopback("router") == "127.0.0.1"  # the one-host router (`make up`)

@@ -14,6 +14,7 @@ from supervisor.datatypes import dict_of_key_value_pairs
 
 from shared.config import ConfigError
 from shared.security import pki as pki_module
+from shared.security.identities import router_loopback
 from shared.security.pki import init_pki
 from shared.security.sites import (
     DEFAULT_LAYOUT,
@@ -65,17 +66,20 @@ def test_routers_see_each_other_as_their_side_of_the_link() -> None:
 
 def test_endpoints_and_tls(pki: Path) -> None:
     mec = config(pki, "site1", "mec-agent1")
-    assert get(mec, "connect/endpoints") == ["tls/127.0.0.1:7447"]  # its site's router
+    site1 = router_loopback("router-agent1")
+    assert get(mec, "connect/endpoints") == [f"tls/{site1}:7447"]  # its site's router, on its own address
     tls = get(mec, "transport/link/tls")
     assert tls["enable_mtls"] and tls["verify_name_on_connect"]
     assert tls["connect_certificate"] == str(pki / "mec-agent1.pem")
     assert get(mec, "access_control/enabled") is False  # clients do not filter; routers do
     site_router = config(pki, "site1", "router-agent1")
-    assert get(site_router, "listen/endpoints") == ["tls/127.0.0.1:7447"]  # no inbound port on a site
+    assert get(site_router, "listen/endpoints") == [f"tls/{site1}:7447"]  # no inbound port on a site
     assert get(site_router, "connect/endpoints") == ["tls/10.77.0.10:7447"]
     assert get(site_router, "access_control/default_permission") == "deny"
     cloud = config(pki, "cloud", "router-cloud")
-    assert get(cloud, "listen/endpoints") == ["tls/10.77.0.10:7447", "tls/127.0.0.1:7447"]
+    cloud_loopback = router_loopback("router-cloud")
+    assert get(cloud, "listen/endpoints") == ["tls/10.77.0.10:7447", f"tls/{cloud_loopback}:7447"]
+    assert get(config(pki, "cloud", "coordinator"), "connect/endpoints") == [f"tls/{cloud_loopback}:7447"]
     assert get(config(pki, "vehicles", "sim"), "connect/endpoints") == ["tls/10.77.0.10:7447"]
     assert get(cloud, "transport/link/tx/lease") == 1000
 
