@@ -88,17 +88,21 @@ class TopicCounter:
 def topics(
     ctx: typer.Context,
     duration: Annotated[float, typer.Option(help="seconds to listen")] = 3.0,
-    key: Annotated[str, typer.Option(help="key expression to watch")] = DATA_KEYS,
+    key: Annotated[
+        list[str] | None, typer.Option(help="key expression to watch (repeatable; default every stream)")
+    ] = None,
     as_json: Annotated[
         bool, typer.Option("--json", help="one JSON object per key instead of a table")
     ] = False,
 ) -> None:
     """Live key expressions with message rate, bandwidth, sequence gaps and decode errors."""
     counter = TopicCounter()
+    keys = check_key_exprs(key or DATA_KEYS)
     with connect(ctx) as session:
-        sub = session.declare_subscriber(key, counter.on_sample)
+        subs = [session.declare_subscriber(k, counter.on_sample) for k in keys]
         time.sleep(duration)
-        sub.undeclare()
+        for sub in subs:
+            sub.undeclare()
     stats = counter.snapshot()
     if as_json:
         for k in sorted(stats):
@@ -117,7 +121,7 @@ def topics(
                 )
             )
         return
-    table = Table(title=f"{key} over {duration:.1f} s")
+    table = Table(title=f"{' '.join(key) if key else 'every stream'} over {duration:.1f} s")
     for col in ("key expression", "message", "rate Hz", "kB/s", "avg kB", "gaps", "decode errors"):
         table.add_column(col, justify="left" if col in ("key expression", "message") else "right")
     for k in sorted(stats):
@@ -222,13 +226,13 @@ def record(
         Path | None, typer.Option(help="output .mcap (default .run/recordings/rmmdet-<time>.mcap)")
     ] = None,
     key: Annotated[
-        list[str] | None, typer.Option(help=f"key expression to record (repeatable; default {DATA_KEYS})")
+        list[str] | None, typer.Option(help="key expression to record (repeatable; default every stream)")
     ] = None,
     duration: Annotated[float, typer.Option(help="seconds to record (0 = until Ctrl-C)")] = 0.0,
 ) -> None:
     """Record bus traffic to an MCAP file (opens in Foxglove / Lichtblick; replay with `rmmdet replay`)."""
-    keys = check_key_exprs(key or [DATA_KEYS])
-    for a, b in overlapping(keys):
+    keys = check_key_exprs(key or DATA_KEYS)
+    for a, b in overlapping(key or []):  # the default set's only overlap holds no stream's key
         console.print(f"[yellow]{a} and {b} overlap: samples matching both are recorded twice[/]")
     path = out or default_recording_path()
     path.parent.mkdir(parents=True, exist_ok=True)

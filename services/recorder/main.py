@@ -53,8 +53,9 @@ BYTES_PER_MIB = 1024 * 1024
 
 
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
-    keys: list[str] = args.key or [DATA_KEYS]
-    for a, b in overlapping(keys):
+    keys: list[str] = args.key or DATA_KEYS
+    what = " ".join(keys) if args.key else f"every stream ({len(keys)} key expressions)"
+    for a, b in overlapping(args.key or []):  # the default set's only overlap holds no stream's key
         log.warning("key expressions %s and %s overlap: samples matching both are recorded twice", a, b)
     out: Path = args.out or default_recording_path()
     with Node(conf, service=names.RECORDER, instance=args.instance, scope=SCOPE, stop=shutdown.event) as node:
@@ -76,7 +77,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         for monitor in monitors:
             node.health.add_input(monitor)
         # Refreshed by the main loop: health callbacks only read cached state.
-        status = (NOMINAL, f"recording {' '.join(keys)} to {out}")
+        status = (NOMINAL, f"recording {what} to {out}")
         node.health.set_status(lambda: status)
         subscribers: list[zenoh.Subscriber[None]] = []
         started_s = time.monotonic()
@@ -87,7 +88,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
         try:
             recorder.start()
             subscribers = subscribe_recorder(node.session, keys, recorder, monitors)
-            log.info("recording %s to %s", " ".join(keys), out)
+            log.info("recording %s to %s", what, out)
             while not shutdown.wait(LOOP_S):
                 node.health.beat()
                 now_s = time.monotonic()
@@ -131,7 +132,7 @@ def add_args(parser: argparse.ArgumentParser) -> None:
         "--key",
         action="append",
         default=[],
-        help=f"key expression to record (repeatable; default {DATA_KEYS})",
+        help="key expression to record (repeatable; default every stream of proto/streams.yaml)",
     )
     parser.add_argument(
         "--out", type=Path, default=None, help="output .mcap (default .run/recordings/rmmdet-<time>.mcap)"

@@ -299,9 +299,22 @@ def key_prefix(path: Path = STREAMS_YAML) -> str:
     return str(yaml.safe_load(path.read_text())["prefix"])
 
 
-def data_keys() -> str:
-    """Every data stream (`<prefix>/**`: verbatim control chunks such as @rpc and @alive stay out)."""
-    return f"{key_prefix()}/**"
+def wide_key(stream: Stream) -> str:
+    """The stream's whole key space: every placeholder `*`, trailing ones `**`
+    (`rmmdet/v1/{scope}/@health/{service}/{instance}` -> `rmmdet/v1/*/@health/**`)."""
+    chunks = stream.key_template.split("/")
+    while chunks and chunks[-1].startswith("{"):
+        chunks.pop()
+    wide = "/".join("*" if c.startswith("{") else c for c in chunks)
+    return wide + "/**" if len(chunks) < len(stream.key_template.split("/")) else wide
+
+
+def data_keys() -> list[str]:
+    """Every pub/sub stream's whole key space (`wide_key`), in streams.yaml order: what a reader (the
+    recorder, `rmmdet record`) subscribes to, stream by stream (the access control grants readers no
+    wider: shared/security/acl.py). Two of them intersect only in keys no stream has
+    (`rmmdet/v1/*/capture_demand/**` and `rmmdet/v1/vehicles/*/plan_ack`)."""
+    return [wide_key(s) for s in streams().values() if s.kind == "pubsub"]
 
 
 @functools.cache

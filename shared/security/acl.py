@@ -18,7 +18,7 @@ from collections import defaultdict
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from shared.bus.streams import Stream, key_prefix, readers, streams
+from shared.bus.streams import Stream, data_keys, readers, streams, wide_key
 from shared.security.identities import ROLES, SERVICE_OF_ROLE, Grant, own_instance, parse_identity
 
 #: (message, flow) pairs at the router for each access verb, from the holder's side.
@@ -44,9 +44,6 @@ VERB_INTEREST: dict[str, tuple[tuple[str, str], ...]] = {
     "serve": (("query", "egress"),),  # the queries it is to answer
     "query": (("declare_queryable", "egress"),),  # where to route its queries
 }
-#: Interests on the whole data space (`rmmdet/v1/**`): only a publisher's, because a reader role
-#: subscribes to everything at once (the recorder's `rmmdet/v1/**`). Nobody serves or queries that wide.
-WHOLE_SPACE_INTEREST = ("publish",)
 
 
 #: A must-deliver stream rides Zenoh's advanced publisher/subscriber (`Stream.advanced`), whose publisher
@@ -98,25 +95,16 @@ def key_for(stream: Stream, grant: Grant, verb: str) -> str:
     return stream.key_template.format(**ids)
 
 
-def wide_key(stream: Stream) -> str:
-    """The stream's whole key space: every placeholder `*`, trailing ones `**`
-    (`rmmdet/v1/{scope}/@health/{service}/{instance}` -> `rmmdet/v1/*/@health/**`)."""
-    chunks = stream.key_template.split("/")
-    while chunks and chunks[-1].startswith("{"):
-        chunks.pop()
-    wide = "/".join("*" if c.startswith("{") else c for c in chunks)
-    return wide + "/**" if len(chunks) < len(stream.key_template.split("/")) else wide
-
-
 def grant_permissions(grants: Iterable[Grant]) -> dict[tuple[str, str], set[str]]:
     """(message, flow) -> key expressions the grants allow. A reader role (streams.yaml `readers`) may
-    also subscribe to the whole data space at once (`rmmdet/v1/**`: Zenoh checks a declared key
-    expression against the allowed ones as a whole, not stream by stream)."""
+    also subscribe to every pub/sub stream, each on its whole key space (`streams.data_keys`): never
+    to `rmmdet/v1/**` at once, since every publisher would then have to be told of that subscription,
+    and a grant that wide tells a vehicle of every other vehicle's plan subscription (its id)."""
     out: dict[tuple[str, str], set[str]] = defaultdict(set)
     grants = list(grants)
     if any(g.role in readers() for g in grants):
         for pair in VERB_MESSAGES["subscribe"]:
-            out[pair].add(f"{key_prefix()}/**")
+            out[pair].update(data_keys())
     for stream in streams().values():
         for verb, tokens in stream.access.items():
             for grant in grants:
@@ -125,8 +113,6 @@ def grant_permissions(grants: Iterable[Grant]) -> dict[tuple[str, str], set[str]
                         out[pair].add(key_for(stream, grant, verb))
                     for pair in VERB_INTEREST.get(verb, ()):
                         out[pair].add(wide_key(stream))
-                        if verb in WHOLE_SPACE_INTEREST and readers():
-                            out[pair].add(f"{key_prefix()}/**")
                     if stream.advanced:
                         _grant_advanced(out, stream, key_for(stream, grant, verb), verb)
     return out

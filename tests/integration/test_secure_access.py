@@ -21,7 +21,7 @@ import zenoh
 
 from shared.bus.node import Node
 from shared.bus.session import SessionUnavailable, open_session
-from shared.bus.streams import get_stream
+from shared.bus.streams import data_keys, get_stream
 from shared.bus.zenoh_config import DEFAULT_CLIENT_CONFIG
 from shared.paths import DEFAULT_SCENE
 from shared.scene.calibration import calibration_set
@@ -40,7 +40,15 @@ REFUSED_WITHIN_S = 3.0
 @pytest.fixture(scope="module")
 def deployment(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Deployment]:
     tmp = tmp_path_factory.mktemp("secure")
-    services = ["coordinator", "recorder", "mec-agent1", "sensor-agent1-cameras", "vehicle-v1", "sim"]
+    services = [
+        "coordinator",
+        "recorder",
+        "mec-agent1",
+        "sensor-agent1-cameras",
+        "vehicle-v1",
+        "vehicle-v2",
+        "sim",
+    ]
     layout = {
         "port": free_port(),
         "hosts": {
@@ -157,7 +165,7 @@ PUTS = [
 def test_each_identity_puts_only_on_its_own_keys(deployment: Deployment) -> None:
     inbox = Inbox()
     with deployment.session("operator") as watcher:
-        sub = watcher.declare_subscriber("rmmdet/v1/**", inbox)
+        subs = [watcher.declare_subscriber(k, inbox) for k in data_keys()]  # a reader: stream by stream
         sessions = {ident: deployment.session(ident) for ident in {p[0] for p in PUTS}}
         try:
             time.sleep(SETTLE_S)  # subscriptions propagated
@@ -167,7 +175,8 @@ def test_each_identity_puts_only_on_its_own_keys(deployment: Deployment) -> None
             wait_until(lambda: all(p in inbox.payloads(k) for k, p in allowed), 5, "authorized puts")
             time.sleep(SETTLE_S)
         finally:
-            sub.undeclare()
+            for sub in subs:
+                sub.undeclare()
             for s in sessions.values():
                 s.close()
     delivered = {(k, p) for k, p in inbox.samples}
@@ -199,6 +208,29 @@ def test_a_rogue_queryable_never_answers_a_vehicle_and_a_vehicle_asks_only_for_i
             forged.undeclare()
     assert own == [b"genuine"]
     assert other == []  # vehicle-v1 may not ask for v2's plans (one plan-book entry per identity)
+
+
+def test_a_vehicle_is_not_told_of_another_vehicles_plan_subscription(deployment: Deployment) -> None:
+    """Issue 52 item 9: every publisher was told of subscriptions on the whole data space (to route its
+    puts to the recorder's `rmmdet/v1/**`), so vehicle v1 learned that v2 subscribes to its plans (v2's
+    id). Now a vehicle is told only of its own streams' key spaces: a publisher of v1's on v2's plan key
+    sees no subscriber, the coordinator's does (the control)."""
+    plans_v2 = get_stream("route_plan").key(vehicle="v2")
+    with (
+        deployment.session("vehicle-v2") as v2,
+        deployment.session("vehicle-v1") as v1,
+        deployment.session("coordinator") as coordinator,
+    ):
+        sub = v2.declare_subscriber(plans_v2, lambda _s: None)
+        probe = v1.declare_publisher(plans_v2)
+        control = coordinator.declare_publisher(plans_v2)
+        try:
+            wait_until(lambda: control.matching_status.matching, 5, "the coordinator sees v2's subscription")
+            time.sleep(SETTLE_S)
+            assert not probe.matching_status.matching
+        finally:
+            for entity in (probe, control, sub):
+                entity.undeclare()
 
 
 def test_the_sim_cannot_ask_for_a_vehicles_plan(deployment: Deployment) -> None:
@@ -316,7 +348,8 @@ def test_one_revoked_leaf_is_refused_and_no_other_is_touched(tmp_path: Path) -> 
             dep.session("vehicle-v1") as current,
             open_session(stolen, timeout_s=10) as revoked,
         ):
-            watcher.declare_subscriber("rmmdet/v1/**", inbox)
+            for k in data_keys():
+                watcher.declare_subscriber(k, inbox)
             coordinator.declare_queryable(rpc.pattern(), lambda q: q.reply(q.key_expr, b"plan"))
             time.sleep(SETTLE_S)
             revoked.put(ack, b"revoked")

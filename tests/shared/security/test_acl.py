@@ -7,10 +7,10 @@ import json
 import pytest
 import zenoh
 
-from shared.bus.streams import get_stream, streams
+from shared.bus.streams import data_keys, get_stream, streams, wide_key
 from shared.paths import DEFAULT_SCENE
 from shared.scene.scene import Scene
-from shared.security.acl import access_control, grant_permissions, identity_grants, wide_key
+from shared.security.acl import access_control, grant_permissions, identity_grants
 from shared.security.identities import deployment_identities
 
 PUT_IN = ("put", "ingress")
@@ -91,13 +91,14 @@ def test_a_vehicle_queries_the_route_rpc_and_reads_only_its_plans() -> None:
     assert p[("reply", "egress")] >= {own_plans}  # the cache's replies carry the plans' own keys
 
 
-def test_readers_subscribe_to_the_whole_data_space_and_query_health() -> None:
+def test_readers_subscribe_to_every_stream_and_query_health() -> None:
     p = perms("operator")
-    assert "rmmdet/v1/**" in p[("declare_subscriber", "ingress")]
+    assert set(data_keys()) <= p[("declare_subscriber", "ingress")]
+    assert "rmmdet/v1/**" not in p[("declare_subscriber", "ingress")]  # stream by stream, never at once
     # health, and the caches of the must-deliver streams (a reader's advanced subscriber recovers too)
     adv = {f"{s.pattern()}/@adv/**" for s in streams().values() if s.advanced}
     assert adv and p[("query", "ingress")] == {"rmmdet/v1/*/@health/*/*", *adv}
-    assert "rmmdet/v1/**" in perms("recorder")[("declare_subscriber", "ingress")]
+    assert set(data_keys()) <= perms("recorder")[("declare_subscriber", "ingress")]
 
 
 def test_a_site_router_holds_the_union_of_its_site() -> None:
@@ -150,11 +151,16 @@ def test_a_node_holds_presence_and_serves_health_only_under_its_own_instance(
     assert {k for k in p[("declare_queryable", "ingress")] if "/@health/" in k} == {health}
 
 
-def test_interest_in_the_whole_data_space_only_where_a_reader_needs_it() -> None:
-    """Issue 34 item 11: a publisher is told of the recorder's `rmmdet/v1/**` subscription; a queryable
-    and a querier learn of queries and queryables on their own stream's key space only."""
+def test_interest_only_in_the_key_spaces_of_ones_own_streams() -> None:
+    """Issue 34 item 11, issue 52 item 9: a publisher is told of subscriptions on its own streams' key
+    spaces (where the recorder subscribes too), never of the whole data space (which told a vehicle
+    every other vehicle's plan subscription); a queryable and a querier learn of queries and queryables
+    on their own stream's key space only."""
     p = perms("mec-agent1")
-    assert "rmmdet/v1/**" in p[("declare_subscriber", "egress")]
+    assert "rmmdet/v1/**" not in p[("declare_subscriber", "egress")]
+    assert "rmmdet/v1/*/objects" in p[("declare_subscriber", "egress")]
+    vehicle = perms("vehicle-v7")[("declare_subscriber", "egress")]
+    assert not {k for k in vehicle if k.startswith("rmmdet/v1/cloud/plans")}, vehicle
     assert "rmmdet/v1/**" not in p[("query", "egress")]  # its health queryable
     assert p[("query", "egress")] == {"rmmdet/v1/*/@health/**"}
     assert "rmmdet/v1/**" not in perms("vehicle-v7")[("declare_queryable", "egress")]
