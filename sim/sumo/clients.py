@@ -3,7 +3,8 @@ each asks for a plan once per lane, `request_before_m` before its end, toward it
 an accepted plan becomes its SUMO route from the lane it is on (`SumoWorld.set_route`); a plan past its
 TTL is dropped and the vehicle routes itself again on what SUMO's router knows (free flow unless told
 otherwise); a vehicle that arrives while following a plan ends it COMPLETED, one whose plan SUMO
-refuses answers REJECTED_INVALID. Ids on the coordinator's side are scene ids (`sim.sumo.scene`).
+refuses answers REJECTED_INVALID. Ids on the coordinator's side are scene ids (`sim.sumo.scene`) and
+bus ids for vehicles (`sim.sumo.ids`: any id SUMO allows, mapped onto the bus's pattern and back).
 Units: table metres on the coordinator's side, SUMO metres inside SUMO (`TABLE_SCALE`).
 """
 
@@ -18,6 +19,7 @@ from rmmdet.v1.planning_pb2 import RoutePlan, RouteRequest
 
 from shared.traffic.plans import Ack
 from shared.vehicle.follower import PlanFollower
+from sim.sumo.ids import VehicleIds
 from sim.sumo.network import TABLE_SCALE
 from sim.sumo.world import SumoWorld
 
@@ -28,7 +30,7 @@ log = logging.getLogger(__name__)
 class PlanEnd:
     """A plan a vehicle stopped following, to acknowledge: COMPLETED (arrived) or REJECTED_INVALID."""
 
-    vehicle_id: str
+    vehicle_id: str  # its bus id
     plan_id: str
     version: int
     status: Ack
@@ -36,7 +38,8 @@ class PlanEnd:
 
 @dataclass
 class ClientVehicle:
-    id: str
+    id: str  # SUMO's
+    bus_id: str  # on the coordinator's side (`sim.sumo.ids`)
     destination: str  # scene junction at the end of its trip
     follower: PlanFollower
     lane: str = ""  # scene lane of the edge it is on (the last one while inside a junction)
@@ -55,7 +58,8 @@ class SumoPlanClients:
         self.sumo_of = {v: k for k, v in ids.items()}
         self.known_lanes = frozenset(self.sumo_of)
         self.request_before_m = request_before_m
-        self.vehicles: dict[str, ClientVehicle] = {}
+        self.vehicles: dict[str, ClientVehicle] = {}  # by SUMO id
+        self.ids = VehicleIds()
         self.counts: Counter[str] = Counter()
         self._ends: list[PlanEnd] = []
 
@@ -67,14 +71,14 @@ class SumoPlanClients:
             gone = self.vehicles.pop(vid)
             plan = gone.follower.followed
             if plan is not None:
-                self._ends.append(PlanEnd(vid, plan.plan_id, int(plan.version), Ack.COMPLETED))
+                self._ends.append(PlanEnd(gone.bus_id, plan.plan_id, int(plan.version), Ack.COMPLETED))
         for vid in sorted(running):
             v = self.vehicles.get(vid)
             if v is None:
                 last = self.world.route(vid)[-1]
                 to_node = libsumo.edge.getToJunction(last)
                 v = self.vehicles[vid] = ClientVehicle(
-                    vid, self.scene_of[to_node], PlanFollower(self.known_lanes)
+                    vid, self.ids.bus(vid), self.scene_of[to_node], PlanFollower(self.known_lanes)
                 )
             edge = libsumo.vehicle.getRoadID(vid)
             if edge.startswith(":"):
@@ -97,7 +101,7 @@ class SumoPlanClients:
                 continue
             out.append(
                 RouteRequest(
-                    vehicle_id=v.id,
+                    vehicle_id=v.bus_id,
                     current_lane_id=v.lane,
                     lane_progress_m=v.progress_m,
                     destination_junction_id=v.destination,
@@ -109,7 +113,7 @@ class SumoPlanClients:
 
     def offer(self, plan: RoutePlan, now_ns: int) -> Ack:
         """The vehicle's answer to `plan` (a reply or a push); an accepted plan is its route from now."""
-        v = self.vehicles.get(plan.vehicle_id)
+        v = self.vehicles.get(self.ids.sumo(plan.vehicle_id) or "")
         if v is None:
             self.counts["plans_for_gone_vehicles"] += 1
             return Ack.REJECTED_INVALID

@@ -56,3 +56,23 @@ def test_roadside_agents_take_the_profile_s_errors() -> None:
     )
     with pytest.raises(ValueError, match="not fitted"):
         roadside_model(model, ["rsu_a"], "agent9")
+
+
+def test_vehicles_with_ids_as_real_scenarios_write_them_are_served(run: CityRun, tmp_path: Path) -> None:
+    """Issue 53: a real city's ids (`Audinot_7_0`: capitals; dots, `#`) failed the bus's id
+    pattern, so every route request was refused (`plans/vehicle_id`) and the rmmdet arm drove the
+    scenario's own routes. Mapped onto the pattern and back (`sim.sumo.ids`), they are served."""
+    import xml.etree.ElementTree as ET
+
+    tree = ET.parse(run.routes)
+    for k, vehicle in enumerate(tree.getroot().iter("vehicle")):
+        vehicle.set("id", f"Audinot_{k}.Car#{vehicle.get('id')}")
+    routes = tmp_path / "world_ids.rou.xml"
+    tree.write(routes)
+    world_run = CityRun(run.net, routes, run.layout, seed=1, duration_s=600.0, reroute_period_s=20.0)
+    result = run_arm(
+        world_run, "rmmdet", load_coordinator_settings(), OracleErrorModel.load(ORACLE_MODEL), tmp_path
+    )
+    counts = result["counts"]
+    assert counts.get("plans/vehicle_id", 0) == 0 and counts["arrived"] == 40
+    assert counts["plans/served"] > 20 and counts["clients/answer/accepted"] >= counts["plans/served"]
