@@ -204,3 +204,20 @@ def test_each_router_names_its_own_loopback_address_only() -> None:
     assert len(addresses) == len(names) and "127.0.0.1" not in addresses
     assert all(ipaddress.ip_address(a) in ipaddress.ip_network("127.0.0.0/8") for a in addresses)
     assert router_loopback("router") == "127.0.0.1"  # the one-host router (`make up`)
+
+
+def test_a_shards_plan_key_rotates_on_its_own(tmp_path: Path) -> None:
+    """`rmmdet pki rotate --plan-key --shard 1`: shard 1's key is staged (trusted beside the current one,
+    as the same signer) and promoted; the coordinator's and shard 0's keys are untouched."""
+    from shared.security.identities import shard_identity
+    from shared.security.pki import shard_plan_key_name, signer_name
+
+    init_pki(tmp_path, [shard_identity(0), shard_identity(1)])
+    name = shard_plan_key_name(1)
+    others = {p: p.read_bytes() for p in tmp_path.glob("plan-signing*") if name not in p.name}
+    assert rotate_plan_key(tmp_path, name) == "staged"
+    staged = plan_key_paths(tmp_path, f"{name}.next").cert
+    assert staged in trusted_plan_keys(tmp_path) and signer_name(staged) == name
+    assert rotate_plan_key(tmp_path, name) == "promoted"
+    assert not staged.exists() and plan_key_paths(tmp_path, name).cert in trusted_plan_keys(tmp_path)
+    assert all(p.read_bytes() == data for p, data in others.items())
