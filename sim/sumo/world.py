@@ -17,12 +17,15 @@ from __future__ import annotations
 import logging
 import math
 from collections import Counter
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import libsumo
 import numpy as np
 from numpy.typing import NDArray
+
+from sim.sumo.scenario import ScenarioError, preflight
 
 log = logging.getLogger(__name__)
 
@@ -83,20 +86,24 @@ class SumoWorld:
     def __init__(
         self,
         net: Path,
-        routes: Path,
+        routes: Path | Sequence[Path],
         seed: int,
         step_s: float = 1.0,
         rerouting: Rerouting | None = None,
         tripinfo: Path | None = None,
         extra: tuple[str, ...] = (),
+        additional: Sequence[Path] = (),
     ) -> None:
         global _open_world
         if _open_world is not None:
             raise RuntimeError("libsumo runs one simulation per process: close the open SumoWorld first")
+        route_files = [routes] if isinstance(routes, Path) else list(routes)
+        preflight(net, route_files, additional)  # libsumo would take this process down on a bad net
         args = [
             "sumo",
             f"--net-file={net}",
-            f"--route-files={routes}",
+            f"--route-files={','.join(map(str, route_files))}",
+            *([f"--additional-files={','.join(map(str, additional))}"] if additional else []),
             f"--seed={seed}",
             f"--step-length={step_s}",
             "--no-step-log=true",
@@ -109,7 +116,12 @@ class SumoWorld:
         if rerouting is not None:
             args += rerouting.options()
         args += list(extra)
-        libsumo.start(args)
+        try:
+            libsumo.start(args)
+        except libsumo.TraCIException as err:  # SUMO's own words: a net or a route it refuses
+            raise ScenarioError(
+                f"{net} + {', '.join(map(str, route_files))}: SUMO refused them: {err}"
+            ) from None
         _open_world = self
         self.step_s = step_s
         self.counts: Counter[str] = Counter()
