@@ -117,8 +117,9 @@ def preflight(
     files = f"{net} + {', '.join(map(str, routes))}" + (
         f" + {', '.join(map(str, additional))}" if additional else ""
     )
+    binary = Path(sumolib.checkBinary("sumo"))
     args = [
-        sumolib.checkBinary("sumo"),
+        str(binary),
         f"--net-file={net}",
         f"--route-files={','.join(map(str, routes))}",
         *([f"--additional-files={','.join(map(str, additional))}"] if additional else []),
@@ -127,10 +128,8 @@ def preflight(
         "--no-step-log=true",
         "--no-warnings=true",
     ]
-    env = {
-        **os.environ,
-        "SUMO_HOME": os.environ.get("SUMO_HOME") or str(Path(sumolib.__file__).parents[1] / "sumo"),
-    }
+    # SUMO checks XML against the schemas under SUMO_HOME (<home>/bin/sumo); without it, not at all.
+    env = {**os.environ, "SUMO_HOME": os.environ.get("SUMO_HOME") or str(binary.parents[1])}
     try:
         done = subprocess.run(args, capture_output=True, text=True, timeout=timeout_s, env=env, check=False)
     except subprocess.TimeoutExpired:
