@@ -174,7 +174,10 @@ class ServiceConfig(_Section):
         "ask again at their next lane. Vehicles it holds are never limited",
     )
     new_vehicle_burst: int = Field(
-        40, ge=1, description="... and at most this many at once (a fleet starting together)"
+        20,
+        ge=1,
+        description="... and at most this many at once (a fleet asking together after a coordinator "
+        "restart: twice the table's 10; raise it for a larger fleet)",
     )
 
 

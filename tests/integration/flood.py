@@ -16,10 +16,11 @@ import argparse
 import json
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import zenoh
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+from google.protobuf.message import Message
 from rmmdet.v1.common_pb2 import Header
 from rmmdet.v1.planning_pb2 import ReleaseRequest
 from rmmdet.v1.traffic_pb2 import RegionClique
@@ -28,7 +29,7 @@ from shared.bus.codec import encode
 from shared.bus.streams import get_stream
 from shared.bus.zenoh_config import DEFAULT_CLIENT_CONFIG, zenoh_config
 from shared.security.plan_signing import PlanSigner
-from tests.integration.attacker import RequestFlood, flood_route_requests
+from tests.integration.attacker import RequestFlood, flood_queries, flood_route_requests
 
 DONE_WAIT_S = 30.0
 
@@ -37,21 +38,15 @@ def flood_releases(
     session: zenoh.Session, ids: list[str], lane: str, region: int, timeout_s: float, flood: RequestFlood
 ) -> None:
     release = get_stream("release_rpc")
-    for seq, vid in enumerate(ids, start=1):
-        req = ReleaseRequest(vehicle_id=vid, lane_id=lane, region=region)
-        req.header.source_id, req.header.seq = "attacker/releases", seq
-        req.header.stamp.FromNanoseconds(time.time_ns())
-        encoded = encode(req)
-        session.get(
-            release.key(vehicle=vid),
-            zenoh.handlers.Callback(flood.on_reply, flood.on_done),
-            payload=encoded.payload,
-            encoding=encoded.encoding,
-            target=zenoh.QueryTarget.ALL,
-            timeout=timeout_s,
-        )
-        with flood.lock:
-            flood.sent += 1
+
+    def requests() -> Iterator[tuple[str, Message]]:
+        for seq, vid in enumerate(ids, start=1):
+            req = ReleaseRequest(vehicle_id=vid, lane_id=lane, region=region)
+            req.header.source_id, req.header.seq = "attacker/releases", seq
+            req.header.stamp.FromNanoseconds(time.time_ns())
+            yield release.key(vehicle=vid), req
+
+    flood_queries(session, requests(), timeout_s, flood)
 
 
 def flood_cliques(session: zenoh.Session, count: int, region: int, flood: RequestFlood) -> None:

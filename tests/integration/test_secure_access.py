@@ -37,6 +37,20 @@ SETTLE_S = 0.5
 REFUSED_WITHIN_S = 3.0
 
 
+def one_host_layout(services: list[str]) -> dict:
+    """A layout of the cloud host alone (router-cloud on 127.0.0.1) listing `services` (not run)."""
+    return {
+        "port": free_port(),
+        "hosts": {
+            "cloud": {
+                "address": "127.0.0.1",
+                "router": "router-cloud",
+                "services": [{"identity": s, "command": ["-c", "pass"]} for s in services],
+            }
+        },
+    }
+
+
 @pytest.fixture(scope="module")
 def deployment(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Deployment]:
     tmp = tmp_path_factory.mktemp("secure")
@@ -49,16 +63,7 @@ def deployment(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Deployment]
         "vehicle-v2",
         "sim",
     ]
-    layout = {
-        "port": free_port(),
-        "hosts": {
-            "cloud": {
-                "address": "127.0.0.1",
-                "router": "router-cloud",
-                "services": [{"identity": s, "command": ["-c", "pass"]} for s in services],
-            }
-        },
-    }
+    layout = one_host_layout(services)
     dep = make_deployment(tmp, layout, extra_identities=("mallory", "router-agent1"))
     config = tmp / "router-cloud.json"
     config.write_text(str(dep.config("router-cloud")))
@@ -315,16 +320,7 @@ def test_one_revoked_leaf_is_refused_and_no_other_is_touched(tmp_path: Path) -> 
     rendered afterwards grants the old certificate nothing (its ack is not delivered, its route request
     unanswered) while the new one and every other identity, its files untouched, work as before."""
     services = ["coordinator", "mec-agent1", "vehicle-v1"]
-    layout = {
-        "port": free_port(),
-        "hosts": {
-            "cloud": {
-                "address": "127.0.0.1",
-                "router": "router-cloud",
-                "services": [{"identity": s, "command": ["-c", "pass"]} for s in services],
-            }
-        },
-    }
+    layout = one_host_layout(services)
     dep = make_deployment(tmp_path, layout)
     old = tmp_path / "old"
     old.mkdir()

@@ -224,7 +224,7 @@ def test_two_shards_hand_over_survive_a_kill_and_serve_again_after_restart(shard
 
 
 STORM = 5_000  # messages per storm
-STORM_CPU_S = 8.0 * SCALE  # shard 0's CPU over the three storms
+STORM_CPU_S = 10.0 * SCALE  # shard 0's CPU over the three storms (4-6.5 s; 13 s before the admission)
 STORM_RSS_MB = 20.0
 
 
@@ -241,7 +241,7 @@ def test_release_clique_and_request_storms_leave_a_shard_serving(shards: Shards)
     )
     pid = shards.procs["shard0"].pid
 
-    def probes(count: int = 20) -> list[float]:
+    def probes(count: int = 30) -> list[float]:
         out = []
         for _ in range(count):
             t0 = time.monotonic()
