@@ -28,10 +28,11 @@ counters, plans and acknowledgements, the density heat map over the lanes, the a
 `--mcap PATH` also writes every channel into an MCAP file (what is drawn, as drawn: playback in
 Foxglove shows the same view; while it records, everything is drawn).
 
-Cheap by default: nothing is drawn while no client subscribes (`Channel.has_sinks`), and at most
+Cheap by default: nothing is drawn while no client subscribes (`Outlet.has_sinks`), and at most
 `--publish-hz` updates per channel are drawn, the newest of each stream (latest-wins queues). A slow or
-gone client never slows the loop: the Foxglove server queues per client and drops what a client cannot
-take. Binds to loopback unless told otherwise.
+gone client never slows the loop: the viewer's WebSocket server (services/viewer/view_server.py, the
+only port: Host, Origin and token checked) queues per client and drops the oldest of what a client
+cannot take. Binds to loopback unless told otherwise.
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ import foxglove
 import zenoh
 
 from services.viewer.dashboard_server import DashboardServer
-from services.viewer.ws_gate import start_view_server
+from services.viewer.view_server import start_view_server
 from shared.bus import names
 from shared.bus.node import Node
 from shared.paths import DEFAULT_SCENE, RUN_DIR
@@ -57,7 +58,8 @@ from shared.service import exit_process, positive_float, run_service
 from shared.shutdown import GracefulShutdown
 from shared.viewer.core import ViewerCore
 from shared.viewer.dashboard import DashboardState, map_of
-from shared.viewer.feeds import Channels, SensorFeeds
+from shared.viewer.feeds import Channels, Outlets, SensorFeeds
+from shared.viewer.foxglove_ws import ViewHub
 from shared.viewer.health_feed import IDLE_EVERY_S, HealthFeed
 from shared.viewer.inputs import ViewerInputs
 from shared.viewer.origin import view_token
@@ -70,8 +72,9 @@ SERVICE = names.VIEWER
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
     scene = Scene.load(args.scene)
     network = RoadNetwork(scene)
-    context = foxglove.Context()
-    feeds = SensorFeeds(scene, context)
+    outlets = Outlets(ViewHub("rmmdet"))
+    feeds = SensorFeeds(scene, outlets)
+    outlets.hub.listener = feeds
     try:  # a port in use is a clear one-line exit, not a traceback
         token = view_token(args.host, args.token_file)
         dashboard = (
@@ -81,15 +84,17 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             if args.dashboard_port
             else None
         )
-        server, gate = start_view_server(
-            context, feeds, args.host, args.port, args.host_name or (), args.allow_origin or (), token
+        server = start_view_server(
+            outlets.hub, args.host, args.port, args.host_name or (), args.allow_origin or (), token
         )
     except (OSError, RuntimeError, ValueError) as err:
         raise SystemExit(
             f"viewer: cannot serve on {args.host} ports {args.port}/{args.dashboard_port}: {err}"
         ) from None
-    recording = foxglove.open_mcap(args.mcap, allow_overwrite=True, context=context) if args.mcap else None
-    log.info("Foxglove WebSocket server on ws://%s:%d", args.host, gate.port)
+    recording = (
+        foxglove.open_mcap(args.mcap, allow_overwrite=True, context=outlets.context) if args.mcap else None
+    )
+    log.info("Foxglove WebSocket server on ws://%s:%d", args.host, server.port)
     if token is not None:
         log.warning(
             "serving beyond loopback: every request needs the token in %s (?token=<it> once: the browser "
@@ -99,12 +104,12 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
     if dashboard is not None:
         dashboard.start()
         log.info("dashboard on http://%s:%d/", args.host, dashboard.port)
-    channels = Channels(context)
+    channels = Channels(outlets)
     period_s = 1.0 / args.publish_hz
     try:
         with Node(conf, service=SERVICE, instance=args.instance, scope="site", stop=shutdown.event) as node:
             feeds.attach(node.session, node.counters)
-            health_feed = HealthFeed(scene, context)
+            health_feed = HealthFeed(scene, outlets)
 
             def watched() -> bool:
                 return dashboard is not None and dashboard.watched
@@ -129,7 +134,8 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                     last_snapshot = t0
                     dashboard.publish(board.snapshot(t0))
                     node.counters.publish(dashboard.counters.snapshot())  # refused requests, in health
-                node.counters.publish(gate.counters.snapshot())
+                node.counters.publish(server.counters.snapshot())
+                node.counters.publish(outlets.hub.counters.snapshot())
                 for d in core.draw(t0, time.time_ns()):
                     if channels.wants(d.topic, d.message_type):
                         channels.log(d.topic, d.draw(), d.stamp_ns)
@@ -137,7 +143,6 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
                 shutdown.wait(max(0.0, period_s - (time.monotonic() - t0)))
     finally:
         feeds.close()
-        gate.stop()
         server.stop()
         if dashboard is not None:
             dashboard.stop()

@@ -99,10 +99,8 @@ class ViewerCore:
     # --- output -------------------------------------------------------------------------------------
 
     def topics(self) -> dict[str, type[Message]]:
-        """Every topic `draw` may name, with its message type: the service advertises them all at start
-        (a channel made while a client is connected can lose that client's subscription: foxglove-sdk
-        0.30 sends the advertisement before it records the channel for the client, and refuses a
-        subscription arriving in between as "Unknown channel ID")."""
+        """Every topic `draw` may name, with its message type: the service advertises them all at start,
+        so a client sees every channel on connecting, drawn or not yet."""
         fixed: dict[str, type[Message]] = {
             TABLE: SceneUpdate,
             FRAMES: FrameTransforms,

@@ -1,9 +1,10 @@
 """The viewer's Foxglove channels and its sensor feeds (services/viewer is the process around them).
 
-`Channels` makes a channel per topic on first use and says whether anyone watches it (draw only then);
-`SensorFeeds` forwards camera images, lidar clouds and radar scans from the bus untouched and draws
-each camera's 2D detections and each radar's targets, subscribing on the bus only while some client
-watches the channel.
+An `Outlet` is one channel, to the viewer's WebSocket clients that subscribe (shared/viewer/
+foxglove_ws.py) and into an MCAP recording; `Channels` makes one per drawn topic on first use and says
+whether anyone watches it (draw only then); `SensorFeeds` forwards camera images, lidar clouds and radar
+scans from the bus untouched and draws each camera's 2D detections and each radar's targets,
+subscribing on the bus only while some client watches the channel.
 """
 
 from __future__ import annotations
@@ -12,14 +13,13 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Any
 
 import foxglove
 import zenoh
-from foxglove.websocket import ServerListener
 from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
-from google.protobuf.descriptor_pb2 import FileDescriptorSet
 from google.protobuf.message import Message
 from rmmdet.v1 import perception_pb2 as pb
 from rmmdet.v1.sensors_pb2 import RadarScan
@@ -27,65 +27,79 @@ from rmmdet.v1.sensors_pb2 import RadarScan
 from shared.bus.codec import Counters, MessageDecoder
 from shared.bus.streams import SENSOR_STREAM, get_stream
 from shared.scene.scene import Scene
+from shared.viewer.foxglove_ws import ViewHub, ViewSchema, protobuf_schema
 from shared.viewer.scene import image_annotations, radar_targets
 
 
-def schema_of(message_type: type[Message]) -> foxglove.Schema:
-    """The Foxglove protobuf schema of a message type: its name and a FileDescriptorSet of its file and
-    every file it imports."""
-    files: dict[str, bytes] = {}
+class Outlet:
+    """One channel of the view: to the clients of the viewer's server (ViewHub) that subscribe to it,
+    and into the MCAP recording when one is open on the context (foxglove-sdk writes it)."""
 
-    def add(fd) -> None:
-        if fd.name in files:
-            return
-        for dep in fd.dependencies:
-            add(dep)
-        files[fd.name] = fd.serialized_pb
+    def __init__(self, hub: ViewHub, context: foxglove.Context, topic: str, schema: ViewSchema) -> None:
+        self.topic = topic
+        self._hub = hub
+        hub.channel(topic, schema)
+        self._recorded = foxglove.Channel(
+            topic,
+            schema=foxglove.Schema(name=schema.name, encoding=schema.encoding, data=schema.data),
+            message_encoding=schema.message_encoding,
+            context=context,
+        )
 
-    add(message_type.DESCRIPTOR.file)
-    fds = FileDescriptorSet()
-    for data in files.values():
-        fds.file.add().ParseFromString(data)
-    return foxglove.Schema(
-        name=message_type.DESCRIPTOR.full_name, encoding="protobuf", data=fds.SerializeToString()
-    )
+    def has_sinks(self) -> bool:
+        """True if a client watches the channel or it is being recorded (draw only then)."""
+        return self._hub.watched(self.topic) or self._recorded.has_sinks()
+
+    def log(self, payload: bytes, log_time_ns: int) -> None:
+        self._hub.log(self.topic, payload, log_time_ns)
+        if self._recorded.has_sinks():
+            self._recorded.log(payload, log_time=log_time_ns)
+
+
+@dataclass(frozen=True)
+class Outlets:
+    """Where the viewer's channels go: its WebSocket clients (`hub`) and the MCAP sink of `context`."""
+
+    hub: ViewHub
+    context: foxglove.Context = field(default_factory=foxglove.Context)
+
+    def open(self, topic: str, schema: ViewSchema) -> Outlet:
+        return Outlet(self.hub, self.context, topic, schema)
 
 
 class Channels:
-    """The viewer's Foxglove channels, made on first use (one per topic)."""
+    """The viewer's drawn channels, made on first use (one per topic)."""
 
-    def __init__(self, context: foxglove.Context) -> None:
-        self._context = context
-        self._channels: dict[str, foxglove.Channel] = {}
+    def __init__(self, outlets: Outlets) -> None:
+        self._outlets = outlets
+        self._channels: dict[str, Outlet] = {}
 
     def wants(self, topic: str, message_type: type[Message]) -> bool:
         """True if some client subscribes to `topic` (advertised from the first call on): draw only then."""
         channel = self._channels.get(topic)
         if channel is None:
-            channel = foxglove.Channel(
-                topic, schema=schema_of(message_type), message_encoding="protobuf", context=self._context
-            )
+            channel = self._outlets.open(topic, protobuf_schema(message_type))
             self._channels[topic] = channel
         return channel.has_sinks()
 
     def log(self, topic: str, msg: Message, stamp_ns: int) -> None:
-        self._channels[topic].log(msg.SerializeToString(), log_time=stamp_ns)
+        self._channels[topic].log(msg.SerializeToString(), stamp_ns)
 
 
-class SensorFeeds(ServerListener):
+class SensorFeeds:
     """Camera images, lidar clouds and radar scans from the bus to the view, untouched (their payloads
     are Foxglove / rmmdet protobufs already), each camera's 2D detections as image annotations
     (`<camera topic>/detections`) and each radar's targets as spheres (`<radar topic>/targets`): a bus
     subscription exists only while some client subscribes to its channel, so an idle viewer costs
-    nothing for them (and the MEC publishes no detections). A Foxglove ServerListener (its callbacks
-    run on the server's threads; the bus callbacks on Zenoh's)."""
+    nothing for them (and the MEC publishes no detections). The hub's SubscriptionListener (its
+    callbacks run on the clients' threads; the bus callbacks on Zenoh's)."""
 
-    def __init__(self, scene: Scene, context: foxglove.Context) -> None:
+    def __init__(self, scene: Scene, outlets: Outlets) -> None:
         self._counters: Counters | None = None
         self._session: zenoh.Session | None = None
         self._lock = threading.Lock()
         self._keys: dict[str, str] = {}  # topic -> bus key
-        self._channels: dict[str, foxglove.Channel] = {}
+        self._channels: dict[str, Outlet] = {}
         self._watchers: Counter[str] = Counter()
         self._subscribers: dict[str, Any] = {}
         # Topics drawn from a bus message rather than forwarded: its type and the drawing.
@@ -93,20 +107,18 @@ class SensorFeeds(ServerListener):
         for spec in scene.spec.sensors:
             stream = get_stream(SENSOR_STREAM[spec.kind])
             topic = f"/agents/{spec.agent}/{spec.kind}/{spec.id}"
-            self._add(context, topic, stream.key(agent=spec.agent, sensor=spec.id), stream.message_type)
+            self._add(outlets, topic, stream.key(agent=spec.agent, sensor=spec.id), stream.message_type)
             if spec.kind == "camera":
                 key = get_stream("detections_2d").key(agent=spec.agent, sensor=spec.id)
-                self._add(context, f"{topic}/detections", key, ImageAnnotations)
+                self._add(outlets, f"{topic}/detections", key, ImageAnnotations)
                 self._convert[f"{topic}/detections"] = (pb.Detection2DArray, image_annotations)
             elif spec.kind == "radar":
-                self._add(context, f"{topic}/targets", self._keys[topic], SceneUpdate)
+                self._add(outlets, f"{topic}/targets", self._keys[topic], SceneUpdate)
                 self._convert[f"{topic}/targets"] = (RadarScan, radar_targets)
 
-    def _add(self, context: foxglove.Context, topic: str, key: str, message_type: type[Message]) -> None:
+    def _add(self, outlets: Outlets, topic: str, key: str, message_type: type[Message]) -> None:
         self._keys[topic] = key
-        self._channels[topic] = foxglove.Channel(
-            topic, schema=schema_of(message_type), message_encoding="protobuf", context=context
-        )
+        self._channels[topic] = outlets.open(topic, protobuf_schema(message_type))
 
     def attach(self, session: zenoh.Session, counters: Counters) -> None:
         """The bus to subscribe on and the counters to count on (subscriptions asked for before are
@@ -132,32 +144,32 @@ class SensorFeeds(ServerListener):
                 decoded = decoder.decode(sample.payload.to_bytes(), str(sample.encoding), attachment)
                 if decoded is not None:
                     drawn = drawing(decoded.message, decoded.header.stamp.ToNanoseconds())
-                    channel.log(drawn.SerializeToString(), log_time=time.time_ns())
+                    channel.log(drawn.SerializeToString(), time.time_ns())
                     counters.inc(f"drawn/{name}")
 
             self._subscribers[topic] = self._session.declare_subscriber(self._keys[topic], convert)
             return
 
         def forward(sample: zenoh.Sample) -> None:
-            channel.log(sample.payload.to_bytes(), log_time=time.time_ns())
+            channel.log(sample.payload.to_bytes(), time.time_ns())
             counters.inc("forwarded/sensor")
 
         self._subscribers[topic] = self._session.declare_subscriber(self._keys[topic], forward)
 
-    def on_subscribe(self, client: Any, channel: Any) -> None:
+    def on_subscribe(self, topic: str) -> None:
         with self._lock:
-            if channel.topic not in self._keys:
+            if topic not in self._keys:
                 return
-            self._watchers[channel.topic] += 1
-            if self._session is not None and channel.topic not in self._subscribers:
-                self._subscribe(channel.topic)
+            self._watchers[topic] += 1
+            if self._session is not None and topic not in self._subscribers:
+                self._subscribe(topic)
 
-    def on_unsubscribe(self, client: Any, channel: Any) -> None:
+    def on_unsubscribe(self, topic: str) -> None:
         with self._lock:
-            if channel.topic not in self._keys or self._watchers[channel.topic] == 0:
+            if topic not in self._keys or self._watchers[topic] == 0:
                 return
-            self._watchers[channel.topic] -= 1
-            if self._watchers[channel.topic] == 0 and (sub := self._subscribers.pop(channel.topic, None)):
+            self._watchers[topic] -= 1
+            if self._watchers[topic] == 0 and (sub := self._subscribers.pop(topic, None)):
                 sub.undeclare()
 
     @property

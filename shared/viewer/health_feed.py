@@ -10,11 +10,12 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-import foxglove
 import zenoh
 
 from shared.scene.scene import Scene
 from shared.supervision.verdict import Verdict, level_name, probe
+from shared.viewer.feeds import Outlets
+from shared.viewer.foxglove_ws import ViewSchema
 
 HEALTH_EVERY_S = 2.0
 # Nobody watching (no /health subscriber, no dashboard WebSocket or recent /api/state poll): health is
@@ -31,11 +32,9 @@ class HealthFeed:
 
     TOPIC = "/health"
 
-    def __init__(self, scene: Scene, context: foxglove.Context) -> None:
+    def __init__(self, scene: Scene, outlets: Outlets) -> None:
         self._scene = scene
-        self._channel = foxglove.Channel(
-            self.TOPIC, message_encoding="json", schema=HEALTH_SCHEMA, context=context
-        )
+        self._channel = outlets.open(self.TOPIC, HEALTH_SCHEMA)
         self.verdicts: queue.SimpleQueue[Verdict] = queue.SimpleQueue()  # for the dashboard
 
     def run(
@@ -50,11 +49,11 @@ class HealthFeed:
             verdict = probe(session, self._scene, timeout_s=HEALTH_TIMEOUT_S)
             self.verdicts.put(verdict)
             if self._channel.has_sinks():
-                self._channel.log(health_json(verdict))
+                self._channel.log(json.dumps(health_json(verdict)).encode(), time.time_ns())
 
 
 # What `/health` carries (health_json), as JSON Schema: viewers (Foxglove Studio 1.48) want a schema.
-HEALTH_SCHEMA = foxglove.Schema(
+HEALTH_SCHEMA = ViewSchema(
     name="rmmdet.Health",
     encoding="jsonschema",
     data=json.dumps(

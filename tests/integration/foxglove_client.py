@@ -8,14 +8,12 @@ from __future__ import annotations
 import json
 import struct
 import time
-from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from websockets.sync.client import connect
 
-MAX_RESUBSCRIBE = 3
-SUBPROTOCOL = "foxglove.sdk.v1"  # what foxglove-sdk 0.30 serves (older servers: foxglove.websocket.v1)
+SUBPROTOCOL = "foxglove.sdk.v1"  # what Foxglove asks for (the viewer also serves foxglove.websocket.v1)
 MESSAGE_DATA = 0x01
 
 
@@ -37,7 +35,6 @@ class FoxgloveClient:
     wanted: Callable[[str], bool] | None = None  # which topics to subscribe to (None: every one)
     keep_payloads: bool = True  # False: keep only topic, times and size (long runs)
     statuses: list[dict] = field(default_factory=list)  # the server's `status` ops (e.g. refusals)
-    refusals: Counter[int] = field(default_factory=Counter)  # channel id -> subscriptions refused
 
     def __post_init__(self) -> None:
         self._connection = connect(self.url, subprotocols=[SUBPROTOCOL], open_timeout=10)  # type: ignore[list-item]
@@ -64,7 +61,6 @@ class FoxgloveClient:
     def _on_op(self, op: dict) -> None:
         if op.get("op") == "status":
             self.statuses.append(op)
-            self._resubscribe_if_refused(op.get("message", ""))
         if op.get("op") == "advertise":
             new = []
             for ch in op["channels"]:
@@ -74,25 +70,6 @@ class FoxgloveClient:
                 self.subscribed[ch["id"]] = ch["id"]  # one subscription per channel, same id
                 new.append({"id": ch["id"], "channelId": ch["id"]})
             self._ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
-
-    def _resubscribe_if_refused(self, message: str) -> None:
-        """foxglove-sdk 0.30 sends an advertisement before it records the channel for this client, and
-        refuses a subscription that arrives in between as "Unknown channel ID: <id>" (seen under load):
-        a channel it did advertise is asked for again, a few times at most."""
-        prefix = "Unknown channel ID: "
-        if not message.startswith(prefix):
-            return
-        try:
-            channel_id = int(message[len(prefix) :])
-        except ValueError:
-            return
-        if channel_id not in self.subscribed or self.refusals[channel_id] >= MAX_RESUBSCRIBE:
-            return
-        self.refusals[channel_id] += 1
-        time.sleep(0.05)  # the server records the channel right after sending its advertisement
-        self._ws.send(
-            json.dumps({"op": "subscribe", "subscriptions": [{"id": channel_id, "channelId": channel_id}]})
-        )
 
     def topics(self) -> set[str]:
         return {ch["topic"] for ch in self.channels.values()}

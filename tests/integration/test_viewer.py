@@ -13,6 +13,7 @@ import time
 from collections import Counter
 from pathlib import Path
 
+import psutil
 import pytest
 from foxglove_schemas_protobuf.Grid_pb2 import Grid
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
@@ -40,12 +41,22 @@ def scene_update(payload: bytes) -> SceneUpdate:
 
 
 def test_a_foxglove_client_sees_the_table_tracks_and_plans(router: Router, tmp_path: Path) -> None:
-    port = free_port()
+    port, dashboard_port = free_port(), free_port()
     recording = tmp_path / "view.mcap"
     fake_mec = ["-m", "tests.integration.fake_mec", "--rate-hz", "10", *router.client_args()]
     procs = {
         "viewer": spawn(
-            ["-m", "services.viewer", "--port", str(port), "--mcap", str(recording), *router.client_args()]
+            [
+                "-m",
+                "services.viewer",
+                "--port",
+                str(port),
+                "--dashboard-port",
+                str(dashboard_port),
+                "--mcap",
+                str(recording),
+                *router.client_args(),
+            ]
         ),
         **spawn_planning_loop(router.client_args(), router.client_args()),
         **{a: spawn([*fake_mec, "--instance", a]) for a in AGENTS[:-1]},
@@ -56,6 +67,14 @@ def test_a_foxglove_client_sees_the_table_tracks_and_plans(router: Router, tmp_p
     clients: list[FoxgloveClient] = []
     try:
         wait_port(port, timeout_s=STARTUP_S)
+        # Issue 52 item 7: no port of the viewer's but its two checked ones (foxglove-sdk's own server
+        # listened on a third, unchecked).
+        listening = {
+            c.laddr.port
+            for c in psutil.Process(procs["viewer"].pid).net_connections("inet")
+            if c.status == psutil.CONN_LISTEN
+        }
+        assert listening == {port, dashboard_port}, listening
         client = FoxgloveClient(f"ws://127.0.0.1:{port}")
         stalled = FoxgloveClient(f"ws://127.0.0.1:{port}")  # connects, never reads again
         clients += [client, stalled]

@@ -9,7 +9,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-import foxglove
 import numpy as np
 from rmmdet.v1.common_pb2 import Header
 from rmmdet.v1.health_pb2 import HEALTH_LEVEL_NOMINAL, ServiceHealth
@@ -21,7 +20,8 @@ from shared.perception.output import detections_2d_message
 from shared.scene.scene import Scene
 from shared.supervision.verdict import Verdict
 from shared.viewer.core import FRAMES, GRID, GROUND_TRUTH, PLANS, TABLE, tracks_topic
-from shared.viewer.feeds import SensorFeeds
+from shared.viewer.feeds import Outlets, SensorFeeds
+from shared.viewer.foxglove_ws import ViewHub
 from shared.viewer.health_feed import HEALTH_SCHEMA, HealthFeed, health_json
 
 
@@ -59,28 +59,22 @@ class FakeSample:
     attachment: Bytes | None
 
 
-@dataclass(frozen=True)
-class View:
-    topic: str
-    id: int = 0
-
-
 def test_a_sensor_is_subscribed_only_while_watched(test_scene: Scene) -> None:
-    feeds = SensorFeeds(test_scene, foxglove.Context())
+    feeds = SensorFeeds(test_scene, Outlets(ViewHub()))
     spec = next(s for s in test_scene.spec.sensors if s.kind == "camera")
     topic = f"/agents/{spec.agent}/camera/{spec.id}"
-    feeds.on_subscribe(1, View(topic))  # before the bus is there: made on attach
+    feeds.on_subscribe(topic)  # before the bus is there: made on attach
     session = FakeSession()
     feeds.attach(session, Counters())  # type: ignore[arg-type]
     assert [s.key for s in session.subs] == [f"rmmdet/v1/{spec.agent}/sensor/camera/{spec.id}"]
-    feeds.on_subscribe(2, View(topic))  # a second client: no second subscription
+    feeds.on_subscribe(topic)  # a second client: no second subscription
     assert len(session.subs) == 1 and feeds.subscribed == [topic]
-    feeds.on_unsubscribe(1, View(topic))
+    feeds.on_unsubscribe(topic)
     assert not session.subs[0].undeclared
-    feeds.on_unsubscribe(2, View(topic))
+    feeds.on_unsubscribe(topic)
     assert session.subs[0].undeclared and feeds.subscribed == []
-    feeds.on_unsubscribe(2, View(topic))  # an extra unsubscribe changes nothing
-    feeds.on_subscribe(3, View("/table"))  # not a sensor channel: not the feeds' business
+    feeds.on_unsubscribe(topic)  # an extra unsubscribe changes nothing
+    feeds.on_subscribe("/table")  # not a sensor channel: not the feeds' business
     assert len(session.subs) == 1
 
 
@@ -92,19 +86,19 @@ def test_the_layout_names_only_topics_the_viewer_serves() -> None:
     text = json.dumps(layout["configById"])
     named = set(re.findall(r'"(/[a-z0-9_/]+)"', text))
     served = {TABLE, FRAMES, GROUND_TRUTH, PLANS, GRID, HealthFeed.TOPIC}
-    served |= {tracks_topic(a) for a in scene.agents} | set(SensorFeeds(scene, foxglove.Context()).topics)
+    served |= {tracks_topic(a) for a in scene.agents} | set(SensorFeeds(scene, Outlets(ViewHub())).topics)
     assert named and named <= served, named - served
 
 
 def test_detections_are_drawn_as_annotations_while_watched(test_scene: Scene) -> None:
     """Watching a camera's `/detections` channel subscribes to the MEC's 2D detections of that camera
     (which makes the MEC publish them); each one becomes an ImageAnnotations, bad ones are counted."""
-    feeds = SensorFeeds(test_scene, foxglove.Context())
+    feeds = SensorFeeds(test_scene, Outlets(ViewHub()))
     spec = next(s for s in test_scene.spec.sensors if s.kind == "camera")
     topic = f"/agents/{spec.agent}/camera/{spec.id}/detections"
     session, counters = FakeSession(), Counters()
     feeds.attach(session, counters)  # type: ignore[arg-type]
-    feeds.on_subscribe(1, View(topic))
+    feeds.on_subscribe(topic)
     (sub,) = session.subs
     assert sub.key == f"rmmdet/v1/{spec.agent}/perception/detections_2d/{spec.id}"
     msg = detections_2d_message(spec.id, np.array([[10, 20, 50, 40, 0.75, 0]], np.float32), 448, 336)
@@ -116,16 +110,16 @@ def test_detections_are_drawn_as_annotations_while_watched(test_scene: Scene) ->
     snapshot = counters.snapshot()
     assert snapshot["drawn/Detection2DArray"] == 1
     assert snapshot["rejected/decode"] == 1
-    feeds.on_unsubscribe(1, View(topic))
+    feeds.on_unsubscribe(topic)
     assert sub.undeclared
 
 
 def test_radar_scans_are_drawn_as_targets_while_watched(test_scene: Scene) -> None:
-    feeds = SensorFeeds(test_scene, foxglove.Context())
+    feeds = SensorFeeds(test_scene, Outlets(ViewHub()))
     spec = next(s for s in test_scene.spec.sensors if s.kind == "radar")
     session, counters = FakeSession(), Counters()
     feeds.attach(session, counters)  # type: ignore[arg-type]
-    feeds.on_subscribe(1, View(f"/agents/{spec.agent}/radar/{spec.id}/targets"))
+    feeds.on_subscribe(f"/agents/{spec.agent}/radar/{spec.id}/targets")
     (sub,) = session.subs
     assert sub.key == f"rmmdet/v1/{spec.agent}/sensor/radar/{spec.id}"  # the scans themselves
     scan = RadarScan(sensor_id=spec.id)
