@@ -23,6 +23,7 @@ from pathlib import Path
 from playwright.sync_api import sync_playwright
 
 from shared.paths import REPO_ROOT
+from shared.viewer.origin import VIEW_WEB_PORT
 
 WEB_APP_DIR = REPO_ROOT / ".run" / "foxglove-web"
 ASSEMBLE = REPO_ROOT / "deploy" / "foxglove" / "web" / "assemble.sh"
@@ -34,14 +35,15 @@ VIEWPORT = {"width": 1600, "height": 950}
 
 
 def serve(directory: Path) -> tuple[http.server.ThreadingHTTPServer, str]:
-    """Serve `directory` on a free loopback port (a daemon thread); returns the server and its URL."""
+    """Serve `directory` as `make view-web` does, on VIEW_WEB_PORT (the one web app origin the viewer
+    allows besides Foxglove's; a daemon thread); returns the server and its URL."""
 
     class Quiet(http.server.SimpleHTTPRequestHandler):
         def log_message(self, format: str, *args: object) -> None:
             pass
 
     handler = functools.partial(Quiet, directory=str(directory))
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", VIEW_WEB_PORT), handler)
     threading.Thread(target=server.serve_forever, daemon=True).start()
     return server, f"http://127.0.0.1:{server.server_address[1]}/"
 
