@@ -5,7 +5,9 @@ process keeps its own CPU and interpreter lock).
 
 `--kind route`: one RouteRequest per made-up vehicle id (`fake00000`, ...) to every route queryable;
 `release`: one ReleaseRequest per made-up id "from region `--region`", unsigned; `clique`: RegionCliques
-of region `--region`, signed by a key no shard holds, each stamped now. Sent without waiting for
+of region `--region`, signed by a key no shard holds, each stamped now; `null`: the route kind's
+requests on a key no service answers (the same load on this host and the router, none on the services:
+what a known vehicle's p95 is under an attacker's load alone). Sent without waiting for
 replies; prints `{"event": "sending"}` after the first tenth and `{"event": "done", ...}` with the counts
 once every query has its replies (or timed out).
 """
@@ -22,7 +24,7 @@ import zenoh
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from google.protobuf.message import Message
 from rmmdet.v1.common_pb2 import Header
-from rmmdet.v1.planning_pb2 import ReleaseRequest
+from rmmdet.v1.planning_pb2 import ReleaseRequest, RouteRequest
 from rmmdet.v1.traffic_pb2 import RegionClique
 
 from shared.bus.codec import encode
@@ -32,6 +34,7 @@ from shared.security.plan_signing import PlanSigner
 from tests.integration.attacker import RequestFlood, flood_queries, flood_route_requests
 
 DONE_WAIT_S = 30.0
+NULL_KEY = "attacker/null"  # outside the project's key space: no queryable, no subscriber
 
 
 def flood_releases(
@@ -64,6 +67,19 @@ def flood_cliques(session: zenoh.Session, count: int, region: int, flood: Reques
             flood.done += 1
 
 
+def flood_null(
+    session: zenoh.Session, ids: list[str], lane: str, destination: str, timeout_s: float, flood: RequestFlood
+) -> None:
+    def requests() -> Iterator[tuple[str, Message]]:
+        for vid in ids:
+            yield (
+                f"{NULL_KEY}/{vid}",
+                RouteRequest(vehicle_id=vid, current_lane_id=lane, destination_junction_id=destination),
+            )
+
+    flood_queries(session, requests(), timeout_s, flood)
+
+
 def main(conf: zenoh.Config, args: argparse.Namespace) -> int:
     flood = RequestFlood()
     ids = [f"fake{i:05d}" for i in range(args.count)]
@@ -75,6 +91,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace) -> int:
             ),
             "release": lambda: flood_releases(session, ids, args.lane, args.region, args.timeout_s, flood),
             "clique": lambda: flood_cliques(session, args.count, args.region, flood),
+            "null": lambda: flood_null(session, ids, args.lane, args.destination, args.timeout_s, flood),
         }
         sender = threading.Thread(target=senders[args.kind], daemon=True)
         sender.start()
@@ -94,7 +111,7 @@ def main(conf: zenoh.Config, args: argparse.Namespace) -> int:
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--connect", required=True)
-    parser.add_argument("--kind", choices=("route", "release", "clique"), default="route")
+    parser.add_argument("--kind", choices=("route", "release", "clique", "null"), default="route")
     parser.add_argument("--count", type=int, default=10_000)
     parser.add_argument("--lane", default="l0")
     parser.add_argument("--destination", default="j3")
