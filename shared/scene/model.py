@@ -204,6 +204,11 @@ class LaneSpec(_Strict):
     speed_limit_mps: float = Field(gt=0)
     corner_radius_m: float | None = Field(None, ge=0, description="fillet radius (default: road's)")
     reverse_lane: Id | None = Field(None, description="the opposite lane of the same road (no U-turns)")
+    next_lanes: list[Id] | None = Field(
+        None,
+        description="the lanes this one leads onto at its end junction (a real crossing's turn "
+        "restrictions); None: every lane leaving that junction but its reverse",
+    )
     circulating: bool = Field(
         False, description="roundabout ring lane: has priority at its junctions; entries are metered"
     )
@@ -414,6 +419,11 @@ class SceneSpec(_Strict):
                     lane.from_junction,
                 ):
                     raise ValueError(f"lane {lane.id}: reverse_lane {lane.reverse_lane} is not its opposite")
+        starts = {lane.id: lane.from_junction for lane in self.lanes}
+        for lane in self.lanes:
+            for after in lane.next_lanes or ():
+                if starts.get(after) != lane.to_junction:
+                    raise ValueError(f"lane {lane.id}: next lane {after} does not leave its end junction")
         for agent in self.agents:
             for area in agent.areas:
                 if area not in areas:

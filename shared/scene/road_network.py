@@ -120,6 +120,8 @@ class RoadNetwork:
                 for lout in outgoing:
                     if lin.reverse_lane == lout.id:
                         continue  # no U-turns
+                    if lin.next_lanes is not None and lout.id not in lin.next_lanes:
+                        continue  # a turn this crossing forbids
                     a, b = self.lanes[lin.id], self.lanes[lout.id]
                     pts = bezier_connector(
                         a.points[-1], float(a.heading[-1]), b.points[0], float(b.heading[0]), step

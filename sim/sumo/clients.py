@@ -3,7 +3,9 @@ each asks for a plan once per lane, `request_before_m` before its end, toward it
 an accepted plan becomes its SUMO route from the lane it is on (`SumoWorld.set_route`); a plan past its
 TTL is dropped and the vehicle routes itself again on what SUMO's router knows (free flow unless told
 otherwise); a vehicle that arrives while following a plan ends it COMPLETED, one whose plan SUMO
-refuses answers REJECTED_INVALID. Ids on the coordinator's side are scene ids (`sim.sumo.scene`) and
+refuses answers REJECTED_INVALID. Vehicles that keep their routes (`SumoWorld.kept`) have no client; a
+vehicle on an edge outside the scene (one cars may not use) asks nothing until it is back on one. Ids
+on the coordinator's side are scene ids (`sim.sumo.scene`) and
 bus ids for vehicles (`sim.sumo.ids`: any id SUMO allows, mapped onto the bus's pattern and back).
 Units: table metres on the coordinator's side, SUMO metres inside SUMO (`TABLE_SCALE`).
 """
@@ -12,6 +14,7 @@ from __future__ import annotations
 
 import logging
 from collections import Counter
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import libsumo
@@ -50,13 +53,16 @@ class ClientVehicle:
 
 
 class SumoPlanClients:
-    """The plan clients of every vehicle running in `world`; `ids` maps SUMO ids to scene ids."""
+    """The plan clients of every vehicle running in `world`; `ids` maps SUMO ids to scene ids, `lanes` are
+    the scene's lanes (a real net names nodes and edges alike: `104` may be both)."""
 
-    def __init__(self, world: SumoWorld, ids: dict[str, str], request_before_m: float) -> None:
+    def __init__(
+        self, world: SumoWorld, ids: dict[str, str], lanes: Iterable[str], request_before_m: float
+    ) -> None:
         self.world = world
         self.scene_of = ids
         self.sumo_of = {v: k for k, v in ids.items()}
-        self.known_lanes = frozenset(self.sumo_of)
+        self.known_lanes = frozenset(lanes)
         self.request_before_m = request_before_m
         self.vehicles: dict[str, ClientVehicle] = {}  # by SUMO id
         self.ids = VehicleIds()
@@ -72,7 +78,7 @@ class SumoPlanClients:
             plan = gone.follower.followed
             if plan is not None:
                 self._ends.append(PlanEnd(gone.bus_id, plan.plan_id, int(plan.version), Ack.COMPLETED))
-        for vid in sorted(running):
+        for vid in self.world.routable(sorted(running)):  # the others keep their routes: no client
             v = self.vehicles.get(vid)
             if v is None:
                 last = self.world.route(vid)[-1]
@@ -83,7 +89,11 @@ class SumoPlanClients:
             edge = libsumo.vehicle.getRoadID(vid)
             if edge.startswith(":"):
                 continue  # inside a junction: still on its last lane as far as plans go
-            v.lane = self.scene_of[edge]
+            lane = self.scene_of.get(edge)
+            if lane not in self.known_lanes:  # an edge cars may not use (a bus lane its class may take)
+                v.lane = ""
+                continue
+            v.lane = lane
             pos_m = libsumo.vehicle.getLanePosition(vid)
             length_m = libsumo.lane.getLength(libsumo.vehicle.getLaneID(vid))
             v.progress_m = pos_m / TABLE_SCALE

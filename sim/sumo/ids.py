@@ -27,17 +27,18 @@ def escape(sumo_id: str) -> str:
     return "".join(c if c in _PLAIN else "".join(f"-{b:02x}" for b in c.encode()) for c in sumo_id)
 
 
-def bus_id(sumo_id: str, digest_chars: int = DIGEST_CHARS) -> str:
-    """The id `sumo_id` has on the bus (see the module docstring); ValueError for an empty id."""
+def bus_id(sumo_id: str, digest_chars: int = DIGEST_CHARS, max_chars: int = MAX_ID_CHARS) -> str:
+    """The id `sumo_id` has on the bus (see the module docstring), at most `max_chars` long (less leaves
+    room for a prefix: a scene's `lidar_<junction>`); ValueError for an empty id."""
     if not sumo_id:
-        raise ValueError("an empty vehicle id")
+        raise ValueError("an empty SUMO id")
     out = escape(sumo_id)
     if out[0] in "-_":  # the pattern's first character is a letter or digit
         out = _LEADING + out
-    if len(out) > MAX_ID_CHARS:
+    if len(out) > max_chars:
         digest = hashlib.sha256(sumo_id.encode()).hexdigest()[:digest_chars]
-        out = f"{out[: MAX_ID_CHARS - digest_chars - 1]}_{digest}"
-    return validate_id(out, "vehicle_id")
+        out = f"{out[: max_chars - digest_chars - 1]}_{digest}"
+    return validate_id(out, "id")
 
 
 class VehicleIds:

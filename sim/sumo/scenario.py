@@ -13,6 +13,7 @@ segmentation fault, seen on a net with an edge missing its end).
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import xml.etree.ElementTree as ET
@@ -24,6 +25,9 @@ import sumolib
 
 from shared.config import ConfigError
 
+#: A configuration's root element: SUMO writes <configuration>; older tools and public scenarios (Bologna's)
+#: <sumoConfiguration>, which SUMO reads the same.
+CONFIG_ROOTS = ("configuration", "sumoConfiguration")
 #: How long SUMO may take to read a scenario's files before it is called hung, s.
 PREFLIGHT_TIMEOUT_S = 120.0
 
@@ -85,8 +89,8 @@ def load_scenario(config: Path) -> Scenario:
         raise ScenarioError(f"{config}: no such scenario configuration") from None
     except (ET.ParseError, OSError) as err:
         raise ScenarioError(f"{config}: not a SUMO configuration: {err}") from None
-    if root.tag != "configuration":
-        raise ScenarioError(f"{config}: root element <{root.tag}>, expected <configuration>")
+    if root.tag not in CONFIG_ROOTS:
+        raise ScenarioError(f"{config}: root element <{root.tag}>, expected one of {CONFIG_ROOTS}")
     inputs = root.find("input")
     nets = _files(config, inputs.find("net-file") if inputs is not None else None, "net-file")
     if len(nets) != 1:
@@ -101,6 +105,31 @@ def load_scenario(config: Path) -> Scenario:
         ),
         begin_s=_seconds(config, time.find("begin") if time is not None else None, "begin"),
         end_s=_seconds(config, time.find("end") if time is not None else None, "end"),
+    )
+
+
+def stage(scenario: Scenario, folder: Path) -> Scenario:
+    """The scenario with its configuration and input files copied under `folder` (their places relative to
+    the configuration kept; a file outside its folder goes to `_outside/`), so that what SUMO writes
+    beside them (the detector and edge outputs an additional file names) lands in `folder`, not in the
+    scenario's source (a vendored copy, or another run's)."""
+    home = scenario.config.parent.resolve()
+
+    def copy(path: Path) -> Path:
+        source = path.resolve()
+        inside = source.is_relative_to(home)
+        target = folder / (source.relative_to(home) if inside else Path("_outside") / source.name)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(source, target)
+        return target
+
+    return Scenario(
+        config=copy(scenario.config),
+        net=copy(scenario.net),
+        routes=tuple(map(copy, scenario.routes)),
+        additional=tuple(map(copy, scenario.additional)),
+        begin_s=scenario.begin_s,
+        end_s=scenario.end_s,
     )
 
 

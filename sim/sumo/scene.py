@@ -6,8 +6,10 @@ length and speed divided by `TABLE_SCALE`, times unscaled, so a 2 km grid is a 1
 lanes, vehicle spacing and perception errors are at the scale every setting was chosen on.
 
 - junctions: the network's nodes (ids made scene ids, `scene_ids`), numbered in id order;
-- lanes: one per SUMO edge (one direction of a road; a multi-lane edge by its middle lane's line), its
-  shape as is (no corner rounding), the opposite edge between the same nodes as its reverse;
+- lanes: one per SUMO edge cars may use (one direction of a road; a multi-lane edge by its middle
+  lane's line), its shape as is (no corner rounding), the opposite edge between the same nodes as its
+  reverse, the edges SUMO connects it to (for that vehicle class) as its next lanes: a crossing's turn
+  restrictions hold in plans;
 - roadside agents at the chosen junctions (`RoadsideLayout`): each has a square area of `range_sumo_m`
   half-width about its junction and one pole lidar there (its anchor for the perception model's recall
   by distance). A lane belongs to the agent at its end junction (its approach, where queues form), else
@@ -18,6 +20,7 @@ Units: table metres unless a name says SUMO metres (`_sumo_m`).
 from __future__ import annotations
 
 import re
+from collections import Counter
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,6 +41,7 @@ from shared.scene.model import (
     TableSpec,
 )
 from shared.scene.scene import Scene
+from sim.sumo.ids import MAX_ID_CHARS, bus_id
 from sim.sumo.network import TABLE_SCALE
 
 #: The area of the lanes no roadside agent covers (lowest priority: it spans the whole table).
@@ -47,6 +51,8 @@ POLE_HEIGHT_M = 0.5
 #: Margin of the table around the network, table metres.
 TABLE_MARGIN_M = 1.0
 _ID_OK = re.compile(r"[^a-z0-9_\-]")
+#: A junction's scene id leaves room for the prefixes of its agent's ids (`lidar_`, `area_`, `rsu_`).
+SCENE_ID_CHARS = MAX_ID_CHARS - len("lidar_")
 
 
 @dataclass(frozen=True)
@@ -58,9 +64,19 @@ class RoadsideLayout:
 
 
 def scene_ids(sumo_ids: Iterable[str]) -> dict[str, str]:
-    """SUMO id -> scene id (lower case, characters a scene id may not hold as "_"); ValueError when two
-    SUMO ids would become one."""
-    out = {s: _ID_OK.sub("_", s.lower())[:64] or "_" for s in sumo_ids}
+    """SUMO id -> scene id: lower case with `_` for characters a scene id may not hold where that is a
+    valid id of at most SCENE_ID_CHARS that no other SUMO id of the net shares (`A0` -> `a0`), else the
+    injective escape of `sim.sumo.ids` (OpenStreetMap's `-23975#1`, Hamburg's 90-character cluster ids);
+    ValueError when two SUMO ids would still become one."""
+    unique = list(dict.fromkeys(sumo_ids))
+    plain = {s: _ID_OK.sub("_", s.lower()) for s in unique}
+    shared = Counter(plain.values())
+    out = {
+        s: p
+        if p and p[0] not in "_-" and len(p) <= SCENE_ID_CHARS and shared[p] == 1
+        else bus_id(s, max_chars=SCENE_ID_CHARS)
+        for s, p in plain.items()
+    }
     seen: dict[str, str] = {}
     for sumo, scene in out.items():
         if scene in seen:
@@ -70,12 +86,17 @@ def scene_ids(sumo_ids: Iterable[str]) -> dict[str, str]:
 
 
 def coverage_layout(net: sumolib.net.Net, fraction: float, seed: int, range_sumo_m: float) -> RoadsideLayout:
-    """Agents at `fraction` of the network's junctions (with at least three roads: crossings, not bends),
-    drawn with `seed`."""
+    """Agents at `fraction` of the network's crossings (junctions of at least three roads, not bends),
+    signalised ones first (where a city would mount them: poles and power are there), drawn with
+    `seed` within each group."""
     crossings = sorted(n.getID() for n in _nodes(net) if len(n.getNeighboringNodes()) >= 3)
     k = round(fraction * len(crossings))
-    chosen = np.random.default_rng(seed).choice(len(crossings), size=k, replace=False)
-    return RoadsideLayout(tuple(sorted(crossings[i] for i in chosen)), range_sumo_m)
+    signalised = [c for c in crossings if net.getNode(c).getType().startswith("traffic_light")]
+    others = [c for c in crossings if c not in set(signalised)]
+    rng = np.random.default_rng(seed)
+    chosen = [signalised[i] for i in rng.choice(len(signalised), size=min(k, len(signalised)), replace=False)]
+    chosen += [others[i] for i in rng.choice(len(others), size=k - len(chosen), replace=False)]
+    return RoadsideLayout(tuple(sorted(chosen)), range_sumo_m)
 
 
 def _nodes(net: sumolib.net.Net) -> list[sumolib.net.node.Node]:
@@ -88,13 +109,17 @@ def _square(centre: np.ndarray, half: float) -> list[tuple[float, float]]:
 
 
 def scene_from_sumo(
-    net_path: Path, layout: RoadsideLayout, scene_id: str = "sumo"
+    net_path: Path, layout: RoadsideLayout, scene_id: str = "sumo", vehicle_class: str = "passenger"
 ) -> tuple[Scene, dict[str, str]]:
     """The scene of the SUMO network `net_path` with `layout`'s roadside agents, and the SUMO id -> scene
-    id map of its junctions and lanes (edges)."""
+    id map of its junctions and lanes: the edges `vehicle_class` may drive on (a real city's bus lanes,
+    tram tracks and footways are no lanes for the plans of cars)."""
     net = sumolib.net.readNet(str(net_path))
     nodes = sorted(_nodes(net), key=lambda n: n.getID())
-    edges = sorted((e for e in net.getEdges() if e.getFunction() != "internal"), key=lambda e: e.getID())
+    edges = sorted(
+        (e for e in net.getEdges() if e.getFunction() != "internal" and e.allows(vehicle_class)),
+        key=lambda e: e.getID(),
+    )
     ids = scene_ids([n.getID() for n in nodes] + [e.getID() for e in edges])
     unknown = sorted(set(layout.junctions) - {n.getID() for n in nodes})
     if unknown:
@@ -126,12 +151,18 @@ def scene_from_sumo(
         for k, n in enumerate(nodes)
     ]
     pairs = {(e.getFromNode().getID(), e.getToNode().getID()): e.getID() for e in edges}
+    kept = {e.getID() for e in edges}
     lanes = []
     for e in edges:
         line = np.asarray(e.getLanes()[e.getLaneNumber() // 2].getShape(), float)[:, :2] * scale
         ends = (e.getToNode().getID(), e.getFromNode().getID())
         area = next((f"area_{ids[j]}" for j in ends if j in agent_of), UNCOVERED_AREA)
         reverse = pairs.get((e.getToNode().getID(), e.getFromNode().getID()))
+        turns = sorted(
+            ids[after.getID()]
+            for after, links in e.getOutgoing().items()
+            if after.getID() in kept and any(_links_class(c, vehicle_class) for c in links)
+        )
         lanes.append(
             LaneSpec(
                 id=ids[e.getID()],
@@ -142,6 +173,7 @@ def scene_from_sumo(
                 speed_limit_mps=e.getSpeed() * scale,
                 corner_radius_m=0.0,
                 reverse_lane=ids[reverse] if reverse else None,
+                next_lanes=turns,
             )
         )
     agents = [
@@ -184,6 +216,13 @@ def scene_from_sumo(
         sensors=sensors,
     )
     return Scene(spec), ids
+
+
+def _links_class(connection: sumolib.net.connection.Connection, vehicle_class: str) -> bool:
+    """True if the connection joins two lanes `vehicle_class` may use."""
+    return bool(
+        connection.getFromLane().allows(vehicle_class) and connection.getToLane().allows(vehicle_class)
+    )
 
 
 def _radius_m(node: sumolib.net.node.Node, scale: float) -> float:

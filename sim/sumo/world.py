@@ -7,6 +7,10 @@ SUMO refuses. The baselines of the city-scale study are options of the same worl
 SUMO's rerouting device (every vehicle rerouted on all edges' live speeds: the oracle), and
 `adapt_travel_times` + `reroute` give SUMO's router only the speeds of the edges a caller chooses.
 
+Vehicles that must keep their routes (`KeptVehicles`: classes not routed, public transport lines,
+vehicles with stops) are marked as SUMO loads them, before they depart: `kept` holds them, counted by
+reason, and SUMO's rerouting device, where on, is switched off for each of them.
+
 libsumo holds one simulation per process (`docs/references.md` \"SUMO\" (1)): a second open world
 is a clear error, and parallel seeds run in separate processes.
 Units: metres, seconds, radians counter-clockwise from +x.
@@ -36,6 +40,29 @@ _VARS = (
     libsumo.constants.VAR_ROAD_ID,
 )
 _open_world: SumoWorld | None = None  # libsumo's one simulation of this process
+#: The vehicle classes the study routes by default: private cars, planned on the edges cars may use
+#: (`sim.sumo.scene`). Buses, taxis, deliveries, trucks, bicycles, ... keep their routes, and so do
+#: Bologna's `ignoring` cars (allowed on bus lanes: some trips end on one, out of a car plan's reach).
+ROUTED_CLASSES = ("passenger", "private", "evehicle")
+
+
+@dataclass(frozen=True)
+class KeptVehicles:
+    """Which vehicles keep their routes whatever the arm: those of a class not in `routed_classes`,
+    those on a public transport line, those with stops (the stops are the trip)."""
+
+    routed_classes: frozenset[str] = frozenset(ROUTED_CLASSES)
+
+    def reason(self, vehicle_id: str) -> str | None:
+        """Why the loaded vehicle keeps its route (`class_<vClass>`, `line`, `stops`), or None."""
+        vclass = libsumo.vehicle.getVehicleClass(vehicle_id)
+        if vclass not in self.routed_classes:
+            return f"class_{vclass}"
+        if libsumo.vehicle.getLine(vehicle_id):
+            return "line"
+        if libsumo.vehicle.getStops(vehicle_id):
+            return "stops"
+        return None
 
 
 @dataclass(frozen=True)
@@ -93,7 +120,12 @@ class SumoWorld:
         tripinfo: Path | None = None,
         extra: tuple[str, ...] = (),
         additional: Sequence[Path] = (),
+        keep: KeptVehicles | None = KeptVehicles(),
+        begin_s: float | None = None,
+        scale: float = 1.0,
     ) -> None:
+        """`keep`: which vehicles keep their routes (None: none); `begin_s`: SUMO's begin (None: its
+        default, 0); `scale`: the demand scaled by SUMO (`--scale`: 2 inserts each vehicle twice)."""
         global _open_world
         if _open_world is not None:
             raise RuntimeError("libsumo runs one simulation per process: close the open SumoWorld first")
@@ -109,6 +141,8 @@ class SumoWorld:
             "--no-step-log=true",
             "--no-warnings=true",
             "--time-to-teleport=300",  # a vehicle stuck 5 min jumps ahead (SUMO's gridlock breaker)
+            f"--scale={scale}",
+            *([f"--begin={begin_s}"] if begin_s is not None else []),
         ]
         if tripinfo is not None:
             tripinfo.parent.mkdir(parents=True, exist_ok=True)
@@ -124,17 +158,34 @@ class SumoWorld:
             ) from None
         _open_world = self
         self.step_s = step_s
+        self.keep = keep
+        self.kept: set[str] = set()
+        self._device = rerouting is not None
         self.counts: Counter[str] = Counter()
         self.time_s = float(libsumo.simulation.getTime())
 
     def step(self) -> float:
         """Advance one step; the sim time after it, s."""
+        if self.keep is not None:
+            for vid in libsumo.simulation.getLoadedIDList():  # loaded ahead of departing
+                self._mark(vid)
         libsumo.simulationStep()
+        self.counts["teleports"] += libsumo.simulation.getStartingTeleportNumber()
         for vid in libsumo.simulation.getDepartedIDList():
             libsumo.vehicle.subscribe(vid, list(_VARS))
         self.counts["arrived"] += libsumo.simulation.getArrivedNumber()
         self.time_s = float(libsumo.simulation.getTime())
         return self.time_s
+
+    def _mark(self, vehicle_id: str) -> None:
+        assert self.keep is not None
+        reason = self.keep.reason(vehicle_id)
+        if reason is None:
+            return
+        self.kept.add(vehicle_id)
+        self.counts[f"kept/{reason}"] += 1
+        if self._device:  # period 0: this vehicle's rerouting device never reroutes it
+            libsumo.vehicle.setParameter(vehicle_id, "device.rerouting.period", "0")
 
     def vehicles(self) -> VehicleStates:
         """Every running vehicle's state after the last step."""
@@ -155,7 +206,11 @@ class SumoWorld:
 
     def set_route(self, vehicle_id: str, edges: list[str]) -> bool:
         """Give the vehicle `edges` as its route; False (counted `route_refused`) if SUMO refuses it (not
-        starting on the vehicle's edge, not connected, or the vehicle has gone)."""
+        starting on the vehicle's edge, not connected, or the vehicle has gone), or (counted
+        `kept/route_refused`) if the vehicle keeps its route."""
+        if vehicle_id in self.kept:
+            self.counts["kept/route_refused"] += 1
+            return False
         try:
             libsumo.vehicle.setRoute(vehicle_id, edges)
         except libsumo.TraCIException as exc:
@@ -171,10 +226,19 @@ class SumoWorld:
         for edge, t in edge_time_s.items():
             libsumo.edge.adaptTraveltime(edge, t)
 
-    def reroute(self, vehicle_id: str) -> None:
-        """Reroute the vehicle on the adapted travel times (free flow where none was adapted)."""
+    def reroute(self, vehicle_id: str) -> bool:
+        """Reroute the vehicle on the adapted travel times (free flow where none was adapted); False
+        (counted `kept/route_refused`) for a vehicle that keeps its route."""
+        if vehicle_id in self.kept:
+            self.counts["kept/route_refused"] += 1
+            return False
         libsumo.vehicle.rerouteTraveltime(vehicle_id, False)
         self.counts["rerouted"] += 1
+        return True
+
+    def routable(self, vehicle_ids: Sequence[str]) -> list[str]:
+        """Those of `vehicle_ids` an arm may route (not kept)."""
+        return [v for v in vehicle_ids if v not in self.kept]
 
     def running(self) -> int:
         """Vehicles on the network now."""

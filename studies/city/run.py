@@ -1,7 +1,8 @@
 """One run of the city-scale study: a SUMO district (sim/sumo) under one arm, lock step, no rendering.
 
-Arms (what routes the vehicles):
-  shortest      duarouter's free-flow shortest paths, never changed (no rerouting)
+Arms (what routes the vehicles; those that keep their routes, `SumoWorld.kept`, are left alone by all):
+  as_given      the routes the demand came with (a scenario's own; on a generated grid duarouter's)
+  shortest      free-flow shortest paths: each vehicle rerouted once as it departs on free-flow times
   sumo_oracle   SUMO's rerouting device: every vehicle rerouted every `reroute_period_s` on every
                 edge's live speed (global, perfect information: the oracle baseline)
   sumo_covered  SUMO's router fed only the covered lanes' travel times (moving average like the
@@ -21,7 +22,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter, deque
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -37,22 +38,23 @@ from sim.sumo import trips
 from sim.sumo.clients import SumoPlanClients
 from sim.sumo.network import TABLE_SCALE
 from sim.sumo.scene import UNCOVERED_AREA, RoadsideLayout, scene_from_sumo
-from sim.sumo.world import Rerouting, SumoWorld
+from sim.sumo.world import KeptVehicles, Rerouting, SumoWorld
 from studies.city.shards import ShardedCoordinator
 from studies.experiments.oracle import OracleAgents, OracleErrorModel
 
 log = logging.getLogger(__name__)
 
-ARMS = ("shortest", "sumo_oracle", "sumo_covered", "rmmdet")
+ARMS = ("as_given", "shortest", "sumo_oracle", "sumo_covered", "rmmdet")
 
 
 @dataclass(frozen=True)
 class CityRun:
-    """What one run drives: `net` with the vehicles of `routes` for `duration_s` (or until all
-    arrived), roadside agents per `layout`."""
+    """What one run drives: `net` with the vehicles of `routes` (and `additional` files: vTypes, signal
+    programs, detectors, stops) from `begin_s` for `duration_s` (or until all arrived), roadside agents
+    per `layout`."""
 
     net: Path
-    routes: Path
+    routes: Path | tuple[Path, ...]
     layout: RoadsideLayout
     seed: int
     duration_s: float
@@ -67,6 +69,10 @@ class CityRun:
     kill_shard: int | None = None  # a shard to kill at `kill_at_s` ...
     kill_at_s: float = 0.0
     restart_after_s: float | None = None  # ... and restart this much later (None: never)
+    additional: tuple[Path, ...] = ()
+    begin_s: float | None = None  # SUMO's begin (None: 0)
+    scale: float = 1.0  # the demand scaled by SUMO (--scale)
+    keep: KeptVehicles = field(default_factory=KeptVehicles)
 
 
 def roadside_model(model: OracleErrorModel, agents: list[str], profile: str) -> OracleErrorModel:
@@ -90,10 +96,20 @@ def run_arm(
     step_ms: list[float] = []
     vehicle_s = 0.0  # vehicle-seconds on the network
     with SumoWorld(
-        run.net, run.routes, run.seed, run.step_s, rerouting if arm == "sumo_oracle" else None, tripinfo
+        run.net,
+        run.routes,
+        run.seed,
+        run.step_s,
+        rerouting if arm == "sumo_oracle" else None,
+        tripinfo,
+        additional=run.additional,
+        keep=run.keep,
+        begin_s=run.begin_s,
+        scale=run.scale,
     ) as world:
+        begin_s = world.time_s
         driver = _driver(run, arm, world, coordinator, model)
-        while world.time_s < run.duration_s and world.expected_vehicles() > 0:
+        while world.time_s < begin_s + run.duration_s and world.expected_vehicles() > 0:
             world.step()
             vehicle_s += world.running() * run.step_s
             if driver is not None:
@@ -108,19 +124,19 @@ def run_arm(
             counts["shards/max_owners"] = driver.max_owners
             counts["shards/plans_kept"] = sum(c.plans_kept for c in driver.coordinator.live().values())
     wall_s, cpu_s = time.perf_counter() - t0, time.process_time() - cpu0
-    summary = trips.summarise(tripinfo, 0.0, end_s)
+    summary = trips.summarise(tripinfo, begin_s, max(end_s, begin_s + run.step_s))
     return {
         "arm": arm,
         "seed": run.seed,
         "roadside_junctions": list(run.layout.junctions),
-        "sim_s": end_s,
-        "running_mean": vehicle_s / max(end_s, 1e-9),
+        "sim_s": end_s - begin_s,
+        "running_mean": vehicle_s / max(end_s - begin_s, 1e-9),
         "trips": asdict(summary),
         "counts": dict(counts),
         "driver_ms": _percentiles(step_ms),
         "shard_ms": driver.coordinator.timing() if isinstance(driver, Coordinated) else {},
         "wall_s": wall_s,
-        "cpu_s_per_sim_s": cpu_s / max(end_s, 1e-9),
+        "cpu_s_per_sim_s": cpu_s / max(end_s - begin_s, 1e-9),
     }
 
 
@@ -128,6 +144,21 @@ def _percentiles(values: list[float]) -> dict[str, float | None]:
     if not values:
         return {"p50": None, "p95": None}
     return {"p50": float(np.percentile(values, 50)), "p95": float(np.percentile(values, 95))}
+
+
+class FreeFlowRouting:
+    """`shortest`: each vehicle that may be routed takes the free-flow shortest path to its destination
+    as it departs (SUMO's router, nothing adapted), then keeps it."""
+
+    def __init__(self, world: SumoWorld) -> None:
+        import libsumo
+
+        self.libsumo = libsumo
+        self.world = world
+
+    def step(self, counts: Counter[str]) -> None:
+        for vid in self.world.routable(self.libsumo.simulation.getDepartedIDList()):
+            self.world.reroute(vid)
 
 
 class CoveredRerouting:
@@ -150,7 +181,7 @@ class CoveredRerouting:
         if self.steps % self.every:
             return
         self.world.adapt_travel_times({e: sum(w) / len(w) for e, w in self.samples.items()})
-        for vid in self.libsumo.vehicle.getIDList():
+        for vid in self.world.routable(self.libsumo.vehicle.getIDList()):
             self.world.reroute(vid)
         counts["reroute_rounds"] += 1
 
@@ -168,7 +199,9 @@ class Coordinated:
         self.coordinator = ShardedCoordinator(scene, settings, regions, run.max_vehicles)
         agents = sorted(scene.agents)
         self.oracle = OracleAgents(scene, network, roadside_model(model, agents, run.profile), run.seed)
-        self.clients = SumoPlanClients(world, ids, run.request_before_m)
+        self.clients = SumoPlanClients(
+            world, ids, [lane.id for lane in scene.spec.lanes], run.request_before_m
+        )
         self.world = world
         self.run = run
         self.map_every = max(1, round(run.map_period_s / run.step_s))
@@ -225,7 +258,9 @@ class Coordinated:
 
 def _driver(
     run: CityRun, arm: str, world: SumoWorld, coordinator: CoordinatorSettings, model: OracleErrorModel
-) -> CoveredRerouting | Coordinated | None:
+) -> FreeFlowRouting | CoveredRerouting | Coordinated | None:
+    if arm == "shortest":
+        return FreeFlowRouting(world)
     if arm == "sumo_covered":
         scene, ids = scene_from_sumo(run.net, run.layout)
         sumo_of = {v: k for k, v in ids.items()}
@@ -233,4 +268,4 @@ def _driver(
         return CoveredRerouting(run, world, covered)
     if arm == "rmmdet":
         return Coordinated(run, world, coordinator, model)
-    return None  # shortest, sumo_oracle: SUMO alone
+    return None  # as_given, sumo_oracle: SUMO alone

@@ -1,6 +1,10 @@
-"""`rmmdet experiments city`: scheduling at scale on a SUMO grid, the coordinator against SUMO's routing.
+"""`rmmdet experiments city`: scheduling at scale on a SUMO grid or scenario, the coordinator against
+SUMO's routing.
 
-For each demand level and seed, the routed demand (sim/sumo/demand.py) is driven by every arm
+On a generated grid, the demand levels are routed demands (sim/sumo/demand.py); on a scenario
+(`scenario:`, a .sumocfg, e.g. a public real city), its own files as SUMO reads them, each scaled by
+`scale` (sim/sumo/scenario.py: copied into each run's folder, so its detector outputs land there). For
+each demand level and seed, the demand is driven by every arm
 (studies/city/run.py); arms that read the roadside agents (`sumo_covered`, `rmmdet`) run once per
 coverage (a share of the crossings, drawn per seed). Compared per (demand, coverage): the coordinator's
 mean travel time (departure delay included) and trips per hour against each baseline arm, as paired
@@ -23,7 +27,9 @@ from shared.config import with_overrides
 from shared.machine import git_commit, machine_info
 from shared.traffic.config import load_coordinator_settings
 from sim.sumo import demand, network
+from sim.sumo.scenario import load_scenario, preflight, stage
 from sim.sumo.scene import RoadsideLayout, coverage_layout
+from sim.sumo.world import KeptVehicles
 from studies.city.config import CityStudySettings
 from studies.city.run import CityRun, run_arm
 from studies.experiments.config import DEFAULT_ORACLE_MODEL
@@ -34,10 +40,11 @@ from studies.stats import paired_cell, paired_differences
 log = logging.getLogger(__name__)
 
 #: Arms whose routes do not depend on the roadside agents: run once per (demand, seed).
-COVERAGE_FREE = ("shortest", "sumo_oracle")
+COVERAGE_FREE = ("as_given", "shortest", "sumo_oracle")
 #: Figures compared between arms, per seed: (label, key of the trips summary, format of a difference).
 COMPARED = (
     ("mean travel time s", "travel_time_mean_s", "{:+.1f}"),
+    ("mean time loss s", "time_loss_mean_s", "{:+.1f}"),
     ("trips per hour", "trips_per_hour", "{:+.0f}"),
 )
 
@@ -45,22 +52,34 @@ COMPARED = (
 @dataclass(frozen=True)
 class Job:
     settings_json: str
-    net: Path
-    routes: Path
+    net: Path  # the generated grid's (a scenario's come from its configuration, staged per run)
+    routes: Path | None
     junctions: tuple[str, ...]
     level: str
     coverage: float | None
     seed: int
     arm: str
     out: Path
+    scale: float = 1.0
 
 
 def _run(job: Job) -> dict[str, Any]:
     s = CityStudySettings.model_validate_json(job.settings_json)
-    run = CityRun(
-        job.net, job.routes, RoadsideLayout(job.junctions, s.range_m), job.seed, s.duration_s,
-        reroute_period_s=s.reroute_period_s, shards=s.shards,
-    )  # fmt: skip
+    layout = RoadsideLayout(job.junctions, s.range_m)
+    keep = KeptVehicles(frozenset(s.routed_classes))
+    if s.scenario is not None:
+        scn = stage(load_scenario(s.scenario), job.out / "inputs")
+        duration_s = s.duration_s if scn.end_s is None else scn.end_s - (scn.begin_s or 0.0)
+        run = CityRun(
+            scn.net, scn.routes, layout, job.seed, duration_s, reroute_period_s=s.reroute_period_s,
+            shards=s.shards, additional=scn.additional, begin_s=scn.begin_s, scale=job.scale, keep=keep,
+        )  # fmt: skip
+    else:
+        assert job.routes is not None
+        run = CityRun(
+            job.net, job.routes, layout, job.seed, s.duration_s, reroute_period_s=s.reroute_period_s,
+            shards=s.shards, keep=keep,
+        )  # fmt: skip
     model = OracleErrorModel.load(DEFAULT_ORACLE_MODEL)
     coordinator = with_overrides(load_coordinator_settings(), s.coordinator)
     result = run_arm(run, job.arm, coordinator, model, job.out)
@@ -70,31 +89,50 @@ def _run(job: Job) -> dict[str, Any]:
 
 
 def jobs(s: CityStudySettings, work: Path) -> list[Job]:
-    """Every (demand level, seed, arm[, coverage]) run, the network and demands written under `work`."""
-    net_path = network.grid_network(network.GridSpec(s.grid_side, s.edge_length_m), work / "grid.net.xml")
+    """Every (demand level, seed, arm[, coverage]) run, the grid and its demands written under `work` (a
+    scenario is read, and checked by SUMO once, here)."""
+    if s.scenario is not None:
+        # SUMO reads a copy once here (one clear error now, not one per run; what it writes stays there).
+        scn = stage(load_scenario(s.scenario), work / "scenario")
+        preflight(scn.net, scn.routes, scn.additional)
+        net_path = scn.net
+        routes_of: dict[tuple[str, int], Path | None] = {
+            (lv, seed): None for lv in s.levels() for seed in s.seeds
+        }
+        scale_of = dict(zip(s.levels(), s.scale, strict=True))
+    else:
+        net_path = network.grid_network(network.GridSpec(s.grid_side, s.edge_length_m), work / "grid.net.xml")
+        routes_of = {}
+        for level, vehicles in s.demand.items():
+            spec = demand.DemandSpec(
+                vehicles=vehicles, end_s=s.departures_s, min_distance_m=2 * s.edge_length_m
+            )
+            for seed in s.seeds:
+                routes_of[(level, seed)] = demand.routed_demand(
+                    net_path, spec, seed, work / level / f"s{seed}.rou.xml"
+                )
+        scale_of = {}
     net = sumolib.net.readNet(str(net_path))
     out = []
-    for level, vehicles in s.demand.items():
-        spec = demand.DemandSpec(vehicles=vehicles, end_s=s.departures_s, min_distance_m=2 * s.edge_length_m)
-        for seed in s.seeds:
-            routes = demand.routed_demand(net_path, spec, seed, work / level / f"s{seed}.rou.xml")
-            for arm in s.arms:
-                for coverage in [None] if arm in COVERAGE_FREE else s.coverage:
-                    layout = coverage_layout(net, coverage if coverage is not None else 0.0, seed, s.range_m)
-                    folder = work / level / f"s{seed}" / (arm if coverage is None else f"{arm}_c{coverage:g}")
-                    out.append(
-                        Job(
-                            s.model_dump_json(),
-                            net_path,
-                            routes,
-                            layout.junctions,
-                            level,
-                            coverage,
-                            seed,
-                            arm,
-                            folder,
-                        )
+    for (level, seed), routes in routes_of.items():
+        for arm in s.arms:
+            for coverage in [None] if arm in COVERAGE_FREE else s.coverage:
+                layout = coverage_layout(net, coverage if coverage is not None else 0.0, seed, s.range_m)
+                folder = work / level / f"s{seed}" / (arm if coverage is None else f"{arm}_c{coverage:g}")
+                out.append(
+                    Job(
+                        s.model_dump_json(),
+                        net_path,
+                        routes,
+                        layout.junctions,
+                        level,
+                        coverage,
+                        seed,
+                        arm,
+                        folder,
+                        scale_of.get(level, 1.0),
                     )
+                )
     return out
 
 
@@ -102,7 +140,7 @@ def comparisons(runs: list[dict[str, Any]], s: CityStudySettings) -> dict[str, A
     """Per (demand, coverage) and baseline: the coordinator minus the baseline, paired by seed."""
     by = {(r["level"], r["arm"], r["coverage"], r["seed"]): r["trips"] for r in runs}
     out: dict[str, Any] = {}
-    for level in s.demand:
+    for level in s.levels():
         for coverage in s.coverage:
             row: dict[str, Any] = {}
             for base in s.baseline_arms:
@@ -124,7 +162,7 @@ def run_study(s: CityStudySettings, work: Path, out: Path) -> dict[str, Any]:
     t0 = time.perf_counter()
     runs = list(run_jobs(_run, jobs(s, work), s.workers))
     results = {
-        "settings": s.model_dump(),
+        "settings": s.model_dump(mode="json"),
         "runs": runs,
         "comparisons": comparisons(runs, s),
         "wall_s": round(time.perf_counter() - t0, 1),
@@ -139,8 +177,13 @@ def run_study(s: CityStudySettings, work: Path, out: Path) -> dict[str, Any]:
 def markdown_table(results: dict[str, Any]) -> str:
     """The README's city table: per demand level and coverage, the coordinator against each baseline."""
     s = results["settings"]
+    where = (
+        f"SUMO scenario {Path(s['scenario']).parent.name}/{Path(s['scenario']).name}"
+        if s.get("scenario")
+        else f"{s['grid_side']} x {s['grid_side']} SUMO grid ({s['edge_length_m']:g} m)"
+    )
     head = (
-        f"{s['grid_side']} x {s['grid_side']} SUMO grid ({s['edge_length_m']:g} m), seeds {s['seeds']}, "
+        f"{where}, seeds {s['seeds']}, "
         f"{s['shards']} coordinator shard(s); rmmdet minus baseline per seed, mean ± 95 % CI (bold: the "
         f"interval excludes 0); coordinator overrides {s.get('coordinator') or 'none'}; commit "
         f"{results['commit']}, {results['machine'].get('cpu_model', '?')}."
@@ -154,7 +197,7 @@ def markdown_table(results: dict[str, Any]) -> str:
     arms = s["arms"]
     lines += ["", "Mean travel time, s (departure delay included), mean over the seeds:", "",
               "| demand @ coverage | " + " | ".join(arms) + " |", "|---|" + "---|" * len(arms)]  # fmt: skip
-    for level in s["demand"]:
+    for level in CityStudySettings.model_validate(s).levels():
         for coverage in s["coverage"]:
             cells = []
             for arm in arms:

@@ -19,15 +19,17 @@ def test_toy_study_compares_the_coordinator_with_every_baseline(tmp_path: Path) 
     )  # fmt: skip
     results = run_study(s, tmp_path / "work", tmp_path / "out")
     runs = results["runs"]
-    # 2 seeds x (shortest + sumo_oracle + 2 coverages x (sumo_covered + rmmdet)) runs.
-    assert len(runs) == 2 * (2 + 2 * 2)
+    # 2 seeds x (as_given + shortest + sumo_oracle + 2 coverages x (sumo_covered + rmmdet)) runs.
+    assert len(runs) == 2 * (3 + 2 * 2)
     assert all(r["trips"]["trips"] > 0 for r in runs)
     assert (tmp_path / "out" / "results.json").exists()
     for key in ("light@1", "light@0.5"):
         row = results["comparisons"][key]
-        assert set(row) == {"shortest", "sumo_oracle", "sumo_covered"}
+        assert set(row) == {"as_given", "shortest", "sumo_oracle", "sumo_covered"}
         for base in row.values():
-            assert base["travel_time_mean_s"]["n"] == 2 and base["trips_per_hour"]["n"] == 2
+            assert all(
+                base[k]["n"] == 2 for k in ("travel_time_mean_s", "time_loss_mean_s", "trips_per_hour")
+            )
     table = markdown_table(results)
     assert "| light @ 1 |" not in table and "| light@1 |" in table and "vs sumo_oracle" in table
 
