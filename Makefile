@@ -12,7 +12,7 @@ SUPERVISOR_CONF := deploy/local/supervisord.conf
 RUN_DIR := .run
 PYTEST_ARGS ?=
 
-.PHONY: help install proto pki up down status logs view-web screenshots docs test test-unit test-integration test-fault bench soak models eval eval-fusion eval-real eval-robustness experiments experiments-city lint typecheck fmt clean
+.PHONY: help install proto pki up down status logs view-web screenshots docs test test-unit test-integration test-fault bench soak models eval eval-fusion eval-real eval-robustness experiments experiments-city experiments-cities lint typecheck fmt clean
 
 help: ## list targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-18s %s\n", $$1, $$2}'
@@ -174,6 +174,9 @@ experiments: install ## the flow experiment: oracle fitted on real-chain runs, 6
 
 experiments-city: install ## scheduling at scale: a 10x10 SUMO grid, 3 demand levels x 3 coverages x 5 seeds, the coordinator vs shortest paths / SUMO rerouting (hours) -> docs/eval/city
 	$(BIN)/rmmdet experiments city --out docs/eval/city
+
+experiments-cities: install ## the city study on three public real-city SUMO scenarios (Bologna x2, Hamburg): tuned on one, scored once on the others' held-out seeds -> docs/eval/city-real
+	$(BIN)/rmmdet experiments cities --out docs/eval/city-real --readme
 
 lint: install ## ruff
 	$(BIN)/ruff check .

@@ -27,7 +27,7 @@ from shared.config import with_overrides
 from shared.machine import git_commit, machine_info
 from shared.traffic.config import load_coordinator_settings
 from sim.sumo import demand, network
-from sim.sumo.scenario import load_scenario, preflight, stage
+from sim.sumo.scenario import ScenarioError, load_scenario, preflight, stage
 from sim.sumo.scene import RoadsideLayout, coverage_layout
 from sim.sumo.world import KeptVehicles
 from studies.city.config import CityStudySettings
@@ -93,8 +93,14 @@ def jobs(s: CityStudySettings, work: Path) -> list[Job]:
     scenario is read, and checked by SUMO once, here)."""
     if s.scenario is not None:
         # SUMO reads a copy once here (one clear error now, not one per run; what it writes stays there).
-        scn = stage(load_scenario(s.scenario), work / "scenario")
-        preflight(scn.net, scn.routes, scn.additional)
+        source = load_scenario(s.scenario)
+        scn = stage(source, work / "scenario")
+        try:
+            preflight(scn.net, scn.routes, scn.additional)
+        except ScenarioError as err:  # named by the files the user gave, not their copies
+            raise ScenarioError(
+                str(err).replace(f"{work / 'scenario'}/", f"{source.config.parent}/")
+            ) from None
         net_path = scn.net
         routes_of: dict[tuple[str, int], Path | None] = {
             (lv, seed): None for lv in s.levels() for seed in s.seeds

@@ -103,3 +103,23 @@ def test_a_study_of_a_scenario_compares_every_arm(tmp_path: Path) -> None:
     assert all(v["travel_time_mean_s"]["n"] == 2 for v in row.values())
     assert "SUMO scenario bologna_pasubio/run.sumocfg" in markdown_table(results)
     assert not any(p.name.startswith("e1_output") for p in (SCENARIOS / "bologna_pasubio").iterdir())
+
+
+def test_real_cities_are_tuned_on_one_scenario_and_scored_on_the_others(tmp_path: Path) -> None:
+    """`rmmdet experiments cities`: the setting chosen on the tuning scenario's tuning seeds, then every
+    other scenario scored on the held-out seeds with it; the tuning scenario is not in the table."""
+    from studies.city.real import RealCitiesSettings, markdown_table, run_cities
+
+    s = RealCitiesSettings(
+        scenarios={n: SCENARIOS / n / CONFIGS[n] for n in ("bologna_acosta", "bologna_pasubio")},
+        tuning="bologna_acosta", candidates=["table", "district"],
+        study={"seeds": [1, 2], "coverage": [0.5], "duration_s": 60.0, "workers": 1},
+    )  # fmt: skip
+    results = run_cities(s, tmp_path / "work", tmp_path / "out")
+    tuning = results["tuning"]
+    assert set(tuning["mean_travel_time_s"]) == {"table", "district"}
+    assert tuning["chosen"] == min(tuning["mean_travel_time_s"], key=tuning["mean_travel_time_s"].get)
+    assert list(results["held_out"]) == ["bologna_pasubio"]
+    table = markdown_table(results)
+    assert "| bologna_pasubio | x1@0.5 |" in table and "| bologna_acosta |" not in table
+    assert (tmp_path / "out" / "results.json").is_file()
