@@ -166,11 +166,13 @@ def comparisons(runs: list[dict[str, Any]], s: CityStudySettings) -> dict[str, A
 
 def run_study(s: CityStudySettings, work: Path, out: Path) -> dict[str, Any]:
     t0 = time.perf_counter()
-    runs = list(run_jobs(_run, jobs(s, work), s.workers))
+    ran_on: list[dict[str, Any]] = []
+    runs = list(run_jobs(_run, jobs(s, work), s.workers, ran_on))
     results = {
         "settings": s.model_dump(mode="json"),
         "runs": runs,
         "comparisons": comparisons(runs, s),
+        "ran_on": ran_on,
         "wall_s": round(time.perf_counter() - t0, 1),
         "commit": git_commit(),
         "machine": machine_info(),

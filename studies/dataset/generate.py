@@ -297,11 +297,12 @@ def generate(cfg: DatasetSettings, root: Path, workers: int = 1, progress: bool 
     jobs = [(cfg, root, split, seed) for split, seed in todo]
     t0 = time.monotonic()
     bar = tqdm(total=len(jobs), desc="seeds", unit="seed", disable=not progress)
-    for result in run_jobs(_work, jobs, workers if len(jobs) > 1 else 1):
+    ran_on: list[dict[str, Any]] = []
+    for result in run_jobs(_work, jobs, workers if len(jobs) > 1 else 1, ran_on):
         bar.update()
         bar.set_postfix(images=len(result.camera_stems), lidar=len(result.lidar_stems))
     bar.close()
-    summary = finish(cfg, layout)
+    summary = {**finish(cfg, layout), "ran_on": ran_on}  # this call's seeds (resumed ones ran before)
     log.info("dataset %s done in %.0f s: %s", root, time.monotonic() - t0, json.dumps(summary["splits"]))
     return summary
 

@@ -77,6 +77,7 @@ from sim.sensors.rig import Capture
 from studies.dataset.conditions import SeedConditions
 from studies.dataset.config import Variation
 from studies.evaluation import robustness
+from studies.parallel import run_jobs
 
 log = logging.getLogger(__name__)
 
@@ -709,12 +710,12 @@ def evaluate(
     per_seed: dict[str, dict[str, dict[str, float | None]]] | None = None,
     scene_path: Path = DEFAULT_SCENE,
     sim_overrides: dict[str, Any] | None = None,
+    placements: list[dict[str, Any]] | None = None,
 ) -> dict[str, AgentEvaluation]:
     """Every (agent, seed) run under the seed's conditions drawn from `variation` (and `perturbation`),
     merged per agent and over all agents (key "all"); with `per_seed`, each run's `seed_row` is put
-    there as per_seed[agent][str(seed)] (for paired comparisons over seeds)."""
-    import multiprocessing as mp
-
+    there as per_seed[agent][str(seed)] (for paired comparisons over seeds); with `placements`, where
+    each run ran (studies/parallel.py: this machine's pool or a Dask cluster)."""
     if workers > 1:
         # One onnxruntime thread per model and process: spinning ORT threads of parallel workers
         # oversubscribe the cores and run many times slower.
@@ -751,13 +752,8 @@ def evaluate(
 
     # A progress bar on a terminal (tqdm disables itself when stderr is not one: logs stay clean).
     bar = tqdm(total=len(jobs), desc="agent runs", unit="run", disable=None)
-    if workers <= 1:
-        for result in map(_run_worker, jobs):
-            add(*result)
-    else:
-        with mp.get_context("spawn").Pool(workers) as pool:
-            for result in pool.imap_unordered(_run_worker, jobs):
-                add(*result)
+    for result in run_jobs(_run_worker, jobs, workers, placements):
+        add(*result)
     bar.close()
     return {**per_agent, "all": merge_agents(per_agent)}
 

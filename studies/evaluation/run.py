@@ -86,6 +86,7 @@ def run_fusion_study(
     `out/results.json` and plots; the results."""
     t0 = time.perf_counter()
     per_seed: dict[str, dict[str, dict[str, float | None]]] = {}
+    ran_on: list[dict[str, Any]] = []
     evaluations = fe.evaluate(
         agents,
         seeds,
@@ -97,6 +98,7 @@ def run_fusion_study(
         per_seed=per_seed,
         scene_path=scene_path,
         sim_overrides=sim_overrides,
+        placements=ran_on,
     )
     results: dict[str, Any] = {
         "scene": scene.spec.scene_id,
@@ -116,6 +118,7 @@ def run_fusion_study(
         summary["fusion_gain"] = fe.fusion_gain(summary)
         results[name] = summary
     results["per_seed"] = per_seed  # tracked AP / MOTA per (agent, seed): paired comparisons
+    results["ran_on"] = ran_on
     out.mkdir(parents=True, exist_ok=True)
     results["heat_maps"] = fe.write_heat_maps(evaluations["all"], scene, out)
     if noise:

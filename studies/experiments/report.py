@@ -68,9 +68,13 @@ def _worker(job: tuple[str, int, int, str, str, str]) -> RunResult:
 
 
 def run_grid(
-    exp: FlowExperimentSettings, sim: SimSettings, coordinator: CoordinatorSettings
+    exp: FlowExperimentSettings,
+    sim: SimSettings,
+    coordinator: CoordinatorSettings,
+    placements: list[dict[str, Any]] | None = None,
 ) -> list[RunResult]:
-    """Every (policy, fleet size, seed) run; processes in parallel (spawned, one per run)."""
+    """Every (policy, fleet size, seed) run; processes in parallel (spawned, one per run, or on a Dask
+    cluster: studies/parallel.py); where each ran into `placements` when given."""
     # Only what was set: a dumped default would come back explicit and no longer scale with the scene
     # (as the real-chain runs' workers get theirs, run.py).
     dumps = (
@@ -87,7 +91,11 @@ def run_grid(
     t0 = time.perf_counter()
     # A progress bar on a terminal (tqdm disables itself when stderr is not one: logs stay clean).
     for r in tqdm(
-        run_jobs(_worker, jobs, exp.workers), total=len(jobs), desc="flow runs", unit="run", disable=None
+        run_jobs(_worker, jobs, exp.workers, placements),
+        total=len(jobs),
+        desc="flow runs",
+        unit="run",
+        disable=None,
     ):
         results.append(r)
         log.info(

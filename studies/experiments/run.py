@@ -133,7 +133,8 @@ def run_flow_study(exp: FlowExperimentSettings, mec: MecSettings, out: Path) -> 
     scene = Scene.load(sim.scene)
     t0 = time.perf_counter()
     fitted = fit_oracle(exp, sim, coordinator, mec) if exp.oracle_fit.enabled else None
-    runs = report.run_grid(exp, sim, coordinator)
+    ran_on: list[dict[str, Any]] = []
+    runs = report.run_grid(exp, sim, coordinator, ran_on)
     agg = report.aggregate(runs)
     results: dict[str, Any] = {
         "settings": json.loads(exp.model_dump_json()),
@@ -144,6 +145,7 @@ def run_flow_study(exp: FlowExperimentSettings, mec: MecSettings, out: Path) -> 
         "oracle_model": OracleErrorModel.load(exp.oracle_model).model_dump(),
         "oracle_fitted_now": fitted is not None,
         "runs": [r.summary() for r in runs],
+        "ran_on": ran_on,
         "commit": git_commit(),
         "machine": machine_info(),
     }

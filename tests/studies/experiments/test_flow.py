@@ -258,7 +258,7 @@ def test_the_grid_hands_its_workers_only_the_settings_that_were_set(monkeypatch:
     from studies.experiments.config import load_flow_settings
 
     jobs: list[tuple[str, ...]] = []
-    monkeypatch.setattr(report, "run_jobs", lambda _fn, given, _workers: jobs.extend(given) or [])
+    monkeypatch.setattr(report, "run_jobs", lambda _fn, given, _workers, *_rest: jobs.extend(given) or [])
     exp = load_flow_settings()
     report.run_grid(exp, load_sim_settings(exp.sim_config), load_coordinator_settings(exp.coordinator_config))
     _policy, _vehicles, _seed, _exp_json, sim_json, coord_json = jobs[0]
