@@ -172,7 +172,7 @@ eval-robustness: install ## fusion accuracy under 2x noise, 100 ms delay, extrin
 experiments: install ## the flow experiment: oracle fitted on real-chain runs, 6 arms x 10/20/40 vehicles x 5 seeds, real chain vs oracle on 3 seeds x 10/20 vehicles (~55 min) -> docs/eval/flow
 	$(BIN)/rmmdet experiments flow --out docs/eval/flow --readme
 
-experiments-city: install ## scheduling at scale: a 10x10 SUMO grid, 3 demand levels x 3 coverages x 5 seeds, the coordinator vs shortest paths / SUMO rerouting (hours) -> docs/eval/city
+experiments-city: install ## scheduling at scale: a 10x10 SUMO grid, 3 demand levels x 3 coverages x 5 seeds, the coordinator vs the routes as given / shortest paths / SUMO rerouting (about an hour with 2 workers) -> docs/eval/city
 	$(BIN)/rmmdet experiments city --out docs/eval/city
 
 experiments-cities: install ## the city study on three public real-city SUMO scenarios (Bologna x2, Hamburg): tuned on one, scored once on the others' held-out seeds -> docs/eval/city-real

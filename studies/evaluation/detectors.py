@@ -69,4 +69,17 @@ def markdown_table(results: dict[str, Any], previous: dict[str, Any] | None = No
             cells.append(ap_text(before[name], bold=False) if name in before else "-")
         cells += [_latency(r, 1), _latency(r, 2)]
         lines.append("| " + " | ".join(cells) + " |")
+    by_distance = [f"{LABELS.get(str(r['detector']), r['detector'])} {bands}" for r in _detectors(results)
+                   if (bands := distance_text(r))]  # fmt: skip
+    if by_distance:
+        lines += [
+            "",
+            "Lidar BEV AP@0.7 by distance from the agent origin (m): " + "; ".join(by_distance) + ".",
+        ]
     return "\n".join(lines)
+
+
+def distance_text(r: dict[str, Any]) -> str:
+    """A lidar detector's BEV AP@0.7 per distance band (`[0, 2)` 0.971, ...), "" if it has none."""
+    bands = [a for a in r.get("ap", []) if a["kind"] == "bev" and a["iou"] == 0.7 and a["band"] != "all"]
+    return ", ".join(f"`{a['band']}` {a['ap']:.3f}" for a in bands)

@@ -16,7 +16,16 @@ def _camera(ap50: float, p50: float = 5.0) -> dict[str, object]:
 
 
 def _lidar(name: str, bev70: float) -> dict[str, object]:
-    return {"detector": name, "frames": 600, "bev_ap70": bev70, "bev_ap50": 0.97, "ap3d_70": 0.81}
+    scored = ((0.7, "all", bev70), (0.7, "[0, 2)", 0.97134), (0.7, "[4, inf)", 0.6297), (0.5, "[0, 2)", 0.99))
+    bands = [{"kind": "bev", "iou": iou, "band": band, "ap": ap} for iou, band, ap in scored]
+    return {
+        "detector": name,
+        "frames": 600,
+        "bev_ap70": bev70,
+        "bev_ap50": 0.97,
+        "ap3d_70": 0.81,
+        "ap": bands,
+    }
 
 
 def _results(commit: str, camera_ap: float, lidar: list[dict[str, object]]) -> dict[str, object]:
@@ -42,6 +51,10 @@ def test_rows_and_the_previous_models_beside_them() -> None:
     cluster = next(line for line in lines if line.startswith("| clustering"))
     assert "| - | - | - |" in cluster  # no previous figures, no latency measured
     assert not any("oracle" in line for line in lines)  # noisy truth is not a detector
+    assert lines[-1] == (
+        "Lidar BEV AP@0.7 by distance from the agent origin (m): PointPillars (`pointpillars`) `[0, 2)` "
+        "0.971, `[4, inf)` 0.630; clustering, no learning (`cluster`) `[0, 2)` 0.971, `[4, inf)` 0.630."
+    )
 
 
 def test_without_previous_no_column_and_another_split_is_refused() -> None:
