@@ -99,3 +99,27 @@ def test_what_sumo_refuses_is_an_error_with_its_own_words(folder: Path, tmp_path
 def test_an_unknown_vtype_is_named_in_sumos_words(folder: Path) -> None:
     with pytest.raises(ScenarioError, match=r"vehicle type 'Bologna_car' .* is not known"):
         SumoWorld(folder / "grid.net.xml", folder / "typed.rou.xml", seed=1)
+
+
+def test_a_route_that_does_not_connect_is_named_in_sumos_words(folder: Path, tmp_path: Path) -> None:
+    """Two edges of the grid that do not meet as one vehicle's route: SUMO's words name both edges."""
+    import sumolib
+
+    net = sumolib.net.readNet(str(folder / "grid.net.xml"))
+    first = next(e for e in net.getEdges() if e.getFunction() != "internal")
+    apart = next(
+        e
+        for e in net.getEdges()
+        if e.getFunction() != "internal"
+        and e.getFromNode() not in (first.getToNode(), first.getFromNode())
+        and e not in first.getOutgoing()
+    )
+    routes = tmp_path / "broken.rou.xml"
+    routes.write_text(
+        f'<routes><vehicle id="Audinot_1" depart="0"><route edges="{first.getID()} {apart.getID()}"/>'
+        "</vehicle></routes>\n"
+    )
+    with pytest.raises(ScenarioError, match="SUMO refused them") as err:
+        SumoWorld(folder / "grid.net.xml", routes, seed=1)
+    message = str(err.value)
+    assert str(routes) in message and first.getID() in message and apart.getID() in message, message
