@@ -102,7 +102,8 @@ test: install pki ## lint, type-check, then unit + integration + fault tests (ex
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy
-	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet --site-dir $(RUN_DIR)/site
+	@# Not --quiet: it hides the warnings strict mode fails on. The log is shown only when the build fails.
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --site-dir $(RUN_DIR)/site >$(RUN_DIR)/mkdocs.log 2>&1 || { grep -v '^INFO' $(RUN_DIR)/mkdocs.log; exit 1; }
 	$(BIN)/python -m pytest -m "not slow" $(PYTEST_ARGS)
 
 test-unit: install
