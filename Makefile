@@ -55,19 +55,21 @@ proto: $(INSTALLED) ## (re)generate the protobuf Python code into proto/gen
 # SHARDS=N > 1: the coordinator as N region shards over the scene's region map of N regions. SITE: another
 # device site file. SPEED: sim seconds per wall second. `make up` renders the programs and the services'
 # settings into .run/profile/ (deploy/local/supervisord.conf includes the programs).
-SCENE ?= sand_table
+WORLD ?= table
+SCENARIO ?= tests/fixtures/real/sumo_scenarios/bologna_pasubio/run.sumocfg
+SCENE ?= $(if $(filter city,$(WORLD)),city,sand_table)
 SENSORS ?= sim
 SHARDS ?= 1
 SITE ?=
 SPEED ?=
 PROFILE_ARGS = --scene $(SCENE) --sensors $(SENSORS) --shards $(SHARDS) $(if $(SITE),--site $(SITE)) $(if $(SPEED),--set settings.sim.overrides.speed=$(SPEED))
 
-up: install pki ## start router and every service under supervisord (idempotent); SCENE=name; SENSORS=wire: through emulated devices and the device services; SHARDS=2: the coordinator as two region shards; SPEED=x: sim seconds per wall second
+up: install pki ## start router and every service under supervisord (idempotent); SCENE=name; SENSORS=wire: through emulated devices and the device services; SHARDS=2: the coordinator as two region shards; SPEED=x: sim seconds per wall second; WORLD=city SCENARIO=RUN.sumocfg: a SUMO scenario as the world (services/city)
 	@mkdir -p $(RUN_DIR)/logs
 	@if $(BIN)/supervisorctl -c $(SUPERVISOR_CONF) pid >/dev/null 2>&1; then \
 	  echo "already up (make down first to change the profile)"; \
 	else \
-	  $(BIN)/python -m shared.supervision.profiles $(PROFILE_ARGS) && \
+	  $(if $(filter city,$(SCENE)),$(BIN)/python -m services.city prepare --scenario $(SCENARIO) --work $(RUN_DIR)/city && )$(BIN)/python -m shared.supervision.profiles $(PROFILE_ARGS) && \
 	  $(BIN)/supervisord -c $(SUPERVISOR_CONF) && echo "supervisord started"; \
 	fi
 	@$(BIN)/python -m services.cli.main wait-ready --timeout 30

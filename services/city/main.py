@@ -13,8 +13,8 @@ plans on (`scene.yaml`: the net at 1:18, sim/sumo/scene.py) and the coordinator'
 table's with the district's overrides of deploy/experiments/city.yaml). `run` is the world process:
 - the clock: `sim_clock` at `CLOCK_HZ` (sim time moves on between SUMO's steps at the target speed),
   its presence as the sim (the coordinator ends the plans of a world that left);
-- each roadside agent: its MEC's presence token and its `objects` (TrackedObjects) every
-  `map_period_s`;
+- each roadside agent: its `objects` (TrackedObjects) every `map_period_s`, and the presence and health
+  of the sensors and MEC it stands in for (`StandIns`);
 - every car that may be routed (sim/sumo/world.py `KeptVehicles`: buses and the like keep their routes)
   asks once per lane (`SumoPlanClients`); replies and pushed plans are checked (`PlanCheck`: signature,
   TTL, the holder's key), taken as its SUMO route, and acknowledged; a plan's end too.
@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -34,21 +35,24 @@ import numpy as np
 import sumolib
 import yaml
 import zenoh
+from rmmdet.v1.health_pb2 import HealthLevel, ServiceHealth
 from rmmdet.v1.perception_pb2 import PerceptionStatus, TrackedObjects
 from rmmdet.v1.planning_pb2 import RoutePlan, RouteResponse
 from rmmdet.v1.sim_pb2 import SimClock
 
 from shared.bus import names
-from shared.bus.codec import MessageDecoder
+from shared.bus.codec import MessageDecoder, encode
+from shared.bus.health import NOMINAL
 from shared.bus.node import Node, Received
 from shared.bus.queues import BoundedQueue, OverflowPolicy
-from shared.bus.streams import get_stream
+from shared.bus.streams import get_stream, sensor_group
 from shared.config import with_overrides
+from shared.logging_setup import ReportTimer
 from shared.paths import RUN_DIR
 from shared.scene.road_network import RoadNetwork
 from shared.scene.scene import Scene
 from shared.security.plan_signing import PlanVerifier
-from shared.service import exit_process, positive_float, run_service
+from shared.service import exit_process, positive_float, report_interval_s, run_service
 from shared.shutdown import GracefulShutdown
 from shared.timebase import NS_PER_S
 from shared.traffic.config import load_coordinator_settings
@@ -73,20 +77,33 @@ CLOCK_HZ = 20.0  # sim_clock samples per wall second (SimTime extrapolates at mo
 REPLY_QUEUE = 65536  # replies held between steps
 PUSHED_QUEUE = 65536
 CITY_FILE = "city.json"  # what `prepare` chose, for `run`
+#: An agent's object lists older than this many report periods: STALE; this many: LOST (the table's
+#: 0.5 s and 3 s at a MEC's 10 Hz are 5 and 30 periods; a world stepping each second reports each second).
+STALE_PERIODS, LOST_PERIODS = 2.5, 6.0
 
 
 # --- prepare -----------------------------------------------------------------------------------------
 
 
-def prepare(scenario: Path, work: Path, coverage: float, seed: int, range_m: float) -> dict[str, Any]:
+def prepare(
+    scenario: Path, work: Path, coverage: float, seed: int, range_m: float, map_period_s: float = 1.0
+) -> dict[str, Any]:
     """Stage the scenario into `work`, place the agents, write the scene, the coordinator's settings
-    and `city.json`; what was chosen."""
+    and `city.json`; what was chosen. The agents report every `map_period_s` (SUMO's step, not a MEC's
+    10 Hz): the coordinator's coverage takes an agent as STALE after `STALE_PERIODS` of them."""
     scn = stage(load_scenario(scenario), work / "scenario")
     layout = coverage_layout(sumolib.net.readNet(str(scn.net)), coverage, seed, range_m)
     scene, ids = scene_from_sumo(scn.net, layout, scene_id="city")
     (work / "scene.yaml").write_text(yaml.safe_dump(scene.spec.model_dump(mode="json"), sort_keys=False))
     district = load_city_settings().coordinator
-    settings = with_overrides(load_coordinator_settings(), district).model_dump(mode="json")
+    reporting = {
+        "coverage": {
+            "stale_after_s": STALE_PERIODS * map_period_s,
+            "lost_after_s": LOST_PERIODS * map_period_s,
+        }
+    }
+    settings = with_overrides(with_overrides(load_coordinator_settings(), district), reporting)
+    settings = settings.model_dump(mode="json")
     settings["scene"] = str(work / "scene.yaml")
     (work / "coordinator.yaml").write_text(yaml.safe_dump(settings, sort_keys=False))
     city = {
@@ -95,6 +112,7 @@ def prepare(scenario: Path, work: Path, coverage: float, seed: int, range_m: flo
         "junctions": list(layout.junctions),
         "range_m": range_m,
         "seed": seed,
+        "map_period_s": map_period_s,
         "begin_s": scn.begin_s,
         "end_s": scn.end_s,
     }
@@ -123,6 +141,52 @@ def tracked_objects(agents: list[AgentObjects], body_m: tuple[float, float, floa
             obj.box.yaw_rad = float(np.arctan2(obj.velocity_mps.y, obj.velocity_mps.x))
         out.append(msg)
     return out
+
+
+class StandIns:
+    """The roadside agents' sensors and MECs the world stands in for (their object lists come from the
+    fitted perception model): each one's presence token and a health queryable answering NOMINAL with
+    what stands in, so that `rmmdet health` judges the city's loop like the table's."""
+
+    def __init__(self, node: Node, scene: Scene, profile: str) -> None:
+        self.node = node
+        self.start = time.monotonic()
+        self.message = f"stood in by the city world: the perception model with {profile}'s errors"
+        alive, health = get_stream("alive"), get_stream("health")
+        self._declared: list[Any] = []
+        for agent in sorted(scene.agents):
+            kinds = sorted({sensor.kind for sensor in scene.sensors_of(agent)})
+            sources = [(names.MEC, agent)] + [(names.SENSOR, sensor_group(agent, kind)) for kind in kinds]
+            for service, instance in sources:
+                ids = {"scope": agent, "service": service, "instance": instance}
+                self._declared.append(node.session.liveliness().declare_token(alive.key(**ids)))
+                self._declared.append(
+                    node.session.declare_queryable(health.key(**ids), self._answer(agent, service, instance))
+                )
+
+    def _answer(self, scope: str, service: str, instance: str) -> Any:
+        key = get_stream("health").key(scope=scope, service=service, instance=instance)
+
+        def reply(query: zenoh.Query) -> None:
+            report = ServiceHealth(
+                service=service,
+                instance=instance,
+                level=HealthLevel.HEALTH_LEVEL_NOMINAL,
+                message=self.message,
+                uptime_s=time.monotonic() - self.start,
+                pid=os.getpid(),
+                loop_age_s=0.0,
+            )
+            report.header.source_id = f"{scope}/{service}/{instance}"
+            report.header.stamp.FromNanoseconds(time.time_ns())
+            encoded = encode(report)
+            query.reply(key, encoded.payload, encoding=encoded.encoding)
+
+        return reply
+
+    def close(self) -> None:
+        for declared in self._declared:
+            declared.undeclare()
 
 
 class Fleet:
@@ -219,11 +283,7 @@ def run(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown
     ):  # fmt: skip
         clock_pub = node.publisher("sim_clock")
         object_pubs = {a: node.publisher("objects", agent=a, source_id=f"{a}/mec") for a in agents}
-        alive = get_stream("alive")
-        tokens = [  # each roadside agent's MEC is present while the world runs
-            node.session.liveliness().declare_token(alive.key(scope=a, service=names.MEC, instance=a))
-            for a in agents
-        ]
+        stand_ins = StandIns(node, scene, args.profile)
         clients = SumoPlanClients(world, ids, [lane.id for lane in scene.spec.lanes], args.request_before_m)
         fleet = Fleet(node, clients, settings, start_ns)
         begin_s = world.time_s
@@ -238,9 +298,10 @@ def run(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown
             clock_pub.put(clock, stamp_ns=stamp_of(sim_s), epoch=epoch_ns)
 
         node.health.set_status(
-            lambda: (0, f"{world.running()} running, {len(fleet.links)} asking, {len(world.kept)} kept")
+            lambda: (NOMINAL, f"{world.running()} running, {len(fleet.links)} asking, {len(world.kept)} kept")
         )
         next_map_s = begin_s
+        report = ReportTimer(report_interval_s(args))
         wall0 = time.monotonic()
         end_s = city["end_s"]
         while not shutdown.requested and (end_s is None or world.time_s < end_s):
@@ -257,8 +318,14 @@ def run(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown
                 vel[:, 0], vel[:, 1] = speed * np.cos(states.yaw_rad), speed * np.sin(states.yaw_rad)
                 for msg in tracked_objects(oracle(pos, vel), body_m):
                     object_pubs[msg.agent_id].put(msg, stamp_ns=stamp_ns, frame_id="world")
-                next_map_s = sim_s + args.map_period_s
+                next_map_s = sim_s + city["map_period_s"]
             fleet.step(stamp_ns)
+            if report.due():
+                plans = {
+                    k: v for k, v in node.counters.snapshot().items() if k.startswith(("plans/", "acks/"))
+                }
+                running, kept, asking = world.running(), len(world.kept), len(fleet.links)
+                log.info("t %.0f s: %d running, %d kept, %d asking; %s", sim_s, running, kept, asking, plans)
             # Until the next step is due: the clock moves on (the coordinator plans on sim time).
             due = wall0 + (sim_s - begin_s + args.step_s) / args.speed
             while not shutdown.requested:
@@ -266,8 +333,7 @@ def run(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown
                 publish_clock(min(sim_s + args.step_s, begin_s + (time.monotonic() - wall0) * args.speed))
                 if left <= 0 or shutdown.wait(min(left, 1.0 / CLOCK_HZ)):
                     break
-        for token in tokens:
-            token.undeclare()
+        stand_ins.close()
         for link in fleet.links.values():
             link.close()
         counts = {
@@ -282,7 +348,7 @@ def run(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
     if args.command == "prepare":
         args.work.mkdir(parents=True, exist_ok=True)
-        prepare(args.scenario, args.work, args.coverage, args.seed, args.range_m)
+        prepare(args.scenario, args.work, args.coverage, args.seed, args.range_m, args.map_period_s)
         return 0
     return run(conf, args, shutdown)
 
@@ -300,7 +366,9 @@ def add_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--range-m", type=positive_float, default=60.0, help="prepare: an agent's range, m")
     parser.add_argument("--speed", type=positive_float, default=1.0, help="run: sim seconds per wall second")
     parser.add_argument("--step-s", type=positive_float, default=1.0, help="run: SUMO's step, s")
-    parser.add_argument("--map-period-s", type=positive_float, default=1.0, help="run: object lists every")
+    parser.add_argument(
+        "--map-period-s", type=positive_float, default=1.0, help="prepare: the agents' object lists every, s"
+    )
     parser.add_argument(
         "--request-before-m", type=positive_float, default=1.0, help="run: table m before a lane's end"
     )
