@@ -58,6 +58,7 @@ from shared.timebase import NS_PER_S
 from shared.traffic.config import load_coordinator_settings
 from shared.traffic.maps import AgentObjects
 from shared.traffic.plans import Ack
+from shared.traffic.regions import partition_junctions
 from shared.vehicle.config import VehicleSettings
 from shared.vehicle.plan_client import Outcome, PlanCheck, VehicleLink
 from sim.sumo.clients import SumoPlanClients
@@ -80,6 +81,8 @@ CITY_FILE = "city.json"  # what `prepare` chose, for `run`
 #: An agent's object lists older than this many report periods: STALE; this many: LOST (the table's
 #: 0.5 s and 3 s at a MEC's 10 Hz are 5 and 30 periods; a world stepping each second reports each second).
 STALE_PERIODS, LOST_PERIODS = 2.5, 6.0
+#: The region maps `prepare` writes (deploy/profiles/scene/city.yaml names them).
+SHARD_COUNTS = (2, 4)
 
 
 # --- prepare -----------------------------------------------------------------------------------------
@@ -95,6 +98,10 @@ def prepare(
     layout = coverage_layout(sumolib.net.readNet(str(scn.net)), coverage, seed, range_m)
     scene, ids = scene_from_sumo(scn.net, layout, scene_id="city")
     (work / "scene.yaml").write_text(yaml.safe_dump(scene.spec.model_dump(mode="json"), sort_keys=False))
+    network = RoadNetwork(scene)
+    for shards in SHARD_COUNTS:  # the region maps of `make up WORLD=city SHARDS=N`
+        regions = partition_junctions(network, shards, seed=seed)
+        (work / f"regions_{shards}.json").write_text(json.dumps({"regions": regions}, indent=1) + "\n")
     district = load_city_settings().coordinator
     reporting = {
         "coverage": {

@@ -345,7 +345,8 @@ class Overlay:
         time and the lanes after `source` (none when `source` itself ends there); None if unreachable."""
         if self.end_junction[source] == junction:
             return 0.0, []
-        ends = [k for k in self._ends[junction] if k != source and np.isfinite(dist[k])]
+        # A junction where lanes only begin (a real net's entry, Pasubio's `1-begin`) ends none.
+        ends = [k for k in self._ends.get(junction, ()) if k != source and np.isfinite(dist[k])]
         if not ends:
             return None
         best = min(ends, key=lambda k: dist[k])

@@ -207,3 +207,21 @@ def test_a_shard_detours_only_for_a_clear_saving(grid: RoadNetwork) -> None:
 
     assert shard_plan(0.0) != free.lanes  # the jam is worth a detour
     assert shard_plan(0.95) == free.lanes  # ... but not one saving 95 % of the jammed route's time
+
+
+def test_a_real_city_splits_with_its_entry_junctions() -> None:
+    """Bologna's Pasubio net has junctions where lanes only begin (`1-begin`): every shard of
+    `make up WORLD=city SHARDS=2` crashed building the free-flow cliques (KeyError on such a junction)."""
+    from shared.paths import REPO_ROOT
+    from sim.sumo.scene import RoadsideLayout, scene_from_sumo
+
+    net_path = REPO_ROOT / "tests/fixtures/real/sumo_scenarios/bologna_pasubio/pasubio_buslanes.net.xml"
+    scene, _ = scene_from_sumo(net_path, RoadsideLayout(()))
+    net = RoadNetwork(scene)
+    starts_only = {net.lane_start_junction(lane) for lane in net.lanes} - {
+        net.lane_end_junction(lane) for lane in net.lanes
+    }
+    assert starts_only
+    overlay = Overlay(net, RegionMap(partition_junctions(net, 2)))
+    cliques = overlay.free_flow_cliques()
+    assert set(cliques) == {0, 1} and all(np.isfinite(c.time_s).any() for c in cliques.values())
