@@ -48,7 +48,7 @@ import foxglove
 import zenoh
 
 from services.viewer.dashboard_server import DashboardServer
-from services.viewer.view_server import start_view_server
+from services.viewer.view_server import ViewServer
 from shared.bus import names
 from shared.bus.node import Node
 from shared.paths import DEFAULT_SCENE, RUN_DIR
@@ -84,9 +84,9 @@ def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdow
             if args.dashboard_port
             else None
         )
-        server = start_view_server(
+        server = ViewServer(
             outlets.hub, args.host, args.port, args.host_name or (), args.allow_origin or (), token
-        )
+        ).start()
     except (OSError, RuntimeError, ValueError) as err:
         raise SystemExit(
             f"viewer: cannot serve on {args.host} ports {args.port}/{args.dashboard_port}: {err}"

@@ -129,8 +129,10 @@ class ViewServer:
         self._allowed = allowed_hosts(host, self.port, host_names)
         self._thread = threading.Thread(target=self._server.serve_forever, daemon=True, name="view-server")
 
-    def start(self) -> None:
+    def start(self) -> ViewServer:
+        """Serve from now on (a thread of its own); the server itself."""
         self._thread.start()
+        return self
 
     def stop(self) -> None:
         self._server.shutdown()
@@ -197,17 +199,3 @@ def _send(connection: ServerConnection, outbox: _Outbox) -> None:
     finally:
         outbox.close()
         connection.close()
-
-
-def start_view_server(
-    hub: ViewHub,
-    host: str,
-    port: int,
-    host_names: Iterable[str] = (),
-    origins: Iterable[str] = (),
-    token: str | None = None,
-) -> ViewServer:
-    """The viewer's Foxglove WebSocket server on `host:port` (port 0: any free one), started."""
-    server = ViewServer(hub, host, port, host_names, origins, token)
-    server.start()
-    return server

@@ -14,7 +14,7 @@ from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
 from services.viewer.dashboard_server import DashboardServer
-from services.viewer.view_server import start_view_server
+from services.viewer.view_server import ViewServer
 from shared.scene.scene import Scene
 from shared.viewer.feeds import Outlets, SensorFeeds
 from shared.viewer.foxglove_ws import ViewHub
@@ -79,7 +79,7 @@ def test_the_dashboard_refuses_a_foreign_origin_and_a_foreign_host(dashboard: Da
 
 
 def test_the_foxglove_server_answers_bad_requests_with_errors(test_scene: Scene) -> None:
-    viewer = start_view_server(_hub(test_scene), "127.0.0.1", 0)
+    viewer = ViewServer(_hub(test_scene), "127.0.0.1", 0).start()
     try:
         with connect(f"ws://127.0.0.1:{viewer.port}", subprotocols=[SUBPROTOCOL], open_timeout=5) as ws:  # type: ignore[list-item]
             ws.send("not json")
@@ -100,7 +100,7 @@ def test_the_foxglove_websocket_refuses_a_foreign_origin_or_host(test_scene: Sce
     """Issue 34 item 10: a page on another site cannot open the Foxglove WebSocket in the user's browser
     (403), nor a DNS-rebound name (421); the viewer's own names, no Origin (the desktop app) and
     Foxglove's web app are let through to the server, which then speaks to them as before."""
-    viewer = start_view_server(_hub(test_scene), "127.0.0.1", 0)
+    viewer = ViewServer(_hub(test_scene), "127.0.0.1", 0).start()
     url = f"ws://127.0.0.1:{viewer.port}"
     try:
         for origin in ("https://attacker.example", "http://127.0.0.1.attacker.example"):
@@ -156,7 +156,7 @@ def test_beyond_loopback_a_token_is_needed_and_frames_are_capped(test_scene: Sce
 
     board = DashboardServer("0.0.0.0", 0, {"lanes": []}, token=token)
     board.start()
-    viewer = start_view_server(_hub(test_scene), "0.0.0.0", 0, token=token)
+    viewer = ViewServer(_hub(test_scene), "0.0.0.0", 0, token=token).start()
     try:
 
         def get(path: str, headers: dict[str, str]) -> tuple[int, str | None]:
@@ -208,7 +208,7 @@ def test_the_viewer_serves_foxglove_on_its_one_checked_port_only(test_scene: Sce
     checked one, and any local process could read the live view there unchecked. Now the checked port
     is the only one the viewer listens on."""
     before = _listening_ports()
-    viewer = start_view_server(_hub(test_scene), "127.0.0.1", 0)
+    viewer = ViewServer(_hub(test_scene), "127.0.0.1", 0).start()
     try:
         assert _listening_ports() - before == {viewer.port}
     finally:
@@ -241,7 +241,7 @@ def test_the_frames_are_those_foxglove_sdk_sends(test_scene: Scene) -> None:
     reference = foxglove.start_server(name="rmmdet", host="127.0.0.1", port=0, context=context)
     outlets = Outlets(ViewHub())
     ours = [outlets.open("/grid", protobuf_schema(Grid)), outlets.open("/health", HEALTH_SCHEMA)]
-    viewer = start_view_server(outlets.hub, "127.0.0.1", 0)
+    viewer = ViewServer(outlets.hub, "127.0.0.1", 0).start()
 
     def session(port: int, subprotocol: str, log) -> tuple[list[dict], list[bytes]]:
         with connect(f"ws://127.0.0.1:{port}", subprotocols=[subprotocol], open_timeout=5) as ws:  # type: ignore[list-item]
