@@ -196,6 +196,19 @@ class StandIns:
             declared.undeclare()
 
 
+class _ArrivalStamped(BoundedQueue[Outcome]):
+    """Outcomes with the time each arrived (Zenoh's thread): request -> plan is measured to the reply's
+    arrival, not to the main loop's next step."""
+
+    def __init__(self, *args: Any) -> None:
+        super().__init__(*args)
+        self.arrived_s: dict[str, float] = {}
+
+    def put(self, item: Outcome) -> bool:
+        self.arrived_s[item.vehicle_id] = time.monotonic()
+        return super().put(item)
+
+
 class Fleet:
     """The plan clients of the world's cars on the bus: a `VehicleLink` per car that asked (closed when
     it arrives), replies and pushes applied on the main loop."""
@@ -214,7 +227,7 @@ class Fleet:
             start_ns,
         )
         self.decoder = MessageDecoder(RouteResponse, node.counters)
-        self.outcomes: BoundedQueue[Outcome] = BoundedQueue(
+        self.outcomes = _ArrivalStamped(
             REPLY_QUEUE, OverflowPolicy.DROP_OLDEST, node.counters, "dropped/plan_outcomes"
         )
         self.pushed: BoundedQueue[Received] = BoundedQueue(
@@ -222,6 +235,8 @@ class Fleet:
         )
         node.subscribe_stream("route_plan", queue=self.pushed)  # one subscription hears every push
         self.links: dict[str, VehicleLink] = {}
+        self._asked_s: dict[str, float] = {}  # vehicle -> when its open request was sent (monotonic)
+        self.latencies_s: list[float] = []  # request -> answer taken, since the last `take_latencies`
 
     def step(self, stamp_ns: int) -> None:
         for outcome in self.outcomes.drain():
@@ -229,6 +244,10 @@ class Fleet:
                 self.counters.inc(f"plans/{outcome.error}")
             else:
                 self.counters.inc("plans/replied")
+                asked = self._asked_s.pop(outcome.vehicle_id, None)
+                arrived = self.outcomes.arrived_s.pop(outcome.vehicle_id, None)
+                if asked is not None and arrived is not None:
+                    self.latencies_s.append(arrived - asked)
                 self.apply(outcome.plan, stamp_ns)
         for received in self.pushed.drain():
             plan: RoutePlan = received.message
@@ -250,11 +269,17 @@ class Fleet:
                 link = self.links[req.vehicle_id] = VehicleLink(
                     self.node, req.vehicle_id, self.timeout_s, self.check, self.decoder, self.outcomes
                 )
+            self._asked_s[req.vehicle_id] = time.monotonic()  # before sending: the reply may beat this line
             link.request(req, stamp_ns)
             self.counters.inc("plans/requested")
         gone = set(self.links) - {v.bus_id for v in self.clients.vehicles.values()}
         for vehicle_id in gone:  # arrived without a plan to end: nothing to acknowledge
             self.links.pop(vehicle_id).close()
+            self._asked_s.pop(vehicle_id, None)
+
+    def take_latencies(self) -> list[float]:
+        out, self.latencies_s = self.latencies_s, []
+        return out
 
     def apply(self, plan: RoutePlan, stamp_ns: int) -> None:
         link = self.links.get(plan.vehicle_id)
@@ -309,6 +334,7 @@ def run(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown
         )
         next_map_s = begin_s
         report = ReportTimer(report_interval_s(args))
+        reported = (begin_s, time.monotonic())  # sim time and wall time of the last report
         wall0 = time.monotonic()
         end_s = city["end_s"]
         while not shutdown.requested and (end_s is None or world.time_s < end_s):
@@ -332,7 +358,14 @@ def run(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown
                     k: v for k, v in node.counters.snapshot().items() if k.startswith(("plans/", "acks/"))
                 }
                 running, kept, asking = world.running(), len(world.kept), len(fleet.links)
-                log.info("t %.0f s: %d running, %d kept, %d asking; %s", sim_s, running, kept, asking, plans)
+                waits = fleet.take_latencies()
+                p50, p95 = (np.percentile(waits, [50, 95]) * 1e3) if waits else (float("nan"), float("nan"))
+                rtf = (sim_s - reported[0]) / max(time.monotonic() - reported[1], 1e-9)
+                reported = (sim_s, time.monotonic())
+                log.info(
+                    "t %.0f s: RTF %.2f, %d running, %d kept, %d asking; request->plan p50 %.0f / p95 %.0f "
+                    "ms; %s", sim_s, rtf, running, kept, asking, p50, p95, plans,
+                )  # fmt: skip
             # Until the next step is due: the clock moves on (the coordinator plans on sim time).
             due = wall0 + (sim_s - begin_s + args.step_s) / args.speed
             while not shutdown.requested:
