@@ -64,12 +64,12 @@ SITE ?=
 SPEED ?=
 PROFILE_ARGS = --scene $(SCENE) --sensors $(SENSORS) --shards $(SHARDS) $(if $(SITE),--site $(SITE)) $(if $(SPEED),--set settings.sim.overrides.speed=$(SPEED))
 
-up: install pki ## start router and every service under supervisord (idempotent); SCENE=name; SENSORS=wire: through emulated devices and the device services; SHARDS=2: the coordinator as two region shards; SPEED=x: sim seconds per wall second; WORLD=city SCENARIO=RUN.sumocfg: a SUMO scenario as the world (services/city)
+up: install pki ## start router and every service under supervisord (idempotent); SCENE=name; SENSORS=wire: through emulated devices and the device services; SHARDS=2: the coordinator as two region shards; SPEED=x: sim seconds per wall second; WORLD=city SCENARIO=RUN.sumocfg [CITY_SCALE=k]: a SUMO scenario as the world (services/city), its demand scaled k times
 	@mkdir -p $(RUN_DIR)/logs
 	@if $(BIN)/supervisorctl -c $(SUPERVISOR_CONF) pid >/dev/null 2>&1; then \
 	  echo "already up (make down first to change the profile)"; \
 	else \
-	  $(if $(filter city,$(SCENE)),$(BIN)/python -m services.city prepare --scenario $(SCENARIO) --work $(RUN_DIR)/city && )$(BIN)/python -m shared.supervision.profiles $(PROFILE_ARGS) && \
+	  $(if $(filter city,$(SCENE)),$(BIN)/python -m services.city prepare --scenario $(SCENARIO) --scale $(or $(CITY_SCALE),1) --work $(RUN_DIR)/city && )$(BIN)/python -m shared.supervision.profiles $(PROFILE_ARGS) && \
 	  $(BIN)/supervisord -c $(SUPERVISOR_CONF) && echo "supervisord started"; \
 	fi
 	@$(BIN)/python -m services.cli.main wait-ready --timeout 30

@@ -89,7 +89,13 @@ SHARD_COUNTS = (2, 4)
 
 
 def prepare(
-    scenario: Path, work: Path, coverage: float, seed: int, range_m: float, map_period_s: float = 1.0
+    scenario: Path,
+    work: Path,
+    coverage: float,
+    seed: int,
+    range_m: float,
+    map_period_s: float = 1.0,
+    scale: float = 1.0,
 ) -> dict[str, Any]:
     """Stage the scenario into `work`, place the agents, write the scene, the coordinator's settings
     and `city.json`; what was chosen. The agents report every `map_period_s` (SUMO's step, not a MEC's
@@ -120,6 +126,7 @@ def prepare(
         "range_m": range_m,
         "seed": seed,
         "map_period_s": map_period_s,
+        "scale": scale,
         "begin_s": scn.begin_s,
         "end_s": scn.end_s,
     }
@@ -310,7 +317,7 @@ def run(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown
         Node(conf, service=SERVICE, instance=args.instance, scope=SCOPE, stop=shutdown.event) as node,
         SumoWorld(
             scn.net, scn.routes, city["seed"], args.step_s, additional=scn.additional, begin_s=scn.begin_s,
-            keep=KeptVehicles(),
+            keep=KeptVehicles(), scale=city["scale"],
         ) as world,
     ):  # fmt: skip
         clock_pub = node.publisher("sim_clock")
@@ -388,7 +395,9 @@ def run(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown
 def main(conf: zenoh.Config, args: argparse.Namespace, shutdown: GracefulShutdown) -> int:
     if args.command == "prepare":
         args.work.mkdir(parents=True, exist_ok=True)
-        prepare(args.scenario, args.work, args.coverage, args.seed, args.range_m, args.map_period_s)
+        prepare(
+            args.scenario, args.work, args.coverage, args.seed, args.range_m, args.map_period_s, args.scale
+        )
         return 0
     return run(conf, args, shutdown)
 
@@ -404,6 +413,12 @@ def add_args(parser: argparse.ArgumentParser) -> None:
         "--seed", type=int, default=1, help="prepare: agents' draw, SUMO's and the model's seed"
     )
     parser.add_argument("--range-m", type=positive_float, default=60.0, help="prepare: an agent's range, m")
+    parser.add_argument(
+        "--scale",
+        type=positive_float,
+        default=1.0,
+        help="prepare: the scenario's demand scaled (SUMO --scale)",
+    )
     parser.add_argument("--speed", type=positive_float, default=1.0, help="run: sim seconds per wall second")
     parser.add_argument("--step-s", type=positive_float, default=1.0, help="run: SUMO's step, s")
     parser.add_argument(
