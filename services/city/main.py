@@ -102,7 +102,7 @@ def prepare(
     10 Hz): the coordinator's coverage takes an agent as STALE after `STALE_PERIODS` of them."""
     scn = stage(load_scenario(scenario), work / "scenario")
     layout = coverage_layout(sumolib.net.readNet(str(scn.net)), coverage, seed, range_m)
-    scene, ids = scene_from_sumo(scn.net, layout, scene_id="city")
+    scene, _ = scene_from_sumo(scn.net, layout, scene_id="city")
     (work / "scene.yaml").write_text(yaml.safe_dump(scene.spec.model_dump(mode="json"), sort_keys=False))
     network = RoadNetwork(scene)
     for shards in SHARD_COUNTS:  # the region maps of `make up WORLD=city SHARDS=N`
@@ -131,7 +131,12 @@ def prepare(
         "end_s": scn.end_s,
     }
     (work / CITY_FILE).write_text(json.dumps(city, indent=2) + "\n")
-    log.info("city prepared in %s: %d roadside agents, %d lanes", work, len(layout.junctions), len(ids))
+    log.info(
+        "city prepared in %s: %d roadside agents, %d lanes",
+        work,
+        len(layout.junctions),
+        len(scene.spec.lanes),
+    )
     return city
 
 
