@@ -10,7 +10,6 @@ Settings: `deploy/experiments/city-real.yaml` (`RealCitiesSettings`).
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 from pathlib import Path
@@ -19,10 +18,9 @@ from typing import Any
 from pydantic import Field
 
 from shared.config import RmmdetSettings, load_settings, settings_config
-from shared.machine import git_commit, machine_info
 from shared.paths import REPO_ROOT
 from studies.city.config import CityStudySettings, load_city_settings
-from studies.city.study import COMPARED, COVERAGE_FREE, run_study
+from studies.city.study import COMPARED, COVERAGE_FREE, run_study, write_results
 from studies.stats import paired_cell
 
 log = logging.getLogger(__name__)
@@ -94,17 +92,9 @@ def run_cities(s: RealCitiesSettings, work: Path, out: Path) -> dict[str, Any]:
     for name in s.scenarios:
         if name != s.tuning:
             held_out[name] = run_study(_study(s, name, coordinator=coordinator), work / name, out / name)
-    results = {
-        "settings": s.model_dump(mode="json"),
-        "tuning": tuning,
-        "held_out": held_out,
-        "wall_s": round(time.perf_counter() - t0, 1),
-        "commit": git_commit(),
-        "machine": machine_info(),
-    }
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps(results, indent=2, default=float) + "\n")
-    return results
+    return write_results(
+        out, {"settings": s.model_dump(mode="json"), "tuning": tuning, "held_out": held_out}, t0
+    )
 
 
 def markdown_table(results: dict[str, Any]) -> str:

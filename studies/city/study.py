@@ -168,11 +168,15 @@ def run_study(s: CityStudySettings, work: Path, out: Path) -> dict[str, Any]:
     t0 = time.perf_counter()
     ran_on: list[dict[str, Any]] = []
     runs = list(run_jobs(_run, jobs(s, work), s.workers, ran_on))
+    body = {"settings": s.model_dump(mode="json"), "runs": runs, "comparisons": comparisons(runs, s)}
+    return write_results(out, {**body, "ran_on": ran_on}, t0)
+
+
+def write_results(out: Path, body: dict[str, Any], t0: float) -> dict[str, Any]:
+    """`body` with the wall time since `t0` (perf_counter), the commit and the machine, written to
+    `out/results.json`; the results."""
     results = {
-        "settings": s.model_dump(mode="json"),
-        "runs": runs,
-        "comparisons": comparisons(runs, s),
-        "ran_on": ran_on,
+        **body,
         "wall_s": round(time.perf_counter() - t0, 1),
         "commit": git_commit(),
         "machine": machine_info(),
